@@ -1,0 +1,199 @@
+"""Typed configuration, loaded from one TOML file; defaults are the paper's Table 1 identified values.
+
+Every section is a frozen dataclass. Field metadata gives the unit and the physical range, so a wrong value
+ends in one line naming the file and the key (`ConfigError`). Later issues add sections here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rig.errors import ConfigError
+
+MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
+
+
+def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None):
+    """A config field with its unit and physical range."""
+    return field(default=default, metadata={"unit": unit, "gt": gt, "ge": ge, "le": le, "lt": lt,
+                                            "choices": choices})
+
+
+@dataclass(frozen=True)
+class ActuatorConfig:
+    """Table 1, actuator data (CAD estimates; C and K_L identified)."""
+    M: float = _f(56.0, "kg", gt=0)            # moving mass
+    A_p: float = _f(3.10e-2, "m^2", gt=0)      # active piston area
+    C: float = _f(1951.0, "N s/m", ge=0)       # viscous coefficient (identified)
+    V_t: float = _f(5.39e-4, "m^3", gt=0)      # total chamber volume
+    K_L: float = _f(6.8e8, "N/m", gt=0)        # static (membrane spring) stiffness
+    stroke_m: float = _f(1.0e-3, "m", gt=0)    # usable stroke either side of mid-stroke
+
+
+@dataclass(frozen=True)
+class ValveConfig:
+    """Table 1, proportional valve (D3FP) data; identified values."""
+    K_v: float = _f(2.0, "mA/V", gt=0)          # driver gain, voltage -> current
+    K_Q: float = _f(1.94e-6, "m^3/s/mA", gt=0)  # flow gain
+    K_C: float = _f(6.6e-11, "m^3/s/Pa", gt=0)  # flow-pressure coefficient
+    w_nv: float = _f(524.0, "rad/s", gt=0)      # apparent natural frequency
+    zeta: float = _f(0.65, "", gt=0)            # apparent damping ratio
+    max_V: float = _f(10.0, "V", gt=0)          # command range of the valve amplifier (+-)
+
+
+@dataclass(frozen=True)
+class FluidConfig:
+    beta: float = _f(1.4e9, "Pa", gt=0)         # effective bulk modulus
+
+
+@dataclass(frozen=True)
+class MachineConfig:
+    """The flexible machine on the four mounts (Eq. 15, Table 2)."""
+    mass_kg: float = _f(16000.0, "kg", gt=0)
+    modal_model: str = _f("", "path")           # empty: the embedded Table 2 model (sim_backend/data)
+    modal_damping: float = _f(0.03, "", gt=0, lt=1)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    rate_hz: float = _f(5000.0, "Hz", gt=0, le=100000)
+    overrun_policy: str = _f("skip", "", choices=("skip", "catch_up"))
+    realtime: bool = _f(True, "")               # try SCHED_FIFO, affinity, mlockall where allowed
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    name: str = _f("sim", "", choices=("sim", "hil", "hardware"))
+
+
+@dataclass(frozen=True)
+class VibrationConfig:
+    """Broadband floor vibration for demos and HIL (paper: 1-50 um in 1-50 Hz)."""
+    band_lo_hz: float = _f(1.0, "Hz", gt=0)
+    band_hi_hz: float = _f(50.0, "Hz", gt=0)
+    rms_m: float = _f(10e-6, "m", ge=0)
+    seed: int = _f(1, "")
+
+
+@dataclass(frozen=True)
+class Config:
+    actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
+    valve: ValveConfig = field(default_factory=ValveConfig)
+    fluid: FluidConfig = field(default_factory=FluidConfig)
+    machine: MachineConfig = field(default_factory=MachineConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    vibration: VibrationConfig = field(default_factory=VibrationConfig)
+    source: str = "<defaults: Table 1>"        # where it came from, for messages
+
+    def replace(self, **sections) -> "Config":
+        return dataclasses.replace(self, **sections)
+
+
+def _check_value(where: str, name: str, ftype, meta, value):
+    """Return value converted to ftype, or raise ConfigError naming where.name."""
+    origin = typing.get_origin(ftype)
+    if ftype is float or ftype == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}.{name}: expected a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}.{name}: expected a finite number, got {value!r}")
+    elif ftype is int or ftype == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}.{name}: expected an integer, got {value!r}")
+    elif ftype is bool or ftype == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}.{name}: expected true or false, got {value!r}")
+    elif ftype is str or ftype == "str":
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}.{name}: expected a string, got {value!r}")
+    elif origin in (list, tuple) or ftype in ("list[float]", "tuple[float, ...]"):
+        if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                  for v in value):
+            raise ConfigError(f"{where}.{name}: expected a list of numbers, got {value!r}")
+        value = tuple(float(v) for v in value)
+    unit = f" {meta['unit']}" if meta.get("unit") and meta["unit"] != "path" else ""
+    for key, ok, word in (("gt", lambda v, b: v > b, ">"), ("ge", lambda v, b: v >= b, ">="),
+                          ("lt", lambda v, b: v < b, "<"), ("le", lambda v, b: v <= b, "<=")):
+        bound = meta.get(key)
+        if bound is not None and isinstance(value, (int, float)) and not ok(value, bound):
+            raise ConfigError(f"{where}.{name}: expected {word} {bound}{unit}, got {value!r}")
+    if meta.get("choices") and value not in meta["choices"]:
+        raise ConfigError(f"{where}.{name}: expected one of {', '.join(meta['choices'])}, got {value!r}")
+    return value
+
+
+def _build_section(cls, data: dict, where: str):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table [{where.split(': ')[-1]}], got {data!r}")
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in known:
+            raise ConfigError(f"{where}.{key}: unknown key (known: {', '.join(known)})")
+    kwargs = {}
+    for key, value in data.items():
+        f = known[key]
+        kwargs[key] = _check_value(where, key, hints[key], f.metadata, value)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict, source: str = "<dict>") -> Config:
+    """Build and validate a Config from parsed TOML."""
+    hints = typing.get_type_hints(Config)
+    sections = {f.name for f in dataclasses.fields(Config) if f.name != "source"}
+    kwargs = {}
+    for name, value in data.items():
+        if name not in sections:
+            raise ConfigError(f"{source}: [{name}]: unknown section (known: {', '.join(sorted(sections))})")
+        kwargs[name] = _build_section(hints[name], value, f"{source}: {name}")
+    cfg = Config(**kwargs, source=source)
+    _check_cross(cfg)
+    return cfg
+
+
+def _check_cross(cfg: Config) -> None:
+    """Checks that involve more than one key."""
+    v = cfg.vibration
+    if v.band_hi_hz <= v.band_lo_hz:
+        raise ConfigError(f"{cfg.source}: vibration.band_hi_hz: expected > band_lo_hz ({v.band_lo_hz} Hz), "
+                          f"got {v.band_hi_hz}")
+    if cfg.machine.modal_model:
+        p = Path(cfg.machine.modal_model)
+        if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):
+            p = Path(cfg.source).parent / p
+        if not p.is_file():
+            raise ConfigError(f"{cfg.source}: machine.modal_model: file not found: {p}")
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Load FILE, or the Table 1 defaults when path is None."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: cannot read config file ({e.__class__.__name__}: {e})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: invalid TOML: {e}") from None
+    return config_from_dict(data, source=str(p))
+
+
+def modal_model_path(cfg: Config) -> Path | None:
+    """Resolved path of the user's modal model file, or None for the embedded one."""
+    if not cfg.machine.modal_model:
+        return None
+    p = Path(cfg.machine.modal_model)
+    if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):
+        p = Path(cfg.source).parent / p
+    return p

@@ -1,0 +1,45 @@
+"""The one port every backend implements (drivers/ for hardware, sim_backend/ for the simulated plant).
+
+The loop only ever sees this protocol: read -> check -> update -> limit -> write -> record. Values are plain
+Python floats in fixed-size lists (index = mount, in `rig.config.MOUNTS` order) so the hot path stays cheap.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(slots=True)
+class Measurements:
+    """One set of sensor values; all lists have one entry per mount."""
+    t_ns: int                          # loop time of the read (monotonic clock, integer ns)
+    accel_mps2: list[float]            # absolute vertical acceleration at the mount (low-frequency accelerometer)
+    stroke_m: list[float]              # displacement transducer: piston relative to housing, + = extend
+    sample_t_ns: list[int]             # time stamp of the newest device sample behind each mount's values
+    spool_actual: list[float] = field(default_factory=list)  # valve-reported spool value, -1..1 (if available)
+    device_fault: str | None = None    # a device reported a fault: one line naming the device and the reason
+
+
+@dataclass(slots=True)
+class Commands:
+    valve_cmd_V: list[float]           # valve amplifier command per mount, volts (0 = null)
+
+
+@runtime_checkable
+class Port(Protocol):
+    """What the loop needs from a backend. `open` may do slow configuration (SDO, register set-up);
+    `read` and `write` run inside the control period and must not block on a bus request."""
+
+    n_mounts: int
+    name: str
+
+    def open(self) -> None: ...
+
+    def read(self, t_ns: int) -> Measurements: ...
+
+    def write(self, t_ns: int, commands: Commands) -> None: ...
+
+    def safe_state(self) -> None:
+        """Valve(s) to null: the actuator is then passive and stiff. Must be safe to call at any time."""
+
+    def close(self) -> None: ...
