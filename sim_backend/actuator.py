@@ -5,7 +5,8 @@ and (when the base mode is on) the stand's position x_b and velocity v_b. The co
 at the sample rate and integrated with fixed-step RK4 at an inner step well below 1/w_h.
 
 Measured outputs at each sample instant t_k (before the command u_k takes effect, as a DAC/ADC pair does):
-  position_m  = x_p - x_b   (inductive transducer: piston relative to housing)
+  position_m  = x_p         (absolute piston position: fits p03_base to the noise floor with m_b = 280 kg;
+                             the relative x_p - x_b left a 3e-7 m residual at any stand mass)
   accel_mps2  = d2x_p/dt2   (accelerometer on the moving part, absolute)
 
 Effects (all off by default; names and keys as in ../shared/recordings/README.md):
@@ -38,7 +39,7 @@ class Effects:
     friction_force_n: float = 0.0             # 0 = off
     base_frequency_hz: float = 0.0            # 0 = off
     base_damping_ratio: float = 0.03
-    base_mass_kg: float = 200.0
+    base_mass_kg: float = 280.0               # fitted on p03_base (5 M); mass ratio M/m_b = 0.2
     disturbance_frequency_hz: float = 0.0     # 0 = off
     disturbance_force_n: float = 0.0
     disturbance_phase_rad: float = 0.0
@@ -135,7 +136,7 @@ def _simulate(cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph,
     for k in range(n):
         t0 = k / fs
         # sample outputs at t_k (acceleration from the derivative with the current input)
-        pos_out[k] = y[3] - y[5]
+        pos_out[k] = y[3]
         spool_out[k] = y[0]
         for j in range(n_sub):
             t = t0 + j * h
@@ -147,13 +148,9 @@ def _simulate(cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph,
                     ts = t + h
                 else:
                     ts = t + 0.5 * h
-                idx = int(math.floor((ts - delay_s) * fs + 1e-9))
-                if idx < 0:
-                    u = 0.0
-                elif idx >= n:
-                    u = cmd_V[n - 1]
-                else:
-                    u = cmd_V[idx]
+                # the command held over [t_k, t_k+1) is u_k, also at the interval's end point
+                idx = min(int(math.floor((ts - delay_s) * fs + 1e-9)), k)
+                u = cmd_V[idx] if idx >= 0 else 0.0
                 i_cmd = K_v * u
                 if sat > 0.0:
                     if i_cmd > sat:
@@ -215,3 +212,102 @@ def linear_chirp(fs: float, duration_s: float, f0_hz: float = 0.1, f1_hz: float 
     t = np.arange(n) / fs
     phase = 2 * np.pi * (f0_hz * t + 0.5 * (f1_hz - f0_hz) / duration_s * t ** 2)
     return t, amplitude_V * np.sin(phase)
+
+
+@numba.njit(cache=True)
+def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out):
+    """Advance the stand one sample period [t_k, t_k+1) with commands from the ring `hist` (index mod len).
+
+    out[0] = acceleration at t_k (before advancing), out[1] = relative position at t_k+1."""
+    L = hist.shape[0]
+    h = 1.0 / (fs * n_sub)
+    k1 = np.zeros(7); k2 = np.zeros(7); k3 = np.zeros(7); k4 = np.zeros(7); yt = np.zeros(7)
+    w_d = 2.0 * math.pi * dist_f
+    t0 = k / fs
+    for j in range(n_sub):
+        t = t0 + j * h
+        for stage in range(4):
+            if stage == 0:
+                ts = t
+            elif stage == 3:
+                ts = t + h
+            else:
+                ts = t + 0.5 * h
+            idx = int(math.floor((ts - delay_s) * fs + 1e-9))
+            if idx < 0 or idx < k - L + 1:
+                u = 0.0
+            else:
+                u = hist[min(idx, k) % L]
+            i_cmd = K_v * u
+            if sat > 0.0:
+                if i_cmd > sat:
+                    i_cmd = sat
+                elif i_cmd < -sat:
+                    i_cmd = -sat
+            f_d = dist_F * math.sin(w_d * ts + dist_ph) if dist_F != 0.0 else 0.0
+            if stage == 0:
+                _deriv(y, i_cmd, f_d, prm, k1)
+                if j == 0:
+                    out[0] = k1[4]
+                for q in range(7):
+                    yt[q] = y[q] + 0.5 * h * k1[q]
+            elif stage == 1:
+                _deriv(yt, i_cmd, f_d, prm, k2)
+                for q in range(7):
+                    yt[q] = y[q] + 0.5 * h * k2[q]
+            elif stage == 2:
+                _deriv(yt, i_cmd, f_d, prm, k3)
+                for q in range(7):
+                    yt[q] = y[q] + h * k3[q]
+            else:
+                _deriv(yt, i_cmd, f_d, prm, k4)
+        for q in range(7):
+            y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
+    out[1] = y[3] - y[5]
+
+
+class StandPlant:
+    """One actuator on its test stand, stepped one sample period at a time (for the loop's sim backend).
+
+    Same physics and effects as `simulate_stand` (a test checks they agree). `step(cmd_V)` holds cmd_V over
+    one period; afterwards `position_m` is the transducer value at the new instant and `accel_mps2` the
+    acceleration at the start of the period (as sampled by the ADC at t_k), both with sensor noise."""
+
+    n_mounts = 1
+
+    def __init__(self, p: ActuatorParams, fx: Effects = Effects(), fs: float = 1000.0, *,
+                 inner_step: float | None = None):
+        self.p, self.fx, self.fs = p, fx, float(fs)
+        h = inner_step or inner_step_s(p, fx)
+        self.n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
+        m_b = fx.base_mass_kg
+        w_b = 2 * math.pi * fx.base_frequency_hz
+        self.prm = np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
+                             fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
+                             1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
+                             2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+        self.hist = np.zeros(int(math.ceil(fx.delay_s * fs)) + 4)
+        self.y = np.zeros(7)
+        self.k = 0
+        self._out = np.zeros(2)
+        self.rng = np.random.default_rng(fx.seed)
+        self.position_m = self._noisy_pos(0.0)
+        self.accel_mps2 = 0.0
+        self.t_s = 0.0
+
+    def _noisy_pos(self, x):
+        return x + (self.fx.position_noise_m * self.rng.standard_normal() if self.fx.position_noise_m else 0.0)
+
+    def step(self, cmd_V: float) -> tuple[float, float]:
+        fx = self.fx
+        self.hist[self.k % len(self.hist)] = cmd_V
+        _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
+                       fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
+                       fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
+                       fx.disturbance_phase_rad, self._out)
+        self.k += 1
+        self.t_s = self.k / self.fs
+        self.accel_mps2 = float(self._out[0]) + (fx.accel_noise_mps2 * self.rng.standard_normal()
+                                                 if fx.accel_noise_mps2 else 0.0)
+        self.position_m = self._noisy_pos(float(self._out[1]))
+        return self.position_m, self.accel_mps2

@@ -1,0 +1,218 @@
+"""The simulated backend behind rig.port.Port (SIL), with fault knobs.
+
+`read(t_ns)` advances the plant, one loop period per plant step with the last written command held (ZOH),
+up to t_ns, then returns the sensors. The same code runs in lockstep with simulated time (SimClock: the loop
+jumps from deadline to deadline) and in real time (MonotonicClock: the plant keeps pace with the wall
+clock; a late loop makes the plant take several steps with the held command, as the real rig would).
+
+Plants (any object with these):
+  .step(valve_cmd_V: list[float])  one loop period with the command held
+  .accel_mps2, .stroke_m           sensor values after the step (sequences, one per mount)
+Four mounts: sim_backend.rig_plant.RigPlant. One actuator on its stand: StandPlant wrapped by `StandAdapter`
+(n_mounts = 1; stroke_m is the stand's position_m).
+
+Fault knobs (`inject`), each from time at_s on (ns resolution), per mount:
+  drop     the sample is no longer refreshed: values and time stamp held        -> stale
+  stale    time stamps lag by age_s (a driver delivering old samples)           -> stale
+  nan      the sensor ("accel" or "stroke") reads NaN                           -> implausible
+  stuck    the sensor value freezes while the time stamp stays fresh           -> stuck
+  range    the sensor reads `value` (default far outside the range)            -> implausible
+  device   the backend reports a device fault text                             -> device fault
+  overrun  read() costs extra_s more (once; every period with `every=True`)     -> overrun / watchdog
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.port import Commands, Measurements
+from rig.errors import RigError
+
+KINDS = ("drop", "stale", "nan", "stuck", "range", "device", "overrun")
+
+
+@dataclass
+class _Fault:
+    kind: str
+    mount: int
+    at_ns: int
+    sensor: str = "accel"
+    age_ns: int = 10_000_000
+    value: float = 1e3
+    extra_ns: int = 0
+    every: bool = False
+    text: str = ""
+    fired: bool = False
+    held: tuple | None = None
+
+
+class StandAdapter:
+    """One actuator on its test stand as a one-mount plant: stroke_m <- position_m."""
+
+    def __init__(self, stand) -> None:
+        self.stand = stand
+        self.accel_mps2 = [0.0]
+        self.stroke_m = [0.0]
+
+    def step(self, valve_cmd_V) -> None:
+        pos, acc = self.stand.step(float(valve_cmd_V[0]))
+        self.accel_mps2[0] = float(acc)
+        self.stroke_m[0] = float(pos)
+
+
+class SimBackend:
+    """Port over a stepped plant. dt is the loop period (one plant step); noise is added here (seeded,
+    Gaussian, rms accel_noise_mps2 / stroke_noise_m) unless set to 0: real sensors are never bit-exact
+    constant, and the stuck check relies on that."""
+
+    name = "sim"
+
+    def __init__(self, plant, dt: float, *, n_mounts: int | None = None, clock=None, seed: int = 0,
+                 accel_noise_mps2: float = 1e-4, stroke_noise_m: float = 2e-9,
+                 cmd_delay_periods: int = 0) -> None:
+        self.plant = plant
+        self.dt = float(dt)
+        self.dt_ns = int(round(dt * 1e9))
+        self.n_mounts = int(n_mounts if n_mounts is not None else len(plant.accel_mps2))
+        self.clock = clock
+        self.cmd_delay_periods = int(cmd_delay_periods)
+        n = self.n_mounts
+        self._cmd = [0.0] * n
+        self._pipe = [[0.0] * n for _ in range(self.cmd_delay_periods)]
+        self._t0_ns: int | None = None
+        self._k = 0
+        self._faults: list[_Fault] = []
+        rng = np.random.default_rng(seed)
+        self._noise_len = 65521                  # prime: the table does not line up with the period
+        self._na = (accel_noise_mps2 * rng.standard_normal(self._noise_len)).tolist()
+        self._nx = (stroke_noise_m * rng.standard_normal(self._noise_len)).tolist()
+        self._ni = 0
+        self.opened = False
+        self.safe_calls = 0
+        self.writes = 0
+        self.last_written = [0.0] * n           # what the valve(s) got last (null after safe_state)
+
+    # ---- Port ---------------------------------------------------------------------------------------
+    def open(self) -> None:
+        self.opened = True
+
+    def close(self) -> None:
+        self.opened = False
+
+    def safe_state(self) -> None:
+        n = self.n_mounts
+        self._cmd = [0.0] * n
+        self._pipe = [[0.0] * n for _ in range(self.cmd_delay_periods)]
+        self.last_written = [0.0] * n
+        self.safe_calls += 1
+
+    def write(self, t_ns: int, commands: Commands) -> None:
+        c = list(commands.valve_cmd_V)
+        if len(c) != self.n_mounts:
+            raise RigError(f"sim backend: {len(c)} valve commands for {self.n_mounts} mounts")
+        self._cmd = c
+        self.last_written = c
+        self.writes += 1
+
+    def read(self, t_ns: int) -> Measurements:
+        if self._t0_ns is None:
+            self._t0_ns = t_ns
+        target = (t_ns - self._t0_ns) // self.dt_ns
+        plant = self.plant
+        while self._k < target:
+            if self.cmd_delay_periods:
+                self._pipe.append(self._cmd)
+                plant.step(self._pipe.pop(0))
+            else:
+                plant.step(self._cmd)
+            self._k += 1
+        n = self.n_mounts
+        acc = plant.accel_mps2
+        xs = plant.stroke_m
+        i = self._ni
+        na, nx, L = self._na, self._nx, self._noise_len
+        a_out = [0.0] * n
+        x_out = [0.0] * n
+        for m in range(n):
+            j = (i + m) % L
+            a_out[m] = float(acc[m]) + na[j]
+            x_out[m] = float(xs[m]) + nx[j]
+        self._ni = (i + n) % L
+        meas = Measurements(t_ns=t_ns, accel_mps2=a_out, stroke_m=x_out, sample_t_ns=[t_ns] * n)
+        if self._faults:
+            self._apply_faults(t_ns, meas)
+        return meas
+
+    # ---- fault knobs --------------------------------------------------------------------------------
+    def inject(self, kind: str, *, mount: int = 0, at_s: float = 0.0, sensor: str = "accel",
+               age_s: float = 0.01, value: float = 1e3, extra_s: float = 0.0, every: bool = False,
+               text: str = "valve amplifier reports over-temperature") -> None:
+        """Schedule a fault from loop time at_s (seconds after the first read)."""
+        if kind not in KINDS:
+            raise RigError(f"sim backend: unknown fault knob {kind!r} (expected one of {', '.join(KINDS)})")
+        if not 0 <= mount < self.n_mounts:
+            raise RigError(f"sim backend: fault knob mount {mount} outside 0..{self.n_mounts - 1}")
+        if sensor not in ("accel", "stroke"):
+            raise RigError(f"sim backend: fault knob sensor {sensor!r} (expected accel or stroke)")
+        self._faults.append(_Fault(kind, mount, int(round(at_s * 1e9)), sensor, int(round(age_s * 1e9)),
+                                   float(value), int(round(extra_s * 1e9)), every, text))
+
+    def clear_faults(self) -> None:
+        self._faults.clear()
+
+    def _apply_faults(self, t_ns: int, m: Measurements) -> None:
+        rel = t_ns - (self._t0_ns or 0)
+        for f in self._faults:
+            if rel < f.at_ns:
+                continue
+            i = f.mount
+            field = m.accel_mps2 if f.sensor == "accel" else m.stroke_m
+            k = f.kind
+            if k == "drop":
+                if f.held is None:                         # the last delivered sample, before the drop
+                    f.held = (m.accel_mps2[i], m.stroke_m[i], t_ns - self.dt_ns)
+                m.accel_mps2[i], m.stroke_m[i], m.sample_t_ns[i] = f.held
+            elif k == "stale":
+                m.sample_t_ns[i] = t_ns - f.age_ns
+            elif k == "nan":
+                field[i] = math.nan
+            elif k == "stuck":
+                if f.held is None:
+                    f.held = (field[i],)
+                field[i] = f.held[0]
+            elif k == "range":
+                field[i] = f.value
+            elif k == "device":
+                m.device_fault = f"sim mount {i}: {f.text}"
+            elif k == "overrun":
+                if f.every or not f.fired:
+                    f.fired = True
+                    if self.clock is None:
+                        raise RigError("sim backend: the overrun knob needs the loop's clock (clock=...)")
+                    self.clock.spend(f.extra_ns)
+
+
+def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | None = None,
+                  stand_params=None, stand_effects=None, floor=None, **kw) -> SimBackend:
+    """The simulated backend for a config: mode "rig" (four mounts, RigPlant under floor vibration) or
+    "stand" (one actuator, StandPlant)."""
+    seed = cfg.vibration.seed if seed is None else seed
+    if mode == "rig":
+        try:
+            from sim_backend.rig_plant import RigPlant
+        except ImportError as e:
+            raise RigError(f"sim backend: sim_backend/rig_plant.py (RigPlant) is not available ({e})") from None
+        plant = RigPlant(cfg, dt, floor=floor, seed=seed) if floor is not None else RigPlant(cfg, dt, seed=seed)
+        return SimBackend(plant, dt, clock=clock, seed=seed, **kw)
+    if mode == "stand":
+        try:
+            from sim_backend.actuator import StandPlant, Effects
+        except ImportError as e:
+            raise RigError(f"sim backend: sim_backend/actuator.py has no StandPlant yet ({e})") from None
+        from sim_backend.linear import ActuatorParams
+        p = stand_params or ActuatorParams.from_config(cfg)
+        plant = StandAdapter(StandPlant(p, stand_effects or Effects(), 1.0 / dt))
+        return SimBackend(plant, dt, n_mounts=1, clock=clock, seed=seed, **kw)
+    raise RigError(f"sim backend: mode {mode!r} (expected rig or stand)")

@@ -1,0 +1,106 @@
+"""ADAM-6024-style analog I/O module: a pymodbus TCP server on 127.0.0.1, run in its own process.
+
+Register map (drivers/devicemaps/adam6024_modbus.md): holding registers, 0-based address = 4xxxx - 40001.
+  0-5   AI ch0-5  (40001-40006)  0..65535 = -10..+10 V; ch0-3 accelerometers of the four mounts
+  8     40009  conversion counter (+1 per ADC conversion, wraps at 65536)
+  9     40010  module status: bit0 host watchdog tripped (write 0 to clear)
+  10-11 AO ch0-1  (40011-40012)  0..65535 = -10..+10 V
+  12-13 40013-40014 AO safe values, applied when the host watchdog trips
+  20    40021  host watchdog timeout in 0.1 s (0 = off)
+The accelerometer voltages come from the shared plant state; fault knobs from the shared MODBUS_MODE.
+"""
+from __future__ import annotations
+
+import asyncio
+import os
+import random
+import time
+
+from pymodbus.constants import ExcCodes
+
+from sim_backend.emulators import shared as sh
+
+N_REGS = 32
+REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG = 0, 8, 9, 10, 12, 20
+
+
+def volts_to_raw(v: float) -> int:
+    """+-10 V -> 0..65535 (ADAM two's offset style), clamped like the module's ADC."""
+    raw = round((v + 10.0) * 65535.0 / 20.0)
+    return 0 if raw < 0 else 65535 if raw > 65535 else int(raw)
+
+
+def raw_to_volts(raw: int) -> float:
+    return raw * 20.0 / 65535.0 - 10.0
+
+
+class Module:
+    """The module's behaviour behind the registers (sensitivity: accelerometer V per m/s^2)."""
+
+    def __init__(self, arr, sensitivity_V_per_mps2: float):
+        self.arr = arr
+        self.k = sensitivity_V_per_mps2
+        self.last_request = time.monotonic()
+        self.frozen: list[int] | None = None
+
+    def watchdog(self, regs: list[int]) -> None:
+        """The host watchdog: no request for the configured time -> AO to safe values, status bit set."""
+        timeout_s = regs[REG_WDOG] * 0.1
+        now = time.monotonic()
+        if timeout_s > 0 and now - self.last_request > timeout_s:
+            regs[REG_AO:REG_AO + 2] = regs[REG_AO_SAFE:REG_AO_SAFE + 2]
+            regs[REG_STATUS] |= 1
+        self.last_request = now
+
+    async def action(self, func_code, start, address, count, regs, set_values):
+        mode = int(self.arr[sh.MODBUS_MODE])
+        if mode == sh.SILENCE:                    # stop answering while the knob is set
+            while int(self.arr[sh.MODBUS_MODE]) == sh.SILENCE:
+                await asyncio.sleep(0.005)
+            return ExcCodes.GATEWAY_NO_RESPONSE   # the answer is late anyway
+        if mode == sh.EXCEPTION:
+            return ExcCodes.DEVICE_FAILURE
+        self.watchdog(regs)
+        if mode == sh.STALE:
+            if self.frozen is None:
+                self.frozen = list(regs[:REG_STATUS])
+            regs[:REG_STATUS] = self.frozen
+            return None
+        self.frozen = None
+        count_, _t, accel, _stroke = sh.snapshot(self.arr)
+        for ch in range(6):
+            v = accel[ch] * self.k if ch < sh.N_MOUNTS else 0.0
+            regs[REG_AI + ch] = volts_to_raw(v)
+        regs[REG_COUNT] = count_ & 0xFFFF
+        return None
+
+
+def serve(arr, port_conn, sensitivity_V_per_mps2: float, host: str = "127.0.0.1") -> None:
+    """Process entry: bind an ephemeral port on loopback, report it on port_conn, serve until the parent
+    goes away or sends anything on port_conn."""
+    from pymodbus.server import ModbusTcpServer
+    from pymodbus.simulator import DataType, SimData, SimDevice
+
+    parent = os.getppid()
+    module = Module(arr, sensitivity_V_per_mps2)
+
+    def trace_packet(sending: bool, data: bytes) -> bytes:
+        if sending and int(arr[sh.MODBUS_MODE]) == sh.GARBAGE:
+            return bytes(random.getrandbits(8) for _ in range(len(data)))
+        return data
+
+    async def main():
+        device = SimDevice(id=0, simdata=[SimData(0, count=N_REGS, values=0, datatype=DataType.REGISTERS)],
+                           action=module.action)
+        server = ModbusTcpServer(device, address=(host, 0), trace_packet=trace_packet)
+        await server.serve_forever(background=True)
+        port = server.transport.sockets[0].getsockname()[1]
+        port_conn.send(port)
+        while os.getppid() == parent and not port_conn.poll():
+            await asyncio.sleep(0.05)
+        await server.shutdown()
+
+    try:
+        asyncio.run(main())
+    except KeyboardInterrupt:
+        pass

@@ -1,0 +1,53 @@
+"""Plant state shared between the emulated rig (main process) and the device processes.
+
+One float64 shared array. The plant thread is the only writer of the sensor block and guards it with a
+sequence lock (odd while writing), so a device process never serves half an update. Fault knobs live in the
+same array: the test or the `rig hil` command sets them, the device processes read them on each request.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+
+N_MOUNTS = 4
+
+SEQ = 0          # seqlock counter
+T_S = 1          # plant time of the snapshot
+COUNT = 2        # conversion counter: +1 per plant step
+ACCEL = 3        # 4 x accel_mps2
+STROKE = 7       # 4 x stroke_m
+MODBUS_MODE = 11
+SERIAL_MODE = 12
+SERIAL_CH = 13   # 4 x forced channel status (0 none, 1 UR, 2 OR, 3 NP)
+SIZE = 17
+
+# fault knob modes (same codes for every emulator)
+OK, SILENCE, EXCEPTION, GARBAGE, STALE, FRAGMENT = 0, 1, 2, 3, 4, 5
+MODES = {"ok": OK, "silence": SILENCE, "exception": EXCEPTION, "garbage": GARBAGE, "stale": STALE,
+         "fragment": FRAGMENT}
+CH_STATUS = {0: None, 1: "UR", 2: "OR", 3: "NP"}
+
+
+def new_shared():
+    """The array for spawned processes (lock-free: the seqlock does the guarding)."""
+    return mp.get_context("spawn").RawArray("d", SIZE)
+
+
+def publish(arr, t_s: float, accel_mps2, stroke_m) -> None:
+    seq = arr[SEQ] + 1.0
+    arr[SEQ] = seq                          # odd: writing
+    arr[T_S] = t_s
+    arr[COUNT] = arr[COUNT] + 1.0
+    arr[ACCEL:ACCEL + N_MOUNTS] = [float(a) for a in accel_mps2]
+    arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m]
+    arr[SEQ] = seq + 1.0                    # even: consistent
+
+
+def snapshot(arr) -> tuple[int, float, list[float], list[float]]:
+    """(counter, t_s, accel_mps2[4], stroke_m[4]), a consistent copy."""
+    for _ in range(1000):
+        s0 = arr[SEQ]
+        block = arr[T_S:STROKE + N_MOUNTS]
+        if s0 == arr[SEQ] and int(s0) % 2 == 0:
+            return int(block[1]), block[0], block[2:6], block[6:10]
+    block = arr[T_S:STROKE + N_MOUNTS]      # writer died mid-update: serve what is there
+    return int(block[1]), block[0], block[2:6], block[6:10]

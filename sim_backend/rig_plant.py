@@ -1,0 +1,325 @@
+"""The four-mount rig: the flexible machine (Eq. 15 modal model) on four valve-controlled actuators.
+
+Each actuator obeys Eqs. 1-7 with the machine as its load; the machine is coupled to all four through the
+mount forces, and ground motion enters at each mount through the stroke (Eq. 13: F = K (x_g - x_p) in
+the hydraulic and membrane springs):
+
+  valve (Eq. 1)        x_v'' = w_nv^2 (K_v u - x_v) - 2 zeta w_nv x_v'
+  chambers (Eqs. 3,6)  V_t/(4 beta) P_L' = K_Q x_v - K_C P_L - A_p (v_p - v_g)
+  mount force (Eq. 7)  f = A_p P_L - K_L (x_p - x_g) - C (v_p - v_g)
+  machine (Eq. 15)     (I + M Phi Phi^T) q'' + 2 zeta W q' + W^2 q = Phi f,   x_p = Phi^T q
+
+The piston mass M moves with the machine's mount point. The linear system is discretised exactly for a
+command and ground motion held over each loop period (ZOH), so one period costs one matrix-vector product.
+Inputs: u [V] (4), x_g [m] (4), v_g [m/s] (4). Outputs: see OUTPUTS.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.linalg
+import scipy.signal
+
+from rig.config import MOUNTS, Config
+from sim_backend.linear import ActuatorParams
+from sim_backend.machine import ModalModel, modal_model_from_config
+
+OUTPUTS = tuple([f"accel_{m}" for m in MOUNTS] + [f"stroke_{m}" for m in MOUNTS] + [f"x_{m}" for m in MOUNTS]
+                + ["table_x", "table_y", "table_z", "tool_x", "tool_y", "tool_z"]
+                + [f"spool_{m}" for m in MOUNTS] + [f"P_L_{m}" for m in MOUNTS])
+I_ACCEL, I_STROKE, I_X, I_TABLE, I_TOOL, I_SPOOL, I_PL = 0, 4, 8, 12, 15, 18, 22
+
+
+@dataclass(frozen=True)
+class RigStateSpace:
+    A: np.ndarray
+    B: np.ndarray       # columns: u(4), x_g(4), v_g(4)
+    C: np.ndarray
+    D: np.ndarray
+    modal: ModalModel
+    act: ActuatorParams
+
+    def to_control(self):
+        import control
+        return control.ss(self.A, self.B, self.C, self.D,
+                          inputs=[f"u_{m}" for m in MOUNTS] + [f"xg_{m}" for m in MOUNTS]
+                          + [f"vg_{m}" for m in MOUNTS], outputs=list(OUTPUTS))
+
+    def frf(self, w: np.ndarray) -> np.ndarray:
+        """Frequency response, shape (len(w), n_out, n_in), with ground displacement and velocity inputs."""
+        n = self.A.shape[0]
+        out = np.empty((len(w), self.C.shape[0], self.B.shape[1]), dtype=complex)
+        for k, wk in enumerate(np.asarray(w, dtype=float)):
+            out[k] = self.C @ np.linalg.solve(1j * wk * np.eye(n) - self.A, self.B) + self.D
+        return out
+
+    def ground_frf(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(G_u, G_g): responses to valve voltage (n_out x 4) and to ground displacement x_g (v_g = j w x_g)."""
+        H = self.frf(w)
+        jw = 1j * np.asarray(w, dtype=float)[:, None, None]
+        return H[:, :, 0:4], H[:, :, 4:8] + jw * H[:, :, 8:12]
+
+
+def rig_state_space(cfg: Config, modal: ModalModel | None = None) -> RigStateSpace:
+    """Continuous-time state space of the coupled four-mount rig (see module docstring)."""
+    mm = modal or modal_model_from_config(cfg)
+    p = ActuatorParams.from_config(cfg)
+    n = len(mm.w_n)
+    Phi = mm.phi_mounts                                  # (n, 4)
+    Mq = np.eye(n) + p.M * Phi @ Phi.T
+    Mi = np.linalg.inv(Mq)
+    ns = 2 * n + 12
+    iq, iqd, ixv, ivv, ipl = 0, n, 2 * n, 2 * n + 4, 2 * n + 8
+    A = np.zeros((ns, ns))
+    B = np.zeros((ns, 12))
+    # machine: q'' = Mi (Phi f - 2 zeta W q' - W^2 q)
+    A[iq:iq + n, iqd:iqd + n] = np.eye(n)
+    A[iqd:iqd + n, iq:iq + n] = Mi @ (-np.diag(mm.w_n ** 2) - p.K_L * Phi @ Phi.T)
+    A[iqd:iqd + n, iqd:iqd + n] = Mi @ (-np.diag(2 * mm.zeta * mm.w_n) - p.C * Phi @ Phi.T)
+    A[iqd:iqd + n, ipl:ipl + 4] = Mi @ Phi * p.A_p
+    B[iqd:iqd + n, 4:8] = Mi @ Phi * p.K_L
+    B[iqd:iqd + n, 8:12] = Mi @ Phi * p.C
+    # valve, Eq. 1 (x_v in mA-equivalent)
+    A[ixv:ixv + 4, ivv:ivv + 4] = np.eye(4)
+    A[ivv:ivv + 4, ixv:ixv + 4] = -p.w_nv ** 2 * np.eye(4)
+    A[ivv:ivv + 4, ivv:ivv + 4] = -2 * p.zeta * p.w_nv * np.eye(4)
+    B[ivv:ivv + 4, 0:4] = p.w_nv ** 2 * p.K_v * np.eye(4)
+    # chambers, Eqs. 3 and 6
+    g = 4 * p.beta / p.V_t
+    A[ipl:ipl + 4, ixv:ixv + 4] = g * p.K_Q * np.eye(4)
+    A[ipl:ipl + 4, ipl:ipl + 4] = -g * p.K_C * np.eye(4)
+    A[ipl:ipl + 4, iqd:iqd + n] = -g * p.A_p * Phi.T
+    B[ipl:ipl + 4, 8:12] = g * p.A_p * np.eye(4)
+    # outputs
+    no = len(OUTPUTS)
+    C = np.zeros((no, ns))
+    D = np.zeros((no, 12))
+    C[I_ACCEL:I_ACCEL + 4] = Phi.T @ A[iqd:iqd + n]      # accelerometer: absolute mount acceleration
+    D[I_ACCEL:I_ACCEL + 4] = Phi.T @ B[iqd:iqd + n]
+    C[I_STROKE:I_STROKE + 4, iq:iq + n] = Phi.T         # displacement transducer: x_p - x_g
+    D[I_STROKE:I_STROKE + 4, 4:8] = -np.eye(4)
+    C[I_X:I_X + 4, iq:iq + n] = Phi.T
+    C[I_TABLE:I_TABLE + 3, iq:iq + n] = mm.phi_table.T
+    C[I_TOOL:I_TOOL + 3, iq:iq + n] = mm.phi_tool.T
+    C[I_SPOOL:I_SPOOL + 4, ixv:ixv + 4] = np.eye(4)
+    C[I_PL:I_PL + 4, ipl:ipl + 4] = np.eye(4)
+    return RigStateSpace(A, B, C, D, mm, p)
+
+
+def discretize(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ZOH discretisation: x[k+1] = Ad x[k] + Bd w[k] for inputs held over [t_k, t_k + dt)."""
+    n, m = ss.B.shape
+    big = np.zeros((n + m, n + m))
+    big[:n, :n] = ss.A
+    big[:n, n:] = ss.B
+    e = scipy.linalg.expm(big * dt)
+    return np.ascontiguousarray(e[:n, :n]), np.ascontiguousarray(e[:n, n:])
+
+
+@numba.njit(cache=True)
+def _step(Ad, Bd, C, D, x, w, xn, y):
+    """One period: y = C x + D w (outputs at t_k), then x <- Ad x + Bd w."""
+    ns = x.shape[0]
+    nw = w.shape[0]
+    for i in range(C.shape[0]):
+        acc = 0.0
+        for j in range(ns):
+            acc += C[i, j] * x[j]
+        for j in range(nw):
+            acc += D[i, j] * w[j]
+        y[i] = acc
+    for i in range(ns):
+        acc = 0.0
+        for j in range(ns):
+            acc += Ad[i, j] * x[j]
+        for j in range(nw):
+            acc += Bd[i, j] * w[j]
+        xn[i] = acc
+    for i in range(ns):
+        x[i] = xn[i]
+
+
+@numba.njit(cache=True)
+def _simulate_modal(lam, Bz, Cz, D, W, Y):
+    """Diagonal recursion z <- lam z + Bz w; y = Re(Cz z) + D w (conjugate pairs folded into Cz)."""
+    nz = lam.shape[0]
+    z = np.zeros(nz, dtype=np.complex128)
+    nw = W.shape[1]
+    no = Y.shape[1]
+    for k in range(W.shape[0]):
+        for i in range(no):
+            acc = 0.0
+            for j in range(nz):
+                acc += (Cz[i, j] * z[j]).real
+            for j in range(nw):
+                acc += D[i, j] * W[k, j]
+            Y[k, i] = acc
+        for i in range(nz):
+            acc = lam[i] * z[i]
+            for j in range(nw):
+                acc += Bz[i, j] * W[k, j]
+            z[i] = acc
+
+
+def _modal_form(Ad, Bd, C):
+    """Diagonalise the discrete system; keep one of each conjugate pair (outputs use 2 Re)."""
+    lam, V = np.linalg.eig(Ad)
+    Vi = np.linalg.inv(V)
+    keep = lam.imag >= 0
+    scale = np.where(np.abs(lam.imag) > 0, 2.0, 1.0)[keep]
+    Bz = (Vi @ Bd)[keep]
+    Cz = (C @ V)[:, keep] * scale
+    return np.ascontiguousarray(lam[keep]), np.ascontiguousarray(Bz), np.ascontiguousarray(Cz)
+
+
+class FloorMotion:
+    """Broadband vertical floor motion at the four mounts, streamed in blocks.
+
+    White noise through a 4th-order Butterworth band-pass (paper: 1-50 Hz, 1-50 um), partly common to all
+    mounts (correlation rho) so the machine is both heaved and rocked. Velocity is the exact derivative of
+    the band-limited displacement (central difference at the loop rate)."""
+
+    def __init__(self, dt: float, band_hz=(1.0, 50.0), rms_m: float = 10e-6, seed: int = 1, rho: float = 0.5,
+                 block: int = 8192):
+        self.dt = dt
+        self.rms_m = rms_m
+        self.rho = rho
+        self.rng = np.random.default_rng(seed)
+        self.sos = scipy.signal.butter(4, band_hz, btype="bandpass", fs=1.0 / dt, output="sos")
+        self.zi = np.zeros((5, self.sos.shape[0], 2))     # 4 mounts + common component
+        # noise gain of the filter, so rms_m is the displacement rms at every mount
+        w, h = scipy.signal.sosfreqz(self.sos, worN=1 << 15, fs=1.0 / dt)
+        self.gain = math.sqrt(np.mean(np.abs(h) ** 2))
+        self.block = block
+        self._x = np.zeros((0, 4))
+        self._prev = np.zeros(4)
+        self._i = 0
+
+    def _more(self):
+        white = self.rng.standard_normal((5, self.block))
+        out = np.empty_like(white)
+        for c in range(5):
+            out[c], self.zi[c] = scipy.signal.sosfilt(self.sos, white[c], zi=self.zi[c])
+        out *= self.rms_m / self.gain
+        x = (math.sqrt(1 - self.rho) * out[:4] + math.sqrt(self.rho) * out[4]).T
+        self._x = np.concatenate([self._x[self._i:], x])
+        self._i = 0
+
+    def next_block(self, n: int) -> np.ndarray:
+        """The next n periods as an (n, 8) array: x_g (4) then v_g (4)."""
+        while self._i + n + 1 > len(self._x):
+            self._more()
+        seg = self._x[self._i:self._i + n + 1]
+        prev = np.vstack([self._prev[None, :], seg[:-2]]) if n > 1 else self._prev[None, :]
+        v = (seg[1:] - prev) / (2 * self.dt)          # central difference, exact for the band-limited signal
+        self._prev = seg[n - 1].copy()
+        self._i += n
+        return np.ascontiguousarray(np.hstack([seg[:n], v]))
+
+    def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        g = self.next_block(n)
+        return g[:, :4], g[:, 4:]
+
+
+class RigPlant:
+    """The four-mount rig stepped one loop period at a time (the simulated hardware behind the port).
+
+    After `step(valve_cmd_V)` the attributes hold the values at the new instant: accel_mps2 and stroke_m
+    (with sensor noise), and the true table_m / tool_m (Y), spool and floor_m for evaluation."""
+
+    n_mounts = 4
+    BLOCK = 4096
+
+    def __init__(self, cfg: Config, dt: float, *, floor: FloorMotion | None = None, seed: int = 0,
+                 accel_noise_mps2: float = 2e-4, stroke_noise_m: float = 2e-8, modal: ModalModel | None = None):
+        self.cfg = cfg
+        self.dt = dt
+        self.ss = rig_state_space(cfg, modal)
+        self.Ad, self.Bd = discretize(self.ss, dt)
+        self.C = np.ascontiguousarray(self.ss.C)
+        self.D = np.ascontiguousarray(self.ss.D)
+        self.x = np.zeros(self.Ad.shape[0])
+        self._xn = np.zeros_like(self.x)
+        self.w = np.zeros(12)
+        self.y = np.zeros(len(OUTPUTS))
+        self.floor = floor
+        self.rng = np.random.default_rng(seed)
+        self.noise_scale = np.array([accel_noise_mps2] * 4 + [stroke_noise_m] * 4)
+        self.t_s = 0.0
+        self.k = 0
+        self._refill()
+        _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, 0, 0.0, 0.0,
+                 0.0, 0.0, self.y, False)
+        self._publish()
+
+    def _refill(self):
+        self._g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 8))
+        self._nz = np.ascontiguousarray(self.rng.standard_normal((self.BLOCK, 8)) * self.noise_scale)
+        self._gi = 0
+
+    def _publish(self):
+        y = self.y.tolist()
+        self.accel_mps2 = y[0:4]
+        self.stroke_m = y[4:8]
+        self.table_m = y[I_TABLE + 1]
+        self.tool_m = y[I_TOOL + 1]
+        self.spool = y[I_SPOOL:I_SPOOL + 4]
+        self.floor_m = self.w[4:8].tolist()
+
+    def step(self, valve_cmd_V) -> None:
+        """Hold valve_cmd_V (4 volts) over one period and advance; outputs then refer to the new instant."""
+        self._gi += 1
+        if self._gi >= self.BLOCK:
+            self._refill()
+        _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, self._gi,
+                 valve_cmd_V[0], valve_cmd_V[1], valve_cmd_V[2], valve_cmd_V[3], self.y, True)
+        self.k += 1
+        self.t_s = self.k * self.dt
+        self._publish()
+
+
+@numba.njit(cache=True)
+def _advance(Ad, Bd, C, D, x, xn, w, G, NZ, gi, u0, u1, u2, u3, y, advance):
+    """Advance one period with the held command (if advance), load the ground of the new instant from G[gi],
+    and compute the outputs there, adding sensor noise NZ[gi] to accel (0-3) and stroke (4-7)."""
+    ns = x.shape[0]
+    nw = w.shape[0]
+    if advance:
+        w[0] = u0; w[1] = u1; w[2] = u2; w[3] = u3
+        for i in range(ns):
+            acc = 0.0
+            for j in range(ns):
+                acc += Ad[i, j] * x[j]
+            for j in range(nw):
+                acc += Bd[i, j] * w[j]
+            xn[i] = acc
+        for i in range(ns):
+            x[i] = xn[i]
+    for j in range(8):
+        w[4 + j] = G[gi, j]
+    for i in range(C.shape[0]):
+        acc = 0.0
+        for j in range(ns):
+            acc += C[i, j] * x[j]
+        for j in range(nw):
+            acc += D[i, j] * w[j]
+        y[i] = acc
+    for i in range(8):
+        y[i] += NZ[gi, i]
+
+
+def simulate_rig(cfg: Config, dt: float, valve_cmd_V: np.ndarray, x_g: np.ndarray, v_g: np.ndarray,
+                 modal: ModalModel | None = None, outputs=None) -> np.ndarray:
+    """Batch open-loop simulation: inputs (N, 4) each; returns the selected outputs (indices into OUTPUTS,
+    default all) at t_k, shape (N, n_selected)."""
+    ss = rig_state_space(cfg, modal)
+    Ad, Bd = discretize(ss, dt)
+    W = np.ascontiguousarray(np.hstack([valve_cmd_V, x_g, v_g]), dtype=float)
+    sel = list(outputs) if outputs is not None else list(range(len(OUTPUTS)))
+    lam, Bz, Cz = _modal_form(Ad, Bd, ss.C[sel])
+    Y = np.empty((W.shape[0], len(sel)))
+    _simulate_modal(lam, Bz, Cz, np.ascontiguousarray(ss.D[sel]), W, Y)
+    return Y
