@@ -63,6 +63,29 @@ class LoopConfig:
     rate_hz: float = _f(5000.0, "Hz", gt=0, le=100000)
     overrun_policy: str = _f("skip", "", choices=("skip", "catch_up"))
     realtime: bool = _f(True, "")               # try SCHED_FIFO, affinity, mlockall where allowed
+    rt_priority: int = _f(80, "", ge=1, le=99)  # SCHED_FIFO priority of the loop thread
+    cpu: int = _f(-1, "", ge=-1)                # CPU the loop thread is pinned to (-1 = the last one)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Plausibility checks and limits applied every period (rig/safety.py)."""
+    valve_limit_V: float = _f(10.0, "V", gt=0)          # command clamp, <= valve.max_V
+    slew_V_per_s: float = _f(1.0e4, "V/s", gt=0)        # command slew limit
+    accel_range_mps2: float = _f(50.0, "m/s^2", gt=0)   # accelerometer range; beyond = implausible
+    stroke_range_m: float = _f(2.0e-3, "m", gt=0)       # transducer range; beyond = implausible
+    stroke_limit_m: float = _f(0.9e-3, "m", gt=0)       # stroke limit (fault), <= actuator.stroke_m
+    stale_s: float = _f(0.002, "s", gt=0)               # a sample older than this is stale
+    stuck_samples: int = _f(250, "", gt=1)              # same value over this many new samples = stuck
+    watchdog_s: float = _f(0.05, "s", gt=0)             # loop silent for longer = fault, valve to null
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """The HDF5 recorder (rig/recorder.py)."""
+    flush_s: float = _f(0.05, "s", gt=0, le=0.1)        # kill -9 loses at most this much
+    ring_s: float = _f(2.0, "s", gt=0)                  # ring capacity; the loop never blocks on it
+    chunk_rows: int = _f(1024, "", gt=0)                # HDF5 chunk length
 
 
 @dataclass(frozen=True)
@@ -80,6 +103,51 @@ class VibrationConfig:
 
 
 @dataclass(frozen=True)
+class DriversConfig:
+    """Real devices behind the `hardware` backend (drivers/devicemaps/*.md document the maps)."""
+    can_interface: str = _f("socketcan", "")             # python-can interface of the valve bus
+    can_channel: str = _f("can0", "")
+    can_bitrate: int = _f(1000000, "bit/s", gt=0)
+    valve_node_id_base: int = _f(1, "", ge=1, le=124)    # node id = base + mount index (MOUNTS order)
+    modbus_host: str = _f("192.168.1.10", "")            # ADAM-6024-style analog I/O module
+    modbus_port: int = _f(502, "", ge=1, le=65535)
+    modbus_unit: int = _f(1, "", ge=0, le=247)
+    modbus_timeout_s: float = _f(0.02, "s", gt=0)        # one request; the poller thread owns it
+    modbus_watchdog_s: float = _f(0.5, "s", ge=0)        # module host watchdog (0 = off): AO to safe values
+    accel_V_per_mps2: float = _f(2.0, "V/(m/s^2)", gt=0)  # accelerometer + conditioner sensitivity
+    serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
+    serial_baud: int = _f(921600, "bit/s", gt=0)
+    stale_s: float = _f(0.02, "s", gt=0)                 # a device silent for longer ends in FAULT
+
+
+@dataclass(frozen=True)
+class HilConfig:
+    """`rig hil`: the emulated rig behind the real drivers."""
+    rate_hz: float = _f(1000.0, "Hz", gt=0, le=5000)     # loop rate of HIL runs (Modbus limits it)
+    seconds: float = _f(10.0, "s", gt=0)                 # isolation off, then on: half each
+    settle_s: float = _f(1.0, "s", ge=0)                 # discarded at the start of each half
+    stale_s: float = _f(0.02, "s", gt=0)                 # safety.stale_s for HIL runs (driver threads)
+
+
+@dataclass(frozen=True)
+class StandConfig:
+    """The simulated single-actuator test stand (chirp runs on the sim backend): effect switches, 0 = off.
+    Names as in ../shared/recordings/README.md; see docs/MODEL.md."""
+    delay_s: float = _f(0.0, "s", ge=0, le=0.1)                 # transport_delay
+    saturation_limit_ma: float = _f(0.0, "mA", ge=0)           # valve_saturation
+    deadband_width_ma: float = _f(0.0, "mA", ge=0)             # valve_deadband
+    friction_force_n: float = _f(0.0, "N", ge=0)               # coulomb_friction
+    base_frequency_hz: float = _f(0.0, "Hz", ge=0)             # base_resonance
+    base_damping_ratio: float = _f(0.03, "", gt=0, lt=1)
+    base_mass_kg: float = _f(200.0, "kg", gt=0)
+    disturbance_frequency_hz: float = _f(0.0, "Hz", ge=0)      # periodic_disturbance
+    disturbance_force_n: float = _f(0.0, "N", ge=0)
+    position_noise_m: float = _f(2e-8, "m", ge=0)              # transducer noise, rms
+    accel_noise_mps2: float = _f(2e-4, "m/s^2", ge=0)          # accelerometer noise, rms
+    seed: int = _f(0, "")
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -88,6 +156,11 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     vibration: VibrationConfig = field(default_factory=VibrationConfig)
+    stand: StandConfig = field(default_factory=StandConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    drivers: DriversConfig = field(default_factory=DriversConfig)
+    hil: HilConfig = field(default_factory=HilConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
     def replace(self, **sections) -> "Config":
@@ -163,6 +236,12 @@ def _check_cross(cfg: Config) -> None:
     if v.band_hi_hz <= v.band_lo_hz:
         raise ConfigError(f"{cfg.source}: vibration.band_hi_hz: expected > band_lo_hz ({v.band_lo_hz} Hz), "
                           f"got {v.band_hi_hz}")
+    if cfg.safety.valve_limit_V > cfg.valve.max_V:
+        raise ConfigError(f"{cfg.source}: safety.valve_limit_V: expected <= valve.max_V ({cfg.valve.max_V} V), "
+                          f"got {cfg.safety.valve_limit_V}")
+    if cfg.safety.stroke_limit_m > cfg.actuator.stroke_m:
+        raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= actuator.stroke_m "
+                          f"({cfg.actuator.stroke_m} m), got {cfg.safety.stroke_limit_m}")
     if cfg.machine.modal_model:
         p = Path(cfg.machine.modal_model)
         if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):

@@ -76,6 +76,11 @@ class Effects:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_config(cls, cfg) -> "Effects":
+        """The [stand] section of the config (rig.config.StandConfig)."""
+        return cls(**asdict(cfg.stand))
+
 
 def inner_step_s(p: ActuatorParams, fx: Effects) -> float:
     """An RK4 step well below 1/w_h, and inside the stability limit of the friction's tanh slope."""
