@@ -1,0 +1,314 @@
+"""Chirp/run recordings: one dataclass, a loader for CSV, CSV.gz, HDF5 and MATLAB .mat, and writers.
+
+Formats (all carry the same four signals, sampled uniformly at fs_hz):
+- CSV / CSV.gz (../shared/recordings/README.md): header `time_s,valve_cmd_V,position_m,accel_mps2`
+  (column order free, extra columns ignored), one row per sample.
+- HDF5 (`save_recording_h5`, and what rig.recorder writes for a chirp run): 1-D float64 datasets /time_s,
+  /valve_cmd_V, /position_m, /accel_mps2 at the root; root attributes fs_hz (rig.recorder: rate_hz) and source.
+  2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
+  A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
+  A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
+- MATLAB .mat: variables of the same names (row or column vectors); v5/v7 with scipy.io.loadmat, v7.3 (HDF5
+  with a 512-byte MATLAB header) with h5py.
+
+Every problem with a file raises RecordingError with one line naming the file and the problem.
+"""
+from __future__ import annotations
+
+import gzip
+import io
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rig.errors import RecordingError
+
+COLUMNS = ("time_s", "valve_cmd_V", "position_m", "accel_mps2")
+MIN_SAMPLES = 100            # fewer cannot hold even one period of the chirp's lowest useful frequency
+UNIFORM_TOL = 0.05           # a step may differ from the median step by 5 % (clock jitter, 6-digit rounding)
+
+_GZIP_MAGIC = b"\x1f\x8b"
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_MAT_MAGIC = b"MATLAB"
+
+
+@dataclass
+class Recording:
+    t_s: np.ndarray
+    valve_cmd_V: np.ndarray
+    position_m: np.ndarray
+    accel_mps2: np.ndarray
+    fs_hz: float
+    source: str = "<memory>"
+
+    @property
+    def n(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return self.n / self.fs_hz
+
+    @classmethod
+    def from_arrays(cls, t_s, valve_cmd_V, position_m, accel_mps2=None, *, source: str = "<memory>") -> "Recording":
+        """Build and validate from arrays (accel may be None: zeros)."""
+        t = np.asarray(t_s, dtype=float)
+        acc = np.zeros_like(t) if accel_mps2 is None else accel_mps2
+        cols = {"time_s": t, "valve_cmd_V": valve_cmd_V, "position_m": position_m, "accel_mps2": acc}
+        return _validated(cols, source)
+
+    @classmethod
+    def from_signals(cls, valve_cmd_V, position_m, accel_mps2=None, *, fs_hz: float,
+                     source: str = "<memory>") -> "Recording":
+        n = np.asarray(valve_cmd_V).shape[0]
+        return cls.from_arrays(np.arange(n) / fs_hz, valve_cmd_V, position_m, accel_mps2, source=source)
+
+
+# ---- validation -------------------------------------------------------------------------------------
+
+def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
+    arrays = {}
+    for name in COLUMNS:
+        a = np.asarray(cols[name])
+        if a.dtype.kind not in "iuf" and a.dtype != np.bool_:
+            raise RecordingError(f"{source}: column {name} is not numeric (dtype {a.dtype})")
+        a = np.ascontiguousarray(a, dtype=float)
+        if a.ndim != 1:
+            raise RecordingError(f"{source}: column {name} has shape {a.shape}, expected one value per sample")
+        arrays[name] = a
+    n = arrays["time_s"].shape[0]
+    for name, a in arrays.items():
+        if a.shape[0] != n:
+            raise RecordingError(f"{source}: column {name} has {a.shape[0]} samples, time_s has {n}")
+    if n == 0:
+        raise RecordingError(f"{source}: no samples")
+    for name, a in arrays.items():
+        bad = ~np.isfinite(a)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RecordingError(f"{source}: {name} is {a[k]} (not a finite number) at sample {k}")
+    if n < MIN_SAMPLES:
+        raise RecordingError(f"{source}: too short: {n} samples, need at least {MIN_SAMPLES}")
+    t = arrays["time_s"]
+    dt = np.diff(t)
+    if not (dt > 0).all():
+        k = int(np.argmax(dt <= 0)) + 1
+        raise RecordingError(f"{source}: time_s not increasing at sample {k} ({t[k - 1]!r} then {t[k]!r})")
+    step = float(np.median(dt))
+    off = np.abs(dt - step) > UNIFORM_TOL * step
+    if off.any():
+        k = int(np.argmax(off)) + 1
+        raise RecordingError(f"{source}: time_s not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
+                             f"expected {step:.6g} s")
+    # the sample rate from the whole span (robust to per-step rounding of printed times)
+    fs = (n - 1) / (t[-1] - t[0])
+    if not np.isfinite(fs) or fs <= 0:
+        raise RecordingError(f"{source}: cannot determine a sample rate from time_s")
+    return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
+                     accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
+
+
+# ---- readers ----------------------------------------------------------------------------------------
+
+def _parse_csv(raw: bytes, source: str) -> Recording:
+    if not raw.strip():
+        raise RecordingError(f"{source}: empty file")
+    if b"\x00" in raw:
+        raise RecordingError(f"{source}: binary data, not a CSV recording")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise RecordingError(f"{source}: binary data, not a CSV recording (byte {e.start} is not text)") from None
+    lines = text.splitlines()
+    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+    if first is None:
+        raise RecordingError(f"{source}: empty file")
+    header = [h.strip().strip('"').strip() for h in lines[first].split(",")]   # spreadsheet exports quote names
+    missing = [c for c in COLUMNS if c not in header]
+    if missing:
+        raise RecordingError(f"{source}: wrong columns: header is {','.join(header)[:120]!r}, "
+                             f"expected {','.join(COLUMNS)} (missing {', '.join(missing)})")
+    if len(set(header)) != len(header):
+        raise RecordingError(f"{source}: wrong columns: repeated column name in header {lines[first][:120]!r}")
+    body = [ln for ln in lines[first + 1:] if ln.strip()]
+    if not body:
+        raise RecordingError(f"{source}: no data rows after the header")
+    ncol = len(header)
+    # Fast path: numpy's C parser; on failure find the offending row ourselves for a clear message.
+    try:
+        data = np.loadtxt(io.StringIO("\n".join(body)), delimiter=",", ndmin=2, dtype=float, comments=None)
+        if data.shape[1] != ncol:
+            raise ValueError("column count")
+    except (ValueError, OverflowError):
+        raise _first_bad_row(lines, first, ncol, source) from None
+    cols = {name: data[:, header.index(name)] for name in COLUMNS}
+    return _validated(cols, source)
+
+
+def _first_bad_row(lines: list[str], first: int, ncol: int, source: str) -> RecordingError:
+    for i in range(first + 1, len(lines)):
+        ln = lines[i]
+        if not ln.strip():
+            continue
+        cells = ln.split(",")
+        if len(cells) != ncol:
+            return RecordingError(f"{source}: line {i + 1} has {len(cells)} fields, expected {ncol}: {ln[:80]!r}")
+        for c in cells:
+            try:
+                float(c)
+            except ValueError:
+                return RecordingError(f"{source}: line {i + 1} is not numeric: {ln[:80]!r}")
+    return RecordingError(f"{source}: could not parse the numeric rows")
+
+
+def _read_gzip(raw: bytes, source: str) -> bytes:
+    try:
+        return gzip.decompress(raw)
+    except EOFError:
+        raise RecordingError(f"{source}: truncated gzip file (compressed stream ends early)") from None
+    except (gzip.BadGzipFile, zlib.error, OSError) as e:
+        raise RecordingError(f"{source}: corrupt gzip file ({e})") from None
+
+
+def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | str = 0) -> Recording:
+    try:
+        import h5py
+    except ImportError:  # pragma: no cover - h5py is a dependency
+        raise RecordingError(f"{source}: h5py is not installed, cannot read HDF5") from None
+    try:
+        with h5py.File(path, "r") as f:
+            g = f[group] if group else f
+            if not isinstance(g, h5py.Group):
+                raise RecordingError(f"{source}: {group} is not a group")
+            names = {c: c for c in COLUMNS}
+            if "position_m" not in g and "stroke_m" in g:
+                names["position_m"] = "stroke_m"      # a rig.loop recording: the transducer is stroke_m
+            missing = [c for c in COLUMNS if names[c] not in g or not isinstance(g[names[c]], h5py.Dataset)]
+            if missing:
+                have = ", ".join(sorted(g.keys()))[:120]
+                raise RecordingError(f"{source}: wrong datasets: missing {', '.join(missing)} (has: {have or 'none'})")
+            cols = {}
+            for c in COLUMNS:
+                a = np.asarray(g[names[c]][()])
+                if a.ndim == 2 and 1 in a.shape:
+                    a = a.ravel()                      # MATLAB v7.3 stores vectors as (n, 1) or (1, n)
+                if a.ndim == 2 and c != "time_s":
+                    idx = _mount_index(g[names[c]], mount, source)
+                    if not 0 <= idx < a.shape[1]:
+                        raise RecordingError(f"{source}: mount {mount} not in {c} ({a.shape[1]} columns)")
+                    a = a[:, idx]
+                cols[c] = a
+            if not bool(f.attrs.get("complete", True)):
+                # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
+                n = min(a.shape[0] for a in cols.values())
+                cols = {c: a[:n] for c, a in cols.items()}
+    except RecordingError:
+        raise
+    except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
+        raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
+    return _validated(cols, source)
+
+
+def _mount_index(ds, mount, source) -> int:
+    if isinstance(mount, int):
+        return mount
+    names = ds.attrs.get("labels", ds.attrs.get("mounts"))     # rig.recorder writes "labels"
+    if names is None:
+        raise RecordingError(f"{source}: mount {mount!r} asked but the datasets have no 'labels' attribute")
+    names = [n.decode() if isinstance(n, bytes) else str(n) for n in np.atleast_1d(names)]
+    if mount not in names:
+        raise RecordingError(f"{source}: mount {mount!r} not recorded (have {', '.join(names)})")
+    return names.index(mount)
+
+
+def _read_mat(raw: bytes, source: str) -> Recording:
+    try:
+        import scipy.io
+        m = scipy.io.loadmat(io.BytesIO(raw), squeeze_me=False)
+    except Exception as e:   # scipy raises MatReadError/ValueError/TypeError/... on damaged files
+        raise RecordingError(f"{source}: not a readable MATLAB file ({type(e).__name__}: {e})"[:300]) from None
+    missing = [c for c in COLUMNS if c not in m]
+    if missing:
+        have = ", ".join(k for k in m if not k.startswith("__"))[:120]
+        raise RecordingError(f"{source}: wrong variables: missing {', '.join(missing)} (has: {have or 'none'})")
+    cols = {}
+    for c in COLUMNS:
+        a = np.asarray(m[c])
+        if a.ndim == 2 and 1 in a.shape:
+            a = a.ravel()
+        cols[c] = a
+    return _validated(cols, source)
+
+
+def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> Recording:
+    """Read a recording (format from the content's magic bytes, then the name). Raises RecordingError."""
+    path = Path(path)
+    source = str(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise RecordingError(f"{source}: is a directory, expected a recording file") from None
+    except OSError as e:
+        raise RecordingError(f"{source}: cannot read ({e.strerror or e})") from None
+    if not raw:
+        raise RecordingError(f"{source}: empty file")
+    if raw.startswith(_HDF5_MAGIC) or path.suffix.lower() in (".h5", ".hdf5"):
+        if not raw.startswith(_HDF5_MAGIC):
+            raise RecordingError(f"{source}: not an HDF5 file (no HDF5 signature)")
+        return _read_h5(path, source, group=group, mount=mount)
+    if raw.startswith(_MAT_MAGIC) and raw[512:520] == _HDF5_MAGIC:
+        return _read_h5(path, source, group=group, mount=mount)      # MATLAB v7.3 = HDF5 with a user block
+    if raw.startswith(_MAT_MAGIC) or path.suffix.lower() == ".mat":
+        return _read_mat(raw, source)
+    if raw.startswith(_GZIP_MAGIC) or path.suffix.lower() == ".gz":
+        raw = _read_gzip(raw, source)
+        if raw.startswith(_GZIP_MAGIC):
+            raise RecordingError(f"{source}: gzip inside gzip, expected one compressed CSV")
+    return _parse_csv(raw, source)
+
+
+# ---- writers ----------------------------------------------------------------------------------------
+
+def save_recording_h5(rec: Recording, path, *, attrs: dict | None = None) -> Path:
+    """Write the HDF5 layout described above (float64, gzip-compressed datasets)."""
+    import h5py
+    path = Path(path)
+    with h5py.File(path, "w") as f:
+        for name, a in zip(COLUMNS, (rec.t_s, rec.valve_cmd_V, rec.position_m, rec.accel_mps2)):
+            f.create_dataset(name, data=np.asarray(a, dtype=float), compression="gzip", compression_opts=4)
+        f.attrs["fs_hz"] = float(rec.fs_hz)
+        f.attrs["source"] = str(rec.source)
+        f.attrs["format"] = "rig recording v1"
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
+    return path
+
+
+def save_recording_csv(rec: Recording, path) -> Path:
+    """Write the shared CSV format (gzip-compressed when the name ends in .gz)."""
+    path = Path(path)
+    buf = io.StringIO()
+    buf.write(",".join(COLUMNS) + "\n")
+    data = np.column_stack([rec.t_s, rec.valve_cmd_V, rec.position_m, rec.accel_mps2])
+    # time with enough digits for uniform steps at any fs up to 1 MHz; signals with 9 significant digits
+    np.savetxt(buf, data, delimiter=",", fmt=["%.9f", "%.9g", "%.9g", "%.9g"])
+    text = buf.getvalue().encode()
+    if path.suffix.lower() == ".gz":
+        with gzip.open(path, "wb", compresslevel=6) as f:
+            f.write(text)
+    else:
+        path.write_bytes(text)
+    return path
+
+
+def save_recording_mat(rec: Recording, path) -> Path:
+    """Write a MATLAB v5 .mat with the same variable names."""
+    import scipy.io
+    path = Path(path)
+    scipy.io.savemat(path, {"time_s": rec.t_s, "valve_cmd_V": rec.valve_cmd_V, "position_m": rec.position_m,
+                            "accel_mps2": rec.accel_mps2, "fs_hz": rec.fs_hz}, oned_as="column")
+    return path
