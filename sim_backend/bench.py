@@ -23,8 +23,7 @@ def bench_sim(cfg: Config, seconds: float = 100.0, rate_hz: float = 5000.0, repe
     say = progress or (lambda msg: None)
     dt = 1.0 / rate_hz
     n = int(round(seconds * rate_hz))
-    floor = FloorMotion(dt, (cfg.vibration.band_lo_hz, cfg.vibration.band_hi_hz), cfg.vibration.rms_m,
-                        cfg.vibration.seed)
+    floor = FloorMotion.from_config(cfg, dt)
     g = floor.next_block(n)
     cmd = 0.01 * np.random.default_rng(0).standard_normal((n, 4))
     simulate_rig(cfg, dt, cmd[:16], g[:16, :4], g[:16, 4:])          # compile / warm the cache

@@ -178,17 +178,24 @@ def _modal_form(Ad, Bd, C):
 class FloorMotion:
     """Broadband vertical floor motion at the four mounts, streamed in blocks.
 
-    White noise through a 4th-order Butterworth band-pass (paper: 1-50 Hz, 1-50 um), partly common to all
-    mounts (correlation rho) so the machine is both heaved and rocked. Velocity is the exact derivative of
-    the band-limited displacement (central difference at the loop rate)."""
+    White noise through a 4th-order Butterworth band-pass (paper: 1-50 Hz, 1-50 um). With spectrum
+    "velocity_flat" (default) a first-order low-pass at the lower band edge makes the displacement fall as 1/f
+    across the band, as measured floors do (tens of um at 1 Hz, about 1 um at 50 Hz); "displacement_flat"
+    keeps it flat. Part of the motion is common to all mounts (correlation rho), so the machine both heaves and
+    rocks. Velocity is the derivative of the band-limited displacement (central difference)."""
 
     def __init__(self, dt: float, band_hz=(1.0, 50.0), rms_m: float = 10e-6, seed: int = 1, rho: float = 0.5,
-                 block: int = 8192):
+                 block: int = 8192, spectrum: str = "velocity_flat"):
         self.dt = dt
         self.rms_m = rms_m
         self.rho = rho
         self.rng = np.random.default_rng(seed)
-        self.sos = scipy.signal.butter(4, band_hz, btype="bandpass", fs=1.0 / dt, output="sos")
+        sos = scipy.signal.butter(4, band_hz, btype="bandpass", fs=1.0 / dt, output="sos")
+        if spectrum == "velocity_flat":
+            sos = np.vstack([sos, scipy.signal.butter(1, band_hz[0], fs=1.0 / dt, output="sos")])
+        elif spectrum != "displacement_flat":
+            raise ValueError(f"floor spectrum {spectrum!r}: expected velocity_flat or displacement_flat")
+        self.sos = sos
         self.zi = np.zeros((5, self.sos.shape[0], 2))     # 4 mounts + common component
         # noise gain of the filter, so rms_m is the displacement rms at every mount
         w, h = scipy.signal.sosfreqz(self.sos, worN=1 << 15, fs=1.0 / dt)
@@ -197,6 +204,12 @@ class FloorMotion:
         self._x = np.zeros((0, 4))
         self._prev = np.zeros(4)
         self._i = 0
+
+    @classmethod
+    def from_config(cls, cfg: Config, dt: float, **kw) -> "FloorMotion":
+        v = cfg.vibration
+        return cls(dt, band_hz=(v.band_lo_hz, v.band_hi_hz), rms_m=v.rms_m, seed=v.seed,
+                   spectrum=v.spectrum, **kw)
 
     def _more(self):
         white = self.rng.standard_normal((5, self.block))
