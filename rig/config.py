@@ -78,6 +78,7 @@ class SafetyConfig:
     stale_s: float = _f(0.002, "s", gt=0)               # a sample older than this is stale
     stuck_samples: int = _f(250, "", gt=1)              # same value over this many new samples = stuck
     watchdog_s: float = _f(0.05, "s", gt=0)             # loop silent for longer = fault, valve to null
+    saturation_s: float = _f(1.0, "s", gt=0)            # command at the clamp this long = not in control
 
 
 @dataclass(frozen=True)
@@ -95,10 +96,12 @@ class BackendConfig:
 
 @dataclass(frozen=True)
 class VibrationConfig:
-    """Broadband floor vibration for demos and HIL (paper: 1-50 um in 1-50 Hz)."""
+    """Broadband floor vibration for demos and HIL (paper: 1-50 um in 1-50 Hz). velocity_flat: displacement
+    falling as 1/f across the band (valve authority: 10 V moves the piston at most ~1.25 mm/s)."""
     band_lo_hz: float = _f(1.0, "Hz", gt=0)
     band_hi_hz: float = _f(50.0, "Hz", gt=0)
-    rms_m: float = _f(10e-6, "m", ge=0)
+    rms_m: float = _f(3e-6, "m", ge=0)
+    spectrum: str = _f("velocity_flat", "", choices=("velocity_flat", "displacement_flat"))
     seed: int = _f(1, "")
 
 
@@ -118,6 +121,7 @@ class DriversConfig:
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
     serial_baud: int = _f(921600, "bit/s", gt=0)
     stale_s: float = _f(0.02, "s", gt=0)                 # a device silent for longer ends in FAULT
+    thread_priority: int = _f(55, "", ge=0, le=99)       # SCHED_FIFO of the driver threads (0 = normal)
 
 
 @dataclass(frozen=True)
@@ -126,7 +130,8 @@ class HilConfig:
     rate_hz: float = _f(1000.0, "Hz", gt=0, le=5000)     # loop rate of HIL runs (Modbus limits it)
     seconds: float = _f(10.0, "s", gt=0)                 # isolation off, then on: half each
     settle_s: float = _f(1.0, "s", ge=0)                 # discarded at the start of each half
-    stale_s: float = _f(0.02, "s", gt=0)                 # safety.stale_s for HIL runs (driver threads)
+    stale_s: float = _f(0.05, "s", gt=0)                 # staleness limit of HIL runs (drivers and safety)
+    device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
 
 
 @dataclass(frozen=True)
@@ -148,6 +153,32 @@ class StandConfig:
 
 
 @dataclass(frozen=True)
+class ControllerConfig:
+    """Isolation controller per mount (controllers/isolation.py): PI + two leads + roll-off on the mount's
+    absolute motion, slow stroke centring; defaults tuned on the discrete loop (controllers/tune.py)."""
+    accel_hp_hz: float = _f(0.1, "Hz", gt=0)             # band-limited double integration corner
+    kp_V_per_m: float = _f(1.0e6, "V/m", gt=0)           # PI proportional gain on the compensated position
+    pi_corner_hz: float = _f(5.0, "Hz", gt=0)            # PI integral corner
+    lead1_zero_hz: float = _f(60.0, "Hz", gt=0)
+    lead1_pole_hz: float = _f(600.0, "Hz", gt=0)
+    lead2_zero_hz: float = _f(120.0, "Hz", gt=0)
+    lead2_pole_hz: float = _f(900.0, "Hz", gt=0)
+    rolloff_hz: float = _f(1200.0, "Hz", ge=0)           # second-order low-pass (0 = none)
+    rolloff_zeta: float = _f(0.7, "", gt=0)
+    notch_hz: float = _f(0.0, "Hz", ge=0)                # optional notch (0 = none)
+    notch_zeta_zero: float = _f(0.1, "", ge=0)
+    notch_zeta_pole: float = _f(0.5, "", gt=0)
+    centring_hz: float = _f(0.02, "Hz", gt=0)            # crossover of the stroke-centring loop
+    prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp (the design crossover)
+    fade_s: float = _f(0.1, "s", gt=0)                   # bumpless on/off: switching offset decay time
+    gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "")   # per-mount multiplier on kp (MOUNTS order)
+    track_kp_V_per_m: float = _f(1.81e6, "V/m", ge=0)    # actuator reference-tracking PID (paper Fig. 4):
+    track_ki_V_per_ms: float = _f(8.46e7, "V/(m s)", ge=0)   # Ki/Kp at the actuator lag corner, ~95 Hz
+    track_kd_Vs_per_m: float = _f(5.43e3, "V s/m", ge=0)     # bandwidth (controllers/tracking.py)
+    track_deriv_hz: float = _f(1000.0, "Hz", gt=0)       # derivative filter corner
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -161,6 +192,7 @@ class Config:
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     drivers: DriversConfig = field(default_factory=DriversConfig)
     hil: HilConfig = field(default_factory=HilConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
     def replace(self, **sections) -> "Config":

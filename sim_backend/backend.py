@@ -53,8 +53,8 @@ class StandAdapter:
 
     def __init__(self, stand) -> None:
         self.stand = stand
-        self.accel_mps2 = [0.0]
-        self.stroke_m = [0.0]
+        self.accel_mps2 = [float(getattr(stand, "accel_mps2", 0.0))]
+        self.stroke_m = [float(getattr(stand, "position_m", 0.0))]
 
     def step(self, valve_cmd_V) -> None:
         pos, acc = self.stand.step(float(valve_cmd_V[0]))
@@ -195,17 +195,29 @@ class SimBackend:
 
 
 def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | None = None,
-                  stand_params=None, stand_effects=None, floor=None, **kw) -> SimBackend:
-    """The simulated backend for a config: mode "rig" (four mounts, RigPlant under floor vibration) or
-    "stand" (one actuator, StandPlant)."""
+                  stand_params=None, stand_effects=None, floor=True, **kw) -> SimBackend:
+    """The simulated backend for a config: mode "rig" (four mounts, RigPlant under the [vibration] floor
+    motion; floor=False for none, or a FloorMotion) or "stand" (one actuator, StandPlant).
+
+    The plants add their own sensor noise, so the backend adds none unless asked (accel_noise_mps2=...,
+    stroke_noise_m=...), except a 1e-10 m / 1e-6 m/s^2 floor on a noiseless stand (the stuck check).
+    Rig mode applies each command one period after it is written (cmd_delay_periods=1), as the controller
+    analysis assumes (ZOH plus one period of computation); stand mode applies it at once, as
+    simulate_stand does, so a chirp recording matches the stand model without an extra delay."""
     seed = cfg.vibration.seed if seed is None else seed
+    kw.setdefault("accel_noise_mps2", 0.0)
+    kw.setdefault("stroke_noise_m", 0.0)
     if mode == "rig":
         try:
-            from sim_backend.rig_plant import RigPlant
+            from sim_backend.rig_plant import FloorMotion, RigPlant
         except ImportError as e:
             raise RigError(f"sim backend: sim_backend/rig_plant.py (RigPlant) is not available ({e})") from None
-        plant = RigPlant(cfg, dt, floor=floor, seed=seed) if floor is not None else RigPlant(cfg, dt, seed=seed)
-        return SimBackend(plant, dt, clock=clock, seed=seed, **kw)
+        if floor is True:
+            v = cfg.vibration
+            floor = FloorMotion.from_config(cfg, dt)
+        plant = RigPlant(cfg, dt, floor=floor or None, seed=seed)
+        kw.setdefault("cmd_delay_periods", 1)
+        return SimBackend(plant, dt, n_mounts=4, clock=clock, seed=seed, **kw)
     if mode == "stand":
         try:
             from sim_backend.actuator import StandPlant, Effects
@@ -213,6 +225,11 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
             raise RigError(f"sim backend: sim_backend/actuator.py has no StandPlant yet ({e})") from None
         from sim_backend.linear import ActuatorParams
         p = stand_params or ActuatorParams.from_config(cfg)
-        plant = StandAdapter(StandPlant(p, stand_effects or Effects(), 1.0 / dt))
+        fx = stand_effects or Effects()
+        if not fx.position_noise_m:
+            kw["stroke_noise_m"] = kw["stroke_noise_m"] or 1e-10   # never bit-exact (stuck check)
+        if not fx.accel_noise_mps2:
+            kw["accel_noise_mps2"] = kw["accel_noise_mps2"] or 1e-6
+        plant = StandAdapter(StandPlant(p, fx, 1.0 / dt))
         return SimBackend(plant, dt, n_mounts=1, clock=clock, seed=seed, **kw)
     raise RigError(f"sim backend: mode {mode!r} (expected rig or stand)")

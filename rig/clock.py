@@ -1,0 +1,86 @@
+"""Clocks for the loop, injected so tests run in simulated time.
+
+Both clocks speak integer nanoseconds on a monotonic time base:
+  now_ns()              current time
+  sleep_until(t_ns)     block until t_ns (absolute deadline; returns at once if t_ns is past)
+  spend(ns)             consume ns of time as if computing (busy-wait on the real clock; advance on the
+                        simulated one): used to inject overruns
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import time
+
+CLOCK_MONOTONIC = 1
+TIMER_ABSTIME = 1
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+def _load_nanosleep():
+    """clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME): an absolute wake-up, no drift from relative sleeps."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        fn = libc.clock_nanosleep
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.POINTER(_Timespec)]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+class MonotonicClock:
+    """The real clock: time.monotonic_ns and an absolute clock_nanosleep (relative sleep as fallback)."""
+
+    is_real = True
+
+    def __init__(self) -> None:
+        self._nanosleep = _load_nanosleep()
+        self._ts = _Timespec()
+        self._ts_ref = ctypes.byref(self._ts)
+
+    @staticmethod
+    def now_ns() -> int:
+        return time.monotonic_ns()
+
+    def sleep_until(self, t_ns: int) -> None:
+        if self._nanosleep is not None:
+            self._ts.tv_sec, self._ts.tv_nsec = divmod(t_ns, 1_000_000_000)
+            while True:
+                rc = self._nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, self._ts_ref, None)
+                if rc != errno.EINTR:      # a signal: the Python handler runs after return; sleep on
+                    return
+                if time.monotonic_ns() >= t_ns:
+                    return
+        dt = t_ns - time.monotonic_ns()
+        if dt > 0:
+            time.sleep(dt * 1e-9)
+
+    @staticmethod
+    def spend(ns: int) -> None:
+        end = time.monotonic_ns() + ns
+        while time.monotonic_ns() < end:
+            pass
+
+
+class SimClock:
+    """Simulated time: sleeping jumps to the deadline, computing costs nothing unless `spend` is called."""
+
+    is_real = False
+
+    def __init__(self, t0_ns: int = 0) -> None:
+        self.t_ns = int(t0_ns)
+
+    def now_ns(self) -> int:
+        return self.t_ns
+
+    def sleep_until(self, t_ns: int) -> None:
+        if t_ns > self.t_ns:
+            self.t_ns = t_ns
+
+    def spend(self, ns: int) -> None:
+        self.t_ns += int(ns)

@@ -1,0 +1,181 @@
+"""`rig bench`: benchmarks, printed as distributions (never pass/fail).
+
+  rig bench loop --rate HZ --seconds N [--json]   the control loop, four mounts on the simulated backend,
+                                                  real clock, real-time hygiene where allowed, recording on
+  rig bench sim ...                               simulation speed (filled in by the plant owner)
+
+`loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
+"compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
+update + limit + write + record-push within one period; missed_deadline_fraction is
+(overruns + skipped periods) / (iterations + skipped periods).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+
+from rig.errors import RigError
+
+log = logging.getLogger("rig.bench")
+
+
+def add_arguments(p) -> None:
+    sub = p.add_subparsers(dest="bench_what", metavar="WHAT")
+    lp = sub.add_parser("loop", help="control loop timing: four mounts on the simulated backend")
+    _config_arg(lp)
+    lp.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [loop] rate_hz)")
+    lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
+    lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
+    lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
+    lp.add_argument("--record", metavar="FILE", default=None,
+                    help="keep the recording here (default: a temporary file, deleted)")
+    lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    sp = sub.add_parser("sim", help="simulation speed of the plant")
+    _config_arg(sp)
+    add_sim_arguments(sp)
+
+
+def _config_arg(p) -> None:
+    # `rig bench --config F loop` and `rig bench loop --config F` both work
+    p.add_argument("--config", metavar="FILE", default=argparse.SUPPRESS, help="TOML configuration")
+
+
+def run(args) -> int:
+    what = getattr(args, "bench_what", None)
+    if what == "loop":
+        return bench_loop(args)
+    if what == "sim":
+        return bench_sim(args)
+    raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
+
+
+# ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
+def add_sim_arguments(p) -> None:
+    """Arguments of `rig bench sim`."""
+    p.add_argument("--seconds", type=float, default=100.0, metavar="N", help="simulated time (default 100)")
+    p.add_argument("--rate", type=float, default=5000.0, metavar="HZ", help="loop rate (default 5000)")
+    p.add_argument("--repeats", type=int, default=3, help="batch runs to time (default 3)")
+    p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+
+
+def bench_sim(args) -> int:
+    from rig.config import load_config
+    from sim_backend.bench import bench_sim as run_bench
+    if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
+        raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
+    cfg = load_config(getattr(args, "config", None))
+    res = run_bench(cfg, args.seconds, args.rate, args.repeats,
+                    progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    fm, st, su = res["four_mount"], res["stand_chirp"], res["four_mount_step_us"]
+    print(f"four-mount rig, {fm['states']} states, {fm['simulated_s']:g} s at {fm['rate_hz']:g} Hz: "
+          f"wall p50 {fm['wall_s']['p50']:.3f} s, max {fm['wall_s']['max']:.3f} s -> "
+          f"{fm['realtime_factor']:.0f}x real time")
+    print(f"four-mount plant step (per period): p50 {su['p50']:.2f} us, p99 {su['p99']:.2f} us, "
+          f"max {su['max']:.1f} us")
+    print(f"stand chirp {st['simulated_s']:g} s at {st['rate_hz']:g} Hz: {st['wall_s']:.2f} s -> "
+          f"{st['realtime_factor']:.0f}x real time")
+    return 0
+
+
+# ---- rig bench loop --------------------------------------------------------------------------------------
+class _CentringOnly:
+    """Stand-in when controllers/isolation.py is missing: proportional stroke centring (same interface and
+    similar cost as one isolation controller), so the loop can still be timed."""
+
+    def __init__(self, kp_V_per_m: float = 1e5) -> None:
+        self.kp = kp_V_per_m
+
+    def initial_state(self):
+        return [1.0, 0.0]
+
+    def step(self, s, meas, dt):
+        v = 0.999 * s[1] + meas[0] * dt
+        return -self.kp * meas[1] - 0.0 * s[0] * v, [s[0], v]
+
+    def set_enabled(self, s, on):
+        return [1.0 if on else 0.0, s[1]]
+
+
+def bench_loop(args) -> int:
+    from rig.clock import MonotonicClock
+    from rig.config import load_config
+    from rig.loop import Loop, loop_channels
+    from rig.recorder import Recorder
+    from rig.rt import enter_realtime, leave_realtime
+    from sim_backend.backend import make_sim_port
+
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
+    cfg = load_config(getattr(args, "config", None))
+    rate = args.rate or cfg.loop.rate_hz
+    if not (0 < rate <= 100000):
+        raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
+    if not (0 < args.seconds <= 3600):
+        raise RigError(f"--seconds: expected 0 < N <= 3600, got {args.seconds}")
+    dt = 1.0 / rate
+    clock = MonotonicClock()
+    port = make_sim_port(cfg, dt, mode="rig", clock=clock)
+    try:
+        from controllers.isolation import make_isolation_controllers
+        ctrls = list(make_isolation_controllers(cfg, dt))
+        which = "controllers.isolation"
+    except ImportError:
+        ctrls = [_CentringOnly() for _ in range(port.n_mounts)]
+        which = "stand-in centring law (controllers/isolation.py missing)"
+    n_it = int(math.ceil(args.seconds * rate)) + 16
+    loop = Loop(cfg, port, ctrls, clock=clock, rate_hz=rate, overrun_policy=args.policy, keep_timing=n_it,
+                stop_on_fault=False)
+    path = args.record
+    tmp = None
+    if path is None:
+        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+        os.close(fd)
+        path = tmp
+    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=rate,
+                   flush_s=cfg.recording.flush_s, ring_s=cfg.recording.ring_s,
+                   chunk_rows=cfg.recording.chunk_rows, attrs={"command": "rig bench loop"}).start()
+    loop.recorder = rec
+    loop.configure()
+    loop.activate()
+    rt = None
+    if cfg.loop.realtime and not args.no_realtime:
+        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+    print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
+          f"{loop.policy}, {rt.summary() if rt else 'no real-time hygiene'}", file=sys.stderr)
+    try:
+        loop.run(seconds=args.seconds)
+    finally:
+        if rt is not None:
+            leave_realtime(rt)
+        port.close()
+        try:
+            rec.close()
+        finally:
+            if tmp:
+                os.unlink(tmp)
+    tm = loop.timing_us()
+    out = {"rate_hz": rate, "iterations": loop.iterations,
+           "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
+           "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
+           "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
+    if loop.lc.fault_reason:
+        print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
+              file=sys.stderr)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        w, c = out["wake_latency_us"], out["compute_us"]
+        print(f"{out['iterations']} periods at {rate:g} Hz\n"
+              f"  wake latency  p50 {w['p50']:8.1f} us  p99 {w['p99']:8.1f} us  max {w['max']:9.1f} us\n"
+              f"  compute       p50 {c['p50']:8.1f} us  p99 {c['p99']:8.1f} us  max {c['max']:9.1f} us\n"
+              f"  overruns {out['overruns']}, skipped periods {loop.skipped}, missed deadlines "
+              f"{100 * out['missed_deadline_fraction']:.4f} %")
+    return 0

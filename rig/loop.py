@@ -1,0 +1,384 @@
+"""The fixed-rate control loop: read -> check -> update -> limit -> write -> record, once per period.
+
+- Absolute deadlines in integer ns on an injected clock (`t += period`), so tests run in simulated time.
+- Overrun policy: "skip" jumps to the first deadline still ahead and counts the skipped periods; "catch_up"
+  runs the late periods back to back. Counters: overruns (cycles that ended after their period), skipped.
+  missed_deadline_fraction = (overruns + skipped) / (iterations + skipped).
+- The update is a controller manager: one controller object per mount with
+      initial_state() -> list[float]; step(state, (accel_mps2, stroke_m), dt) -> (valve_cmd_V, state);
+      set_enabled(state, on) -> state    (isolation on/off, bumpless; centring stays active)
+  Controllers also run while INACTIVE, isolation disabled and output discarded, so their filters are warm:
+  activating with cold filters under floor motion kicked the loop into a latched saturation (measured).
+  On activation set_enabled(state, isolation) switches isolation on the controllers' bumpless way and the
+  limiter ramps from the null the valve held, so (re-)activation never jumps.
+- Lifecycle gating: INACTIVE writes null, ACTIVE writes the limited commands, FAULT writes nothing after
+  port.safe_state(). Any exception of port or controller is a fault, never a silent death. Safety checks
+  (rig/safety.py): sensor plausibility before the update, clamp/slew/saturation after it, a gap check on the
+  wake-ups (watchdog_s) and, on the real clock, a watchdog thread that nulls the valve if the loop hangs.
+- Hot path in plain floats and lists; the only per-period allocations are the port's Measurements and the
+  controllers' return tuples (no reference cycles, so gc can stay off during the run).
+"""
+from __future__ import annotations
+
+import array
+import logging
+import math
+
+from rig.clock import MonotonicClock
+from rig.config import MOUNTS, Config
+from rig.lifecycle import Lifecycle, State
+from rig.port import Commands
+from rig.recorder import Channel
+from rig.safety import CommandLimiter, SensorCheck, Watchdog
+
+log = logging.getLogger("rig.loop")
+
+# Per-row flag columns recorded after the per-mount channels.
+FLAG_CHANNELS = (
+    Channel("lifecycle_state", "", description="0 UNCONFIGURED, 1 INACTIVE, 2 ACTIVE, 3 FAULT"),
+    Channel("isolation_on", "", description="1 when isolation is enabled in the controllers"),
+    Channel("fault", "", description="1 from the period a fault was detected on"),
+    Channel("overruns", "", description="cumulative count of cycles that ended after their period"),
+    Channel("skipped_periods", "", description="cumulative count of periods skipped (skip policy)"),
+    Channel("cmd_limited", "", description="1 when a command was clamped or slew-limited this period"),
+    Channel("wake_latency_us", "us", description="wake-up time minus the period's deadline"),
+    Channel("compute_prev_us", "us", description="compute time of the previous period (read..record)"),
+)
+
+
+def loop_channels(n_mounts: int, state_len: int, names: tuple[str, ...]) -> list[Channel]:
+    """The recording layout of a loop run (rows pushed by Loop in this order)."""
+    ch = [Channel("time_s", "s", description="loop time of the period (deadline) since start"),
+          Channel("accel_mps2", "m/s^2", n_mounts, names, "absolute vertical acceleration at the mount"),
+          Channel("stroke_m", "m", n_mounts, names, "displacement transducer, piston relative to housing"),
+          Channel("valve_cmd_V", "V", n_mounts, names, "valve command written to the port (after limits)"),
+          Channel("valve_cmd_raw_V", "V", n_mounts, names, "controller output before clamp and slew limit")]
+    if state_len:
+        labels = tuple(f"{m}[{j}]" for m in names for j in range(state_len))
+        ch.append(Channel("controller_state", "", n_mounts * state_len, labels,
+                          "controller states, mount-major"))
+    return ch + list(FLAG_CHANNELS)
+
+
+class Loop:
+    def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
+                 rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
+                 keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
+                 stop_on_fault: bool = True, watchdog_thread: bool | None = None) -> None:
+        self.cfg = cfg
+        self.port = port
+        self.n = int(port.n_mounts)
+        if len(controllers) != self.n:
+            raise ValueError(f"{len(controllers)} controllers for {self.n} mounts")
+        self.ctrls = list(controllers)
+        self.clock = clock if clock is not None else MonotonicClock()
+        self.rate_hz = float(rate_hz or cfg.loop.rate_hz)
+        self.period_ns = int(round(1e9 / self.rate_hz))
+        self.dt = self.period_ns * 1e-9
+        self.policy = overrun_policy or cfg.loop.overrun_policy
+        if self.policy not in ("skip", "catch_up"):
+            raise ValueError(f"overrun policy {self.policy!r}")
+        self.names = names or (MOUNTS[:self.n] if self.n <= len(MOUNTS) else
+                               tuple(f"mount{i}" for i in range(self.n)))
+        self.lc = Lifecycle()
+        self.check = SensorCheck(cfg, self.n, self.names)
+        self.limiter = CommandLimiter(cfg, self.n, self.dt)
+        self.watchdog_ns = int(round(cfg.safety.watchdog_s * 1e9))
+        self.recorder = recorder
+        self.stop_on_fault = stop_on_fault
+        self._use_wd_thread = self.clock.is_real if watchdog_thread is None else watchdog_thread
+        self.wd: Watchdog | None = None
+
+        self.isolation = bool(isolation)
+        self._iso_request: bool | None = None
+        self._active_request: bool | None = None
+        self.stop_reason: str | None = None
+        self.states = self._fresh_states()
+        self.state_len = max((len(s) for s in self.states), default=0)
+        self.raw = [0.0] * self.n
+        self.cmd = [0.0] * self.n
+        self._commands = Commands(self.cmd)            # the port must copy, not keep, the list
+        self._null = Commands([0.0] * self.n)
+        self.last_meas = None
+
+        # counters and timing (ring of the last keep_timing periods)
+        self.iterations = 0
+        self.overruns = 0
+        self.skipped = 0
+        self.keep = int(keep_timing)
+        self.wake_ns = array.array("q", bytes(8 * self.keep))
+        self.compute_ns = array.array("q", bytes(8 * self.keep))
+        self.t0_ns: int | None = None
+        self.t_ns = 0
+        self.fault_t_ns: int | None = None
+
+    # ---- lifecycle ----------------------------------------------------------------------------------
+    @property
+    def state(self) -> State:
+        return self.lc.state
+
+    def configure(self) -> None:
+        """Open the port (slow set-up happens here, never in the period) -> INACTIVE."""
+        self.port.open()
+        self.lc.configure()
+        self._start_watchdog()
+        self._event("configured: INACTIVE")
+
+    def _start_watchdog(self) -> None:
+        # Started here, before enter_realtime: the thread keeps the normal policy and any CPU, and its
+        # stack is not faulted in (mlockall) inside the first period.
+        if self._use_wd_thread and self.wd is None:
+            self.wd = Watchdog(self.cfg.safety.watchdog_s, self._watchdog_trip).start()
+
+    def activate(self) -> None:
+        """INACTIVE -> ACTIVE. Fresh controller states, limiter from null: no jump on (re-)activation."""
+        self.lc.activate()
+        # warm states from INACTIVE; isolation switched on the controllers' bumpless way; the limiter
+        # ramps from the null the valve held
+        self.states = [c.set_enabled(s, self.isolation) for c, s in zip(self.ctrls, self.states)]
+        self.limiter.reset()
+        self._event("ACTIVE")
+
+    def deactivate(self) -> None:
+        """ACTIVE -> INACTIVE: the valve goes to null (written every period while inactive)."""
+        if self.lc.state is State.ACTIVE:
+            self.lc.deactivate()
+            self.states = [c.set_enabled(s, False) for c, s in zip(self.ctrls, self.states)]
+            self.limiter.reset()
+            for i in range(self.n):
+                self.cmd[i] = 0.0
+            self._safe_write_null()
+            self._event("INACTIVE")
+
+    def _fresh_states(self) -> list:
+        return [c.set_enabled(c.initial_state(), False) for c in self.ctrls]
+
+    def reset_fault(self) -> None:
+        """FAULT -> INACTIVE after the cause is cleared (explicit acknowledgement); fresh controller states."""
+        self.lc.reset()
+        self.check.reset()
+        self.states = self._fresh_states()
+        self._event("fault reset: INACTIVE")
+
+    def request_active(self, on: bool) -> None:
+        """Thread/signal-safe: (de)activate at the next period boundary."""
+        self._active_request = bool(on)
+
+    def request_isolation(self, on: bool) -> None:
+        """Thread/signal-safe: switch isolation at the next period boundary (bumpless, in the controllers)."""
+        self._iso_request = bool(on)
+
+    def toggle_isolation(self) -> None:
+        self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
+
+    def stop(self, reason: str) -> None:
+        """Thread/signal-safe: leave the loop at the next period boundary, then stop safely."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+
+    def fault(self, reason: str) -> None:
+        """FAULT: valve to null via port.safe_state(), reason logged once."""
+        if self.lc.fault(reason):
+            self.fault_t_ns = self.t_ns
+            try:
+                self.port.safe_state()
+            except Exception as e:          # noqa: BLE001 - report, the state is FAULT regardless
+                log.error("safe_state failed after fault: %s", e)
+            self.limiter.reset()
+            for i in range(self.n):
+                self.cmd[i] = 0.0
+            self._event(f"FAULT: {reason}")
+            if self.stop_on_fault:
+                self.stop("fault")
+
+    def _event(self, text: str) -> None:
+        if self.recorder is not None:
+            t = 0.0 if self.t0_ns is None else (self.t_ns - self.t0_ns) * 1e-9
+            self.recorder.event(t, text)
+
+    def _safe_write_null(self) -> None:
+        try:
+            self.port.write(self.t_ns, self._null)
+        except Exception as e:              # noqa: BLE001
+            self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+
+    # ---- one period -----------------------------------------------------------------------------------
+    def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
+        """read -> check -> update -> limit -> write -> record for the period starting at t_ns."""
+        self.t_ns = t_ns
+        lc = self.lc
+        if self._active_request is not None:
+            req, self._active_request = self._active_request, None
+            if req and lc.state is State.INACTIVE:
+                self.activate()
+            elif not req and lc.state is State.ACTIVE:
+                self.deactivate()
+        if self._iso_request is not None:
+            on, self._iso_request = self._iso_request, None
+            if on != self.isolation:
+                self.isolation = on
+                if lc.state is State.ACTIVE:
+                    ctrls, states = self.ctrls, self.states
+                    for i in range(self.n):
+                        states[i] = ctrls[i].set_enabled(states[i], on)
+                self._event(f"isolation {'on' if on else 'off'}")
+        try:
+            m = self.port.read(t_ns)
+        except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
+            self.fault(f"port read failed: {e.__class__.__name__}: {e}")
+            return
+        self.last_meas = m
+        st = lc.state
+        if st is not State.FAULT:
+            reason = self.check.check(m, t_ns)
+            if reason is not None:
+                self.fault(reason)
+                st = lc.state
+        n = self.n
+        acc = m.accel_mps2
+        xs = m.stroke_m
+        raw = self.raw
+        cmd = self.cmd
+        if st is State.ACTIVE or st is State.INACTIVE:
+            # INACTIVE steps the controllers too (isolation disabled, output discarded): their filters stay
+            # warm, so activation under floor motion starts from a settled state instead of a cold one.
+            ctrls, states, dt = self.ctrls, self.states, self.dt
+            try:
+                for i in range(n):
+                    raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
+            except Exception as e:          # noqa: BLE001
+                self.fault(f"controller {self.names[i]} failed: {e.__class__.__name__}: {e}")
+            else:
+                if st is State.INACTIVE:
+                    self._safe_write_null()
+                    return self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
+                reason = self.limiter.limit(raw, cmd)
+                if reason is not None:
+                    self.fault(reason)
+                else:
+                    try:
+                        self.port.write(t_ns, self._commands)
+                    except Exception as e:  # noqa: BLE001
+                        self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+        self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
+
+    def _record(self, t_ns, acc, xs, wake_lat_ns, compute_prev_ns) -> None:
+        rec = self.recorder
+        if rec is not None:
+            lc = self.lc
+            cmd, raw = self.cmd, self.raw
+            states = self.states
+            k = self.state_len
+            row = [(t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0]
+            row += acc
+            row += xs
+            row += cmd
+            row += raw
+            if k:
+                for s in states:
+                    row += s
+            row += (float(lc.state), 1.0 if self.isolation else 0.0, 1.0 if lc.state is State.FAULT else 0.0,
+                    float(self.overruns), float(self.skipped), 1.0 if self.limiter.limited else 0.0,
+                    wake_lat_ns * 1e-3, compute_prev_ns * 1e-3)
+            rec.push(*row)
+
+    # ---- the loop ---------------------------------------------------------------------------------------
+    def run(self, seconds: float | None = None, iterations: int | None = None,
+            activate_after_s: float | None = None) -> str:
+        """Run periods until `seconds` of loop time, `iterations`, stop() or (with stop_on_fault) a fault.
+        With activate_after_s, go ACTIVE after that long INACTIVE (sensors read and checked first).
+        Then stop safely: deactivate, valve to null. Returns the stop reason."""
+        if self.lc.state is State.UNCONFIGURED:
+            self.configure()
+        clock = self.clock
+        period = self.period_ns
+        skip = self.policy == "skip"
+        keep = self.keep
+        wake_a, comp_a = self.wake_ns, self.compute_ns
+        t = clock.now_ns() + period
+        if self.t0_ns is None:
+            self.t0_ns = t
+        end_t = t + int(round(seconds * 1e9)) if seconds is not None else None
+        max_it = self.iterations + iterations if iterations is not None else None
+        act_it = (self.iterations + max(1, int(round(activate_after_s * self.rate_hz)))
+                  if activate_after_s is not None else -1)
+        wd_limit = self.watchdog_ns
+        self._start_watchdog()
+        wd = self.wd
+        prev_wake = None
+        compute_prev = 0
+        cycle = self.cycle
+        try:
+            while self.stop_reason is None:
+                if end_t is not None and t >= end_t:
+                    self.stop("time")
+                    break
+                if max_it is not None and self.iterations >= max_it:
+                    self.stop("iterations")
+                    break
+                clock.sleep_until(t)
+                wake = clock.now_ns()
+                if prev_wake is not None and wake - prev_wake > wd_limit and self.lc.state is not State.FAULT:
+                    self.t_ns = t
+                    self.fault(f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods "
+                               f"(limit {wd_limit / 1e6:g} ms)")
+                if wd is not None:
+                    wd.beat += 1
+                    if wd.tripped and self.lc.state is not State.FAULT:
+                        self.fault(wd.tripped)
+                prev_wake = wake
+                if self.iterations == act_it:
+                    self._active_request = True
+                cycle(t, wake - t, compute_prev)
+                done = clock.now_ns()
+                j = self.iterations % keep
+                wake_a[j] = wake - t
+                comp_a[j] = compute_prev = done - wake
+                self.iterations += 1
+                t += period
+                if done > t:
+                    self.overruns += 1
+                    if skip:
+                        missed = (done - t) // period + 1
+                        self.skipped += missed
+                        t += missed * period
+        except KeyboardInterrupt:
+            self.stop("SIGINT")
+        finally:
+            self.safe_stop()
+        return self.stop_reason or "stopped"
+
+    def _watchdog_trip(self) -> None:
+        self.port.safe_state()
+
+    def safe_stop(self) -> None:
+        """After the loop: valve to null (deactivate), safe state, watchdog off. Port stays open."""
+        if self.lc.state is State.ACTIVE:
+            self.deactivate()
+        try:
+            self.port.safe_state()
+        except Exception as e:              # noqa: BLE001
+            log.error("safe_state at stop failed: %s", e)
+        if self.wd is not None:
+            self.wd.stop()
+            self.wd = None
+
+    # ---- figures --------------------------------------------------------------------------------------------
+    @property
+    def missed_deadline_fraction(self) -> float:
+        sched = self.iterations + self.skipped
+        return (self.overruns + self.skipped) / sched if sched else 0.0
+
+    def timing_us(self) -> dict:
+        """p50/p99/max of wake latency and compute over the kept periods, in microseconds."""
+        import numpy as np
+        n = min(self.iterations, self.keep)
+        out = {}
+        for key, arr in (("wake_latency_us", self.wake_ns), ("compute_us", self.compute_ns)):
+            a = np.frombuffer(arr, dtype=np.int64)[:n] * 1e-3
+            if n:
+                out[key] = {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
+                            "max": float(a.max())}
+            else:
+                out[key] = {"p50": math.nan, "p99": math.nan, "max": math.nan}
+        return out

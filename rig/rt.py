@@ -1,0 +1,115 @@
+"""Real-time hygiene for the loop thread, where the OS allows it.
+
+SCHED_FIFO and CPU affinity apply to the calling thread only (Linux), so call `enter_realtime` from the loop
+thread AFTER starting helper threads (recorder writer, status), which then keep the normal policy.
+Anything not allowed gives one logged note and the run carries on.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import logging
+import os
+import sys
+from dataclasses import dataclass, field
+
+log = logging.getLogger("rig.rt")
+
+MCL_CURRENT, MCL_FUTURE = 1, 2
+
+
+@dataclass
+class RtState:
+    """What was applied, and how to undo it."""
+    notes: list[str] = field(default_factory=list)
+    fifo: bool = False
+    cpu: int | None = None
+    mlocked: bool = False
+    gc_frozen: bool = False
+    _old_sched: tuple | None = None
+    _old_affinity: set | None = None
+    _old_switch: float | None = None
+    _gc_was_enabled: bool = True
+
+    def summary(self) -> str:
+        parts = [f"SCHED_FIFO={'yes' if self.fifo else 'no'}", f"cpu={self.cpu if self.cpu is not None else 'any'}",
+                 f"mlockall={'yes' if self.mlocked else 'no'}", f"gc.freeze={'yes' if self.gc_frozen else 'no'}"]
+        return " ".join(parts)
+
+
+def _note(state: RtState, text: str) -> None:
+    state.notes.append(text)
+    log.warning("real-time: %s; carrying on without it", text)
+
+
+def enter_realtime(*, priority: int = 80, cpu: int | None = -1, lock_memory: bool = True,
+                   freeze_gc: bool = True, switch_interval_s: float = 2e-4) -> RtState:
+    """Apply SCHED_FIFO(priority), pin to `cpu` (-1 = last CPU, None = leave), mlockall, gc.freeze.
+
+    The GIL switch interval is shortened so a helper thread holding the GIL delays the loop by at most
+    about switch_interval_s (default 5 ms otherwise).
+    """
+    st = RtState()
+    if cpu is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            allowed = sorted(os.sched_getaffinity(0))
+            target = allowed[-1] if cpu == -1 else cpu
+            st._old_affinity = set(allowed)
+            os.sched_setaffinity(0, {target})
+            st.cpu = target
+        except (OSError, ValueError) as e:
+            _note(st, f"CPU affinity {cpu} not allowed ({e})")
+    if priority > 0 and hasattr(os, "sched_setscheduler"):
+        try:
+            st._old_sched = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            st.fifo = True
+        except (OSError, ValueError) as e:
+            _note(st, f"SCHED_FIFO priority {priority} not allowed ({e})")
+    if lock_memory:
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+                _note(st, f"mlockall not allowed ({os.strerror(ctypes.get_errno())})")
+            else:
+                st.mlocked = True
+        except OSError as e:
+            _note(st, f"mlockall not available ({e})")
+    st._old_switch = sys.getswitchinterval()
+    sys.setswitchinterval(switch_interval_s)
+    if freeze_gc:
+        # Objects made during set-up go to the permanent generation; the hot path makes no reference
+        # cycles, so collection is off for the run and restored by leave_realtime.
+        gc.collect()
+        gc.freeze()
+        st._gc_was_enabled = gc.isenabled()
+        gc.disable()
+        st.gc_frozen = True
+    return st
+
+
+def leave_realtime(st: RtState) -> None:
+    """Undo what enter_realtime applied (back to the normal policy, GC on)."""
+    if st.gc_frozen:
+        gc.unfreeze()
+        if st._gc_was_enabled:
+            gc.enable()
+    if st._old_switch is not None:
+        sys.setswitchinterval(st._old_switch)
+    if st.mlocked:
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            libc.munlockall()
+        except OSError:
+            pass
+    if st.fifo and st._old_sched is not None:
+        try:
+            os.sched_setscheduler(0, st._old_sched[0], os.sched_param(st._old_sched[1]))
+        except OSError:
+            pass
+    if st._old_affinity is not None:
+        try:
+            os.sched_setaffinity(0, st._old_affinity)
+        except OSError:
+            pass
