@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from rig.frf import frf_estimate
+from tests.paths import RECORDINGS
 from rig.identify import identify, model_frf, simulate_linear
 from rig.recording import Recording, save_recording_h5
 from sim_backend.actuator import Effects, linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 
-SHARED = Path("/work/shared/recordings")
+SHARED = RECORDINGS
 DESIGN = ActuatorParams()
 # a "prototype" moved from the design by 8-15 % in every identified parameter
 TRUE = DESIGN.with_(K_L=DESIGN.K_L * 1.12, C=DESIGN.C * 0.9, w_nv=DESIGN.w_nv * 0.9, zeta=DESIGN.zeta * 1.1,

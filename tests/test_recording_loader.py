@@ -11,10 +11,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rig.errors import RecordingError
+from tests.paths import RECORDINGS
 from rig.recording import (COLUMNS, MIN_SAMPLES, Recording, load_recording, save_recording_csv, save_recording_h5,
                            save_recording_mat)
 
-SHARED = Path("/work/shared/recordings/p01_nominal.csv.gz")
+SHARED = RECORDINGS / "p01_nominal.csv.gz"
 HEADER = ",".join(COLUMNS)
 
 
