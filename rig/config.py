@@ -121,16 +121,18 @@ class DriversConfig:
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
     serial_baud: int = _f(921600, "bit/s", gt=0)
     stale_s: float = _f(0.02, "s", gt=0)                 # a device silent for longer ends in FAULT
+    serial_stale_s: float = _f(0.1, "s", gt=0)           # the same for the displacement amplifier (centring)
     thread_priority: int = _f(55, "", ge=0, le=99)       # SCHED_FIFO of the driver threads (0 = normal)
 
 
 @dataclass(frozen=True)
 class HilConfig:
     """`rig hil`: the emulated rig behind the real drivers."""
-    rate_hz: float = _f(1000.0, "Hz", gt=0, le=5000)     # loop rate of HIL runs (Modbus limits it)
+    rate_hz: float = _f(500.0, "Hz", gt=0, le=5000)      # loop rate of HIL runs (Modbus, one GIL limit it)
     seconds: float = _f(10.0, "s", gt=0)                 # isolation off, then on: half each
     settle_s: float = _f(1.0, "s", ge=0)                 # discarded at the start of each half
     stale_s: float = _f(0.05, "s", gt=0)                 # staleness limit of HIL runs (drivers and safety)
+    serial_stale_s: float = _f(0.1, "s", gt=0)           # the same for the emulated serial amplifier
     device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
 
 
@@ -156,7 +158,7 @@ class StandConfig:
 class ControllerConfig:
     """Isolation controller per mount (controllers/isolation.py): PI + two leads + roll-off on the mount's
     absolute motion, slow stroke centring; defaults tuned on the discrete loop (controllers/tune.py)."""
-    accel_hp_hz: float = _f(0.1, "Hz", gt=0)             # band-limited double integration corner
+    blend_hz: float = _f(0.05, "Hz", gt=0)               # accelerometer / stroke complementary blend
     kp_V_per_m: float = _f(1.0e6, "V/m", gt=0)           # PI proportional gain on the compensated position
     pi_corner_hz: float = _f(5.0, "Hz", gt=0)            # PI integral corner
     lead1_zero_hz: float = _f(60.0, "Hz", gt=0)
@@ -168,7 +170,7 @@ class ControllerConfig:
     notch_hz: float = _f(0.0, "Hz", ge=0)                # optional notch (0 = none)
     notch_zeta_zero: float = _f(0.1, "", ge=0)
     notch_zeta_pole: float = _f(0.5, "", gt=0)
-    centring_hz: float = _f(0.02, "Hz", gt=0)            # crossover of the stroke-centring loop
+    centring_hz: float = _f(0.02, "Hz", gt=0)            # slow centring crossover while isolation is off
     prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp (the design crossover)
     fade_s: float = _f(0.1, "s", gt=0)                   # bumpless on/off: switching offset decay time
     gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "")   # per-mount multiplier on kp (MOUNTS order)

@@ -1,8 +1,9 @@
 """Emulated CiA 408-style valve nodes: canopen LocalNodes on a python-can virtual bus (in-process).
 
-The nodes are served by the emulator network's notifier thread. On each SYNC (CiA 301 synchronous PDOs) the
-valve applies the setpoint received by RPDO since the last SYNC, the plant advances to the SYNC instant, and
-each node answers with its TPDO (status word, spool actual value, sample counter).
+The nodes are served by the emulator network's notifier thread. RPDO1 (event-driven, type 255) carries the
+setpoint; on each SYNC the plant advances to the SYNC instant with the setpoints received since the previous
+SYNC held over the step, and each node answers with its synchronous TPDO (status word, spool actual value,
+sample counter).
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import math
 import random
 
 from drivers import valve408 as v4
-from sim_backend.emulators import shared as sh
+from drivers.rt import raise_priority
 
 # per-node fault knobs
 VALVE_MODES = ("ok", "silence", "garbage", "stale", "fault", "hold")
@@ -68,10 +69,28 @@ class ValveNode:
         self.statusword = (self.statusword & ~0x7) | dhm
 
     def _reload_pdo(self) -> None:
-        """The host rewrote the PDO configuration by SDO: read it back from our own object dictionary."""
+        """The host rewrote the PDO configuration by SDO: read it back from our own object dictionary, and
+        turn each mapping into (index, byte offset, bytes, signed) fields for the cyclic path."""
         self.node.rpdo.read(from_od=False)
         self.node.tpdo.read(from_od=False)
+        self._rp_fields = self._fields(self.node.rpdo[1])
+        self._tp_fields = self._fields(self.node.tpdo[1])
+        self._tp_len = sum(n for _, _, n, _ in self._tp_fields)
         self._pdo_dirty = False
+
+    @staticmethod
+    def _fields(pdo_map):
+        import canopen
+        out = []
+        for v in pdo_map.map:
+            if v.offset % 8 or v.length % 8:
+                raise ValueError("emulated valve: only byte-aligned PDO mappings")
+            out.append((v.index, v.offset // 8, v.length // 8, v.od.data_type in canopen.objectdictionary.SIGNED_TYPES))
+        return out
+
+    def _values(self) -> dict:
+        return {v4.STATUSWORD: self.statusword, v4.ACTUAL: int(round(self.actual)),
+                v4.SAMPLE_COUNTER: self.counter}
 
     def on_sync(self, dt: float) -> float:
         """Apply the received setpoint; returns the valve command in volts-equivalent for the plant."""
@@ -81,11 +100,13 @@ class ValveNode:
             self._reload_pdo()
         rp = self.node.rpdo[1]
         if rp.is_received:
-            try:
-                self._apply_controlword(int(rp[v4.CONTROLWORD].raw))
-                self.setpoint = int(rp[v4.SETPOINT].raw)
-            except Exception:       # a short or odd RPDO: keep the last setpoint
-                pass
+            data = bytes(rp.data)
+            got = {idx: int.from_bytes(data[o:o + n], "little", signed=sg) for idx, o, n, sg in self._rp_fields
+                   if o + n <= len(data)}
+            if v4.CONTROLWORD in got:
+                self._apply_controlword(got[v4.CONTROLWORD])
+            if v4.SETPOINT in got:               # a short or odd RPDO keeps the last setpoint
+                self.setpoint = got[v4.SETPOINT]
         if self.mode == "fault":
             self.statusword &= ~v4.BIT_R
         elif self.mode == "hold":
@@ -106,18 +127,19 @@ class ValveNode:
         if self.mode == "garbage":
             tp.pdo_node.network.send_message(tp.cob_id, bytes([self._rng.getrandbits(8)]))
             return
-        tp[v4.STATUSWORD].raw = self.statusword
-        tp[v4.ACTUAL].raw = int(round(self.actual))
-        tp[v4.SAMPLE_COUNTER].raw = self.counter
-        self.frozen = bytes(tp.data)
-        tp.transmit()
+        vals = self._values()
+        data = bytearray(self._tp_len)
+        for idx, o, n, sg in self._tp_fields:
+            data[o:o + n] = int(vals.get(idx, 0)).to_bytes(n, "little", signed=sg)
+        self.frozen = bytes(data)
+        tp.pdo_node.network.send_message(tp.cob_id, self.frozen)
 
 
 class ValveBus:
     """Valve nodes on a virtual CAN channel. On SYNC: `rig.apply_sync(volts)` with the commands they apply
     (the plant advances), then the TPDOs go out."""
 
-    def __init__(self, channel: str, node_ids: list[int], w_spool: float, max_V: float, rig):
+    def __init__(self, channel: str, node_ids: list[int], w_spool: float, max_V: float, rig, priority: int = 0):
         import canopen
         self.network = canopen.Network()
         self.network.connect(interface="virtual", channel=channel, receive_own_messages=False)
@@ -125,9 +147,12 @@ class ValveBus:
         self.max_V = max_V
         self.rig = rig
         self.syncs = 0
+        self.priority = priority
         self.network.subscribe(0x80, self._sync)
 
     def _sync(self, can_id, data, timestamp):
+        if not self.syncs:                         # runs in the emulator's notifier thread: raise it once
+            raise_priority(self.priority)
         self.syncs += 1
         dt = self.rig.dt
         cmds = [v4.setpoint_to_volts(n.on_sync(dt), self.max_V) for n in self.nodes]

@@ -18,6 +18,7 @@ import time
 
 from pymodbus.constants import ExcCodes
 
+from drivers.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 N_REGS = 32
@@ -75,12 +76,13 @@ class Module:
         return None
 
 
-def serve(arr, port_conn, sensitivity_V_per_mps2: float, host: str = "127.0.0.1") -> None:
+def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host: str = "127.0.0.1") -> None:
     """Process entry: bind an ephemeral port on loopback, report it on port_conn, serve until the parent
     goes away or sends anything on port_conn."""
     from pymodbus.server import ModbusTcpServer
     from pymodbus.simulator import DataType, SimData, SimDevice
 
+    raise_priority(priority)
     parent = os.getppid()
     module = Module(arr, sensitivity_V_per_mps2)
 

@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import itertools
 import math
-import multiprocessing as mp
 import os
+import select
+import subprocess
+import sys
 import threading
 import time
 
+from drivers.rt import raise_priority
 from rig.errors import DeviceError
 from sim_backend.emulators import shared as sh
 
@@ -27,7 +30,7 @@ _channels = itertools.count()
 class EmulatedRig:
     def __init__(self, plant, dt: float, *, max_V: float = 10.0, w_spool: float = 524.0,
                  accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), channel: str | None = None,
-                 start_timeout_s: float = 30.0):
+                 start_timeout_s: float = 30.0, priority: int = 0):
         self.plant = plant
         self.dt = float(dt)
         self.max_V = max_V
@@ -36,61 +39,81 @@ class EmulatedRig:
         self.node_ids = list(node_ids)
         self.channel = channel or f"rig-hil-{os.getpid()}-{next(_channels)}"
         self.start_timeout_s = start_timeout_s
-        self.arr = sh.new_shared()
+        self.priority = priority              # SCHED_FIFO of the device processes and threads (0 = normal)
+        self.state = sh.SharedFile()
+        self.arr = self.state.arr
         self.modbus_port: int | None = None
         self.serial_path: str | None = None
         self.valves = None
-        self._procs: list[tuple[mp.Process, object]] = []
+        self._procs: list[tuple[subprocess.Popen, str]] = []
         self._t0: float | None = None
         self._steps = 0
         self.last_cmd_V = [0.0] * 4
         self.lock = threading.Lock()
+        self._stop = threading.Event()
+        self._keeper: threading.Thread | None = None
         self._phase: str | None = None
         self.meter: dict[str, list] = {}
 
     # ---- lifetime --------------------------------------------------------------------------------------
     def start(self) -> "EmulatedRig":
-        from sim_backend.emulators import modbus_server, serial_device
         from sim_backend.emulators.canopen_valve import ValveBus
         self._publish()
-        ctx = mp.get_context("spawn")
+        self._stop.clear()
+        self._keeper = threading.Thread(target=self._keep_pace, name="hil-plant-keeper", daemon=True)
+        self._keeper.start()
         try:
-            self.modbus_port = self._spawn(ctx, modbus_server.serve, (self.accel_V_per_mps2,), "modbus")
-            self.serial_path = self._spawn(ctx, serial_device.serve, (0,), "serial")
-            self.valves = ValveBus(self.channel, self.node_ids, self.w_spool, self.max_V, self)
+            self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority)))
+            self.serial_path = self._spawn("serial", str(self.priority))
+            self.state.unlink()                 # both devices have it mapped: nothing is left behind on a crash
+            self.valves = ValveBus(self.channel, self.node_ids, self.w_spool, self.max_V, self,
+                                   priority=self.priority)
         except BaseException:
             self.stop()
             raise
         return self
 
-    def _spawn(self, ctx, target, extra, what):
-        here, there = ctx.Pipe()
-        p = ctx.Process(target=target, args=(self.arr, there, *extra), daemon=True, name=f"rig-hil-{what}")
-        p.start()
-        self._procs.append((p, here))
-        if not here.poll(self.start_timeout_s):
-            raise DeviceError(f"hil: the emulated {what} device did not start within {self.start_timeout_s:g} s")
-        return here.recv()
+    def _spawn(self, what: str, *args: str) -> str:
+        """Start `python -m sim_backend.emulators.device what ...`; returns what it announces (port / pty)."""
+        p = subprocess.Popen([sys.executable, "-m", "sim_backend.emulators.device", what, self.state.path, *args],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self._procs.append((p, what))
+        ready, _, _ = select.select([p.stdout], [], [], self.start_timeout_s)
+        line = p.stdout.readline() if ready else ""
+        if not line.strip():
+            raise DeviceError(f"hil: the emulated {what} device did not start within {self.start_timeout_s:g} s"
+                              f" (exit code {p.poll()})")
+        return line.split(None, 1)[1].strip()
 
     def stop(self) -> None:
+        self._stop.set()
+        if self._keeper is not None:
+            self._keeper.join(2.0)
+            self._keeper = None
         if self.valves is not None:
             self.valves.close()
             self.valves = None
-        for p, conn in self._procs:
+        for p, _ in self._procs:
             try:
-                conn.send("stop")
-            except (OSError, ValueError):
+                p.stdin.close()                 # the device's signal to stop
+            except OSError:
                 pass
-        for p, conn in self._procs:
-            p.join(2.0)
-            if p.is_alive():
+        for p, _ in self._procs:
+            try:
+                p.wait(2.0)
+            except subprocess.TimeoutExpired:
                 p.terminate()
-                p.join(2.0)
-            if p.is_alive():
-                p.kill()
-                p.join(1.0)
-            conn.close()
+                try:
+                    p.wait(2.0)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(1.0)
+            p.stdout.close()
         self._procs.clear()
+        if self.state is not None:
+            self.arr = None
+            self.state.close()
+            self.state = None
 
     def __enter__(self):
         return self.start()
@@ -100,20 +123,37 @@ class EmulatedRig:
 
     @property
     def alive(self) -> bool:
-        return bool(self._procs) and all(p.is_alive() for p, _ in self._procs)
+        return bool(self._procs) and all(p.poll() is None for p, _ in self._procs)
+
+    def device_pid(self, what: str) -> int:
+        return next(p.pid for p, w in self._procs if w == what)
 
     # ---- the plant, advanced at each SYNC --------------------------------------------------------------
     def apply_sync(self, valve_cmd_V: list[float]) -> None:
         """Called by the valve bus on SYNC with the commands the valves now apply. The plant keeps pace
         with the wall clock: normally one step per SYNC, extra steps when it fell behind, none when ahead."""
-        now = time.monotonic()
         with self.lock:
-            if self._t0 is None:
-                self._t0 = now - self.dt
-            behind = (now - self._t0) / self.dt - self._steps
-            n = 1 if -1.5 <= behind <= 1.5 else (0 if behind < 0 else min(int(behind), 1000))
-            plant = self.plant
             self.last_cmd_V = list(valve_cmd_V)
+            self._advance(time.monotonic(), sync=True)
+
+    def _keep_pace(self) -> None:
+        """Without SYNC (loop not started, stalled, stopped) the rig still runs: catch up with held commands."""
+        raise_priority(self.priority)
+        while not self._stop.wait(2 * self.dt):
+            with self.lock:
+                self._advance(time.monotonic(), sync=False)
+
+    def _advance(self, now: float, sync: bool) -> None:
+        if self._t0 is None:
+            self._t0 = now - self.dt
+        behind = (now - self._t0) / self.dt - self._steps
+        if sync:
+            n = 1 if -1.5 <= behind <= 1.5 else (0 if behind < 0 else min(int(behind), 1000))
+        else:
+            n = min(int(behind - 1.5), 1000) if behind > 2.5 else 0
+        if n:
+            plant = self.plant
+            valve_cmd_V = self.last_cmd_V
             for _ in range(n):
                 plant.step(valve_cmd_V)
                 self._steps += 1

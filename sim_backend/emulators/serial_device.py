@@ -13,6 +13,7 @@ import time
 import tty
 
 from drivers import dta_protocol as proto
+from drivers.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 
@@ -66,9 +67,10 @@ class Amplifier:
         return [out]
 
 
-def serve(arr, path_conn, seed: int = 0) -> None:
+def serve(arr, path_conn, seed: int = 0, priority: int = 0) -> None:
     """Process entry: open a pty pair, send the slave path on path_conn, answer until the parent goes away
     or sends anything on path_conn."""
+    raise_priority(priority)
     master, slave = os.openpty()
     tty.setraw(slave)                   # no echo, no line editing before the driver configures it
     path_conn.send(os.ttyname(slave))

@@ -6,7 +6,10 @@ same array: the test or the `rig hil` command sets them, the device processes re
 """
 from __future__ import annotations
 
-import multiprocessing as mp
+import ctypes
+import mmap
+import os
+import tempfile
 
 N_MOUNTS = 4
 
@@ -28,8 +31,42 @@ CH_STATUS = {0: None, 1: "UR", 2: "OR", 3: "NP"}
 
 
 def new_shared():
-    """The array for spawned processes (lock-free: the seqlock does the guarding)."""
-    return mp.get_context("spawn").RawArray("d", SIZE)
+    """A process-local array (tests of a device entry point run in a thread)."""
+    return (ctypes.c_double * SIZE)()
+
+
+class SharedFile:
+    """The array in a file-backed mmap under /dev/shm, so a device process started by path (python -m ...)
+    attaches by name, independent of the parent's __main__. The creator removes the file."""
+
+    def __init__(self, path: str | None = None):
+        self.owner = path is None
+        if self.owner:
+            d = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+            fd, path = tempfile.mkstemp(prefix="rig-hil-", suffix=".state", dir=d)
+            os.write(fd, bytes(8 * SIZE))
+            os.close(fd)
+        self.path = path
+        with open(path, "r+b") as f:
+            self._mm = mmap.mmap(f.fileno(), 8 * SIZE)
+        self.arr = (ctypes.c_double * SIZE).from_buffer(self._mm)
+
+    def unlink(self) -> None:
+        """Remove the file (the mappings stay valid); done once every process has attached."""
+        if self.owner:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+            self.owner = False
+
+    def close(self) -> None:
+        self.arr = None
+        try:
+            self._mm.close()
+        except BufferError:          # a view is still alive somewhere: the mapping goes with the process
+            pass
+        self.unlink()
 
 
 def publish(arr, t_s: float, accel_mps2, stroke_m) -> None:

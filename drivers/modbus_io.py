@@ -1,0 +1,178 @@
+"""Modbus TCP analog input module (ADAM-6024 style) carrying the four accelerometers, on pymodbus.
+
+Request/response never runs inside the control period: a driver-owned thread polls AI ch0-5 + the conversion
+counter (one read of 40001-40010) every poll period and keeps the latest sample with its time stamp. The loop
+only picks that sample up. A sample is new when the module's conversion counter moved; no new sample for
+stale_s (silence, exceptions, garbage, frozen module) is a fault naming the module and the last error.
+open() configures the module's host watchdog (40021) and clears its status (40010).
+Device map: drivers/devicemaps/adam6024_modbus.md.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from drivers.rt import raise_priority
+from rig.errors import DeviceError
+
+REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
+N_READ = 10                     # 40001-40010 in one request
+
+
+def raw_to_volts(raw: int) -> float:
+    """0..65535 -> -10..+10 V."""
+    return raw * 20.0 / 65535.0 - 10.0
+
+
+def volts_to_raw(v: float) -> int:
+    raw = round((v + 10.0) * 65535.0 / 20.0)
+    return 0 if raw < 0 else 65535 if raw > 65535 else int(raw)
+
+
+class ModbusAnalogIO:
+    def __init__(self, *, host: str, port: int, unit: int, channels: list[int], names: list[str],
+                 V_per_mps2: float, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
+                 priority: int = 0, keep_latency: int = 1 << 16):
+        self.host, self.port, self.unit = host, port, unit
+        self.channels = list(channels)
+        self.names = list(names)
+        self.k = V_per_mps2
+        self.timeout_s = timeout_s
+        self.watchdog_s = watchdog_s
+        self.stale_ns = int(stale_s * 1e9)
+        self.poll_ns = int(poll_s * 1e9)
+        self.priority = priority
+        self.where = f"modbus_tcp {host}:{port} unit {unit}"
+        self.client = None
+        # the latest sample: (accel_mps2 tuple, sample time ns, raw tuple); replaced whole, so reads are atomic
+        self.sample: tuple = ((0.0,) * len(channels), 0, (32768,) * len(channels))
+        self.last_error = ""
+        self.errors = 0
+        self.polls = 0
+        self._counter = -1
+        self.watchdog_tripped = False
+        self.asked_ns = 0              # first request since the last new sample (0 = none outstanding)
+        self._stop = threading.Event()
+        self._trigger = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.latency_ns = [0] * keep_latency   # ring of request round trips, for the benchmark
+        self.n_latency = 0
+
+    def open(self) -> None:
+        from pymodbus.client import ModbusTcpClient
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # our own one-line faults say it
+        self.client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0,
+                                      reconnect_delay=0.0)
+        if not self.client.connect():
+            self.client = None
+            raise DeviceError(f"{self.where}: cannot connect (analog I/O module not answering)")
+        try:
+            wd = round(self.watchdog_s * 10)
+            for addr, val, what in ((REG_WDOG, wd, "host watchdog 40021"), (REG_STATUS, 0, "status 40010")):
+                r = self.client.write_register(addr, val, device_id=self.unit)
+                if r.isError():
+                    raise DeviceError(f"{self.where}: configuring the {what} failed ({r})")
+            r = self.client.read_holding_registers(REG_WDOG, count=1, device_id=self.unit)
+            if r.isError() or r.registers[0] != wd:
+                raise DeviceError(f"{self.where}: host watchdog 40021 reads back {r}, expected {wd}")
+            self.watchdog_tripped = False
+            self._poll_once()
+            if self.sample[1] == 0:
+                raise DeviceError(f"{self.where}: no valid first sample ({self.last_error})")
+        except DeviceError:
+            self.close()
+            raise
+        except Exception as e:                      # noqa: BLE001 - pymodbus raises its own types
+            self.close()
+            raise DeviceError(f"{self.where}: set-up failed ({e.__class__.__name__}: {e})") from None
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="modbus-poller", daemon=True)
+        self._thread.start()
+
+    def _poll_once(self) -> bool:
+        """One request; True when it brought a new sample."""
+        t0 = time.monotonic_ns()
+        if not self.asked_ns:
+            self.asked_ns = t0
+        try:
+            r = self.client.read_holding_registers(REG_AI, count=N_READ, device_id=self.unit)
+        except Exception as e:                      # noqa: BLE001 - timeouts, garbage, closed socket
+            self.errors += 1
+            text = str(e)
+            self.last_error = (f"no valid response within {self.timeout_s * 1e3:g} ms" if "No response" in text
+                               else f"{e.__class__.__name__}: {text}")
+            if not self.client.connected:
+                self.client.connect()
+            return False
+        t1 = time.monotonic_ns()
+        self.latency_ns[self.n_latency % len(self.latency_ns)] = t1 - t0
+        self.n_latency += 1
+        self.polls += 1
+        if r.isError():
+            self.errors += 1
+            code = getattr(r, "exception_code", None)
+            self.last_error = f"exception response {code}" if code is not None else str(r)
+            return False
+        regs = r.registers
+        if len(regs) == N_READ and regs[REG_STATUS] & 1:
+            self.watchdog_tripped = True            # latched in the module until open() clears it
+        if len(regs) != N_READ:
+            self.errors += 1
+            self.last_error = f"{len(regs)} registers (expected {N_READ})"
+            return False
+        if regs[REG_COUNT] == self._counter:
+            return False                            # no new conversion: keep the old time stamp
+        self._counter = regs[REG_COUNT]
+        self.last_error = ""
+        self.asked_ns = 0
+        raw = tuple(regs[REG_AI + ch] for ch in self.channels)
+        k = self.k
+        self.sample = (tuple(raw_to_volts(x) / k for x in raw), t1, raw)
+        return True
+
+    def trigger(self) -> None:
+        """The period started (SYNC sent): fetch the next sample now, so it is in by the next period."""
+        self._trigger.set()
+
+    def _run(self) -> None:
+        """Poll on each trigger until a new sample arrives (at most ~0.85 poll period), or once per poll
+        period when no trigger comes (loop not running: the sample stays fresh, the watchdog fed)."""
+        raise_priority(self.priority)
+        stop, trig = self._stop, self._trigger
+        budget = int(0.85 * self.poll_ns)
+        while not stop.is_set():
+            triggered = trig.wait(self.poll_ns * 1e-9)
+            trig.clear()
+            end = time.monotonic_ns() + (budget if triggered else 0)
+            while not self._poll_once() and time.monotonic_ns() < end and not stop.is_set():
+                time.sleep(5e-5)
+
+    def check(self, now_ns: int) -> str | None:
+        acc, t_ns, raw = self.sample
+        asked = self.asked_ns
+        # the module was asked and has not delivered a new sample for longer than the limit
+        if asked and now_ns - asked > self.stale_ns:
+            why = f"; last error: {self.last_error}" if self.last_error else "; values not updating"
+            return (f"{self.where}: no new sample for {(now_ns - t_ns) / 1e6:.1f} ms "
+                    f"(limit {self.stale_ns / 1e6:g} ms){why}")
+        if self.watchdog_tripped:
+            return (f"{self.where}: module host watchdog tripped (no request for {self.watchdog_s:g} s): "
+                    f"outputs at their safe values")
+        for i, x in enumerate(raw):
+            if x == 0 or x == 65535:
+                return f"{self.where}: AI ch{self.channels[i]} ({self.names[i]}) at the +-10 V rail (over range)"
+        return None
+
+    def latencies_us(self) -> list[float]:
+        n = min(self.n_latency, len(self.latency_ns))
+        return [x * 1e-3 for x in self.latency_ns[:n]]
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
+        if self.client is not None:
+            self.client.close()
+            self.client = None

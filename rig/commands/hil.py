@@ -1,0 +1,309 @@
+"""`rig hil`: the control loop through the real drivers (CANopen valves, Modbus TCP accelerometers, serial
+displacement transducers) against the emulated rig under broadband floor vibration; isolation off, then on.
+
+  rig hil [--config F] [--seconds N] [--rate HZ] [--record FILE] [--json]
+  rig hil --bench [--seconds N] [--json]        driver round trips, p50/p99/max (us): in the loop's pattern
+                                                (null commands, no controller), then each transport alone
+
+Without --config the run uses drivers/devicemaps/hil.toml (the HIL rate and the isolation controller re-tuned
+for it, see sim_backend/emulators/tune_hil.py); a config of your own should carry a [controller] section
+tuned for [hil] rate_hz. The run uses [hil] rate_hz (Modbus request/response limits the rate) and [hil]
+stale_s as the staleness limit of the drivers and of the loop's sensor check. The first half is isolation off, the second on; [hil] settle_s
+at the start of each half is not metered. isolation_reduction_db = 20 log10(rms table motion off / on), the
+true table motion of the emulated plant under the same floor vibration.
+--json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
+"isolation_reduction_db", "recording"} on stdout; progress goes to stderr. Exit 1 after a fault.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+
+from pathlib import Path
+
+from rig.errors import RigError
+
+log = logging.getLogger("rig.hil")
+# without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
+HIL_DEFAULT_CONFIG = Path(__import__("drivers").__file__).resolve().parent / "devicemaps" / "hil.toml"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--seconds", type=float, default=None, metavar="N",
+                   help="run length, isolation off then on, half each (default [hil] seconds)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [hil] rate_hz)")
+    p.add_argument("--record", metavar="FILE", default=None,
+                   help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
+    p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
+    p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
+    p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
+
+
+def hil_config(cfg, rate_hz: float | None = None):
+    """The config of a HIL run: [hil] rate and staleness applied to the loop and the safety checks."""
+    rate = cfg.hil.rate_hz if rate_hz is None else rate_hz
+    if not 0 < rate <= 5000:
+        raise RigError(f"--rate: expected 0 < HZ <= 5000 for HIL, got {rate}")
+    return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=float(rate)),
+                       safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s))
+
+
+def _pct(xs: list[float]) -> dict:
+    import numpy as np
+    if not xs:
+        return {"p50": math.nan, "p99": math.nan, "max": math.nan, "n": 0}
+    a = np.asarray(xs)
+    return {"p50": round(float(np.percentile(a, 50)), 1), "p99": round(float(np.percentile(a, 99)), 1),
+            "max": round(float(a.max()), 1), "n": int(a.size)}
+
+
+class _Phases(threading.Thread):
+    """Isolation off for the first half, on for the second; meters the table motion after settle_s."""
+
+    def __init__(self, loop, rig, seconds: float, settle_s: float, quiet: bool, priority: int = 0):
+        super().__init__(name="hil-phases", daemon=True)
+        self.priority = priority
+        self.loop, self.rig, self.half, self.settle, self.quiet = loop, rig, seconds / 2, settle_s, quiet
+        self._halt = threading.Event()
+
+    def elapsed(self) -> float:
+        lp = self.loop
+        return (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None and lp.t_ns else 0.0
+
+    def run(self) -> None:
+        from drivers.rt import raise_priority
+        # every thread of this process runs SCHED_FIFO where allowed: a normal thread preempted while it
+        # holds the GIL would stall the loop and the drivers behind it
+        raise_priority(self.priority)
+        stage = 0
+        last_note = 0.0
+        while not self._halt.wait(0.005):
+            t = self.elapsed()
+            if stage == 0 and t >= self.settle:
+                self.rig.phase("off")
+                stage = 1
+            elif stage == 1 and t >= self.half:
+                self.rig.phase(None)
+                self.loop.request_isolation(True)
+                stage = 2
+            elif stage == 2 and t >= self.half + self.settle:
+                self.rig.phase("on")
+                stage = 3
+            if not self.quiet and t - last_note >= 1.0:
+                last_note = t
+                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} isolation "
+                      f"{'on' if self.loop.isolation else 'off'} overruns {self.loop.overruns}", file=sys.stderr)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(1.0)
+        self.rig.phase(None)
+
+
+def run(args) -> int:
+    from rig.config import load_config
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="rig hil: %(message)s", stream=sys.stderr)
+    logging.getLogger("canopen").setLevel(logging.WARNING)
+    cfg = hil_config(load_config(args.config if args.config else HIL_DEFAULT_CONFIG), args.rate)
+    seconds = args.seconds if args.seconds is not None else cfg.hil.seconds
+    if not 0 < seconds <= 3600:
+        raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
+    if args.bench:
+        return bench(cfg, seconds, args.json)
+    res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
+                  quiet=args.json)
+    out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
+                               "isolation_reduction_db", "recording")}
+    if res["fault_reason"]:
+        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
+    rt = res["round_trip_us"]
+    print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
+                                                           for k, v in rt.items()), file=sys.stderr)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at "
+              f"{cfg.loop.rate_hz:g} Hz, {out['faults']} faults, {out['overruns']} overruns, "
+              f"{out['samples_recorded']} samples recorded to {out['recording']}")
+        red = out["isolation_reduction_db"]
+        print(f"isolation reduction of table motion: {'n/a' if red is None else f'{red:.1f} dB'} "
+              f"(rms {res['table_rms_off_m'] * 1e6:.3f} um off -> {res['table_rms_on_m'] * 1e6:.3f} um on)")
+    return 1 if res["faults"] else 0
+
+
+def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
+            port=None) -> dict:
+    """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more)."""
+    import drivers
+    from rig.loop import Loop, loop_channels
+    from rig.recorder import Recorder
+    from rig.rt import enter_realtime, leave_realtime
+    try:
+        from controllers.isolation import make_isolation_controllers
+    except ImportError as e:
+        raise RigError(f"hil: needs make_isolation_controllers(cfg, dt) in controllers/isolation.py ({e})") from None
+    rate = cfg.loop.rate_hz
+    dt = 1.0 / rate
+    if record is None:
+        record = time.strftime("hil-%Y%m%d-%H%M%S.h5")
+    if not quiet:
+        print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
+              f"at {rate:g} Hz", file=sys.stderr)
+    running = {}
+
+    def on_term(signum, frame):               # SIGTERM: a safe stop while running, an interrupt during set-up
+        if "loop" in running:
+            running["loop"].stop("SIGTERM")
+        else:
+            raise KeyboardInterrupt
+
+    try:
+        old_term = signal.signal(signal.SIGTERM, on_term)
+    except ValueError:                        # not the main thread
+        old_term = None
+    try:
+        port = port or drivers.make_port(cfg, "hil")
+    except BaseException:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        raise
+    rig = port.rig
+    rec = None
+    rt = None
+    phases = None
+    try:
+        ctrls = list(make_isolation_controllers(cfg, dt))
+        loop = Loop(cfg, port, ctrls, rate_hz=rate, isolation=False, keep_timing=int(seconds * rate) + 16)
+        rec = Recorder(record, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=rate,
+                       flush_s=cfg.recording.flush_s, ring_s=cfg.recording.ring_s,
+                       chunk_rows=cfg.recording.chunk_rows,
+                       attrs={"command": "rig hil", "config_source": cfg.source, "backend": "hil",
+                              "transports": ",".join(port.transports)}).start()
+        loop.recorder = rec
+        loop.configure()
+        if realtime:
+            rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+        time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
+        phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
+        phases.start()
+        running["loop"] = loop
+        loop.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        if phases is not None:
+            phases.stop()
+        if rt is not None:
+            leave_realtime(rt)
+        rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
+        port.close()
+        if rec is not None:
+            rec.close(stop_reason=loop.stop_reason or "", fault_reason=loop.lc.fault_reason or "",
+                      iterations=loop.iterations, overruns=loop.overruns, skipped_periods=loop.skipped)
+    off = rig.table_rms_m("off") if "off" in rig.meter else math.nan
+    on = rig.table_rms_m("on") if "on" in rig.meter else math.nan
+    red = 20 * math.log10(off / on) if off > 0 and on > 0 else math.nan
+    return {"transports": ["canopen", "modbus_tcp", "serial"],
+            "faults": 1 if loop.lc.fault_reason else 0, "overruns": loop.overruns, "iterations": loop.iterations,
+            "samples_recorded": rec.rows_written if rec is not None else 0,
+            "isolation_reduction_db": None if math.isnan(red) else round(red, 2),
+            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_off_m": off,
+            "table_rms_on_m": on, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us()}
+
+
+def _raw_round_trips(port, n: int) -> dict:
+    """Each transport alone (poller threads stopped, no loop): SYNC -> first valve's TPDO through canopen and the
+    emulated node, one Modbus read of 10 registers, one RD -> data frame over the pty; plus a bare python-can
+    virtual send -> recv for reference."""
+    import can
+    from drivers import dta_protocol as proto
+    for dev in (port.accel, port.stroke):
+        dev._stop.set()
+        dev._trigger.set()
+        if dev._thread is not None:
+            dev._thread.join(2.0)
+            dev._thread = None
+    res = {}
+    a = can.Bus(interface="virtual", channel=port.rig.channel + "-raw", receive_own_messages=False)
+    b = can.Bus(interface="virtual", channel=port.rig.channel + "-raw", receive_own_messages=False)
+    msg = can.Message(arbitration_id=0x201, data=b"\x07\x00\x00\x10", is_extended_id=False)
+    lat = []
+    for _ in range(n):
+        t0 = time.perf_counter_ns()
+        a.send(msg)
+        b.recv(1.0)
+        lat.append((time.perf_counter_ns() - t0) * 1e-3)
+    a.shutdown()
+    b.shutdown()
+    res["can_virtual_send_recv"] = _pct(lat)
+    v = port.valves
+    lat = []
+    for _ in range(n):
+        c0 = v.counter[0]
+        t0 = time.perf_counter_ns()
+        v.sync()
+        while v.counter[0] == c0 and time.perf_counter_ns() - t0 < 50_000_000:
+            time.sleep(0)
+        lat.append((time.perf_counter_ns() - t0) * 1e-3)
+    res["canopen_sync_to_tpdo"] = _pct(lat)
+    cl, unit = port.accel.client, port.accel.unit
+    lat = []
+    for _ in range(n):
+        t0 = time.perf_counter_ns()
+        cl.read_holding_registers(0, count=10, device_id=unit)
+        lat.append((time.perf_counter_ns() - t0) * 1e-3)
+    res["modbus_read"] = _pct(lat)
+    ser, parser = port.stroke.ser, proto.FrameParser()
+    lat = []
+    for _ in range(n):
+        t0 = time.perf_counter_ns()
+        ser.write(b"RD\r")
+        got = False
+        while not got and time.perf_counter_ns() - t0 < 50_000_000:
+            got = any(isinstance(f, proto.DataFrame) for f in parser.feed(ser.read(ser.in_waiting or 1)))
+        lat.append((time.perf_counter_ns() - t0) * 1e-3)
+    res["serial_frame"] = _pct(lat)
+    return res
+
+
+def bench(cfg, seconds: float, as_json: bool) -> int:
+    """Driver round trips with the loop's read/write pattern (null commands), no controller."""
+    import drivers
+    from rig.port import Commands
+    port = drivers.make_port(cfg, "hil")
+    period = int(1e9 / cfg.loop.rate_hz)
+    null = Commands([0.0] * port.n_mounts)
+    faults = []
+    try:
+        port.open()
+        t = time.monotonic_ns()
+        end = t + int(seconds * 1e9)
+        while t < end:
+            t += period
+            d = t - time.monotonic_ns()
+            if d > 0:
+                time.sleep(d * 1e-9)
+            m = port.read(t)
+            if m.device_fault:
+                faults.append(m.device_fault)
+            port.write(t, null)
+        out = {k: _pct(v) for k, v in port.round_trips_us().items()}
+        raw = _raw_round_trips(port, 2000)
+    finally:
+        port.close()
+    out = {"in_loop_us": out, "alone_us": raw, "rate_hz": cfg.loop.rate_hz, "device_faults": len(faults)}
+    if as_json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k}: {v}")
+        if faults:
+            print(f"first device fault: {faults[0]}")
+    return 0

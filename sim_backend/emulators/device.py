@@ -1,0 +1,59 @@
+"""Entry point of an emulated device process: `python -m sim_backend.emulators.device KIND STATE_FILE ...`.
+
+  modbus STATE_FILE V_PER_MPS2 PRIORITY   prints `PORT <n>` once listening on 127.0.0.1:<n>
+  serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
+The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+
+
+class _Announce:
+    """The pipe-like object the serve() functions report on; poll() becomes true when stdin closes."""
+
+    def __init__(self, word: str):
+        self.word = word
+        self.closed = threading.Event()
+        threading.Thread(target=self._watch, daemon=True).start()
+
+    def _watch(self):
+        try:
+            while sys.stdin.buffer.read(1):
+                pass
+        except (OSError, ValueError):
+            pass
+        self.closed.set()
+
+    def send(self, value) -> None:
+        sys.stdout.write(f"{self.word} {value}\n")
+        sys.stdout.flush()
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        return self.closed.wait(timeout) if timeout else self.closed.is_set()
+
+
+def main(argv: list[str]) -> int:
+    from sim_backend.emulators.shared import SharedFile
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    kind, path = argv[0], argv[1]
+    state = SharedFile(path)
+    if kind == "modbus":
+        from sim_backend.emulators import modbus_server
+        modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]))
+    elif kind == "serial":
+        from sim_backend.emulators import serial_device
+        serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))
+    else:
+        print(f"unknown device kind {kind!r}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main(sys.argv[1:]))
+    except KeyboardInterrupt:
+        sys.exit(0)
