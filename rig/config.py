@@ -156,22 +156,23 @@ class StandConfig:
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """Isolation controller per mount (controllers/isolation.py): PI + two leads + roll-off on the mount's
-    absolute motion, slow stroke centring; defaults tuned on the discrete loop (controllers/tune.py)."""
-    blend_hz: float = _f(0.05, "Hz", gt=0)               # accelerometer / stroke complementary blend
-    kp_V_per_m: float = _f(1.0e6, "V/m", gt=0)           # PI proportional gain on the compensated position
-    pi_corner_hz: float = _f(5.0, "Hz", gt=0)            # PI integral corner
-    lead1_zero_hz: float = _f(60.0, "Hz", gt=0)
-    lead1_pole_hz: float = _f(600.0, "Hz", gt=0)
-    lead2_zero_hz: float = _f(120.0, "Hz", gt=0)
-    lead2_pole_hz: float = _f(900.0, "Hz", gt=0)
-    rolloff_hz: float = _f(1200.0, "Hz", ge=0)           # second-order low-pass (0 = none)
-    rolloff_zeta: float = _f(0.7, "", gt=0)
-    notch_hz: float = _f(0.0, "Hz", ge=0)                # optional notch (0 = none)
-    notch_zeta_zero: float = _f(0.1, "", ge=0)
-    notch_zeta_pole: float = _f(0.5, "", gt=0)
+    """Isolation controller per mount (controllers/isolation.py): PI + two leads + notch + roll-off on the
+    mount's absolute motion (accelerometer blended with the stroke below blend_hz); defaults tuned on the
+    discrete loop (controllers/tune.py, ZOH + one period of delay at 5 kHz)."""
+    blend_hz: float = _f(0.1, "Hz", gt=0)               # accelerometer / stroke complementary blend
+    kp_V_per_m: float = _f(337621, "V/m", gt=0)           # PI proportional gain on the compensated position
+    pi_corner_hz: float = _f(12, "Hz", gt=0)            # PI integral corner
+    lead1_zero_hz: float = _f(8.69918, "Hz", gt=0)
+    lead1_pole_hz: float = _f(2212, "Hz", gt=0)
+    lead2_zero_hz: float = _f(42.731, "Hz", gt=0)
+    lead2_pole_hz: float = _f(622.716, "Hz", gt=0)
+    rolloff_hz: float = _f(2248.22, "Hz", ge=0)           # second-order low-pass (0 = none)
+    rolloff_zeta: float = _f(0.717525, "", gt=0)
+    notch_hz: float = _f(213.524, "Hz", ge=0)                # optional notch (0 = none)
+    notch_zeta_zero: float = _f(0.27982, "", ge=0)
+    notch_zeta_pole: float = _f(0.558031, "", gt=0)
     centring_hz: float = _f(0.02, "Hz", gt=0)            # slow centring crossover while isolation is off
-    prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp (the design crossover)
+    prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp of the compensator (phase crossover)
     fade_s: float = _f(0.1, "s", gt=0)                   # bumpless on/off: switching offset decay time
     gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "")   # per-mount multiplier on kp (MOUNTS order)
     track_kp_V_per_m: float = _f(1.81e6, "V/m", ge=0)    # actuator reference-tracking PID (paper Fig. 4):

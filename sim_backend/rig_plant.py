@@ -119,6 +119,28 @@ def discretize(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(e[:n, :n]), np.ascontiguousarray(e[:n, n:])
 
 
+def discretize_foh_ground(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, ...]:
+    """Exact discretisation with the valve command held (ZOH) and the ground interpolated linearly between
+    samples (first-order hold): x[k+1] = Ad x[k] + Bu u[k] + G0 g[k] + G1 g[k+1], g = (x_g, v_g).
+
+    Holding the ground instead would put a spurious K_L/m (x_g[k+1] - x_g[k]) into the accelerometer at
+    the next sample, larger than the true acceleration below ~1.5 Hz: the floor moves continuously."""
+    n = ss.A.shape[0]
+    m = 8
+    big = np.zeros((n + 4 + 2 * m, n + 4 + 2 * m))
+    big[:n, :n] = ss.A * dt
+    big[:n, n:n + 4] = ss.B[:, 0:4] * dt
+    big[:n, n + 4:n + 4 + m] = ss.B[:, 4:12] * dt
+    big[n + 4:n + 4 + m, n + 4 + m:] = np.eye(m)
+    e = scipy.linalg.expm(big)
+    Ad = e[:n, :n]
+    Bu = e[:n, n:n + 4]
+    Gam0 = e[:n, n + 4:n + 4 + m]        # int_0^T e^{A s} ds B_g
+    Gam1 = e[:n, n + 4 + m:]             # (1/T) int_0^T e^{A (T - s)} s ds B_g
+    return (np.ascontiguousarray(Ad), np.ascontiguousarray(Bu), np.ascontiguousarray(Gam0 - Gam1),
+            np.ascontiguousarray(Gam1))
+
+
 @numba.njit(cache=True)
 def _step(Ad, Bd, C, D, x, w, xn, y):
     """One period: y = C x + D w (outputs at t_k), then x <- Ad x + Bd w."""
@@ -246,12 +268,16 @@ class RigPlant:
     n_mounts = 4
     BLOCK = 4096
 
+    ACCEL_NOISE_DENSITY = 1e-6      # m/s^2/sqrt(Hz): a seismic (low-frequency) accelerometer, ~0.1 ug/sqrt(Hz)
+
     def __init__(self, cfg: Config, dt: float, *, floor: FloorMotion | None = None, seed: int = 0,
-                 accel_noise_mps2: float = 2e-4, stroke_noise_m: float = 2e-8, modal: ModalModel | None = None):
+                 accel_noise_mps2: float | None = None, stroke_noise_m: float = 2e-8,
+                 modal: ModalModel | None = None):
         self.cfg = cfg
         self.dt = dt
         self.ss = rig_state_space(cfg, modal)
-        self.Ad, self.Bd = discretize(self.ss, dt)
+        self.Ad, Bu, G0, G1 = discretize_foh_ground(self.ss, dt)
+        self.Bd = np.ascontiguousarray(np.hstack([Bu, G0, G1]))      # inputs: u[k], g[k], g[k+1]
         self.C = np.ascontiguousarray(self.ss.C)
         self.D = np.ascontiguousarray(self.ss.D)
         self.x = np.zeros(self.Ad.shape[0])
@@ -260,6 +286,8 @@ class RigPlant:
         self.y = np.zeros(len(OUTPUTS))
         self.floor = floor
         self.rng = np.random.default_rng(seed)
+        if accel_noise_mps2 is None:                  # white noise of that density, sampled at 1/dt
+            accel_noise_mps2 = self.ACCEL_NOISE_DENSITY * math.sqrt(0.5 / dt)
         self.noise_scale = np.array([accel_noise_mps2] * 4 + [stroke_noise_m] * 4)
         self.t_s = 0.0
         self.k = 0
@@ -286,7 +314,7 @@ class RigPlant:
         """Hold valve_cmd_V (4 volts) over one period and advance; outputs then refer to the new instant."""
         self._gi += 1
         if self._gi >= self.BLOCK:
-            self._refill()
+            self._refill()                                  # w[4:12] still holds the ground at t_k
         _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, self._gi,
                  valve_cmd_V[0], valve_cmd_V[1], valve_cmd_V[2], valve_cmd_V[3], self.y, True)
         self.k += 1
@@ -296,18 +324,20 @@ class RigPlant:
 
 @numba.njit(cache=True)
 def _advance(Ad, Bd, C, D, x, xn, w, G, NZ, gi, u0, u1, u2, u3, y, advance):
-    """Advance one period with the held command (if advance), load the ground of the new instant from G[gi],
-    and compute the outputs there, adding sensor noise NZ[gi] to accel (0-3) and stroke (4-7)."""
+    """Advance one period (if advance) with the command held and the ground interpolated from w[4:12]
+    (ground at t_k) to G[gi] (ground at t_k+1); then load the new ground into w and compute the outputs at
+    t_k+1, adding sensor noise NZ[gi] to accel (0-3) and stroke (4-7). Bd = [Bu | G0 | G1]."""
     ns = x.shape[0]
-    nw = w.shape[0]
     if advance:
         w[0] = u0; w[1] = u1; w[2] = u2; w[3] = u3
         for i in range(ns):
             acc = 0.0
             for j in range(ns):
                 acc += Ad[i, j] * x[j]
-            for j in range(nw):
+            for j in range(12):
                 acc += Bd[i, j] * w[j]
+            for j in range(8):
+                acc += Bd[i, 12 + j] * G[gi, j]
             xn[i] = acc
         for i in range(ns):
             x[i] = xn[i]
@@ -317,7 +347,7 @@ def _advance(Ad, Bd, C, D, x, xn, w, G, NZ, gi, u0, u1, u2, u3, y, advance):
         acc = 0.0
         for j in range(ns):
             acc += C[i, j] * x[j]
-        for j in range(nw):
+        for j in range(12):
             acc += D[i, j] * w[j]
         y[i] = acc
     for i in range(8):
@@ -329,10 +359,14 @@ def simulate_rig(cfg: Config, dt: float, valve_cmd_V: np.ndarray, x_g: np.ndarra
     """Batch open-loop simulation: inputs (N, 4) each; returns the selected outputs (indices into OUTPUTS,
     default all) at t_k, shape (N, n_selected)."""
     ss = rig_state_space(cfg, modal)
-    Ad, Bd = discretize(ss, dt)
-    W = np.ascontiguousarray(np.hstack([valve_cmd_V, x_g, v_g]), dtype=float)
+    Ad, Bu, G0, G1 = discretize_foh_ground(ss, dt)
+    Bd = np.hstack([Bu, G0, G1])
+    g = np.hstack([x_g, v_g])
+    g_next = np.vstack([g[1:], g[-1:]])                     # the last period holds its ground
+    W = np.ascontiguousarray(np.hstack([valve_cmd_V, g, g_next]), dtype=float)
     sel = list(outputs) if outputs is not None else list(range(len(OUTPUTS)))
     lam, Bz, Cz = _modal_form(Ad, Bd, ss.C[sel])
     Y = np.empty((W.shape[0], len(sel)))
-    _simulate_modal(lam, Bz, Cz, np.ascontiguousarray(ss.D[sel]), W, Y)
+    D = np.hstack([ss.D[sel], np.zeros((len(sel), 8))])     # outputs at t_k see g[k], not g[k+1]
+    _simulate_modal(lam, Bz, Cz, np.ascontiguousarray(D), W, Y)
     return Y

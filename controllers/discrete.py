@@ -1,0 +1,112 @@
+"""Discrete filter sections: design in continuous time, discretise once with an explicit dt.
+
+A filter is a cascade of second-order sections (b0, b1, b2, a1, a2) with a0 = 1, run in transposed direct
+form II (two state floats per section). Continuous factors (first or second order) are discretised with the
+bilinear (Tustin) map prewarped at one frequency: Tustin keeps a stable factor stable and maps the whole
+j-axis onto the unit circle without aliasing, and prewarping makes the discrete response exact at the
+frequency that matters most (the loop's crossover). python-control does the mapping (`sample_system`).
+
+The same coefficients are used by the plain-float step (hot path) and by `sos_frf` (analysis): one code path.
+"""
+from __future__ import annotations
+
+import cmath
+import math
+
+import numpy as np
+
+Section = tuple[float, float, float, float, float]     # b0, b1, b2, a1, a2 (a0 = 1)
+
+
+def tustin_section(num, den, dt: float, prewarp_hz: float | None = None) -> Section:
+    """Discretise a continuous factor num(s)/den(s) of order <= 2 with Tustin (prewarped at prewarp_hz)."""
+    import control
+    num = [float(v) for v in np.atleast_1d(num)]
+    den = [float(v) for v in np.atleast_1d(den)]
+    if len(den) > 3 or len(num) > len(den):
+        raise ValueError(f"section must be proper and of order <= 2, got {num}/{den}")
+    kw = {}
+    if prewarp_hz:
+        # prewarping beyond Nyquist is meaningless; keep it inside (0, 0.45 fs)
+        kw["prewarp_frequency"] = 2 * math.pi * min(prewarp_hz, 0.45 / dt)
+    d = control.sample_system(control.tf(num, den), dt, method="tustin", **kw)
+    b = np.asarray(d.num[0][0], dtype=float)
+    a = np.asarray(d.den[0][0], dtype=float)
+    n = len(a)
+    b = np.concatenate([np.zeros(n - len(b)), b])
+    b, a = b / a[0], a / a[0]
+    b = np.concatenate([b, np.zeros(3 - n)])
+    a = np.concatenate([a, np.zeros(3 - n)])
+    return (float(b[0]), float(b[1]), float(b[2]), float(a[1]), float(a[2]))
+
+
+def sos_frf(sections, w: np.ndarray, dt: float) -> np.ndarray:
+    """Frequency response of the cascade at z = exp(j w dt)."""
+    zi = np.exp(-1j * np.asarray(w, dtype=float) * dt)      # z^-1
+    h = np.ones_like(zi)
+    for b0, b1, b2, a1, a2 in sections:
+        h = h * (b0 + b1 * zi + b2 * zi * zi) / (1.0 + a1 * zi + a2 * zi * zi)
+    return h
+
+
+def sos_tf(sections, dt: float):
+    """The cascade as a python-control discrete TransferFunction (for Nyquist/margins and tests)."""
+    import control
+    g = control.tf([1.0], [1.0], dt)
+    for b0, b1, b2, a1, a2 in sections:
+        g = g * control.tf([b0, b1, b2], [1.0, a1, a2], dt)
+    return g
+
+
+def sos_step(sections, state: list, i0: int, x: float) -> float:
+    """One sample through the cascade; state[i0 : i0 + 2 n] holds the section states (updated in place)."""
+    i = i0
+    for b0, b1, b2, a1, a2 in sections:
+        y = b0 * x + state[i]
+        state[i] = b1 * x - a1 * y + state[i + 1]
+        state[i + 1] = b2 * x - a2 * y
+        x = y
+        i += 2
+    return x
+
+
+def section_dc(sec: Section) -> float:
+    b0, b1, b2, a1, a2 = sec
+    return (b0 + b1 + b2) / (1.0 + a1 + a2)
+
+
+def freq_at(sec_list, f_hz: float, dt: float) -> complex:
+    """Convenience: the cascade's response at one frequency."""
+    zi = cmath.exp(-1j * 2 * math.pi * f_hz * dt)
+    h = 1.0 + 0j
+    for b0, b1, b2, a1, a2 in sec_list:
+        h *= (b0 + b1 * zi + b2 * zi * zi) / (1.0 + a1 * zi + a2 * zi * zi)
+    return h
+
+
+def sos_ss(sections) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """State-space (A, B, C, D) of the cascade with exactly the states sos_step keeps (transposed direct form
+    II, two per section, in the same order): well conditioned even with poles near z = 1, unlike a polynomial."""
+    n = 2 * len(sections)
+    A = np.zeros((n, n))
+    B = np.zeros((n, 1))
+    C = np.zeros((1, n))
+    D = np.ones((1, 1))
+    # running input map: section input x = Cin s + Din u
+    Cin = np.zeros((1, n))
+    Din = 1.0
+    for k, (b0, b1, b2, a1, a2) in enumerate(sections):
+        i = 2 * k
+        # y = b0 x + s1 ; s1' = b1 x - a1 y + s2 ; s2' = b2 x - a2 y
+        ky = (b1 - a1 * b0, b2 - a2 * b0)
+        for r, (kx, ka) in enumerate(zip(ky, (a1, a2))):
+            A[i + r] += kx * Cin[0]
+            A[i + r, i] += -ka
+            B[i + r, 0] += kx * Din
+        A[i, i + 1] += 1.0
+        Cout = b0 * Cin.copy()
+        Cout[0, i] += 1.0
+        Cin, Din = Cout, b0 * Din
+    C[:] = Cin
+    D[0, 0] = Din
+    return A, B, C, D

@@ -1,0 +1,328 @@
+"""Decentralised isolation controller of one mount (paper Figs. 5, 10): PI + compensator on the mount's absolute
+motion, with stroke centring. One object per mount; explicit state; no clock, I/O or globals.
+
+Feedback signal: a complementary blend (sensor fusion) of the two sensors at the mount, crossing at blend_hz:
+
+  y = H(s) a / s^2 + F(s) stroke,   H = s^3 (s + c3) / D(s),  F = 1 - H = (c2 s^2 + c1 s + w^4) / D(s),
+  D = s^4 + c3 s^3 + c2 s^2 + c1 s + w^4 the 4th-order Butterworth polynomial at w = 2 pi blend_hz
+    - above the blend (~0.05 Hz) y is the mount's absolute motion from the low-frequency accelerometer
+      (band-limited double integration: H/s^2 = s (s + c3)/D has zero gain at DC, so an accelerometer
+      offset only makes a transient, and the noise below the blend does not run away);
+    - below it y is the stroke (displacement transducer): the loop then centres the piston. That is the slow
+      stroke-centring loop, and because u -> stroke equals u -> x_p, the loop gain is K(s) P(s) at every
+      frequency: the blend adds no phase wrap (a separate high-pass plus a separate centring integrator makes
+      the low-frequency loop conditionally stable and, with the PI, unstable near 0.02-0.04 Hz).
+  u_iso = -(Kp v + Ki/s v),  v = Comp(s) y,  Comp = Lead1 Lead2 Notch Roll-off (each optional)
+  isolation off: u = -k_c/s stroke (slow centring alone, ~centring_hz); the isolation filters keep running.
+  u -> slew limit -> clamp to the valve range; PI and centring integrators: conditional-integration anti-windup.
+
+Why this compensator: the plant u -> x_p (valve, Eq. 1; flow integrator with the K_C K_L lag at ~7 Hz, Eq. 9;
+the machine's mass on the actuators' stiffness at 230-290 Hz, damping ~0.2) has lost ~210 deg of phase at
+100 Hz and ~300 deg at 200 Hz, ZOH and one period of computation delay included. Lead1 cancels the 7 Hz lag
+(so the loop gain stays up to the valve's 83 Hz), lead2 buys the phase at crossover, the notch takes the
+machine-on-actuator resonances down so they are gain-stabilised, and the roll-off keeps accelerometer noise and
+high-frequency modes out of the valve. The PI gives the low-frequency gain (>= 20 dB at 1 Hz).
+
+Why Tustin, prewarped at prewarp_hz (200 Hz, the phase-crossover / resonance region where the gain margin is
+decided) for the compensator, plain for the slow blend: it maps a stable continuous factor to a stable discrete
+one without aliasing, and is exact at the prewarp frequency. The design is checked (and
+was tuned, controllers/tune.py) on the *discrete* loop with the ZOH and one period of computation delay
+(controllers/analysis.py), which evaluates exactly the coefficients the step function runs.
+
+Bumpless isolation on/off (`set_enabled`): the filters always run (so they are warm); switching seeds a
+fading offset b so that the command does not jump, then b decays with time constant fade_s. Centring stays on
+(the blend when isolating, the slow integrator when not). The loop is closed at full gain at once.
+
+Tuned defaults (rig/config.py [controller], 5 kHz, ZOH + 1 period delay): gain crossover 114-121 Hz, phase
+crossover 207-239 Hz, GM 4.6-4.9 dB, PM 60-70 deg, ground -> table/tool 20.3 dB at 1 Hz, >= 2.97 dB 1-100 Hz.
+The blend at 0.1 Hz keeps the accelerometer-noise wander (RigPlant: 2e-4 m/s^2 per sample) to ~1 V rms of valve.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from controllers.discrete import sos_frf, sos_ss, sos_tf
+from controllers.discrete import tustin_section as _tustin
+
+# scalar states after the filter sections: last v, PI integral, centring integral, last stroke, fade offset,
+# isolation on, last command
+_V, _I, _C, _S, _B, _ON, _U = range(7)
+_N = 7
+
+
+@dataclass(frozen=True)
+class IsolationParams:
+    """Continuous design parameters of one mount's loop (SI units; frequencies in Hz)."""
+    blend_hz: float = 0.1             # complementary blend accelerometer / stroke (centring bandwidth)
+    kp_V_per_m: float = 1.0e6         # PI proportional gain on the compensated position
+    pi_corner_hz: float = 5.0         # PI integral corner w_i / 2 pi
+    lead1_zero_hz: float = 60.0
+    lead1_pole_hz: float = 600.0
+    lead2_zero_hz: float = 120.0
+    lead2_pole_hz: float = 900.0
+    rolloff_hz: float = 1200.0        # second-order low-pass (0 = none)
+    rolloff_zeta: float = 0.7
+    notch_hz: float = 0.0             # optional notch (0 = none)
+    notch_zeta_zero: float = 0.1
+    notch_zeta_pole: float = 0.5
+    centring_hz: float = 0.02         # crossover of the slow centring loop while isolation is off
+    dc_gain_m_per_V: float = 2.68e-6  # actuator static gain (sets the centring gain k_c)
+    prewarp_hz: float = 200.0         # Tustin prewarp frequency of the compensator (phase-crossover region)
+    fade_s: float = 0.1               # bumpless switching offset decay time
+    limit_V: float = 10.0             # output clamp
+    slew_V_per_s: float = 1.0e4       # output slew limit
+    gain_trim: float = 1.0            # per-mount multiplier on kp
+
+    def with_(self, **kw) -> "IsolationParams":
+        if "accel_hp_hz" in kw:          # the first version's name of the low-frequency corner (now the blend)
+            kw["blend_hz"] = kw.pop("accel_hp_hz")
+        return replace(self, **kw)
+
+
+def params_from_config(cfg, mount: int = 0) -> IsolationParams:
+    """IsolationParams of one mount from cfg.controller (rig/config.py), cfg.safety and the actuator."""
+    from sim_backend.linear import ActuatorParams
+    c = getattr(cfg, "controller", None)
+    dc = ActuatorParams.from_config(cfg).dc_gain_m_per_V
+    base = IsolationParams(dc_gain_m_per_V=dc, limit_V=cfg.safety.valve_limit_V,
+                           slew_V_per_s=cfg.safety.slew_V_per_s)
+    if c is None:
+        return base
+    trim = c.gain_trim[mount] if len(c.gain_trim) > mount else 1.0
+    return base.with_(blend_hz=c.blend_hz, kp_V_per_m=c.kp_V_per_m, pi_corner_hz=c.pi_corner_hz,
+                      lead1_zero_hz=c.lead1_zero_hz, lead1_pole_hz=c.lead1_pole_hz,
+                      lead2_zero_hz=c.lead2_zero_hz, lead2_pole_hz=c.lead2_pole_hz,
+                      rolloff_hz=c.rolloff_hz, rolloff_zeta=c.rolloff_zeta, notch_hz=c.notch_hz,
+                      notch_zeta_zero=c.notch_zeta_zero, notch_zeta_pole=c.notch_zeta_pole,
+                      centring_hz=c.centring_hz, prewarp_hz=c.prewarp_hz, fade_s=c.fade_s, gain_trim=trim)
+
+
+class IsolationController:
+    """One mount: step(state, (accel_mps2, stroke_m), dt) -> (valve_cmd_V, state).
+
+    The state list is updated in place and returned (the caller hands the returned list back next period)."""
+
+    def __init__(self, params: IsolationParams, dt: float, *, compensator: bool = True, name: str = ""):
+        self.p = params
+        self.dt = float(dt)
+        self.name = name
+        self.compensator = compensator
+        p, pw = params, params.prewarp_hz
+        self.continuous = {"h_acc": [], "f_str": [], "comp": []}    # (num, den) of each factor, for checks
+
+        def tustin_section(num, den, dt_, pw_, _group=[None]):
+            self.continuous[_group[0]].append((list(num), list(den)))
+            return _tustin(num, den, dt_, pw_)
+        grp = tustin_section.__defaults__[0]
+        grp[0] = "h_acc"
+        w = 2 * math.pi * p.blend_hz
+        # D(s) = 4th-order Butterworth at w = s^4 + c3 s^3 + c2 s^2 + c1 s + w^4 (distinct poles: a 4-fold
+        # pole near z = 1 would make the closed-loop eigenvalues numerically meaningless)
+        q1, q2 = [1.0, 1.8478 * w, w * w], [1.0, 0.7654 * w, w * w]
+        c3, c2, c1 = 2.6131 * w, 3.4142 * w * w, 2.6131 * w ** 3
+        # (no prewarp for the blend: its frequencies are far below Nyquist, Tustin is exact enough there and a
+        # prewarp at the crossover would scale the double integration by ~1 %)
+        self.h_acc = [tustin_section([1.0, 0.0], q1, dt, None),    # H/s^2 = s (s + c3) / D
+                      tustin_section([1.0, c3], q2, dt, None)]
+        grp[0] = "f_str"
+        self.f_str = [tustin_section([c2, c1, w ** 4], q1, dt, None),   # F = 1 - H = (c2 s^2 + c1 s + w^4) / D
+                      tustin_section([1.0], q2, dt, None)]
+        grp[0] = "comp"
+        comp = []
+        if compensator:
+            for fz, fp in ((p.lead1_zero_hz, p.lead1_pole_hz), (p.lead2_zero_hz, p.lead2_pole_hz)):
+                if fz > 0 and fp > 0:
+                    wz, wp = 2 * math.pi * fz, 2 * math.pi * fp
+                    comp.append(tustin_section([1 / wz, 1.0], [1 / wp, 1.0], dt, pw))   # (1+s/wz)/(1+s/wp)
+            if p.notch_hz > 0:
+                wn = 2 * math.pi * p.notch_hz
+                comp.append(tustin_section([1.0, 2 * p.notch_zeta_zero * wn, wn * wn],
+                                           [1.0, 2 * p.notch_zeta_pole * wn, wn * wn], dt, p.notch_hz))
+            if p.rolloff_hz > 0:
+                wr = 2 * math.pi * p.rolloff_hz
+                comp.append(tustin_section([wr * wr], [1.0, 2 * p.rolloff_zeta * wr, wr * wr], dt, pw))
+        self.comp = comp
+        self.kp = p.kp_V_per_m * p.gain_trim
+        self.ki = self.kp * 2 * math.pi * p.pi_corner_hz            # Kp w_i
+        self.kc = 2 * math.pi * p.centring_hz / p.dc_gain_m_per_V  # slow centring crossover ~ centring_hz
+        self.fade = math.exp(-dt / p.fade_s)
+        self.limit = p.limit_V
+        self.slew = p.slew_V_per_s * dt
+        self._ia = 0                                                # state offsets
+        self._is = 2 * len(self.h_acc)
+        self._ic = self._is + 2 * len(self.f_str)
+        self._o = self._ic + 2 * len(self.comp)
+        self.sections = tuple(self.h_acc + self.f_str + self.comp)
+
+    # ---- the runtime interface ---------------------------------------------------------------------
+    def initial_state(self) -> list[float]:
+        s = [0.0] * (self._o + _N)
+        s[self._o + _ON] = 1.0
+        return s
+
+    def set_enabled(self, state: list, on: bool) -> list:
+        """Bumpless isolation on/off: the filters keep running; a fading offset takes over the difference so
+        the command does not jump. Centring stays active."""
+        o = self._o
+        was = state[o + _ON] > 0.5
+        if on and not was:
+            # from now on u = u_iso + b - cent: start the PI from zero, let b absorb the step
+            state[o + _I] = 0.0
+            state[o + _B] -= -self.kp * state[o + _V]
+            state[o + _ON] = 1.0
+        elif not on and was:
+            state[o + _B] += -(self.kp * state[o + _V] + state[o + _I])   # hold the last isolation output
+            state[o + _I] = 0.0
+            state[o + _ON] = 0.0
+        return state
+
+    def enabled(self, state: list) -> bool:
+        return state[self._o + _ON] > 0.5
+
+    def step(self, state: list, meas, dt: float):
+        if abs(dt - self.dt) > 1e-6 * self.dt:
+            raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
+        a, s = meas
+        o = self._o
+        # y = H/s^2 a + F stroke, then v = Comp y (transposed direct form II sections, inlined)
+        x = a
+        i = 0
+        for b0, b1, b2, a1, a2 in self.h_acc:
+            yk = b0 * x + state[i]
+            state[i] = b1 * x - a1 * yk + state[i + 1]
+            state[i + 1] = b2 * x - a2 * yk
+            x = yk
+            i += 2
+        y = x
+        x = s
+        for b0, b1, b2, a1, a2 in self.f_str:
+            yk = b0 * x + state[i]
+            state[i] = b1 * x - a1 * yk + state[i + 1]
+            state[i + 1] = b2 * x - a2 * yk
+            x = yk
+            i += 2
+        x += y
+        for b0, b1, b2, a1, a2 in self.comp:
+            yk = b0 * x + state[i]
+            state[i] = b1 * x - a1 * yk + state[i + 1]
+            state[i + 1] = b2 * x - a2 * yk
+            x = yk
+            i += 2
+        v = x
+        h = 0.5 * dt
+        on = state[o + _ON] > 0.5
+        if on:
+            d_i = self.ki * h * (v + state[o + _V])                 # Tustin PI integral
+            d_c = 0.0                                              # centring: the blend does it
+        else:
+            d_i = 0.0
+            d_c = self.kc * h * (s + state[o + _S])                # slow centring integrator
+        integ = state[o + _I] + d_i
+        cent = state[o + _C] + d_c
+        b = state[o + _B] * self.fade
+        u = (-(self.kp * v + integ) if on else 0.0) + b - cent
+        up = state[o + _U]
+        sat = 0.0
+        if u - up > self.slew:
+            u, sat = up + self.slew, 1.0
+        elif up - u > self.slew:
+            u, sat = up - self.slew, -1.0
+        lim = self.limit
+        if u > lim:
+            u, sat = lim, 1.0
+        elif u < -lim:
+            u, sat = -lim, -1.0
+        if sat != 0.0:
+            # anti-windup (conditional integration): drop increments that push further into the limit
+            if d_i * sat < 0.0:
+                integ -= d_i
+            if d_c * sat < 0.0:
+                cent -= d_c
+        state[o + _V] = v
+        state[o + _I] = integ
+        state[o + _C] = cent
+        state[o + _S] = s
+        state[o + _B] = b
+        state[o + _U] = u
+        return u, state
+
+    # ---- the same controller as transfer functions (analysis) --------------------------------------
+    def _pi_section(self):
+        h = 0.5 * self.dt
+        return (self.kp + self.ki * h, self.ki * h - self.kp, 0.0, -1.0, 0.0)   # Kp + Ki Tustin(1/s)
+
+    def frf(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K_a, K_s): discrete responses at z = exp(j w dt) of u to accel [V/(m/s^2)] and to stroke [V/m],
+        isolation on, in the linear range (no clamp or slew active)."""
+        dt = self.dt
+        front = -sos_frf(self.comp + [self._pi_section()], w, dt)
+        return front * sos_frf(self.h_acc, w, dt), front * sos_frf(self.f_str, w, dt)
+
+    def ss(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Discrete state space (A, B, C, D), inputs (accel, stroke), output u (isolation on, linear range)."""
+        Aa, Ba, Ca, Da = sos_ss(self.h_acc)
+        As, Bs, Cs, Ds = sos_ss(self.f_str)
+        Ac, Bc, Cc, Dc = sos_ss(self.comp + [self._pi_section()])
+        na, ns_, nc = Aa.shape[0], As.shape[0], Ac.shape[0]
+        n = na + ns_ + nc
+        A = np.zeros((n, n))
+        B = np.zeros((n, 2))
+        A[:na, :na], B[:na, 0:1] = Aa, Ba
+        A[na:na + ns_, na:na + ns_], B[na:na + ns_, 1:2] = As, Bs
+        # y = Ca xa + Da a + Cs xs + Ds s feeds the compensator + PI
+        k = na + ns_
+        A[k:, k:] = Ac
+        A[k:, :na] = Bc @ Ca
+        A[k:, na:k] = Bc @ Cs
+        B[k:, 0:1] = Bc * Da[0, 0]
+        B[k:, 1:2] = Bc * Ds[0, 0]
+        C = -np.hstack([Dc[0, 0] * Ca, Dc[0, 0] * Cs, Cc])
+        D = -Dc[0, 0] * np.array([[Da[0, 0], Ds[0, 0]]])
+        return A, B, C, D
+
+    def css(self):
+        """Continuous-time twin (A, B, C, D) of ss(): the factors before discretisation, isolation on. Used to
+        check the slow closed-loop poles (near z = 1 discrete eigenvalues lose their digits)."""
+        import control
+        wi = 2 * math.pi * self.p.pi_corner_hz
+
+        def chain(factors):
+            g = control.ss([], [], [], [[1.0]])
+            for num, den in factors:
+                g = control.series(g, control.ss(control.tf(num, den)))
+            return g
+        front = control.series(chain(self.continuous["comp"]), control.ss(control.tf([self.kp, self.kp * wi],
+                                                                                        [1.0, 0.0])))
+        ga, gs = chain(self.continuous["h_acc"]), chain(self.continuous["f_str"])
+        na, ns_, nf = ga.nstates, gs.nstates, front.nstates
+        n = na + ns_ + nf
+        A = np.zeros((n, n))
+        B = np.zeros((n, 2))
+        A[:na, :na], B[:na, 0] = ga.A, ga.B[:, 0]
+        A[na:na + ns_, na:na + ns_], B[na:na + ns_, 1] = gs.A, gs.B[:, 0]
+        k = na + ns_                                 # one PI + compensator fed by y = H/s^2 a + F stroke
+        A[k:, k:] = front.A
+        A[k:, :na] = np.outer(front.B[:, 0], ga.C[0])
+        A[k:, na:k] = np.outer(front.B[:, 0], gs.C[0])
+        B[k:, 0] = front.B[:, 0] * ga.D[0, 0]
+        B[k:, 1] = front.B[:, 0] * gs.D[0, 0]
+        fd = front.D[0, 0]
+        C = -np.hstack([fd * ga.C[0], fd * gs.C[0], front.C[0]])[None, :]
+        D = -fd * np.array([[ga.D[0, 0], gs.D[0, 0]]])
+        return A, B, C, D
+
+    def tf(self):
+        """(K_a, K_s) as python-control discrete transfer functions with dt (for plots; poles near z = 1 make
+        the polynomial form ill-conditioned: use ss() for eigenvalues)."""
+        front = -sos_tf(self.comp + [self._pi_section()], self.dt)
+        return front * sos_tf(self.h_acc, self.dt), front * sos_tf(self.f_str, self.dt)
+
+
+def make_isolation_controllers(cfg, dt: float, *, compensator: bool = True) -> list[IsolationController]:
+    """One controller per mount, rig.config.MOUNTS order, from cfg.controller (the runtime's entry point)."""
+    from rig.config import MOUNTS
+    return [IsolationController(params_from_config(cfg, i), dt, compensator=compensator, name=m)
+            for i, m in enumerate(MOUNTS)]

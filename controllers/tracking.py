@@ -1,0 +1,131 @@
+"""Reference tracking of one actuator alone (paper Fig. 4, ~95 Hz bandwidth): a discrete PID on position.
+
+  u = Kp e + Ki/s e + Kd s/(1 + s/w_d) e,   e = r - x_p       (Tustin for the integral and the filtered D)
+
+The plant is G_EHA (Eq. 10, sim_backend/linear.py g_eha) on its test stand. The integral corner Ki/Kp is put at
+the actuator's low-frequency lag K_C K_L / A_p^2 (~7.4 Hz), which turns the loop into ~k/s * G_valve: the
+bandwidth is then set by Kp against the valve's 83 Hz mode. Explicit state, no clock, I/O or globals;
+conditional-integration anti-windup against the output clamp and slew limit.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# state: integral, e_prev, derivative filter output, u_prev
+_I, _E, _D, _U = range(4)
+
+
+@dataclass(frozen=True)
+class PIDParams:
+    kp_V_per_m: float = 3.0e5
+    ki_V_per_ms: float = 1.0e7
+    kd_Vs_per_m: float = 0.0
+    deriv_hz: float = 1000.0
+    limit_V: float = 10.0
+    slew_V_per_s: float = 1.0e4
+
+
+class TrackingPID:
+    """step(state, (reference_m, position_m), dt) -> (valve_cmd_V, state); state updated in place."""
+
+    def __init__(self, p: PIDParams, dt: float):
+        self.p = p
+        self.dt = float(dt)
+        wd = 2 * math.pi * p.deriv_hz
+        # Tustin of Kd s/(1 + s/wd): y_k = ad y_{k-1} + bd (e_k - e_{k-1})
+        c = 2.0 / dt
+        self.ad = (c - wd) / (c + wd)
+        self.bd = p.kd_Vs_per_m * wd * c / (c + wd)
+        self.hi = 0.5 * dt * p.ki_V_per_ms
+        self.slew = p.slew_V_per_s * dt
+
+    def initial_state(self) -> list[float]:
+        return [0.0, 0.0, 0.0, 0.0]
+
+    def step(self, state: list, meas, dt: float):
+        if abs(dt - self.dt) > 1e-6 * self.dt:
+            raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
+        r, x = meas
+        e = r - x
+        d_i = self.hi * (e + state[_E])
+        integ = state[_I] + d_i
+        d = self.ad * state[_D] + self.bd * (e - state[_E])
+        u = self.p.kp_V_per_m * e + integ + d
+        lim = self.p.limit_V
+        sat = 0.0
+        if u > lim:
+            u, sat = lim, 1.0
+        elif u < -lim:
+            u, sat = -lim, -1.0
+        up = state[_U]
+        if u - up > self.slew:
+            u, sat = up + self.slew, 1.0
+        elif up - u > self.slew:
+            u, sat = up - self.slew, -1.0
+        if sat * d_i > 0.0:
+            integ -= d_i                     # anti-windup: no increment pushing further into the limit
+        state[_I], state[_E], state[_D], state[_U] = integ, e, d, u
+        return u, state
+
+    def frf(self, w: np.ndarray) -> np.ndarray:
+        """C(z) at z = exp(j w dt), linear range."""
+        zi = np.exp(-1j * np.asarray(w, dtype=float) * self.dt)
+        integ = self.hi * (1 + zi) / (1 - zi)
+        deriv = self.bd * (1 - zi) / (1 - self.ad * zi)
+        return self.p.kp_V_per_m + integ + deriv
+
+
+def tracking_response(act, ctrl: TrackingPID, f_hz: np.ndarray, delay: int = 1) -> np.ndarray:
+    """Closed-loop r -> x_p of the actuator alone: ZOH-discretised G_EHA, the PID, `delay` periods."""
+    import control
+    from sim_backend.linear import g_eha
+    Gd = control.sample_system(g_eha(act), ctrl.dt, method="zoh")
+    w = 2 * np.pi * np.asarray(f_hz, dtype=float)
+    z = np.exp(1j * w * ctrl.dt)
+    G = np.asarray(Gd(z)).reshape(-1)
+    L = ctrl.frf(w) * G * z ** (-delay)
+    return L / (1 + L)
+
+
+def bandwidth_hz(f_hz: np.ndarray, T: np.ndarray) -> float:
+    """First frequency where |T| falls 3 dB below its low-frequency value."""
+    db = 20 * np.log10(np.abs(T))
+    k = np.nonzero(db < db[0] - 3.0)[0]
+    return float(f_hz[k[0]]) if len(k) else math.nan
+
+
+def tune_tracking(act, dt: float, target_hz: float = 95.0, limit_V: float = 10.0, slew_V_per_s: float = 1e4,
+                  deriv_hz: float = 1000.0) -> PIDParams:
+    """Ki = Kp * (actuator lag corner); for each derivative time Td = Kd/Kp on a grid, Kp by bisection for the
+    target bandwidth; keep the one with the smallest resonant peak of |T|."""
+    lag = act.lag_corner
+    f = np.linspace(1.0, 600.0, 3000)
+    best = None
+    for td in np.concatenate([[0.0], np.geomspace(1e-5, 3e-3, 24)]):
+        lo, hi = 1e3, 1e9
+        for _ in range(50):
+            kp = math.sqrt(lo * hi)
+            c = TrackingPID(PIDParams(kp, kp * lag, kp * td, deriv_hz, limit_V, slew_V_per_s), dt)
+            T = tracking_response(act, c, f)
+            bw = bandwidth_hz(f, T)
+            if math.isnan(bw) or bw > target_hz:
+                hi = kp
+            else:
+                lo = kp
+        kp = math.sqrt(lo * hi)
+        c = TrackingPID(PIDParams(kp, kp * lag, kp * td, deriv_hz, limit_V, slew_V_per_s), dt)
+        T = tracking_response(act, c, f)
+        L_ok = abs(bandwidth_hz(f, T) - target_hz) < 2.0
+        peak = float(np.max(20 * np.log10(np.abs(T))))
+        if L_ok and (best is None or peak < best[0]):
+            best = (peak, c.p)
+    return best[1]
+
+
+def pid_from_config(cfg) -> PIDParams:
+    c = cfg.controller
+    return PIDParams(c.track_kp_V_per_m, c.track_ki_V_per_ms, c.track_kd_Vs_per_m, c.track_deriv_hz,
+                     cfg.safety.valve_limit_V, cfg.safety.slew_V_per_s)
