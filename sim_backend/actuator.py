@@ -223,7 +223,7 @@ def linear_chirp(fs: float, duration_s: float, f0_hz: float = 0.1, f1_hz: float 
 def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out):
     """Advance the stand one sample period [t_k, t_k+1) with commands from the ring `hist` (index mod len).
 
-    out[0] = acceleration at t_k (before advancing), out[1] = relative position at t_k+1."""
+    out[0] = acceleration at t_k (before advancing), out[1] = piston position x_p at t_k+1."""
     L = hist.shape[0]
     h = 1.0 / (fs * n_sub)
     k1 = np.zeros(7); k2 = np.zeros(7); k3 = np.zeros(7); k4 = np.zeros(7); yt = np.zeros(7)
@@ -268,7 +268,7 @@ def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F
                 _deriv(yt, i_cmd, f_d, prm, k4)
         for q in range(7):
             y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
-    out[1] = y[3] - y[5]
+    out[1] = y[3]
 
 
 class StandPlant:

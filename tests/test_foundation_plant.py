@@ -203,3 +203,16 @@ def test_rig_plant_step_equals_batch_and_floor_rms():
     assert np.allclose(table, Y[:, 0], atol=1e-12)
     long = FloorMotion(dt, rms_m=10e-6, seed=5).next_block(50000)
     assert np.std(long[:, :4]) == pytest.approx(10e-6, rel=0.1)
+
+
+def test_stepped_stand_equals_batch_with_stand_mode_and_disturbance():
+    _, u = linear_chirp(1000.0, 2.0, 20.0, 80.0, 2.0)
+    fx = Effects(base_frequency_hz=58.0, base_damping_ratio=0.03, disturbance_frequency_hz=31.0,
+                 disturbance_force_n=250.0)
+    ref = simulate_stand(P, u, 1000.0, fx)
+    sp = StandPlant(P, fx, 1000.0)
+    pos = [sp.position_m]
+    for v in u[:-1]:
+        sp.step(v)
+        pos.append(sp.position_m)
+    assert np.allclose(pos, ref["position_m"], atol=1e-15)

@@ -1,0 +1,56 @@
+"""`rig diagnose REC --out DIR`: where the recording and the configured model differ, which physics is missing,
+the augmented fit, and the proof it is better (outputs: rig/diagnose/report.py)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from rig.errors import RigError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", metavar="REC", type=Path,
+                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)")
+    p.add_argument("--out", metavar="DIR", type=Path, required=True,
+                   help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
+    p.add_argument("--seed", type=int, default=0, help="seed of the engine's random choices (default 0)")
+    p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
+
+
+def run(args) -> int:
+    from rig.config import load_config
+    from rig.recording import load_recording
+    from sim_backend.linear import ActuatorParams
+
+    cfg = load_config(args.config) if args.config else None
+    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
+    rec = load_recording(args.recording)                      # RecordingError: one line, exit 2
+    if args.out.exists() and not args.out.is_dir():
+        raise RigError(f"--out {args.out}: exists and is not a folder")
+
+    from rig.diagnose.engine import diagnose
+    from rig.diagnose import report
+
+    t0 = time.perf_counter()
+
+    def progress(msg: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
+             f"{'Table 1' if cfg is None else cfg.source}")
+    diag = diagnose(rec, p0, progress=progress, seed=args.seed)
+    progress("writing outputs")
+    try:
+        paths = report.write_outputs(args.out, diag, rec)
+    except OSError as e:
+        raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    progress(f"done in {time.perf_counter() - t0:.1f} s")
+    if args.json:
+        print(json.dumps(report.diagnosis_dict(diag, rec), indent=1))
+    else:
+        print(report.summary_text(diag, rec))
+        print("written: " + ", ".join(str(p) for p in paths.values()))
+    return 0

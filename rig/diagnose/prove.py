@@ -1,0 +1,391 @@
+"""Blind proof of the diagnosis (issue 7): make recordings that hide known effects, diagnose them, grade.
+
+Cases are drawn from a seed: the paper's Table 1 model with its six identified parameters moved +-15 %, zero,
+one or two effects from the catalogue of ../shared/recordings/README.md with physically plausible parameters,
+and the recordings' sensor noise. They are simulated with sim_backend.actuator.simulate_stand (the physics that
+reproduces the shared recordings), diagnosed without the truth, and graded:
+  right  = the named set of effects is exactly the true set ("none" when both are empty)
+  errors = relative parameter error of each true effect that was named (targets: delay 20 %, frequency 5 %).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field, asdict
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rig.errors import RigError
+from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+from sim_backend.linear import IDENTIFIED, ActuatorParams
+
+CATALOGUE = ("transport_delay", "base_resonance", "valve_saturation", "valve_deadband", "coulomb_friction",
+             "periodic_disturbance")
+NONE = "none"
+POSITION_NOISE_M = 2e-8          # rms, as the shared recordings (README)
+ACCEL_NOISE_MPS2 = 2e-4
+LINEAR_SPREAD = 0.15             # six identified parameters moved by up to +-15 %
+TARGETS = {"delay_s": 0.20, "frequency_hz": 0.05}   # relative error targets of issue 7
+
+
+@dataclass
+class Case:
+    """One blind case: what is hidden in it and how it is recorded."""
+    name: str
+    effects: dict                       # answers.json style {"transport_delay": {"delay_s": ...}, ...}
+    linear: dict                        # true K_L, C, w_nv, zeta, K_Q, K_C
+    fs_hz: float = 1000.0
+    duration_s: float = 100.0
+    amplitude_V: float = 2.0
+    seed: int = 0
+    hidden: dict = field(default_factory=dict)   # simulator-only parameters (base mass, disturbance force/phase)
+
+
+# ---- case generation ---------------------------------------------------------------------------------
+def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float) -> float:
+    """Force giving a position line of amplitude_m at f_hz: scale a short simulated 1 N response."""
+    fs = 2000.0
+    n = int(fs * max(1.0, 40.0 / f_hz))
+    y = simulate_stand(p, np.zeros(n), fs, Effects(disturbance_frequency_hz=f_hz, disturbance_force_n=1.0))
+    tail = y["position_m"][n // 2:]                    # past the start transient
+    t = np.arange(n)[n // 2:] / fs
+    X = np.c_[np.sin(2 * np.pi * f_hz * t), np.cos(2 * np.pi * f_hz * t), np.ones_like(t)]
+    c, *_ = np.linalg.lstsq(X, tail, rcond=None)
+    return amplitude_m / max(float(np.hypot(c[0], c[1])), 1e-15)
+
+
+def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float
+                 ) -> tuple[dict, dict]:
+    """Plausible parameters for one effect: (catalogue parameters, simulator-only extras)."""
+    if name == "transport_delay":
+        return {"delay_s": round(float(rng.uniform(0.5e-3, 3.0e-3)), 5)}, {}
+    if name == "base_resonance":
+        return ({"frequency_hz": round(float(rng.uniform(30.0, 90.0)), 2),
+                 "damping_ratio": round(float(rng.uniform(0.02, 0.05)), 4)},
+                {"mass_kg": round(float(rng.uniform(150.0, 300.0)), 1)})
+    if name == "valve_saturation":
+        peak_ma = p.K_v * amplitude_V
+        return {"limit_ma": round(float(rng.uniform(0.5, 0.85) * peak_ma), 3)}, {}
+    if name == "valve_deadband":
+        return {"width_ma": round(float(rng.uniform(0.2, 1.0)), 3)}, {}
+    if name == "coulomb_friction":
+        return {"force_n": round(float(rng.uniform(150.0, 600.0)), 1)}, {}
+    if name == "periodic_disturbance":
+        f = round(float(rng.uniform(10.0, 90.0)), 2)
+        line_m = float(rng.uniform(3.0, 6.0)) * POSITION_NOISE_M     # clearly above the noise
+        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m), 1),
+                                     "phase_rad": round(float(rng.uniform(-math.pi, math.pi)), 3)}
+    raise ValueError(f"unknown effect {name!r}")
+
+
+def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorParams | None = None) -> list[Case]:
+    """n blind cases from seed: >= 25 % clean, the rest one or two effects, every catalogue effect used."""
+    if n < 1:
+        raise RigError(f"--n: expected at least 1 case, got {n}")
+    p0 = p0 or ActuatorParams()
+    rng = np.random.default_rng(seed)
+    n0 = max(1, math.ceil(0.25 * n)) if n > 1 else 0
+    n2 = round(0.3 * n) if n > 2 else 0
+    n1 = n - n0 - n2
+    counts = [0] * n0 + [1] * n1 + [2] * n2
+    rng.shuffle(counts)
+    singles = list(rng.permutation(CATALOGUE))        # cycle the catalogue so each effect appears
+    cases = []
+    for i, k in enumerate(counts):
+        if k == 1:
+            names = [str(singles[i % len(singles)])]
+        else:
+            names = [str(s) for s in rng.choice(CATALOGUE, size=k, replace=False)]
+        lin = {key: float(getattr(p0, key) * rng.uniform(1 - LINEAR_SPREAD, 1 + LINEAR_SPREAD))
+               for key in IDENTIFIED}
+        p = p0.with_(**lin)
+        amplitude = round(float(rng.uniform(1.8, 2.5)), 2)
+        fs = float(rng.choice([1000.0, 2000.0]))
+        effects, hidden = {}, {}
+        for name in sorted(names):
+            effects[name], extra = _draw_effect(name, rng, p, amplitude)
+            if extra:
+                hidden[name] = extra
+        tag = "+".join(effects) or "nominal"
+        cases.append(Case(name=f"c{i + 1:02d}_{tag}", effects=effects, linear=lin, fs_hz=fs,
+                          duration_s=duration_s, amplitude_V=amplitude, seed=int(rng.integers(2 ** 31)),
+                          hidden=hidden))
+    return cases
+
+
+def simulate_case(case: Case, p0: ActuatorParams | None = None):
+    """The recording of a case (chirp 0.1 -> 100 Hz, zero-order hold, sensor noise) as a Recording."""
+    from rig.recording import Recording
+    p = (p0 or ActuatorParams()).with_(**case.linear)
+    t, cmd = linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
+    full = {name: {**prm, **case.hidden.get(name, {})} for name, prm in case.effects.items()}
+    fx = Effects.from_catalogue(full, position_noise_m=POSITION_NOISE_M, accel_noise_mps2=ACCEL_NOISE_MPS2,
+                                seed=case.seed)
+    y = simulate_stand(p, cmd, case.fs_hz, fx)
+    return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=case.fs_hz, source=case.name)
+
+
+# ---- grading -----------------------------------------------------------------------------------------
+def _fit_figure(fit: dict, model: str, key: str) -> float | None:
+    v = (fit.get(model) or {}).get(key)
+    return None if v is None else float(v)
+
+
+def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elapsed_s: float = 0.0) -> dict:
+    """One row of the proof table from the true effects (answers.json style) and a Diagnosis."""
+    named = {e["name"]: dict(e.get("parameters", {})) for e in diag.effects}
+    errors = {}
+    for eff, prm in truth.items():
+        if eff not in named:
+            continue
+        for key, true_v in prm.items():
+            est = named[eff].get(key)
+            if est is None or not isinstance(true_v, (int, float)) or true_v == 0:
+                continue
+            errors[f"{eff}.{key}"] = abs(float(est) - float(true_v)) / abs(float(true_v))
+    lin_err = None
+    if true_linear and diag.params_refit:
+        errs = [abs(float(diag.params_refit[k]) - v) / abs(v) for k, v in true_linear.items()
+                if k in diag.params_refit and v]
+        lin_err = max(errs) if errs else None
+    fit = diag.fit or {}
+    return {
+        "case": name,
+        "truth": sorted(truth),
+        "named": sorted(named),
+        "right": set(truth) == set(named),
+        "truth_parameters": truth,
+        "named_parameters": named,
+        "parameter_errors": errors,
+        "linear_max_error": lin_err,
+        "groups": [list(g) for g in (diag.group or [])],
+        "nrmse": {m: _fit_figure(fit, m, "nrmse") for m in ("nominal", "refit", "augmented")},
+        "residual_over_noise": {m: _fit_figure(fit, m, "residual_over_noise")
+                                for m in ("nominal", "refit", "augmented")},
+        "holdout_nrmse": {m: _fit_figure(fit, m, "nrmse_holdout") for m in ("nominal", "refit", "augmented")},
+        "elapsed_s": elapsed_s,
+        "summary": diag.summary,
+    }
+
+
+def confusion(rows: list[dict]) -> dict[str, dict[str, int]]:
+    """Effect-level confusion, rows = truth, columns = named, "none" = no effect.
+
+    A true effect that was named counts on the diagonal. A missed effect counts against each wrongly named
+    effect of the same case (mistaken for it), or against "none" if nothing wrong was named. A wrongly named
+    effect with no missed effect to explain it counts in row "none" (invented). A clean case named clean is
+    (none, none).
+    """
+    labels = list(CATALOGUE) + [NONE]
+    m = {a: {b: 0 for b in labels} for a in labels}
+    for r in rows:
+        truth, named = set(r["truth"]), set(r["named"])
+        if not truth and not named:
+            m[NONE][NONE] += 1
+        missed, invented = truth - named, named - truth
+        for t in truth & named:
+            m[t][t] += 1
+        for t in missed:
+            for x in (invented or {NONE}):
+                m[t][x] += 1
+        if not missed:
+            for x in invented:
+                m[NONE][x] += 1
+    return m
+
+
+def score(rows: list[dict]) -> dict:
+    """Overall figures of the proof against the issue's targets."""
+    n = len(rows)
+    right = sum(r["right"] for r in rows)
+    clean = [r for r in rows if not r["truth"]]
+    invented_clean = sum(1 for r in clean if r["named"])
+    def within(suffix, tol):
+        errs = [e for r in rows for k, e in r["parameter_errors"].items() if k.endswith(suffix)]
+        return {"n": len(errs), "within": sum(e <= tol for e in errs), "tolerance": tol,
+                "worst": max(errs) if errs else None}
+    ron = [r["residual_over_noise"]["augmented"] for r in rows if r["residual_over_noise"]["augmented"] is not None]
+    times = [r["elapsed_s"] for r in rows]
+    return {
+        "cases": n, "right": right, "fraction_right": right / n if n else 0.0,
+        "clean_cases": len(clean), "invented_on_clean": invented_clean,
+        "delays": within(".delay_s", TARGETS["delay_s"]),
+        "frequencies": within(".frequency_hz", TARGETS["frequency_hz"]),
+        "residual_within_1.3_noise": {"n": len(ron), "within": sum(v <= 1.3 for v in ron),
+                                      "worst": max(ron) if ron else None},
+        "seconds_per_case": {"mean": float(np.mean(times)) if times else None,
+                             "max": float(np.max(times)) if times else None},
+    }
+
+
+# ---- running -----------------------------------------------------------------------------------------
+def _p0_from(p0_dict: dict) -> ActuatorParams:
+    return ActuatorParams(**p0_dict)
+
+
+def _run_generated(case: Case, p0_dict: dict, seed: int) -> dict:
+    from rig.diagnose.engine import diagnose
+    p0 = _p0_from(p0_dict)
+    rec = simulate_case(case, p0)
+    t0 = time.perf_counter()
+    diag = diagnose(rec, p0, seed=seed)
+    return grade(case.name, case.effects, diag, true_linear=case.linear, elapsed_s=time.perf_counter() - t0)
+
+
+def _run_file(path: str, truth: dict, true_linear: dict | None, p0_dict: dict, seed: int) -> dict:
+    from rig.diagnose.engine import diagnose
+    from rig.recording import load_recording
+    rec = load_recording(path)
+    t0 = time.perf_counter()
+    diag = diagnose(rec, _p0_from(p0_dict), seed=seed)
+    return grade(Path(path).name, truth, diag, true_linear=true_linear, elapsed_s=time.perf_counter() - t0)
+
+
+def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None]]:
+    """(recording path, true effects, true linear parameters) from a folder with answers.json."""
+    ans_path = cases_dir / "answers.json"
+    if not cases_dir.is_dir():
+        raise RigError(f"--cases {cases_dir}: not a folder")
+    if not ans_path.is_file():
+        raise RigError(f"--cases {cases_dir}: no answers.json in the folder (expected one like "
+                       "../shared/recordings/answers.json)")
+    try:
+        answers = json.loads(ans_path.read_text())
+    except (OSError, ValueError) as e:
+        raise RigError(f"{ans_path}: not readable JSON ({e})") from None
+    if not isinstance(answers, dict) or not answers:
+        raise RigError(f"{ans_path}: expected an object {{recording file: {{\"effects\": ...}}}}")
+    out = []
+    for fname, entry in sorted(answers.items()):
+        if not isinstance(entry, dict) or not isinstance(entry.get("effects"), dict):
+            raise RigError(f"{ans_path}: entry {fname!r} needs an \"effects\" object")
+        unknown = set(entry["effects"]) - set(CATALOGUE)
+        if unknown:
+            raise RigError(f"{ans_path}: entry {fname!r} has unknown effect(s) {', '.join(sorted(unknown))} "
+                           f"(known: {', '.join(CATALOGUE)})")
+        path = cases_dir / fname
+        if not path.is_file():
+            raise RigError(f"{ans_path}: recording {fname!r} listed but not found in {cases_dir}")
+        out.append((path, entry["effects"], entry.get("true_linear_parameters")))
+    return out
+
+
+def _pool(workers: int):
+    # spawn: no forked numba/BLAS thread state; one BLAS thread per worker so 2 workers fit 2 cores
+    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"))
+
+
+def run_jobs(jobs: list[tuple[Callable, tuple, str]], workers: int,
+             progress: Callable[[int, int, str], None] | None = None) -> list[dict]:
+    """Run (fn, args, label) jobs over `workers` processes; rows come back in job order."""
+    rows: list[dict | None] = [None] * len(jobs)
+    if workers <= 1 or len(jobs) == 1:
+        for i, (fn, args, label) in enumerate(jobs):
+            rows[i] = fn(*args)
+            if progress:
+                progress(i + 1, len(jobs), label)
+        return rows  # type: ignore[return-value]
+    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                             "NUMBA_NUM_THREADS")}
+    os.environ.update({k: "1" for k in saved})
+    try:
+        with _pool(workers) as ex:
+            futs = {ex.submit(fn, *args): (i, label) for i, (fn, args, label) in enumerate(jobs)}
+            done = 0
+            for fut in as_completed(futs):
+                i, label = futs[fut]
+                rows[i] = fut.result()
+                done += 1
+                if progress:
+                    progress(done, len(jobs), label)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return rows  # type: ignore[return-value]
+
+
+def prove_generated(n: int, seed: int, p0: ActuatorParams, *, duration_s: float = 100.0, workers: int = 2,
+                    progress=None) -> tuple[list[Case], list[dict]]:
+    cases = draw_cases(n, seed, duration_s=duration_s, p0=p0)
+    jobs = [(_run_generated, (c, p0.as_dict(), seed), c.name) for c in cases]
+    return cases, run_jobs(jobs, workers, progress)
+
+
+def prove_folder(cases_dir: Path, p0: ActuatorParams, *, seed: int = 0, workers: int = 2,
+                 progress=None) -> list[dict]:
+    entries = read_answers(Path(cases_dir))
+    jobs = [(_run_file, (str(path), truth, lin, p0.as_dict(), seed), path.name) for path, truth, lin in entries]
+    return run_jobs(jobs, workers, progress)
+
+
+# ---- presentation ------------------------------------------------------------------------------------
+def _names(xs: list[str]) -> str:
+    return " + ".join(xs) if xs else NONE
+
+
+def _fmt(v, spec=".3f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def _short_key(k: str) -> str:
+    eff, key = k.split(".", 1)
+    short = {"transport_delay": "delay", "base_resonance": "base", "valve_saturation": "sat",
+             "valve_deadband": "dead", "coulomb_friction": "fric", "periodic_disturbance": "dist"}.get(eff, eff)
+    return f"{short}.{key.replace('_hz', '').replace('_s', '').replace('_ma', '').replace('_n', '')}"
+
+
+def table_markdown(rows: list[dict]) -> str:
+    head = ("| case | truth | named | ok | parameter errors | NRMSE nominal -> refit -> augmented "
+            "| resid/noise aug | s |\n|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for r in rows:
+        errs = ", ".join(f"{_short_key(k)} {100 * e:.1f}%" for k, e in sorted(r["parameter_errors"].items())) or "-"
+        nr = r["nrmse"]
+        lines.append(f"| {r['case']} | {_names(r['truth'])} | {_names(r['named'])} | "
+                     f"{'yes' if r['right'] else 'NO'} | {errs} | {_fmt(nr['nominal'])} -> {_fmt(nr['refit'])} -> "
+                     f"{_fmt(nr['augmented'])} | {_fmt(r['residual_over_noise']['augmented'], '.2f')} | "
+                     f"{r['elapsed_s']:.1f} |")
+    return head + "\n".join(lines) + "\n"
+
+
+def confusion_markdown(m: dict[str, dict[str, int]]) -> str:
+    labels = list(m)
+    head = "| truth \\ named | " + " | ".join(labels) + " |\n|---|" + "---|" * len(labels) + "\n"
+    body = "\n".join(f"| {a} | " + " | ".join(str(m[a][b]) if m[a][b] else "." for b in labels) + " |"
+                     for a in labels)
+    return head + body + "\n"
+
+
+def score_text(s: dict) -> str:
+    d, f, r = s["delays"], s["frequencies"], s["residual_within_1.3_noise"]
+    return "\n".join([
+        f"score: {s['right']}/{s['cases']} named right ({100 * s['fraction_right']:.0f} %, target 95 %); "
+        f"invented on clean cases: {s['invented_on_clean']}/{s['clean_cases']} (target 0)",
+        f"delays within 20 %: {d['within']}/{d['n']} (worst {_fmt(d['worst'] and 100 * d['worst'], '.1f')} %); "
+        f"frequencies within 5 %: {f['within']}/{f['n']} (worst {_fmt(f['worst'] and 100 * f['worst'], '.1f')} %)",
+        f"augmented residual <= 1.3 x noise: {r['within']}/{r['n']} (worst {_fmt(r['worst'], '.2f')}); "
+        f"diagnosis time per case: mean {_fmt(s['seconds_per_case']['mean'], '.1f')} s, "
+        f"max {_fmt(s['seconds_per_case']['max'], '.1f')} s",
+    ])
+
+
+def report_markdown(rows: list[dict], title: str) -> str:
+    s = score(rows)
+    return (f"# {title}\n\n{table_markdown(rows)}\n## Confusion matrix (effects)\n\n"
+            f"{confusion_markdown(confusion(rows))}\n## Score\n\n" + score_text(s).replace("\n", "\n\n") + "\n")
+
+
+def report_json(rows: list[dict], title: str, cases: list[Case] | None = None) -> dict:
+    out = {"title": title, "rows": rows, "confusion": confusion(rows), "score": score(rows)}
+    if cases is not None:
+        out["cases"] = [asdict(c) for c in cases]
+    return out
