@@ -133,54 +133,16 @@ def _deriv(y, i_cmd, f_dist, prm, out):
 
 @numba.njit(cache=True)
 def _simulate(cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, pos_out, acc_out, spool_out):
-    n = cmd_V.shape[0]
-    h = 1.0 / (fs * n_sub)
+    """The whole record: sample the outputs at t_k, then integrate [t_k, t_k+1) with `_advance_stand`
+    (the command array itself serves as the command history)."""
     y = np.zeros(7)
-    k1 = np.zeros(7); k2 = np.zeros(7); k3 = np.zeros(7); k4 = np.zeros(7); yt = np.zeros(7)
-    w_d = 2.0 * math.pi * dist_f
-    for k in range(n):
-        t0 = k / fs
-        # sample outputs at t_k (acceleration from the derivative with the current input)
-        pos_out[k] = y[3]
+    out = np.zeros(2)
+    work = np.zeros((5, 7))
+    for k in range(cmd_V.shape[0]):
+        pos_out[k] = y[3]          # transducer: absolute piston position (see module docstring)
         spool_out[k] = y[0]
-        for j in range(n_sub):
-            t = t0 + j * h
-            # transport delay: the held command as seen by the valve driver at time t - delay
-            for stage in range(4):
-                if stage == 0:
-                    ts = t
-                elif stage == 3:
-                    ts = t + h
-                else:
-                    ts = t + 0.5 * h
-                # the command held over [t_k, t_k+1) is u_k, also at the interval's end point
-                idx = min(int(math.floor((ts - delay_s) * fs + 1e-9)), k)
-                u = cmd_V[idx] if idx >= 0 else 0.0
-                i_cmd = K_v * u
-                if sat > 0.0:
-                    if i_cmd > sat:
-                        i_cmd = sat
-                    elif i_cmd < -sat:
-                        i_cmd = -sat
-                f_d = dist_F * math.sin(w_d * ts + dist_ph) if dist_F != 0.0 else 0.0
-                if stage == 0:
-                    _deriv(y, i_cmd, f_d, prm, k1)
-                    if j == 0:
-                        acc_out[k] = k1[4]
-                    for q in range(7):
-                        yt[q] = y[q] + 0.5 * h * k1[q]
-                elif stage == 1:
-                    _deriv(yt, i_cmd, f_d, prm, k2)
-                    for q in range(7):
-                        yt[q] = y[q] + 0.5 * h * k2[q]
-                elif stage == 2:
-                    _deriv(yt, i_cmd, f_d, prm, k3)
-                    for q in range(7):
-                        yt[q] = y[q] + h * k3[q]
-                else:
-                    _deriv(yt, i_cmd, f_d, prm, k4)
-            for q in range(7):
-                y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
+        _advance_stand(y, k, cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out, work)
+        acc_out[k] = out[0]
 
 
 def simulate_stand(p: ActuatorParams, cmd_V: np.ndarray, fs: float, fx: Effects = Effects(),
@@ -220,13 +182,13 @@ def linear_chirp(fs: float, duration_s: float, f0_hz: float = 0.1, f1_hz: float 
 
 
 @numba.njit(cache=True)
-def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out):
+def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out, work):
     """Advance the stand one sample period [t_k, t_k+1) with commands from the ring `hist` (index mod len).
 
     out[0] = acceleration at t_k (before advancing), out[1] = piston position x_p at t_k+1."""
     L = hist.shape[0]
     h = 1.0 / (fs * n_sub)
-    k1 = np.zeros(7); k2 = np.zeros(7); k3 = np.zeros(7); k4 = np.zeros(7); yt = np.zeros(7)
+    k1 = work[0]; k2 = work[1]; k3 = work[2]; k4 = work[3]; yt = work[4]     # RK4 scratch, (5, 7)
     w_d = 2.0 * math.pi * dist_f
     t0 = k / fs
     for j in range(n_sub):
@@ -295,6 +257,7 @@ class StandPlant:
         self.y = np.zeros(7)
         self.k = 0
         self._out = np.zeros(2)
+        self._work = np.zeros((5, 7))
         self.rng = np.random.default_rng(fx.seed)
         self.position_m = self._noisy_pos(0.0)
         self.accel_mps2 = 0.0
@@ -309,7 +272,7 @@ class StandPlant:
         _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
                        fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
                        fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
-                       fx.disturbance_phase_rad, self._out)
+                       fx.disturbance_phase_rad, self._out, self._work)
         self.k += 1
         self.t_s = self.k / self.fs
         self.accel_mps2 = float(self._out[0]) + (fx.accel_noise_mps2 * self.rng.standard_normal()
