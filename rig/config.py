@@ -160,7 +160,7 @@ class ControllerConfig:
     mount's absolute motion (accelerometer blended with the stroke below blend_hz); defaults tuned on the
     discrete loop (controllers/tune.py, ZOH + one period of delay at 5 kHz)."""
     blend_hz: float = _f(0.1, "Hz", gt=0)               # accelerometer / stroke complementary blend
-    kp_V_per_m: float = _f(337621, "V/m", gt=0)           # PI proportional gain on the compensated position
+    kp_V_per_m: float = _f(345000, "V/m", gt=0)           # PI proportional gain on the compensated position
     pi_corner_hz: float = _f(12, "Hz", gt=0)            # PI integral corner
     lead1_zero_hz: float = _f(8.69918, "Hz", gt=0)
     lead1_pole_hz: float = _f(2212, "Hz", gt=0)

@@ -128,8 +128,8 @@ def test_rig_design_json_schema_and_targets(capsys):
         for path in ("ground_to_table", "ground_to_tool"):
             a = out["attenuation_db"][path][m]
             assert set(a) == {"1hz", "5_10hz", "20_60hz", "60_100hz", "min_1_100hz"}
-            # paper: >= 20 dB at 1 Hz and >= 3 dB everywhere; the tuned design sits at ~2.97 dB near 100 Hz
-            assert a["1hz"] >= 20.0 and a["min_1_100hz"] >= 2.5
+            # paper: >= 20 dB at 1 Hz and no amplification, >= 3 dB everywhere from 1 to 100 Hz
+            assert a["1hz"] >= 20.0 and a["min_1_100hz"] >= 3.0
             assert a["min_1_100hz"] <= min(a["1hz"], a["5_10hz"], a["20_60hz"], a["60_100hz"]) + 1e-9
     assert out["mimo_stable"] is True
     assert rc == 0
