@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 
-from drivers.rt import raise_priority
+from drivers.rt import TriggeredPoller
 from rig.errors import DeviceError
 
 REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
@@ -30,7 +30,7 @@ def volts_to_raw(v: float) -> int:
     return 0 if raw < 0 else 65535 if raw > 65535 else int(raw)
 
 
-class ModbusAnalogIO:
+class ModbusAnalogIO(TriggeredPoller):
     def __init__(self, *, host: str, port: int, unit: int, channels: list[int], names: list[str],
                  V_per_mps2: float, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
                  priority: int = 0, keep_latency: int = 1 << 16):
@@ -130,23 +130,6 @@ class ModbusAnalogIO:
         k = self.k
         self.sample = (tuple(raw_to_volts(x) / k for x in raw), t1, raw)
         return True
-
-    def trigger(self) -> None:
-        """The period started (SYNC sent): fetch the next sample now, so it is in by the next period."""
-        self._trigger.set()
-
-    def _run(self) -> None:
-        """Poll on each trigger until a new sample arrives (at most ~0.85 poll period), or once per poll
-        period when no trigger comes (loop not running: the sample stays fresh, the watchdog fed)."""
-        raise_priority(self.priority)
-        stop, trig = self._stop, self._trigger
-        budget = int(0.85 * self.poll_ns)
-        while not stop.is_set():
-            triggered = trig.wait(self.poll_ns * 1e-9)
-            trig.clear()
-            end = time.monotonic_ns() + (budget if triggered else 0)
-            while not self._poll_once() and time.monotonic_ns() < end and not stop.is_set():
-                time.sleep(5e-5)
 
     def check(self, now_ns: int) -> str | None:
         acc, t_ns, raw = self.sample

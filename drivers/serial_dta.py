@@ -11,11 +11,11 @@ import threading
 import time
 
 from drivers import dta_protocol as proto
-from drivers.rt import raise_priority
+from drivers.rt import TriggeredPoller
 from rig.errors import DeviceError
 
 
-class DisplacementAmplifier:
+class DisplacementAmplifier(TriggeredPoller):
     def __init__(self, *, port: str, baud: int, names: list[str], stale_s: float, poll_s: float,
                  reply_timeout_s: float = 0.01, priority: int = 0, keep_latency: int = 1 << 16):
         self.path = port
@@ -115,23 +115,6 @@ class DisplacementAmplifier:
                 self.sample = (f.position_m, t1, f.status)
         elif f.kind == "E":
             self.device_error = ",".join(f.fields)
-
-    def trigger(self) -> None:
-        """The period started (SYNC sent): fetch the next sample now, so it is in by the next period."""
-        self._trigger.set()
-
-    def _run(self) -> None:
-        """Poll on each trigger until a new sample arrives (at most ~0.85 poll period), or once per poll
-        period when no trigger comes (loop not running: the sample stays fresh, the watchdog fed)."""
-        raise_priority(self.priority)
-        stop, trig = self._stop, self._trigger
-        budget = int(0.85 * self.poll_ns)
-        while not stop.is_set():
-            triggered = trig.wait(self.poll_ns * 1e-9)
-            trig.clear()
-            end = time.monotonic_ns() + (budget if triggered else 0)
-            while not self._poll_once() and time.monotonic_ns() < end and not stop.is_set():
-                time.sleep(5e-5)
 
     def check(self, now_ns: int) -> str | None:
         pos, t_ns, status = self.sample

@@ -142,29 +142,6 @@ def discretize_foh_ground(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, ...
 
 
 @numba.njit(cache=True)
-def _step(Ad, Bd, C, D, x, w, xn, y):
-    """One period: y = C x + D w (outputs at t_k), then x <- Ad x + Bd w."""
-    ns = x.shape[0]
-    nw = w.shape[0]
-    for i in range(C.shape[0]):
-        acc = 0.0
-        for j in range(ns):
-            acc += C[i, j] * x[j]
-        for j in range(nw):
-            acc += D[i, j] * w[j]
-        y[i] = acc
-    for i in range(ns):
-        acc = 0.0
-        for j in range(ns):
-            acc += Ad[i, j] * x[j]
-        for j in range(nw):
-            acc += Bd[i, j] * w[j]
-        xn[i] = acc
-    for i in range(ns):
-        x[i] = xn[i]
-
-
-@numba.njit(cache=True)
 def _simulate_modal(lam, Bz, Cz, D, W, Y):
     """Diagonal recursion z <- lam z + Bz w; y = Re(Cz z) + D w (conjugate pairs folded into Cz)."""
     nz = lam.shape[0]
