@@ -61,7 +61,8 @@ class MachineConfig:
 @dataclass(frozen=True)
 class LoopConfig:
     rate_hz: float = _f(5000.0, "Hz", gt=0, le=100000)
-    overrun_policy: str = _f("skip", "", choices=("skip", "catch_up"))
+    # catch_up by default: on a non-real-time host a skipped period is a delay the isolation loop may not survive
+    overrun_policy: str = _f("catch_up", "", choices=("skip", "catch_up"))
     realtime: bool = _f(True, "")               # try SCHED_FIFO, affinity, mlockall where allowed
     rt_priority: int = _f(80, "", ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     cpu: int = _f(-1, "", ge=-1)                # CPU the loop thread is pinned to (-1 = the last one)

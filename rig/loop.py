@@ -61,6 +61,8 @@ def loop_channels(n_mounts: int, state_len: int, names: tuple[str, ...]) -> list
 
 
 class Loop:
+    MAX_HELD_STEPS = 50     # skipped periods replayed into the controllers at most (longer gaps fault anyway)
+
     def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
                  rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
                  keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
@@ -110,6 +112,7 @@ class Loop:
         self.compute_ns = array.array("q", bytes(8 * self.keep))
         self.t0_ns: int | None = None
         self.t_ns = 0
+        self._last_cycle_t = None            # start of the previous cycle (skipped periods in between)
         self.fault_t_ns: int | None = None
 
     # ---- lifecycle ----------------------------------------------------------------------------------
@@ -205,6 +208,7 @@ class Loop:
     # ---- one period -----------------------------------------------------------------------------------
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
         """read -> check -> update -> limit -> write -> record for the period starting at t_ns."""
+        prev_t, self._last_cycle_t = self._last_cycle_t, t_ns
         self.t_ns = t_ns
         lc = self.lc
         if self._active_request is not None:
@@ -244,6 +248,13 @@ class Loop:
             # warm, so activation under floor motion starts from a settled state instead of a cold one.
             ctrls, states, dt = self.ctrls, self.states, self.dt
             try:
+                if prev_t is not None and t_ns - prev_t > self.period_ns:
+                    # periods were skipped: the controllers' filters must still see time pass (their
+                    # double integration of acceleration would otherwise lose it), so step them through
+                    # the missed periods with the measurement held; their outputs there are not written
+                    for _ in range(min((t_ns - prev_t) // self.period_ns - 1, self.MAX_HELD_STEPS)):
+                        for i in range(n):
+                            raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
                 for i in range(n):
                     raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
             except Exception as e:          # noqa: BLE001

@@ -59,7 +59,7 @@ CASES = [
 
 @pytest.mark.parametrize("name,knob,expect,words", CASES, ids=[c[0] for c in CASES])
 def test_fault_knob_faults_within_one_period(name, knob, expect, words, caplog):
-    cfg = Config()
+    cfg = config_from_dict({"loop": {"overrun_policy": "skip"}})   # period indices count skipped deadlines
     with caplog.at_level(logging.INFO):
         loop, port, k_fault = run_with(knob, cfg)
     assert loop.state is State.FAULT
@@ -81,11 +81,34 @@ def test_no_fault_without_knobs_and_before_the_knob():
 
 def test_short_overrun_counts_and_skip_policy_jumps_ahead():
     # 0.7 ms stall: below the watchdog, so no fault; the late period is counted, 3 deadlines are skipped
-    loop, port, k = run_with({"kind": "overrun", "extra_s": 0.0007}, periods=1000)
+    cfg = config_from_dict({"loop": {"overrun_policy": "skip"}})
+    loop, port, k = run_with({"kind": "overrun", "extra_s": 0.0007}, cfg=cfg, periods=1000)
     assert k is None and loop.lc.fault_reason is None
     assert loop.overruns == 1 and loop.skipped == 3
     assert loop.iterations == 1000
     assert loop.missed_deadline_fraction == pytest.approx(4 / 1003)
+
+
+class CountingP(CentringP):
+    """Centring law that counts its steps (time as the controller sees it)."""
+    def step(self, s, meas, dt):
+        self.steps = getattr(self, "steps", 0) + 1
+        return super().step(s, meas, dt)
+
+
+def test_skipped_periods_still_pass_through_the_controllers():
+    # the controllers' filters integrate over time: a skipped period must still be a step for them
+    cfg = config_from_dict({"loop": {"overrun_policy": "skip"}})
+    clk = SimClock(t0_ns=123_456_789)
+    port = SimBackend(TinyPlant(4, DT), DT, clock=clk)
+    ctrls = [CountingP(2e5) for _ in range(4)]
+    loop = Loop(cfg, port, ctrls, clock=clk, rate_hz=RATE, stop_on_fault=False)
+    loop.configure()
+    loop.activate()
+    port.inject(at_s=K0 * DT, kind="overrun", extra_s=0.0007)
+    loop.run(iterations=1000)
+    assert loop.skipped == 3
+    assert all(c.steps == loop.iterations + loop.skipped for c in ctrls)
 
 
 def test_catch_up_policy_runs_late_periods_back_to_back():
