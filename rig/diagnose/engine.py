@@ -393,8 +393,8 @@ def _evidence(name: str, st: dict, mm: dict) -> str:
     if name in NONLINEAR and h:
         extra = f"; odd harmonics {h.get('odd_over_noise', 0):.0f}x noise, even {h.get('even_over_noise', 0):.0f}x"
     return (f"{sig}{extra}; fit-block BIC gain {st['delta_bic_fit']:.0f} (needs > 0), held-out log-likelihood "
-            f"ratio {st['lr_holdout']:.0f} (needs > {st['lr_needed']:.0f}), held-out residual variance "
-            f"-{100 * st['holdout_gain']:.1f} % (needs > {100 * MIN_GAIN:.1f} %)")
+            f"ratio {st['lr_holdout']:.0f} (needs > {st['lr_needed']:.0f}), held-out residual variance cut by "
+            f"{100 * st['holdout_gain']:.1f} % (needs > {100 * MIN_GAIN:.1f} %)")
 
 
 # ---- main entry ------------------------------------------------------------------------------------------------
