@@ -167,6 +167,8 @@ def _plot(path, dt, n, table, tool, floor, off, on, res):
         f, P = scipy.signal.welch(floor[off], fs=fs, nperseg=min(1 << 14, off.stop - off.start))
         ax.loglog(f[1:], np.sqrt(P[1:]) * 1e6, color="0.7", lw=0.8, label="floor")
         ax.set_xlim(0.3, 500)
+        top = ax.get_ylim()[1]
+        ax.set_ylim(top * 1e-7, top)            # seven decades: the band of interest, not the FFT floor
         ax.set_xlabel("frequency [Hz]")
         ax.set_ylabel("ASD [um/sqrt(Hz)]")
         ax.set_title(f"{lab} Y spectrum")
