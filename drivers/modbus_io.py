@@ -147,15 +147,8 @@ class ModbusAnalogIO(TriggeredPoller):
                 return f"{self.where}: AI ch{self.channels[i]} ({self.names[i]}) at the +-10 V rail (over range)"
         return None
 
-    def latencies_us(self) -> list[float]:
-        n = min(self.n_latency, len(self.latency_ns))
-        return [x * 1e-3 for x in self.latency_ns[:n]]
-
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-            self._thread = None
+        self._stop_thread()
         if self.client is not None:
             self.client.close()
             self.client = None

@@ -31,7 +31,17 @@ class TriggeredPoller:
     """The request/response loop of a driver-owned thread, kept off the control period.
 
     The owner provides `_poll_once() -> bool` (True when a new sample arrived), `_stop` and `_trigger`
-    (threading.Event), `poll_ns` and `priority`."""
+    (threading.Event), `_thread`, `poll_ns`, `priority`, and the ring `latency_ns` with its fill `n_latency`."""
+
+    def latencies_us(self) -> list[float]:
+        n = min(self.n_latency, len(self.latency_ns))
+        return [x * 1e-3 for x in self.latency_ns[:n]]
+
+    def _stop_thread(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
 
     def trigger(self) -> None:
         """The period started (SYNC sent): fetch the next sample now, so it is in by the next period."""

@@ -130,15 +130,8 @@ class DisplacementAmplifier(TriggeredPoller):
                     f"(limit {self.stale_ns / 1e6:g} ms); {why}")
         return None
 
-    def latencies_us(self) -> list[float]:
-        n = min(self.n_latency, len(self.latency_ns))
-        return [x * 1e-3 for x in self.latency_ns[:n]]
-
     def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-            self._thread = None
+        self._stop_thread()
         if self.ser is not None:
             try:
                 self.ser.close()
