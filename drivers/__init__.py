@@ -40,7 +40,8 @@ def _floor(cfg, dt, FloorMotion):
 
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
                       modbus_port: int, serial_port: str, stale_s: float, serial_stale_s: float | None = None,
-                      poll_s: float | None = None, on_close=None, priority: int | None = None):
+                      poll_s: float | None = None, on_close=None, priority: int | None = None,
+                      sample_driven: bool | None = None):
     """The three drivers as one port (nothing is opened here)."""
     from drivers.canopen_valves import CanopenValves
     from drivers.modbus_io import ModbusAnalogIO
@@ -49,23 +50,27 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     d = cfg.drivers
     names = list(MOUNTS)
     prio = d.thread_priority if priority is None else priority
+    fifo = d.accel_sync_fifo if sample_driven is None else sample_driven
     poll = poll_s if poll_s is not None else 1.0 / cfg.loop.rate_hz      # triggered each period by read()
     valves = CanopenValves(interface=can_interface, channel=can_channel, bitrate=d.can_bitrate,
                            node_ids=[d.valve_node_id_base + i for i in range(len(names))], names=names,
                            max_V=cfg.valve.max_V, stale_s=stale_s, priority=prio)
     accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit, channels=list(ACCEL_CHANNELS),
                            names=names, V_per_mps2=d.accel_V_per_mps2, timeout_s=d.modbus_timeout_s,
-                           watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll, priority=prio)
+                           watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll, priority=prio,
+                           fifo=fifo)
     stroke = DisplacementAmplifier(port=serial_port, baud=d.serial_baud, names=names,
                                    stale_s=serial_stale_s if serial_stale_s is not None else stale_s, poll_s=poll,
                                    priority=prio)
-    return DriverPort(name, valves, accel, stroke, n_mounts=len(names), on_close=on_close)
+    return DriverPort(name, valves, accel, stroke, n_mounts=len(names), on_close=on_close,
+                      sample_driven=fifo)
 
 
 def make_hil_port(cfg, plant=None, *, dt: float | None = None, stale_s: float | None = None,
                   serial_stale_s: float | None = None, poll_s: float | None = None, priority: int | None = None):
     """The drivers against a freshly started emulated rig (the port's `.rig`; stopped by port.close()).
-    plant: default the four-mount RigPlant under the configured floor vibration, stepped at the loop period."""
+    plant: default the four-mount RigPlant under the configured floor vibration, stepped at the loop period.
+    The emulated module converts at each plant step (each SYNC), so the port is sample-driven."""
     from sim_backend.emulators.rig import EmulatedRig
     if dt is None and cfg.loop.rate_hz > cfg.hil.rate_hz:
         logging.getLogger("rig.drivers").warning(
@@ -88,7 +93,7 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, stale_s: float | 
                                  stale_s=stale_s if stale_s is not None else cfg.hil.stale_s,
                                  serial_stale_s=serial_stale_s if serial_stale_s is not None else
                                  (stale_s if stale_s is not None else cfg.hil.serial_stale_s), poll_s=poll_s,
-                                 on_close=emu.stop, priority=priority)
+                                 on_close=emu.stop, priority=priority, sample_driven=True)
     except BaseException:
         emu.stop()
         raise

@@ -18,6 +18,11 @@ from rig.errors import DeviceError
 
 REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
 N_READ = 10                     # 40001-40010 in one request
+# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): the last FIFO_SLOTS conversions,
+# slot = counter % FIFO_SLOTS, each [counter, AI ch0-3] at 40025 + 5 * slot; read with 40001-40010 in one request
+REG_FIFO, FIFO_SLOTS, FIFO_WIDTH = 24, 8, 5
+N_READ_FIFO = REG_FIFO + FIFO_SLOTS * FIFO_WIDTH
+KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
 
 
 def raw_to_volts(raw: int) -> float:
@@ -33,7 +38,7 @@ def volts_to_raw(v: float) -> int:
 class ModbusAnalogIO(TriggeredPoller):
     def __init__(self, *, host: str, port: int, unit: int, channels: list[int], names: list[str],
                  V_per_mps2: float, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
-                 priority: int = 0, keep_latency: int = 1 << 16):
+                 priority: int = 0, keep_latency: int = 1 << 16, fifo: bool = False):
         self.host, self.port, self.unit = host, port, unit
         self.channels = list(channels)
         self.names = list(names)
@@ -51,6 +56,11 @@ class ModbusAnalogIO(TriggeredPoller):
         self.errors = 0
         self.polls = 0
         self._counter = -1
+        # fifo: every conversion by its counter (accel_mps2 tuples), the newest counter; see conversions_since
+        self.fifo = fifo
+        self.n_read = N_READ_FIFO if fifo else N_READ
+        self.conversions: dict[int, tuple] = {}
+        self.newest = -1
         self.watchdog_tripped = False
         self.asked_ns = 0              # first request since the last new sample (0 = none outstanding)
         self._stop = threading.Event()
@@ -96,7 +106,7 @@ class ModbusAnalogIO(TriggeredPoller):
         if not self.asked_ns:
             self.asked_ns = t0
         try:
-            r = self.client.read_holding_registers(REG_AI, count=N_READ, device_id=self.unit)
+            r = self.client.read_holding_registers(REG_AI, count=self.n_read, device_id=self.unit)
         except Exception as e:                      # noqa: BLE001 - timeouts, garbage, closed socket
             self.errors += 1
             text = str(e)
@@ -115,11 +125,11 @@ class ModbusAnalogIO(TriggeredPoller):
             self.last_error = f"exception response {code}" if code is not None else str(r)
             return False
         regs = r.registers
-        if len(regs) == N_READ and regs[REG_STATUS] & 1:
+        if len(regs) == self.n_read and regs[REG_STATUS] & 1:
             self.watchdog_tripped = True            # latched in the module until open() clears it
-        if len(regs) != N_READ:
+        if len(regs) != self.n_read:
             self.errors += 1
-            self.last_error = f"{len(regs)} registers (expected {N_READ})"
+            self.last_error = f"{len(regs)} registers (expected {self.n_read})"
             return False
         if regs[REG_COUNT] == self._counter:
             return False                            # no new conversion: keep the old time stamp
@@ -128,8 +138,49 @@ class ModbusAnalogIO(TriggeredPoller):
         self.asked_ns = 0
         raw = tuple(regs[REG_AI + ch] for ch in self.channels)
         k = self.k
+        if self.fifo:
+            self._take_fifo(regs)
         self.sample = (tuple(raw_to_volts(x) / k for x in raw), t1, raw)
         return True
+
+    def _take_fifo(self, regs) -> None:
+        """Store the FIFO's conversions by counter (the newest last, so a reader never sees it missing)."""
+        conv, k, ch = self.conversions, self.k, self.channels
+        newest = regs[REG_COUNT]
+        for slot in range(FIFO_SLOTS):
+            base = REG_FIFO + FIFO_WIDTH * slot
+            c = regs[base]
+            if c not in conv and ((newest - c) & 0xFFFF) < FIFO_SLOTS:
+                conv[c] = tuple(raw_to_volts(regs[base + 1 + j]) / k for j in ch)
+        if len(conv) > KEEP_CONVERSIONS + FIFO_SLOTS:
+            for c in [c for c in conv if ((newest - c) & 0xFFFF) >= KEEP_CONVERSIONS]:
+                del conv[c]
+        self.newest = newest
+
+    def conversions_since(self, counter: int) -> tuple[int, int, tuple, list]:
+        """(n, newest counter, newest accel, older): n = conversions after `counter` up to the newest fetched (counter -1: the
+        first read, n = 1), older = the accel tuples of the n - 1 before the newest, oldest first. A conversion
+        missing here (a stall longer than the FIFO) is interpolated, so the count - the time base of the
+        controllers' integration - stays exact."""
+        newest = self.newest
+        conv = self.conversions
+        if newest < 0 or newest not in conv:
+            return 0, counter, self.sample[0], []
+        last = conv[newest]
+        if counter < 0:
+            return 1, newest, last, []
+        n = (newest - counter) & 0xFFFF
+        if n == 0 or n > KEEP_CONVERSIONS:
+            return (0 if n == 0 else 1), newest, last, []
+        older = []
+        prev = conv.get(counter, last)
+        for j in range(n - 1, 0, -1):
+            a = conv.get((newest - j) & 0xFFFF)
+            if a is None:                           # lost: hold the trend towards the newest
+                a = tuple(x + (y - x) / (j + 1) for x, y in zip(prev, last))
+            older.append(a)
+            prev = a
+        return n, newest, last, older
 
     def check(self, now_ns: int) -> str | None:
         acc, t_ns, raw = self.sample

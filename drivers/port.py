@@ -5,6 +5,14 @@ Per period: read() sends the SYNC (valves apply the last setpoint and answer by 
 latest Modbus and serial samples kept by the driver threads; write() sends one RPDO per valve. Neither waits
 on a bus request. Each device checks itself; the first fault found is returned as Measurements.device_fault,
 one line naming the device.
+
+Sample-driven (accelerometer module converting on SYNC into a conversion FIFO, `[drivers] accel_sync_fifo`):
+the isolation controller double-integrates acceleration, so a sample that arrives a period late and is then
+skipped, or a period without a new sample, is a velocity error that the integration keeps (measured on the
+emulated rig at 500 Hz: 5-15 % of periods without a fresh Modbus sample, 1-2 % of conversions never fetched;
+one such slip per second already turned 7 dB of isolation into -8 dB in simulation). read() therefore reports
+how many conversions the module made since the last read (Measurements.new_samples; 0 = none yet) and hands
+over the ones before the newest (accel_older), so the loop steps the controllers once per conversion, in order.
 """
 from __future__ import annotations
 
@@ -16,8 +24,11 @@ from rig.port import Commands, Measurements
 class DriverPort:
     transports = ("canopen", "modbus_tcp", "serial")
 
-    def __init__(self, name: str, valves, accel, stroke, *, n_mounts: int = 4, on_close=None):
+    def __init__(self, name: str, valves, accel, stroke, *, n_mounts: int = 4, on_close=None,
+                 sample_driven: bool = False):
         self.name = name
+        self.sample_driven = sample_driven and getattr(accel, "fifo", False)
+        self._last_conv = -1
         self.n_mounts = n_mounts
         self.valves = valves
         self.accel = accel
@@ -51,8 +62,13 @@ class DriverPort:
         # the time stamp is the accelerometer sample's (the control signal); the slower serial transducer
         # is checked for staleness by its own driver, against its own limit
         n = self.n_mounts
+        if not self.sample_driven:
+            return Measurements(t_ns=t_ns, accel_mps2=list(acc), stroke_m=list(pos), sample_t_ns=[ta] * n,
+                                spool_actual=list(v.actual), device_fault=fault)
+        new, self._last_conv, acc, older = self.accel.conversions_since(self._last_conv)
         return Measurements(t_ns=t_ns, accel_mps2=list(acc), stroke_m=list(pos), sample_t_ns=[ta] * n,
-                            spool_actual=list(v.actual), device_fault=fault)
+                            spool_actual=list(v.actual), device_fault=fault, new_samples=new,
+                            accel_older=tuple(older))
 
     def write(self, t_ns: int, commands: Commands) -> None:
         self.valves.write(commands.valve_cmd_V)

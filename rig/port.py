@@ -18,6 +18,11 @@ class Measurements:
     sample_t_ns: list[int]             # time stamp of the newest device sample behind each mount's values
     spool_actual: list[float] = field(default_factory=list)  # valve-reported spool value, -1..1 (if available)
     device_fault: str | None = None    # a device reported a fault: one line naming the device and the reason
+    # Sample-driven ports (a converter counting its conversions, one per period): how many conversions were
+    # made since the last read (0 = none: the values are the previous ones again), and the accelerations of the
+    # conversions before the newest, oldest first. None: one new sample per read (period-driven).
+    new_samples: int | None = None
+    accel_older: tuple = ()
 
 
 @dataclass(slots=True)

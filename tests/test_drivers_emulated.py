@@ -163,8 +163,64 @@ def test_exception_knob_gives_exception_response(modbus_alone):
 
 def test_illegal_address_is_an_exception(modbus_alone):
     _arr, c = modbus_alone
-    r = c.read_holding_registers(30, count=10, device_id=1)
+    r = c.read_holding_registers(60, count=10, device_id=1)         # the map ends at 40064
     assert r.isError() and r.exception_code == 2
+
+
+def test_conversion_fifo_keeps_the_last_eight_conversions(modbus_alone):
+    arr, c = modbus_alone
+    for k in range(2, 13):                                          # conversions 2..12 (1 is the fixture's)
+        sh.publish(arr, k * 1e-3, [0.01 * k, -0.01 * k, 0.0, 0.5], [0.0] * 4)
+    r = c.read_holding_registers(0, count=modbus_io.N_READ_FIFO, device_id=1)
+    assert not r.isError() and r.registers[8] == 12
+    slots = {}
+    for j in range(modbus_io.FIFO_SLOTS):
+        base = modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH * j
+        cnt = r.registers[base]
+        assert cnt % modbus_io.FIFO_SLOTS == j                      # slot = counter % 8
+        slots[cnt] = [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[base + 1:base + 5]]
+    assert sorted(slots) == list(range(5, 13))                      # the newest eight
+    for k, acc in slots.items():
+        assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5], abs=20 / 65535)
+
+
+def _fifo_driver(port):
+    return modbus_io.ModbusAnalogIO(host="127.0.0.1", port=port, unit=1, channels=[0, 1, 2, 3],
+                                    names=["a", "b", "c", "d"], V_per_mps2=2.0, timeout_s=0.5, watchdog_s=0.0,
+                                    stale_s=1.0, poll_s=0.01, fifo=True)
+
+
+def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module):
+    """Late polls lose nothing: the conversions made between two polls come back exactly, oldest first; more
+    than the FIFO holds are interpolated so their count (the integration's time base) stays exact."""
+    arr, client = modbus_alone
+    drv = _fifo_driver(client.comm_params.port)
+    drv.client = client                                             # the module fixture's connection
+    assert drv._poll_once()
+    n, last, acc, older = drv.conversions_since(-1)
+    assert (n, last, older) == (1, 1, [])
+    for k in range(2, 7):                                           # five conversions before the next poll
+        sh.publish(arr, k * 1e-3, [0.1 * k] * 4, [0.0] * 4)
+    assert drv._poll_once()
+    n, last, acc, older = drv.conversions_since(1)
+    assert n == 5 and last == 6
+    assert [o[0] for o in older] == pytest.approx([0.2, 0.3, 0.4, 0.5], abs=1e-4)
+    assert acc[0] == pytest.approx(0.6, abs=1e-4)
+    assert drv.conversions_since(6)[0] == 0                         # nothing new: the loop holds
+    for k in range(7, 19):                                          # twelve: four fall out of the FIFO
+        sh.publish(arr, k * 1e-3, [0.1 * k] * 4, [0.0] * 4)
+    assert drv._poll_once()
+    n, last, acc, older = drv.conversions_since(6)
+    assert n == 12 and last == 18 and len(older) == 11
+    assert [o[0] for o in older] == pytest.approx([0.1 * k for k in range(7, 18)], abs=1e-4)
+
+
+def test_conversion_counter_wraps():
+    drv = _fifo_driver(1)
+    drv.conversions = {65534: (1.0,), 65535: (2.0,), 0: (3.0,), 1: (4.0,)}
+    drv.newest = 1
+    n, last, acc, older = drv.conversions_since(65534)
+    assert (n, last, acc, older) == (3, 1, (4.0,), [(2.0,), (3.0,)])
 
 
 def test_host_watchdog_sets_ao_safe_values(modbus_alone):

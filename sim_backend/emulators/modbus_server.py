@@ -7,6 +7,8 @@ Register map (drivers/devicemaps/adam6024_modbus.md): holding registers, 0-based
   10-11 AO ch0-1  (40011-40012)  0..65535 = -10..+10 V
   12-13 40013-40014 AO safe values, applied when the host watchdog trips
   20    40021  host watchdog timeout in 0.1 s (0 = off)
+  24-63 40025-40064  conversion FIFO: 8 slots of [counter, AI ch0-3], slot = counter % 8 (one conversion per
+                     plant step, i.e. per SYNC)
 The accelerometer voltages come from the shared plant state; fault knobs from the shared MODBUS_MODE.
 """
 from __future__ import annotations
@@ -21,8 +23,8 @@ from pymodbus.constants import ExcCodes
 from drivers.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
-N_REGS = 32
-REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG = 0, 8, 9, 10, 12, 20
+N_REGS = 64
+REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG, REG_FIFO = 0, 8, 9, 10, 12, 20, 24
 
 
 def volts_to_raw(v: float) -> int:
@@ -64,11 +66,16 @@ class Module:
         self.watchdog(regs)
         if mode == sh.STALE:
             if self.frozen is None:
-                self.frozen = list(regs[:REG_STATUS])
-            regs[:REG_STATUS] = self.frozen
+                self.frozen = list(regs[:REG_STATUS]) + [None] + list(regs[REG_FIFO:N_REGS])
+            regs[:REG_STATUS] = self.frozen[:REG_STATUS]
+            regs[REG_FIFO:N_REGS] = self.frozen[REG_STATUS + 1:]
             return None
         self.frozen = None
-        count_, _t, accel, _stroke = sh.snapshot(self.arr)
+        count_, accel, fifo = sh.snapshot_fifo(self.arr)
+        for j, (c, acc) in enumerate(fifo):
+            base = REG_FIFO + 5 * j
+            regs[base] = c & 0xFFFF
+            regs[base + 1:base + 5] = [volts_to_raw(a * self.k) for a in acc]
         for ch in range(6):
             v = accel[ch] * self.k if ch < sh.N_MOUNTS else 0.0
             regs[REG_AI + ch] = volts_to_raw(v)

@@ -159,11 +159,12 @@ class EmulatedRig:
                 self._steps += 1
                 if self._phase is not None:
                     self._meter(plant.table_m)
-            self._publish()
+                self._publish()                 # every step is a conversion of the devices
 
     def _publish(self) -> None:
         p = self.plant
-        sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m)
+        # the devices convert at each plant step (the SYNC instants): their counters count plant steps
+        sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m, self._steps)
 
     # ---- table motion metering (true plant output, for isolation figures) ------------------------------
     def phase(self, name: str | None) -> None:

@@ -21,7 +21,9 @@ STROKE = 7       # 4 x stroke_m
 MODBUS_MODE = 11
 SERIAL_MODE = 12
 SERIAL_CH = 13   # 4 x forced channel status (0 none, 1 UR, 2 OR, 3 NP)
-SIZE = 17
+FIFO = 17        # the last FIFO_SLOTS conversions, slot = counter % FIFO_SLOTS: [counter, 4 x accel_mps2]
+FIFO_SLOTS = 8
+SIZE = FIFO + 5 * FIFO_SLOTS
 
 # fault knob modes (same codes for every emulator)
 OK, SILENCE, EXCEPTION, GARBAGE, STALE, FRAGMENT = 0, 1, 2, 3, 4, 5
@@ -69,12 +71,17 @@ class SharedFile:
         self.unlink()
 
 
-def publish(arr, t_s: float, accel_mps2, stroke_m) -> None:
+def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None) -> None:
+    """A new plant state; count = conversions so far (default: one more than before)."""
     seq = arr[SEQ] + 1.0
     arr[SEQ] = seq                          # odd: writing
     arr[T_S] = t_s
-    arr[COUNT] = arr[COUNT] + 1.0
-    arr[ACCEL:ACCEL + N_MOUNTS] = [float(a) for a in accel_mps2]
+    count = int(arr[COUNT]) + 1 if count is None else int(count)
+    arr[COUNT] = float(count)
+    acc = [float(a) for a in accel_mps2]
+    arr[ACCEL:ACCEL + N_MOUNTS] = acc
+    base = FIFO + 5 * (count % FIFO_SLOTS)
+    arr[base:base + 5] = [float(count)] + acc
     arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m]
     arr[SEQ] = seq + 1.0                    # even: consistent
 
@@ -88,3 +95,15 @@ def snapshot(arr) -> tuple[int, float, list[float], list[float]]:
             return int(block[1]), block[0], block[2:6], block[6:10]
     block = arr[T_S:STROKE + N_MOUNTS]      # writer died mid-update: serve what is there
     return int(block[1]), block[0], block[2:6], block[6:10]
+
+
+def snapshot_fifo(arr) -> tuple[int, list[float], list[tuple[int, list[float]]]]:
+    """(counter, accel_mps2[4], FIFO as (counter, accel_mps2[4]) per slot), one consistent copy."""
+    for _ in range(1000):
+        s0 = arr[SEQ]
+        block = arr[COUNT:SIZE]
+        if s0 == arr[SEQ] and int(s0) % 2 == 0:
+            break
+    f = FIFO - COUNT
+    return (int(block[0]), block[ACCEL - COUNT:ACCEL - COUNT + N_MOUNTS],
+            [(int(block[f + 5 * j]), block[f + 5 * j + 1:f + 5 * j + 5]) for j in range(FIFO_SLOTS)])
