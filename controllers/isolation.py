@@ -33,6 +33,12 @@ Bumpless isolation on/off (`set_enabled`): the filters always run (so they are w
 fading offset b so that the command does not jump, then b decays with time constant fade_s. Centring stays on
 (the blend when isolating, the slow integrator when not). The loop is closed at full gain at once.
 
+Saturation recovery (sat_reset_s, sat_resume_s): isolating with the output held at the clamp for sat_reset_s
+(0.1 s: longer than the clamp bursts of shocks the loop rides out, well below safety.saturation_s) suspends
+isolation bumplessly (centring alone, filters running) and resumes it by itself once the estimate has
+settled; see step. Measured cause of the latch: a scheduling gap leaves a velocity error in the double
+integration, which the 0.1 Hz blend forgets only in ~10 s (tests/test_runtime_saturation.py).
+
 Tuned defaults (rig/config.py [controller], 5 kHz, ZOH + 1 period delay): gain crossover 114-121 Hz, phase
 crossover 207-239 Hz, GM 4.6-4.9 dB, PM 60-70 deg, ground -> table/tool 20.3 dB at 1 Hz, >= 2.97 dB 1-100 Hz.
 The blend at 0.1 Hz keeps the accelerometer-noise wander (RigPlant: 2e-4 m/s^2 per sample) to ~1 V rms of valve.
@@ -48,9 +54,10 @@ from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
 
 # scalar states after the filter sections: last v, PI integral, centring integral, last stroke, fade offset,
-# isolation on, last command
-_V, _I, _C, _S, _B, _ON, _U = range(7)
-_N = 7
+# isolation on (as requested), last command, saturation-recovery counter (periods), isolation suspended,
+# mean of v while suspended
+_V, _I, _C, _S, _B, _ON, _U, _K, _SUS, _A = range(10)
+_N = 10
 
 
 @dataclass(frozen=True)
@@ -72,6 +79,8 @@ class IsolationParams:
     dc_gain_m_per_V: float = 2.68e-6  # actuator static gain (sets the centring gain k_c)
     prewarp_hz: float = 200.0         # Tustin prewarp frequency of the compensator (phase-crossover region)
     fade_s: float = 0.1               # bumpless switching offset decay time
+    sat_reset_s: float = 0.1          # isolating at the output clamp this long: suspend isolation (0 = never)
+    sat_resume_s: float = 0.5         # suspended: resume once the estimate's mean stayed small this long
     limit_V: float = 10.0             # output clamp
     slew_V_per_s: float = 1.0e4       # output slew limit
     gain_trim: float = 1.0            # per-mount multiplier on kp
@@ -97,7 +106,9 @@ def params_from_config(cfg, mount: int = 0) -> IsolationParams:
                       lead2_zero_hz=c.lead2_zero_hz, lead2_pole_hz=c.lead2_pole_hz,
                       rolloff_hz=c.rolloff_hz, rolloff_zeta=c.rolloff_zeta, notch_hz=c.notch_hz,
                       notch_zeta_zero=c.notch_zeta_zero, notch_zeta_pole=c.notch_zeta_pole,
-                      centring_hz=c.centring_hz, prewarp_hz=c.prewarp_hz, fade_s=c.fade_s, gain_trim=trim)
+                      centring_hz=c.centring_hz, prewarp_hz=c.prewarp_hz, fade_s=c.fade_s, gain_trim=trim,
+                      sat_reset_s=getattr(c, "sat_reset_s", base.sat_reset_s),
+                      sat_resume_s=getattr(c, "sat_resume_s", base.sat_resume_s))
 
 
 class IsolationController:
@@ -156,6 +167,13 @@ class IsolationController:
         self._ic = self._is + 2 * len(self.f_str)
         self._o = self._ic + 2 * len(self.comp)
         self.sections = tuple(self.h_acc + self.f_str + self.comp)
+        # saturation recovery (see step): clamp periods before suspending, in-range periods before resuming
+        self.sat_n = max(1, int(round(p.sat_reset_s / dt))) if p.sat_reset_s > 0 else 0
+        self.resume_n = max(1, int(round(p.sat_resume_s / dt)))
+        # resume when the mean of v is within half the stroke the valve can hold (limit x DC gain):
+        # what is left of the estimate's error then fits the actuator's range
+        self.resume_m = 0.5 * p.limit_V * p.dc_gain_m_per_V
+        self.resume_a = dt / p.sat_resume_s          # mean over ~sat_resume_s (first-order)
 
     # ---- the runtime interface ---------------------------------------------------------------------
     def initial_state(self) -> list[float]:
@@ -168,6 +186,15 @@ class IsolationController:
         the command does not jump. Centring stays active."""
         o = self._o
         was = state[o + _ON] > 0.5
+        if state[o + _SUS] > 0.5:
+            # suspended by the saturation recovery: isolation is already out of the output, so switching
+            # off only clears the request; switching on waits for the recovery's own resume
+            state[o + _ON] = 1.0 if on else 0.0
+            if not on:
+                state[o + _SUS] = 0.0
+                state[o + _K] = 0.0
+            return state
+        state[o + _K] = 0.0
         if on and not was:
             # from now on u = u_iso + b - cent: start the PI from zero, let b absorb the step
             state[o + _I] = 0.0
@@ -213,7 +240,7 @@ class IsolationController:
             i += 2
         v = x
         h = 0.5 * dt
-        on = state[o + _ON] > 0.5
+        on = state[o + _ON] > 0.5 and state[o + _SUS] < 0.5
         if on:
             d_i = self.ki * h * (v + state[o + _V])                 # Tustin PI integral
             d_c = 0.0                                              # centring: the blend does it
@@ -247,7 +274,44 @@ class IsolationController:
         state[o + _S] = s
         state[o + _B] = b
         state[o + _U] = u
+        if self.sat_n:
+            # Saturation recovery. Isolating at the clamp for sat_reset_s: the loop is not following its
+            # estimate of the absolute motion (typically a velocity error in the double integration after a
+            # scheduling gap: with the 0.1 Hz blend a few um/s already drive the piston to its full stroke,
+            # and the estimate forgets it only at the blend's pace, seconds). Re-seeding the filters cannot fix
+            # that (the true velocity is unknown), so isolation is suspended the bumpless way (b takes over,
+            # centring alone), the filters keep running, and isolation resumes bumplessly once the mean of v
+            # (over ~sat_resume_s: the estimate's error, not the 1-50 Hz floor motion the loop is there to
+            # isolate) has stayed within resume_m for sat_resume_s. Inert in the linear range (brief clamping
+            # under shocks, tens of ms, recovers by itself and does not trigger it).
+            if on:
+                if u >= lim or u <= -lim:
+                    k = state[o + _K] + 1.0
+                    if k >= self.sat_n:
+                        state[o + _B] = u + cent                      # hold the output (at the clamp)
+                        state[o + _I] = 0.0
+                        state[o + _SUS] = 1.0
+                        state[o + _A] = v
+                        k = 0.0
+                    state[o + _K] = k
+                else:
+                    state[o + _K] = 0.0
+            elif state[o + _SUS] > 0.5:
+                m = state[o + _A]
+                m += self.resume_a * (v - m)
+                state[o + _A] = m
+                k = state[o + _K] + 1.0 if -self.resume_m < m < self.resume_m else 0.0
+                if k >= self.resume_n:
+                    state[o + _B] = b + self.kp * v                   # the PI restarts from zero, no jump
+                    state[o + _I] = 0.0
+                    state[o + _SUS] = 0.0
+                    k = 0.0
+                state[o + _K] = k
         return u, state
+
+    def suspended(self, state: list) -> bool:
+        """True while the saturation recovery holds isolation off (the request stays on)."""
+        return state[self._o + _SUS] > 0.5
 
     # ---- the same controller as transfer functions (analysis) --------------------------------------
     def _pi_section(self):

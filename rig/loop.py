@@ -15,14 +15,28 @@
   port.safe_state(). Any exception of port or controller is a fault, never a silent death. Safety checks
   (rig/safety.py): sensor plausibility before the update, clamp/slew/saturation after it, a gap check on the
   wake-ups (watchdog_s) and, on the real clock, a watchdog thread that nulls the valve if the loop hangs.
-- Hot path in plain floats and lists; the only per-period allocations are the port's Measurements and the
-  controllers' return tuples (no reference cycles, so gc can stay off during the run).
+- Sample-driven ports (Measurements.new_samples set: an accelerometer module converting on SYNC into a FIFO,
+  drivers/port.py) step the controllers once per conversion, in order, older ones first; a period without a
+  new conversion holds the command. Late Modbus replies then never reach the double integration as timing
+  slips (one slip per second put the HIL valves at the clamp).
+- Isolation controllers (controllers/isolation.py) run as one compiled bank (controllers/bank.py, numba):
+  built automatically from a list of IsolationControllers of one structure, or passed in; any other
+  controllers are stepped one by one in Python. Skipped periods are replayed with the measurement
+  interpolated from the last period's to this one's (holding it gave the double integration a velocity
+  error: 5 ms of gap drove the valves to the clamp for seconds, measured).
+- The controllers' saturation recovery (controllers/isolation.py) suspending or resuming a mount's isolation
+  is logged and recorded as an event once per change (checked at 10 Hz, off the per-period path).
+- Hot path in plain floats and lists or compiled code; the recording row is packed by one compiled call into
+  a preallocated buffer and copied into the ring (Recorder.push_row). The per-period allocations are the
+  port's Measurements and small lists (no reference cycles, so gc can stay off during the run).
 """
 from __future__ import annotations
 
 import array
 import logging
 import math
+
+import numpy as np
 
 from rig.clock import MonotonicClock
 from rig.config import MOUNTS, Config
@@ -32,6 +46,8 @@ from rig.recorder import Channel
 from rig.safety import CommandLimiter, SensorCheck, Watchdog
 
 log = logging.getLogger("rig.loop")
+
+_ACTIVE, _INACTIVE, _FAULT = State.ACTIVE, State.INACTIVE, State.FAULT
 
 # Per-row flag columns recorded after the per-mount channels.
 FLAG_CHANNELS = (
@@ -60,23 +76,43 @@ def loop_channels(n_mounts: int, state_len: int, names: tuple[str, ...]) -> list
     return ch + list(FLAG_CHANNELS)
 
 
+def _make_bank(controllers):
+    """The compiled bank for IsolationControllers (None for other controllers, or without numba/controllers)."""
+    try:
+        from controllers.bank import IsolationBank, make_bank
+    except ImportError:
+        return None
+    if isinstance(controllers, IsolationBank):
+        return controllers
+    return make_bank(controllers)
+
+
 class Loop:
     MAX_HELD_STEPS = 50     # skipped periods replayed into the controllers at most (longer gaps fault anyway)
 
     def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
                  rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
                  keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
-                 stop_on_fault: bool = True, watchdog_thread: bool | None = None) -> None:
+                 stop_on_fault: bool = True, watchdog_thread: bool | None = None,
+                 use_bank: bool = True) -> None:
         self.cfg = cfg
         self.port = port
         self.n = int(port.n_mounts)
+        bank = _make_bank(controllers) if use_bank else None
+        if not isinstance(controllers, (list, tuple)) and hasattr(controllers, "ctrls"):
+            controllers = controllers.ctrls            # a bank was passed: its controllers
         if len(controllers) != self.n:
             raise ValueError(f"{len(controllers)} controllers for {self.n} mounts")
         self.ctrls = list(controllers)
         self.clock = clock if clock is not None else MonotonicClock()
+        if getattr(self.clock, "spin_ns", 0) is None:      # a real clock whose wait was not chosen: [loop]
+            self.clock.spin_ns = int(round(getattr(cfg.loop, "spin_us", 0.0) * 1e3))
         self.rate_hz = float(rate_hz or cfg.loop.rate_hz)
         self.period_ns = int(round(1e9 / self.rate_hz))
         self.dt = self.period_ns * 1e-9
+        if bank is not None and abs(bank.dt - self.dt) > 1e-6 * self.dt:
+            bank = None                        # the controllers refuse this dt: stepped (and fault) in Python
+        self.bank = bank
         self.policy = overrun_policy or cfg.loop.overrun_policy
         if self.policy not in ("skip", "catch_up"):
             raise ValueError(f"overrun policy {self.policy!r}")
@@ -86,6 +122,7 @@ class Loop:
         self.check = SensorCheck(cfg, self.n, self.names)
         self.limiter = CommandLimiter(cfg, self.n, self.dt)
         self.watchdog_ns = int(round(cfg.safety.watchdog_s * 1e9))
+        self._row = None                       # preallocated recording row (bank path), per recorder
         self.recorder = recorder
         self.stop_on_fault = stop_on_fault
         self._use_wd_thread = self.clock.is_real if watchdog_thread is None else watchdog_thread
@@ -102,6 +139,22 @@ class Loop:
         self._commands = Commands(self.cmd)            # the port must copy, not keep, the list
         self._null = Commands([0.0] * self.n)
         self.last_meas = None
+        self._prev_acc = [0.0] * self.n       # last period's measurement (replay interpolation)
+        self._prev_xs = [0.0] * self.n
+        self._failed = None
+        self._stepped = False
+        self._susp_every = max(1, int(round(0.1 * self.rate_hz)))   # suspension watch (event/log), 10 Hz
+        self._susp_count = self._susp_every
+        self._susp = [False] * self.n
+        if bank is not None and self.n == 4:
+            # the bank leaves the measurement, raw commands and states in the recording row itself
+            # (loop_channels layout: time, accel 4, stroke 4, cmd 4, raw 4, states, flags)
+            self._rowbuf = np.zeros(1 + 16 + self.states.size + len(FLAG_CHANNELS))
+            self._rowmv = memoryview(self._rowbuf)
+            self._iflag = 17 + self.states.size
+            bank.bind(self._rowbuf, 1, 13, 17)
+        else:
+            self._rowbuf = None
 
         # counters and timing (ring of the last keep_timing periods)
         self.iterations = 0
@@ -114,6 +167,15 @@ class Loop:
         self.t_ns = 0
         self._last_cycle_t = None            # start of the previous cycle (skipped periods in between)
         self.fault_t_ns: int | None = None
+
+    @property
+    def recorder(self):
+        return self._recorder
+
+    @recorder.setter
+    def recorder(self, rec) -> None:
+        self._recorder = rec
+        self._row = None                       # the row layout is checked against the new recorder
 
     # ---- lifecycle ----------------------------------------------------------------------------------
     @property
@@ -138,7 +200,7 @@ class Loop:
         self.lc.activate()
         # warm states from INACTIVE; isolation switched on the controllers' bumpless way; the limiter
         # ramps from the null the valve held
-        self.states = [c.set_enabled(s, self.isolation) for c, s in zip(self.ctrls, self.states)]
+        self.states = self._set_enabled(self.states, self.isolation)
         self.limiter.reset()
         self._event("ACTIVE")
 
@@ -146,15 +208,22 @@ class Loop:
         """ACTIVE -> INACTIVE: the valve goes to null (written every period while inactive)."""
         if self.lc.state is State.ACTIVE:
             self.lc.deactivate()
-            self.states = [c.set_enabled(s, False) for c, s in zip(self.ctrls, self.states)]
+            self.states = self._set_enabled(self.states, False)
             self.limiter.reset()
             for i in range(self.n):
                 self.cmd[i] = 0.0
             self._safe_write_null()
             self._event("INACTIVE")
 
-    def _fresh_states(self) -> list:
+    def _fresh_states(self):
+        if self.bank is not None:
+            return self.bank.set_enabled(self.bank.initial_state(), False)
         return [c.set_enabled(c.initial_state(), False) for c in self.ctrls]
+
+    def _set_enabled(self, states, on: bool):
+        if self.bank is not None:
+            return self.bank.set_enabled(states, on)
+        return [c.set_enabled(s, on) for c, s in zip(self.ctrls, states)]
 
     def reset_fault(self) -> None:
         """FAULT -> INACTIVE after the cause is cleared (explicit acknowledgement); fresh controller states."""
@@ -211,6 +280,96 @@ class Loop:
         prev_t, self._last_cycle_t = self._last_cycle_t, t_ns
         self.t_ns = t_ns
         lc = self.lc
+        if self._active_request is not None or self._iso_request is not None:
+            self._requests()
+        try:
+            m = self.port.read(t_ns)
+        except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
+            self.fault(f"port read failed: {e.__class__.__name__}: {e}")
+            return
+        self.last_meas = m
+        st = lc.state
+        if st is not _FAULT:
+            reason = self.check.check(m, t_ns)
+            if reason is not None:
+                self.fault(reason)
+                st = lc.state
+        acc = m.accel_mps2
+        xs = m.stroke_m
+        self._stepped = False
+        if st is _ACTIVE or st is _INACTIVE:
+            # INACTIVE steps the controllers too (isolation disabled, output discarded): their filters stay
+            # warm, so activation under floor motion starts from a settled state instead of a cold one.
+            try:
+                bank = self.bank
+                ns = m.new_samples
+                if bank is not None:
+                    if ns is None:
+                        if prev_t is not None and t_ns - prev_t > self.period_ns:
+                            # periods were skipped: the filters must still see the time pass (their double
+                            # integration of acceleration would otherwise lose it); outputs are not written
+                            bank.replay(self.states, (self._prev_acc, self._prev_xs), (acc, xs),
+                                        (t_ns - prev_t) // self.period_ns - 1, self.MAX_HELD_STEPS)
+                        raw = self.raw = bank.step_into(self.states, acc, xs).tolist()   # (self.raw rebound)
+                        self._stepped = True
+                    elif ns:
+                        # sample-driven port: one step per conversion, in order (outputs of the older ones
+                        # are not written); skipped periods are among the conversions
+                        for a_old in m.accel_older:
+                            bank.step_into(self.states, a_old, xs)
+                        raw = self.raw = bank.step_into(self.states, acc, xs).tolist()
+                        self._stepped = True
+                    else:
+                        raw = self.raw                # no new conversion: the command holds
+                else:
+                    raw = self.raw
+                    if ns is None:
+                        self._step_python(prev_t, t_ns, acc, xs, raw)
+                    elif ns:
+                        for a_old in m.accel_older:
+                            self._step_python(None, t_ns, a_old, xs, raw)
+                        self._step_python(None, t_ns, acc, xs, raw)
+                self._prev_acc = acc
+                self._prev_xs = xs
+            except Exception as e:          # noqa: BLE001
+                self.fault(f"controller {self._failed_name()} failed: {e.__class__.__name__}: {e}")
+            else:
+                if st is _INACTIVE:
+                    self._safe_write_null()
+                else:
+                    reason = self.limiter.limit(raw, self.cmd)
+                    if reason is not None:
+                        self.fault(reason)
+                    else:
+                        try:
+                            self.port.write(t_ns, self._commands)
+                        except Exception as e:  # noqa: BLE001
+                            self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+        if self._recorder is not None:
+            self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
+        self._susp_count -= 1
+        if self._susp_count <= 0:
+            self._susp_count = self._susp_every
+            self._watch_suspension()
+
+    def _watch_suspension(self) -> None:
+        """Log (once per change) the controllers' saturation recovery suspending or resuming isolation."""
+        ctrls = self.ctrls
+        for i in range(self.n):
+            f = getattr(ctrls[i], "suspended", None)
+            if f is None:
+                continue
+            s = bool(f(self.states[i]))
+            if s != self._susp[i]:
+                self._susp[i] = s
+                text = (f"{self.names[i]}: isolation suspended (output held at the valve clamp: saturation "
+                        f"recovery, centring alone)" if s else f"{self.names[i]}: isolation resumed")
+                (log.warning if s else log.info)(text)
+                self._event(text)
+
+    def _requests(self) -> None:
+        """Pending (de)activation and isolation requests, applied at the period boundary."""
+        lc = self.lc
         if self._active_request is not None:
             req, self._active_request = self._active_request, None
             if req and lc.state is State.INACTIVE:
@@ -222,76 +381,83 @@ class Loop:
             if on != self.isolation:
                 self.isolation = on
                 if lc.state is State.ACTIVE:
-                    ctrls, states = self.ctrls, self.states
-                    for i in range(self.n):
-                        states[i] = ctrls[i].set_enabled(states[i], on)
+                    self.states = self._set_enabled(self.states, on)
                 self._event(f"isolation {'on' if on else 'off'}")
-        try:
-            m = self.port.read(t_ns)
-        except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
-            self.fault(f"port read failed: {e.__class__.__name__}: {e}")
-            return
-        self.last_meas = m
-        st = lc.state
-        if st is not State.FAULT:
-            reason = self.check.check(m, t_ns)
-            if reason is not None:
-                self.fault(reason)
-                st = lc.state
-        n = self.n
-        acc = m.accel_mps2
-        xs = m.stroke_m
-        raw = self.raw
-        cmd = self.cmd
-        if st is State.ACTIVE or st is State.INACTIVE:
-            # INACTIVE steps the controllers too (isolation disabled, output discarded): their filters stay
-            # warm, so activation under floor motion starts from a settled state instead of a cold one.
-            ctrls, states, dt = self.ctrls, self.states, self.dt
-            try:
-                if prev_t is not None and t_ns - prev_t > self.period_ns:
-                    # periods were skipped: the controllers' filters must still see time pass (their
-                    # double integration of acceleration would otherwise lose it), so step them through
-                    # the missed periods with the measurement held; their outputs there are not written
-                    for _ in range(min((t_ns - prev_t) // self.period_ns - 1, self.MAX_HELD_STEPS)):
-                        for i in range(n):
-                            raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
+
+    def _step_python(self, prev_t, t_ns, acc, xs, raw) -> None:
+        """Controllers one by one (any controller with the step interface)."""
+        ctrls, states, dt, n = self.ctrls, self.states, self.dt, self.n
+        self._failed = None
+        if prev_t is not None and t_ns - prev_t > self.period_ns:
+            miss = (t_ns - prev_t) // self.period_ns - 1
+            pa, px = self._prev_acc, self._prev_xs
+            for j in range(max(0, miss - self.MAX_HELD_STEPS), miss):
+                f = (j + 1) / (miss + 1)
                 for i in range(n):
-                    raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
-            except Exception as e:          # noqa: BLE001
-                self.fault(f"controller {self.names[i]} failed: {e.__class__.__name__}: {e}")
-            else:
-                if st is State.INACTIVE:
-                    self._safe_write_null()
-                    return self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
-                reason = self.limiter.limit(raw, cmd)
-                if reason is not None:
-                    self.fault(reason)
-                else:
-                    try:
-                        self.port.write(t_ns, self._commands)
-                    except Exception as e:  # noqa: BLE001
-                        self.fault(f"port write failed: {e.__class__.__name__}: {e}")
-        self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
+                    self._failed = i
+                    raw[i], states[i] = ctrls[i].step(
+                        states[i], (pa[i] + f * (acc[i] - pa[i]), px[i] + f * (xs[i] - px[i])), dt)
+        for i in range(n):
+            self._failed = i
+            raw[i], states[i] = ctrls[i].step(states[i], (acc[i], xs[i]), dt)
+
+    def _failed_name(self) -> str:
+        if self.bank is not None:
+            return "bank (" + ", ".join(self.names) + ")"
+        i = getattr(self, "_failed", None)
+        return self.names[i] if i is not None else "?"
 
     def _record(self, t_ns, acc, xs, wake_lat_ns, compute_prev_ns) -> None:
-        rec = self.recorder
-        if rec is not None:
-            lc = self.lc
-            cmd, raw = self.cmd, self.raw
-            states = self.states
-            k = self.state_len
-            row = [(t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0]
-            row += acc
-            row += xs
-            row += cmd
-            row += raw
-            if k:
-                for s in states:
+        rec = self._recorder
+        if rec is None:
+            return
+        lst = self.lc.state
+        t_s = (t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0
+        cmd = self.cmd
+        row = self._row
+        if row is None:
+            row = self._row = self._row_ok(rec)
+        if row:
+            # the bank wrote accel, stroke, raw commands and states into the row; add the rest, one copy
+            mv = self._rowmv
+            if not self._stepped:                  # controllers not stepped (FAULT): this measurement
+                buf = self._rowbuf
+                buf[1:5] = acc
+                buf[5:9] = xs
+            mv[0] = t_s
+            mv[9], mv[10], mv[11], mv[12] = cmd
+            k = self._iflag
+            mv[k] = float(lst)
+            mv[k + 1] = 1.0 if self.isolation else 0.0
+            mv[k + 2] = 1.0 if lst is _FAULT else 0.0
+            mv[k + 3] = float(self.overruns)
+            mv[k + 4] = float(self.skipped)
+            mv[k + 5] = 1.0 if self.limiter.limited else 0.0
+            mv[k + 6] = wake_lat_ns * 1e-3
+            mv[k + 7] = compute_prev_ns * 1e-3
+            rec.push_row(self._rowbuf)
+            return
+        row = [t_s]
+        row += acc
+        row += xs
+        row += cmd
+        row += self.raw
+        if self.state_len:
+            if self.bank is not None:
+                row += self.states.ravel().tolist()
+            else:
+                for s in self.states:
                     row += s
-            row += (float(lc.state), 1.0 if self.isolation else 0.0, 1.0 if lc.state is State.FAULT else 0.0,
-                    float(self.overruns), float(self.skipped), 1.0 if self.limiter.limited else 0.0,
-                    wake_lat_ns * 1e-3, compute_prev_ns * 1e-3)
-            rec.push(*row)
+        row += (float(lst), 1.0 if self.isolation else 0.0, 1.0 if lst is _FAULT else 0.0,
+                float(self.overruns), float(self.skipped), 1.0 if self.limiter.limited else 0.0,
+                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3)
+        rec.push(*row)
+
+    def _row_ok(self, rec) -> bool:
+        """True when the bank's row can go to the recorder as it is (Recorder.push_row, same layout); False:
+        build the generic row (Python controllers, not four mounts, or an adapter with push only)."""
+        return (self._rowbuf is not None and hasattr(rec, "push_row")
+                and getattr(rec, "ncols", None) == len(self._rowbuf))
 
     # ---- the loop ---------------------------------------------------------------------------------------
     def run(self, seconds: float | None = None, iterations: int | None = None,

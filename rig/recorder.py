@@ -152,6 +152,21 @@ class Recorder:
         _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
         return True
 
+    def push_row(self, row) -> bool:
+        """push() for a row already packed in a float64 buffer of ncols values (one copy, no argument
+        unpacking: the loop's compiled path). Never blocks; False if dropped (ring full)."""
+        h = self._head
+        if h - self._tail_seen >= self._cap:
+            self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
+            if h - self._tail_seen >= self._cap:
+                self.dropped_rows += 1
+                return False
+        off = _HDR + (h % self._cap) * self._rowbytes
+        self._mm[off:off + self._rowbytes] = row      # exact size or IndexError: the layout must match
+        self._head = h = h + 1
+        _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
+        return True
+
     def event(self, t_s: float, text: str) -> None:
         """A rare text event (lifecycle change, fault reason), written to events/time_s and events/text."""
         if self._proc is not None:

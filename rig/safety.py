@@ -32,6 +32,7 @@ class SensorCheck:
         self.stroke_limit = s.stroke_limit_m
         self.stale_ns = int(round(s.stale_s * 1e9))
         self.stuck_n = s.stuck_samples
+        self._x_bound = min(self.stroke_range, self.stroke_limit)
         self.reset()
 
     def reset(self) -> None:
@@ -46,25 +47,18 @@ class SensorCheck:
         if m.device_fault:
             return f"device fault: {m.device_fault}"
         acc, xs, ts = m.accel_mps2, m.stroke_m, m.sample_t_ns
-        ar, xr, xl = self.accel_range, self.stroke_range, self.stroke_limit
+        ar = self.accel_range
+        xb = self._x_bound                      # min(stroke range, stroke limit): one test in the common case
+        oldest = t_ns - self.stale_ns
+        last_ts = self._last_ts
         for i in range(self.n):
             a = acc[i]
             x = xs[i]
-            if not (-ar <= a <= ar):          # also false for NaN
-                return (f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 "
-                        f"(NaN or outside +-{ar:g} m/s^2)")
-            if not (-xr <= x <= xr):
-                return (f"{self.names[i]}: displacement transducer implausible: {x!r} m "
-                        f"(NaN or outside +-{xr:g} m)")
-            if not (-xl <= x <= xl):
-                return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
             tsi = ts[i]
-            age = t_ns - tsi
-            if age > self.stale_ns:
-                return (f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old "
-                        f"(limit {self.stale_ns / 1e6:g} ms)")
-            if tsi != self._last_ts[i]:        # a new sample
-                self._last_ts[i] = tsi
+            if not (-ar <= a <= ar and -xb <= x <= xb and tsi >= oldest):   # also false for NaN
+                return self._reason(i, a, x, tsi, t_ns)
+            if tsi != last_ts[i]:               # a new sample: stuck check
+                last_ts[i] = tsi
                 if a == self._last_a[i]:
                     self._same_a[i] += 1
                     if self._same_a[i] >= self.stuck_n:
@@ -82,6 +76,21 @@ class SensorCheck:
                     self._same_x[i] = 0
                     self._last_x[i] = x
         return None
+
+    def _reason(self, i: int, a: float, x: float, tsi: int, t_ns: int) -> str:
+        """The fault text of mount i, in the order of the checks (off the hot path)."""
+        ar, xr, xl = self.accel_range, self.stroke_range, self.stroke_limit
+        if not (-ar <= a <= ar):
+            return (f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 "
+                    f"(NaN or outside +-{ar:g} m/s^2)")
+        if not (-xr <= x <= xr):
+            return (f"{self.names[i]}: displacement transducer implausible: {x!r} m "
+                    f"(NaN or outside +-{xr:g} m)")
+        if not (-xl <= x <= xl):
+            return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
+        age = t_ns - tsi
+        return (f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old "
+                f"(limit {self.stale_ns / 1e6:g} ms)")
 
 
 class CommandLimiter:

@@ -167,3 +167,38 @@ def test_tracking_pid_time_domain_on_stand():
     xs = np.array(xs)
     assert abs(xs[-200:].mean() - 20e-6) < 0.2e-6
     assert xs.max() < 1.2 * 20e-6
+
+
+def test_saturation_recovery_suspends_and_resumes_isolation_bumplessly():
+    """A velocity error in the double integration (an 8 ms acceleration pulse the plant never made: what a
+    scheduling gap leaves behind) drives the isolating output to the clamp. After sat_reset_s at the clamp
+    isolation is suspended (centring alone, the output leaves the clamp through the fading offset, within
+    the slew limit); once the estimate's mean output has stayed in range for sat_resume_s it resumes, still
+    enabled, without a jump. With sat_reset_s = 0 the output stays at the clamp."""
+    cfg = Config()
+    p = params_from_config(cfg, 0)
+    lim, slew = p.limit_V, p.slew_V_per_s * DT
+
+    def run(params, seconds):
+        c = IsolationController(params, DT)
+        s = c.set_enabled(c.initial_state(), True)
+        us, sus = [], []
+        for k in range(int(seconds / DT)):
+            a = 2.0 if 100 <= k < 140 else 0.0
+            u, s = c.step(s, (a, 0.0), DT)
+            us.append(u)
+            sus.append(c.suspended(s))
+        return c, s, np.array(us), np.array(sus)
+
+    _, _, u_off, sus_off = run(p.with_(sat_reset_s=0.0), 3.0)
+    assert not sus_off.any() and np.mean(np.abs(u_off[int(0.5 / DT):]) == lim) > 0.9    # latched at the clamp
+    c, s, u, sus = run(p, 60.0)
+    assert c.sat_n == round(p.sat_reset_s / DT)
+    k_sus = int(np.argmax(sus))
+    assert k_sus > 0 and np.all(np.abs(u[k_sus - c.sat_n + 1:k_sus + 1]) == lim)   # after sat_reset_s
+    assert np.max(np.abs(np.diff(u))) <= slew + 1e-9                            # never a jump
+    assert np.abs(u[k_sus + int(0.5 / DT)]) < 0.1 * lim                        # off the clamp, fading
+    k_res = k_sus + int(np.argmin(sus[k_sus:]))
+    assert k_res > k_sus and not sus[-1] and c.enabled(s)                       # resumed by itself
+    assert abs(u[k_res]) < 0.5 * lim            # resumed off the clamp (open loop: the PI then integrates
+                                                # what is left; the closed loop is tests/test_runtime_saturation.py)

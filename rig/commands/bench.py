@@ -32,6 +32,8 @@ def add_arguments(p) -> None:
     lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
     lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
     lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
+    lp.add_argument("--spin-us", type=float, default=None, metavar="US",
+                    help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
     lp.add_argument("--record", metavar="FILE", default=None,
                     help="keep the recording here (default: a temporary file, deleted)")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
@@ -120,13 +122,15 @@ def bench_loop(args) -> int:
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {args.seconds}")
+    if args.spin_us is not None and not (0 <= args.spin_us <= 1000):
+        raise RigError(f"--spin-us: expected 0 <= US <= 1000, got {args.spin_us}")
     dt = 1.0 / rate
-    clock = MonotonicClock()
+    clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     port = make_sim_port(cfg, dt, mode="rig", clock=clock)
     try:
         from controllers.isolation import make_isolation_controllers
         ctrls = list(make_isolation_controllers(cfg, dt))
-        which = "controllers.isolation"
+        which = "controllers.isolation (compiled bank)"
     except ImportError:
         ctrls = [_CentringOnly() for _ in range(port.n_mounts)]
         which = "stand-in centring law (controllers/isolation.py missing)"
@@ -149,7 +153,8 @@ def bench_loop(args) -> int:
     if cfg.loop.realtime and not args.no_realtime:
         rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
     print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
-          f"{loop.policy}, {rt.summary() if rt else 'no real-time hygiene'}", file=sys.stderr)
+          f"{loop.policy}, spin {clock.spin_ns / 1e3:g} us, {rt.summary() if rt else 'no real-time hygiene'}",
+          file=sys.stderr)
     try:
         loop.run(seconds=args.seconds)
     finally:
