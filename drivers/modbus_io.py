@@ -20,7 +20,8 @@ REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
 N_READ = 10                     # 40001-40010 in one request
 # Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): the last FIFO_SLOTS conversions,
 # slot = counter % FIFO_SLOTS, each [counter, AI ch0-3] at 40025 + 5 * slot; read with 40001-40010 in one request
-REG_FIFO, FIFO_SLOTS, FIFO_WIDTH = 24, 8, 5
+# (104 registers: FC 3 allows 125)
+REG_FIFO, FIFO_SLOTS, FIFO_WIDTH = 24, 16, 5
 N_READ_FIFO = REG_FIFO + FIFO_SLOTS * FIFO_WIDTH
 KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
 
@@ -61,6 +62,7 @@ class ModbusAnalogIO(TriggeredPoller):
         self.n_read = N_READ_FIFO if fifo else N_READ
         self.conversions: dict[int, tuple] = {}
         self.newest = -1
+        self.lost_conversions = 0      # handed over interpolated (not fetched before they left the FIFO)
         self.watchdog_tripped = False
         self.asked_ns = 0              # first request since the last new sample (0 = none outstanding)
         self._stop = threading.Event()
@@ -178,6 +180,7 @@ class ModbusAnalogIO(TriggeredPoller):
             a = conv.get((newest - j) & 0xFFFF)
             if a is None:                           # lost: hold the trend towards the newest
                 a = tuple(x + (y - x) / (j + 1) for x, y in zip(prev, last))
+                self.lost_conversions += 1
             older.append(a)
             prev = a
         return n, newest, last, older

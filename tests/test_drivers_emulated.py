@@ -163,23 +163,23 @@ def test_exception_knob_gives_exception_response(modbus_alone):
 
 def test_illegal_address_is_an_exception(modbus_alone):
     _arr, c = modbus_alone
-    r = c.read_holding_registers(60, count=10, device_id=1)         # the map ends at 40064
+    r = c.read_holding_registers(100, count=10, device_id=1)        # the map ends at 40104
     assert r.isError() and r.exception_code == 2
 
 
-def test_conversion_fifo_keeps_the_last_eight_conversions(modbus_alone):
+def test_conversion_fifo_keeps_the_last_sixteen_conversions(modbus_alone):
     arr, c = modbus_alone
-    for k in range(2, 13):                                          # conversions 2..12 (1 is the fixture's)
+    for k in range(2, 21):                                          # conversions 2..20 (1 is the fixture's)
         sh.publish(arr, k * 1e-3, [0.01 * k, -0.01 * k, 0.0, 0.5], [0.0] * 4)
     r = c.read_holding_registers(0, count=modbus_io.N_READ_FIFO, device_id=1)
-    assert not r.isError() and r.registers[8] == 12
+    assert not r.isError() and r.registers[8] == 20
     slots = {}
     for j in range(modbus_io.FIFO_SLOTS):
         base = modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH * j
         cnt = r.registers[base]
-        assert cnt % modbus_io.FIFO_SLOTS == j                      # slot = counter % 8
+        assert cnt % modbus_io.FIFO_SLOTS == j                      # slot = counter % 16
         slots[cnt] = [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[base + 1:base + 5]]
-    assert sorted(slots) == list(range(5, 13))                      # the newest eight
+    assert sorted(slots) == list(range(5, 21))                      # the newest sixteen
     for k, acc in slots.items():
         assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5], abs=20 / 65535)
 
@@ -207,12 +207,13 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module
     assert [o[0] for o in older] == pytest.approx([0.2, 0.3, 0.4, 0.5], abs=1e-4)
     assert acc[0] == pytest.approx(0.6, abs=1e-4)
     assert drv.conversions_since(6)[0] == 0                         # nothing new: the loop holds
-    for k in range(7, 19):                                          # twelve: four fall out of the FIFO
+    for k in range(7, 27):                                          # twenty: four fall out of the FIFO
         sh.publish(arr, k * 1e-3, [0.1 * k] * 4, [0.0] * 4)
     assert drv._poll_once()
     n, last, acc, older = drv.conversions_since(6)
-    assert n == 12 and last == 18 and len(older) == 11
-    assert [o[0] for o in older] == pytest.approx([0.1 * k for k in range(7, 18)], abs=1e-4)
+    assert n == 20 and last == 26 and len(older) == 19
+    assert [o[0] for o in older] == pytest.approx([0.1 * k for k in range(7, 26)], abs=1e-4)
+    assert drv.lost_conversions == 4
 
 
 def test_conversion_counter_wraps():

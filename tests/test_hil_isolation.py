@@ -1,7 +1,8 @@
 """A short HIL run through the real drivers with the runtime's loop (`rig hil --json`): no faults, every period
 recorded, and the isolation reduction through the drivers agrees with the same controller in lockstep
 simulated time with the delay the drivers are designed to give (ZOH + one period). If the drivers lost
-samples, added periods of latency, swapped channels or scaled wrongly, the two would disagree."""
+samples or conversions, added periods of latency, swapped channels or scaled wrongly, the two would disagree
+(a lost accelerometer conversion per second is enough to put the valves at the clamp)."""
 from __future__ import annotations
 
 import json
@@ -56,16 +57,11 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
     on = table_rms(cfg, p, dt, half, 1, True, seed=cfg.vibration.seed)
     sil_db = 20 * math.log10(off / on)
     print(f"reduction through the drivers {res['isolation_reduction_db']} dB, lockstep simulation {sil_db:.2f} dB")
-    if sil_db <= 6.0:
-        # Known shortfall (issue 5 left open): after the plant's floor-hold fix the shipped HIL controller
-        # isolates little at 500 Hz; designs tuned for more lose control through the drivers' timing. With
-        # ~0 dB to compare, the two 4 s floor segments (off, on) differ by a few dB on their own, so the
-        # agreement below is only meaningful once the controller isolates.
-        pytest.xfail(f"HIL controller isolates {sil_db:.1f} dB in lockstep (target 6 dB); "
-                     f"through the drivers {res['isolation_reduction_db']} dB")
-    # the loop through the real drivers does what the same controller does in lockstep simulation
+    assert sil_db > 6.0                                  # the HIL design itself (hil.toml) meets the target
+    # the loop through the real drivers does what the same controller does in lockstep simulation (3 s of
+    # floor motion per half: the two halves differ by ~1 dB on their own)
     assert res["isolation_reduction_db"] == pytest.approx(sil_db, abs=2.5)
-    assert res["isolation_reduction_db"] > 3.0
+    assert res["isolation_reduction_db"] > 4.5
 
 
 def test_bad_rate_is_one_line_user_error():

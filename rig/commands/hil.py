@@ -126,6 +126,8 @@ def run(args) -> int:
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)
+    print(f"rig hil: accelerometer conversions interpolated (left the module's FIFO unfetched): "
+          f"{res['lost_conversions']}", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
     else:
@@ -203,6 +205,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         if rt is not None:
             leave_realtime(rt)
         rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
+        lost = getattr(port.accel, "lost_conversions", 0)
         port.close()
         if rec is not None:
             rec.close(stop_reason=loop.stop_reason or "", fault_reason=loop.lc.fault_reason or "",
@@ -215,7 +218,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             "samples_recorded": rec.rows_written if rec is not None else 0,
             "isolation_reduction_db": None if math.isnan(red) else round(red, 2),
             "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_off_m": off,
-            "table_rms_on_m": on, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us()}
+            "table_rms_on_m": on, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
+            "lost_conversions": lost}
 
 
 def _raw_round_trips(port, n: int) -> dict:

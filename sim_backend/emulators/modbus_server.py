@@ -7,7 +7,7 @@ Register map (drivers/devicemaps/adam6024_modbus.md): holding registers, 0-based
   10-11 AO ch0-1  (40011-40012)  0..65535 = -10..+10 V
   12-13 40013-40014 AO safe values, applied when the host watchdog trips
   20    40021  host watchdog timeout in 0.1 s (0 = off)
-  24-63 40025-40064  conversion FIFO: 8 slots of [counter, AI ch0-3], slot = counter % 8 (one conversion per
+  24-103 40025-40104  conversion FIFO: 16 slots of [counter, AI ch0-3], slot = counter % 16 (one conversion per
                      plant step, i.e. per SYNC)
 The accelerometer voltages come from the shared plant state; fault knobs from the shared MODBUS_MODE.
 """
@@ -23,7 +23,7 @@ from pymodbus.constants import ExcCodes
 from drivers.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
-N_REGS = 64
+N_REGS = 104
 REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG, REG_FIFO = 0, 8, 9, 10, 12, 20, 24
 
 
