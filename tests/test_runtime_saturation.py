@@ -19,7 +19,8 @@ from sim_backend.backend import make_sim_port
 
 RATE = 5000.0
 DT = 1.0 / RATE
-STALL_S = 0.005              # 25 skipped periods, well below the 50 ms watchdog
+STALL_S = 0.006              # 30 skipped periods, well below the 50 ms watchdog
+AT_S = 0.8                   # (how long the valves stay at the clamp depends on the floor motion at the gap)
 
 
 def run_stall(controller: dict, seconds: float):
@@ -30,7 +31,7 @@ def run_stall(controller: dict, seconds: float):
     loop = Loop(cfg, port, ctrls, clock=clk, rate_hz=RATE, stop_on_fault=False)
     loop.configure()
     loop.activate()
-    port.inject("overrun", at_s=0.5, extra_s=STALL_S)
+    port.inject("overrun", at_s=AT_S, extra_s=STALL_S)
     plant = port.plant
     rows = []
 
@@ -50,7 +51,7 @@ def run_stall(controller: dict, seconds: float):
 
 
 def test_without_recovery_the_gap_latches_the_clamp_and_faults():
-    loop, cmd, _, _, suspended = run_stall({"sat_reset_s": 0.0}, 2.0)
+    loop, cmd, _, _, suspended = run_stall({"sat_reset_s": 0.0}, 3.0)
     assert loop.skipped == round(STALL_S / DT)
     assert loop.state is State.FAULT and not suspended.any()
     assert "clamp" in loop.lc.fault_reason
