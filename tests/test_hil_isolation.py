@@ -60,8 +60,9 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
     assert sil_db > 6.0                                  # the HIL design itself (hil.toml) meets the target
     # the loop through the real drivers does what the same controller does in lockstep simulation (3 s of
     # floor motion per half: the two halves differ by ~1 dB on their own)
-    assert res["isolation_reduction_db"] == pytest.approx(sil_db, abs=2.5)
-    assert res["isolation_reduction_db"] > 4.5
+    why = f"through the drivers {res['isolation_reduction_db']} dB, lockstep {sil_db:.2f} dB; {out.stderr[-1500:]}"
+    assert res["isolation_reduction_db"] == pytest.approx(sil_db, abs=2.5), why
+    assert res["isolation_reduction_db"] > 4.5, why
 
 
 def test_bad_rate_is_one_line_user_error():
@@ -72,9 +73,12 @@ def test_bad_rate_is_one_line_user_error():
 
 
 def test_rig_run_with_the_hil_backend():
-    """`rig run --backend hil` goes through the same make_port and drivers (the runtime's command)."""
+    """`rig run --backend hil` goes through the same make_port and drivers (the runtime's command): it warms the
+    controllers up INACTIVE (2 / blend_hz, about 5 s) and then isolates without reaching the clamp."""
     out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--backend", "hil", "--config",
-                          str(HIL_DEFAULT_CONFIG), "--seconds", "2", "--quiet"], capture_output=True, text=True,
+                          str(HIL_DEFAULT_CONFIG), "--seconds", "7.5", "--quiet"], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "FAULT" not in out.stderr
+    assert "warming up the controllers for 5.1 s" in out.stderr
+    assert "activate -> ACTIVE" in out.stderr
+    assert "FAULT" not in out.stderr and "suspended" not in out.stderr
