@@ -30,6 +30,19 @@ _P_KP, _P_KI, _P_KC, _P_FADE, _P_LIM, _P_SLEW, _P_SATN, _P_RESN, _P_RESM, _P_RES
 _NP = 10
 
 
+@numba.njit(cache=True, inline="always")
+def _sections(st, cf, m, i, c, count, x):
+    """count biquads in series (transposed direct form II), states from st[m, i], coefficients from cf[c]."""
+    for _ in range(count):
+        yk = cf[c] * x + st[m, i]
+        st[m, i] = cf[c + 1] * x - cf[c + 3] * yk + st[m, i + 1]
+        st[m, i + 1] = cf[c + 2] * x - cf[c + 4] * yk
+        x = yk
+        i += 2
+        c += 5
+    return x, i, c
+
+
 @numba.njit(cache=True)
 def _step_mount(st, cf, m, a, s):
     """One mount, one period: IsolationController.step, the same operations in the same order."""
@@ -40,32 +53,9 @@ def _step_mount(st, cf, m, a, s):
     c = _HDR + m * (5 * nsec + _NP)                        # this mount's sections
     p = c + 5 * nsec                                       # and its parameters
     o = 2 * nsec
-    x = a
-    i = 0
-    for j in range(na):                                    # H/s^2 on the acceleration
-        yk = cf[c] * x + st[m, i]
-        st[m, i] = cf[c + 1] * x - cf[c + 3] * yk + st[m, i + 1]
-        st[m, i + 1] = cf[c + 2] * x - cf[c + 4] * yk
-        x = yk
-        i += 2
-        c += 5
-    y = x
-    x = s
-    for j in range(ns):                                    # F on the stroke
-        yk = cf[c] * x + st[m, i]
-        st[m, i] = cf[c + 1] * x - cf[c + 3] * yk + st[m, i + 1]
-        st[m, i + 1] = cf[c + 2] * x - cf[c + 4] * yk
-        x = yk
-        i += 2
-        c += 5
-    x += y
-    for j in range(nsec - na - ns):                        # compensator
-        yk = cf[c] * x + st[m, i]
-        st[m, i] = cf[c + 1] * x - cf[c + 3] * yk + st[m, i + 1]
-        st[m, i + 1] = cf[c + 2] * x - cf[c + 4] * yk
-        x = yk
-        i += 2
-        c += 5
+    y, i, c = _sections(st, cf, m, 0, c, na, a)                  # H/s^2 on the acceleration
+    x, i, c = _sections(st, cf, m, i, c, ns, s)                  # F on the stroke
+    x, i, c = _sections(st, cf, m, i, c, nsec - na - ns, x + y)  # compensator
     v = x
     kp = cf[p + _P_KP]
     on = st[m, o + _ON] > 0.5 and st[m, o + _SUS] < 0.5

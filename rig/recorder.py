@@ -139,32 +139,37 @@ class Recorder:
         self._proc.stdin.flush()
 
     # ---- the period -----------------------------------------------------------------------------------
-    def push(self, *values: float) -> bool:
-        """Append one row (ncols floats, in channel order). Never blocks; False if dropped (ring full)."""
+    def _slot(self) -> int:
+        """Byte offset of the next free row in the ring, or -1 when it is full (the row is dropped, counted)."""
         h = self._head
         if h - self._tail_seen >= self._cap:
             self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
             if h - self._tail_seen >= self._cap:
                 self.dropped_rows += 1
-                return False
-        self._pack(self._mm, _HDR + (h % self._cap) * self._rowbytes, *values)
-        self._head = h = h + 1
+                return -1
+        return _HDR + (h % self._cap) * self._rowbytes
+
+    def _publish(self) -> None:
+        self._head = h = self._head + 1
         _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
+
+    def push(self, *values: float) -> bool:
+        """Append one row (ncols floats, in channel order). Never blocks; False if dropped (ring full)."""
+        off = self._slot()
+        if off < 0:
+            return False
+        self._pack(self._mm, off, *values)
+        self._publish()
         return True
 
     def push_row(self, row) -> bool:
         """push() for a row already packed in a float64 buffer of ncols values (one copy, no argument
         unpacking: the loop's compiled path). Never blocks; False if dropped (ring full)."""
-        h = self._head
-        if h - self._tail_seen >= self._cap:
-            self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
-            if h - self._tail_seen >= self._cap:
-                self.dropped_rows += 1
-                return False
-        off = _HDR + (h % self._cap) * self._rowbytes
+        off = self._slot()
+        if off < 0:
+            return False
         self._mm[off:off + self._rowbytes] = row      # exact size or IndexError: the layout must match
-        self._head = h = h + 1
-        _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
+        self._publish()
         return True
 
     def event(self, t_s: float, text: str) -> None:
