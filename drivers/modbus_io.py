@@ -18,11 +18,12 @@ from rig.errors import DeviceError
 
 REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
 N_READ = 10                     # 40001-40010 in one request
-# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): the last FIFO_SLOTS conversions,
-# slot = counter % FIFO_SLOTS, each [counter, AI ch0-3] at 40025 + 5 * slot; read with 40001-40010 in one request
-# (104 registers: FC 3 allows 125)
-REG_FIFO, FIFO_SLOTS, FIFO_WIDTH = 24, 16, 5
-N_READ_FIFO = REG_FIFO + FIFO_SLOTS * FIFO_WIDTH
+# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): the module's last FIFO_DEPTH
+# conversions, newest first, each [counter, AI ch0-3] at 40025 + 5 * entry. Each poll reads 40001-40010 and the
+# newest FIFO_FIRST entries in one request (104 registers; FC 3 allows 125); after a stall it reads further
+# entries, FIFO_CHUNK at a time, until nothing is missing (or the FIFO ends)
+REG_FIFO, FIFO_DEPTH, FIFO_FIRST, FIFO_CHUNK, FIFO_WIDTH = 24, 64, 16, 24, 5
+N_READ_FIFO = REG_FIFO + FIFO_FIRST * FIFO_WIDTH
 KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
 
 
@@ -146,18 +147,43 @@ class ModbusAnalogIO(TriggeredPoller):
         return True
 
     def _take_fifo(self, regs) -> None:
-        """Store the FIFO's conversions by counter (the newest last, so a reader never sees it missing)."""
-        conv, k, ch = self.conversions, self.k, self.channels
+        """Store the FIFO's conversions by counter; after a stall, fetch the older entries too. The newest
+        counter is published last, so a reader never sees it before its conversion."""
+        conv = self.conversions
         newest = regs[REG_COUNT]
-        for slot in range(FIFO_SLOTS):
-            base = REG_FIFO + FIFO_WIDTH * slot
-            c = regs[base]
-            if c not in conv and ((newest - c) & 0xFFFF) < FIFO_SLOTS:
-                conv[c] = tuple(raw_to_volts(regs[base + 1 + j]) / k for j in ch)
-        if len(conv) > KEEP_CONVERSIONS + FIFO_SLOTS:
+        have = self.newest
+        missing = self._store(regs, REG_FIFO, FIFO_FIRST, newest, have)
+        entry = FIFO_FIRST
+        while missing and entry < FIFO_DEPTH:        # a stall: the conversions further back, in chunks
+            n = min(FIFO_CHUNK, FIFO_DEPTH - entry)
+            try:
+                r = self.client.read_holding_registers(REG_FIFO + FIFO_WIDTH * entry, count=FIFO_WIDTH * n,
+                                                       device_id=self.unit)
+            except Exception:                           # noqa: BLE001 - the next poll tries again
+                break
+            if r.isError() or len(r.registers) != FIFO_WIDTH * n:
+                break
+            missing = self._store(r.registers, 0, n, newest, have)
+            entry += n
+        if len(conv) > KEEP_CONVERSIONS + FIFO_DEPTH:
             for c in [c for c in conv if ((newest - c) & 0xFFFF) >= KEEP_CONVERSIONS]:
                 del conv[c]
         self.newest = newest
+
+    def _store(self, regs, base: int, entries: int, newest: int, have: int) -> bool:
+        """Take `entries` FIFO entries from regs[base:]; True if conversions after `have` are still missing."""
+        conv, k, ch = self.conversions, self.k, self.channels
+        oldest = newest
+        for e in range(entries):
+            b = base + FIFO_WIDTH * e
+            c = regs[b]
+            if ((newest - c) & 0xFFFF) >= FIFO_DEPTH:    # an entry not filled yet
+                continue
+            if c not in conv:
+                conv[c] = tuple(raw_to_volts(regs[b + 1 + j]) / k for j in ch)
+            if ((newest - c) & 0xFFFF) > ((newest - oldest) & 0xFFFF):
+                oldest = c
+        return have >= 0 and ((oldest - have) & 0xFFFF) > 1 and ((newest - have) & 0xFFFF) < 0x8000
 
     def conversions_since(self, counter: int) -> tuple[int, int, tuple, list]:
         """(n, newest counter, newest accel, older): n = conversions after `counter` up to the newest fetched (counter -1: the

@@ -122,7 +122,7 @@ class DriversConfig:
     modbus_timeout_s: float = _f(0.02, "s", gt=0)        # one request; the poller thread owns it
     modbus_watchdog_s: float = _f(0.5, "s", ge=0)        # module host watchdog (0 = off): AO to safe values
     accel_V_per_mps2: float = _f(2.0, "V/(m/s^2)", gt=0)  # accelerometer + conditioner sensitivity
-    # the module converts once per SYNC into a FIFO of its last 16 conversions (40025-40104, as the emulated
+    # the module converts once per SYNC into a FIFO of its last 64 conversions (40025-40344, as the emulated
     # module does): every conversion then reaches the controllers once, in order (drivers/port.py)
     accel_sync_fifo: bool = _f(False, "")
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier

@@ -163,24 +163,26 @@ def test_exception_knob_gives_exception_response(modbus_alone):
 
 def test_illegal_address_is_an_exception(modbus_alone):
     _arr, c = modbus_alone
-    r = c.read_holding_registers(100, count=10, device_id=1)        # the map ends at 40104
+    r = c.read_holding_registers(340, count=10, device_id=1)        # the map ends at 40344
     assert r.isError() and r.exception_code == 2
 
 
-def test_conversion_fifo_keeps_the_last_sixteen_conversions(modbus_alone):
+def test_conversion_fifo_serves_the_last_64_conversions_newest_first(modbus_alone):
     arr, c = modbus_alone
-    for k in range(2, 21):                                          # conversions 2..20 (1 is the fixture's)
+    for k in range(2, 71):                                          # conversions 2..70 (1 is the fixture's)
         sh.publish(arr, k * 1e-3, [0.01 * k, -0.01 * k, 0.0, 0.5], [0.0] * 4)
     r = c.read_holding_registers(0, count=modbus_io.N_READ_FIFO, device_id=1)
-    assert not r.isError() and r.registers[8] == 20
-    slots = {}
-    for j in range(modbus_io.FIFO_SLOTS):
-        base = modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH * j
-        cnt = r.registers[base]
-        assert cnt % modbus_io.FIFO_SLOTS == j                      # slot = counter % 16
-        slots[cnt] = [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[base + 1:base + 5]]
-    assert sorted(slots) == list(range(5, 21))                      # the newest sixteen
-    for k, acc in slots.items():
+    assert not r.isError() and r.registers[8] == 70
+    regs = r.registers[modbus_io.REG_FIFO:]
+    for chunk in range(modbus_io.FIFO_FIRST, modbus_io.FIFO_DEPTH, modbus_io.FIFO_CHUNK):
+        n = min(modbus_io.FIFO_CHUNK, modbus_io.FIFO_DEPTH - chunk)
+        r = c.read_holding_registers(modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH * chunk, count=5 * n, device_id=1)
+        assert not r.isError()
+        regs += r.registers
+    counters = [regs[5 * e] for e in range(modbus_io.FIFO_DEPTH)]
+    assert counters == list(range(70, 6, -1))                       # the newest 64, newest first
+    for e, k in enumerate(counters):
+        acc = [modbus_io.raw_to_volts(x) / 2.0 for x in regs[5 * e + 1:5 * e + 5]]
         assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5], abs=20 / 65535)
 
 
@@ -191,29 +193,38 @@ def _fifo_driver(port):
 
 
 def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module):
-    """Late polls lose nothing: the conversions made between two polls come back exactly, oldest first; more
-    than the FIFO holds are interpolated so their count (the integration's time base) stays exact."""
+    """Late polls lose nothing: the conversions made between two polls come back exactly, oldest first (the
+    driver reads further back into the FIFO after a stall); more than the FIFO holds are interpolated, so
+    their count (the integration's time base) stays exact."""
     arr, client = modbus_alone
     drv = _fifo_driver(client.comm_params.port)
     drv.client = client                                             # the module fixture's connection
     assert drv._poll_once()
     n, last, acc, older = drv.conversions_since(-1)
     assert (n, last, older) == (1, 1, [])
-    for k in range(2, 7):                                           # five conversions before the next poll
-        sh.publish(arr, k * 1e-3, [0.1 * k] * 4, [0.0] * 4)
+
+    def publish(ks):
+        for k in ks:
+            sh.publish(arr, k * 1e-3, [0.01 * k] * 4, [0.0] * 4)
+    publish(range(2, 7))                                            # five conversions before the next poll
     assert drv._poll_once()
     n, last, acc, older = drv.conversions_since(1)
     assert n == 5 and last == 6
-    assert [o[0] for o in older] == pytest.approx([0.2, 0.3, 0.4, 0.5], abs=1e-4)
-    assert acc[0] == pytest.approx(0.6, abs=1e-4)
+    assert [o[0] for o in older] == pytest.approx([0.02, 0.03, 0.04, 0.05], abs=1e-4)
+    assert acc[0] == pytest.approx(0.06, abs=1e-4)
     assert drv.conversions_since(6)[0] == 0                         # nothing new: the loop holds
-    for k in range(7, 27):                                          # twenty: four fall out of the FIFO
-        sh.publish(arr, k * 1e-3, [0.1 * k] * 4, [0.0] * 4)
+    publish(range(7, 57))                                           # fifty: beyond the first 16 entries
     assert drv._poll_once()
     n, last, acc, older = drv.conversions_since(6)
-    assert n == 20 and last == 26 and len(older) == 19
-    assert [o[0] for o in older] == pytest.approx([0.1 * k for k in range(7, 26)], abs=1e-4)
-    assert drv.lost_conversions == 4
+    assert n == 50 and last == 56 and len(older) == 49
+    assert [o[0] for o in older] == pytest.approx([0.01 * k for k in range(7, 56)], abs=1e-4)
+    assert drv.lost_conversions == 0
+    publish(range(57, 127))                                         # seventy: six fall out of the FIFO
+    assert drv._poll_once()
+    n, last, acc, older = drv.conversions_since(56)
+    assert n == 70 and last == 126 and len(older) == 69
+    assert [o[0] for o in older] == pytest.approx([0.01 * k for k in range(57, 126)], abs=1e-4)
+    assert drv.lost_conversions == 6
 
 
 def test_conversion_counter_wraps():

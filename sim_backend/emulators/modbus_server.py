@@ -7,8 +7,8 @@ Register map (drivers/devicemaps/adam6024_modbus.md): holding registers, 0-based
   10-11 AO ch0-1  (40011-40012)  0..65535 = -10..+10 V
   12-13 40013-40014 AO safe values, applied when the host watchdog trips
   20    40021  host watchdog timeout in 0.1 s (0 = off)
-  24-103 40025-40104  conversion FIFO: 16 slots of [counter, AI ch0-3], slot = counter % 16 (one conversion per
-                     plant step, i.e. per SYNC)
+  24-343 40025-40344  conversion FIFO, newest first: 64 entries of [counter, AI ch0-3] (one conversion per
+                     plant step, i.e. per SYNC; entries not yet filled carry counter = newest + 1)
 The accelerometer voltages come from the shared plant state; fault knobs from the shared MODBUS_MODE.
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pymodbus.constants import ExcCodes
 from drivers.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
-N_REGS = 104
+N_REGS = 344
 REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG, REG_FIFO = 0, 8, 9, 10, 12, 20, 24
 
 
@@ -72,10 +72,17 @@ class Module:
             return None
         self.frozen = None
         count_, accel, fifo = sh.snapshot_fifo(self.arr)
-        for j, (c, acc) in enumerate(fifo):
-            base = REG_FIFO + 5 * j
-            regs[base] = c & 0xFFFF
-            regs[base + 1:base + 5] = [volts_to_raw(a * self.k) for a in acc]
+        lo, hi = max(address, REG_FIFO), min(address + count, N_REGS)
+        if lo < hi:                                 # the FIFO entries asked for (newest first)
+            ring = sorted(((c, acc) for c, acc in fifo if 0 <= count_ - c < sh.FIFO_SLOTS), reverse=True)
+            for e in range((lo - REG_FIFO) // 5, (hi - 1 - REG_FIFO) // 5 + 1):
+                base = REG_FIFO + 5 * e
+                if e < len(ring):
+                    c, acc = ring[e]
+                    regs[base] = c & 0xFFFF
+                    regs[base + 1:base + 5] = [volts_to_raw(a * self.k) for a in acc]
+                else:
+                    regs[base:base + 5] = [(count_ + 1) & 0xFFFF, 32768, 32768, 32768, 32768]
         for ch in range(6):
             v = accel[ch] * self.k if ch < sh.N_MOUNTS else 0.0
             regs[REG_AI + ch] = volts_to_raw(v)

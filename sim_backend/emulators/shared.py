@@ -22,7 +22,7 @@ MODBUS_MODE = 11
 SERIAL_MODE = 12
 SERIAL_CH = 13   # 4 x forced channel status (0 none, 1 UR, 2 OR, 3 NP)
 FIFO = 17        # the last FIFO_SLOTS conversions, slot = counter % FIFO_SLOTS: [counter, 4 x accel_mps2]
-FIFO_SLOTS = 16
+FIFO_SLOTS = 64
 SIZE = FIFO + 5 * FIFO_SLOTS
 
 # fault knob modes (same codes for every emulator)
