@@ -485,6 +485,10 @@ class Loop:
         prev_wake = None
         compute_prev = 0
         cycle = self.cycle
+        # optional Port.idle(): work that does not depend on the period's data (the simulated plant draws its
+        # next block of floor motion there), run only when at least half a period is left before the deadline
+        idle = getattr(self.port, "idle", None) if clock.is_real else None
+        idle_ns = period // 2
         try:
             while self.stop_reason is None:
                 if end_t is not None and t >= end_t:
@@ -519,6 +523,8 @@ class Loop:
                         missed = (done - t) // period + 1
                         self.skipped += missed
                         t += missed * period
+                elif idle is not None and t - done > idle_ns:
+                    idle()                      # the port's housekeeping, in the slack before the next period
         except KeyboardInterrupt:
             self.stop("SIGINT")
         finally:

@@ -33,7 +33,9 @@ class Commands:
 @runtime_checkable
 class Port(Protocol):
     """What the loop needs from a backend. `open` may do slow configuration (SDO, register set-up);
-    `read` and `write` run inside the control period and must not block on a bus request."""
+    `read` and `write` run inside the control period and must not block on a bus request. Optional:
+    `idle()`, work that does not depend on the period's data, which the loop runs after a period when at least
+    half a period is left (the simulated plant draws its next block of floor motion there)."""
 
     n_mounts: int
     name: str

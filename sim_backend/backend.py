@@ -152,6 +152,12 @@ class SimBackend:
         return meas
 
     # ---- fault knobs --------------------------------------------------------------------------------
+    def idle(self) -> None:
+        """Housekeeping in the loop's slack: the plant draws its next block of floor motion and noise."""
+        pre = getattr(self.plant, "prefetch", None)
+        if pre is not None:
+            pre()
+
     def inject(self, kind: str, *, mount: int = 0, at_s: float = 0.0, sensor: str = "accel",
                age_s: float = 0.01, value: float = 1e3, extra_s: float = 0.0, every: bool = False,
                text: str = "valve amplifier reports over-temperature") -> None:

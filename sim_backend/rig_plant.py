@@ -269,15 +269,26 @@ class RigPlant:
         self.noise_scale = np.array([accel_noise_mps2] * 4 + [stroke_noise_m] * 4)
         self.t_s = 0.0
         self.k = 0
+        self._next = None
         self._refill()
         _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, 0, 0.0, 0.0,
                  0.0, 0.0, self.y, False)
         self._publish()
 
+    def _draw(self):
+        g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 8))
+        return g, np.ascontiguousarray(self.rng.standard_normal((self.BLOCK, 8)) * self.noise_scale)
+
     def _refill(self):
-        self._g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 8))
-        self._nz = np.ascontiguousarray(self.rng.standard_normal((self.BLOCK, 8)) * self.noise_scale)
+        nxt, self._next = self._next, None
+        self._g, self._nz = nxt if nxt is not None else self._draw()
         self._gi = 0
+
+    def prefetch(self) -> None:
+        """Draw the next block of floor motion and sensor noise ahead of time (the loop calls this in its idle
+        time, so the refill stays out of the control period; the sequence is the same either way)."""
+        if self._next is None and self._gi >= self.BLOCK // 2:
+            self._next = self._draw()
 
     def _publish(self):
         y = self.y.tolist()

@@ -2,7 +2,9 @@
 
   rig bench loop --rate HZ --seconds N [--json]   the control loop, four mounts on the simulated backend,
                                                   real clock, real-time hygiene where allowed, recording on
-  rig bench sim ...                               simulation speed (filled in by the plant owner)
+  rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
+                                                  what the machine itself allows (same JSON)
+  rig bench sim ...                               simulation speed of the plant
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -36,6 +38,9 @@ def add_arguments(p) -> None:
                     help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
     lp.add_argument("--record", metavar="FILE", default=None,
                     help="keep the recording here (default: a temporary file, deleted)")
+    lp.add_argument("--empty", action="store_true",
+                    help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
+                         "machine's own floor under these figures (same JSON)")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
@@ -126,6 +131,8 @@ def bench_loop(args) -> int:
         raise RigError(f"--spin-us: expected 0 <= US <= 1000, got {args.spin_us}")
     dt = 1.0 / rate
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
+    if args.empty:
+        return _empty_loop(cfg, args, rate, clock)
     port = make_sim_port(cfg, dt, mode="rig", clock=clock)
     try:
         from controllers.isolation import make_isolation_controllers
@@ -174,13 +181,58 @@ def bench_loop(args) -> int:
     if loop.lc.fault_reason:
         print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
               file=sys.stderr)
-    if args.json:
+    _print_loop_figures(out, args.json, loop.skipped)
+    return 0
+
+
+def _print_loop_figures(out: dict, as_json: bool, skipped: int) -> None:
+    if as_json:
         print(json.dumps(out))
-    else:
-        w, c = out["wake_latency_us"], out["compute_us"]
-        print(f"{out['iterations']} periods at {rate:g} Hz\n"
-              f"  wake latency  p50 {w['p50']:8.1f} us  p99 {w['p99']:8.1f} us  max {w['max']:9.1f} us\n"
-              f"  compute       p50 {c['p50']:8.1f} us  p99 {c['p99']:8.1f} us  max {c['max']:9.1f} us\n"
-              f"  overruns {out['overruns']}, skipped periods {loop.skipped}, missed deadlines "
-              f"{100 * out['missed_deadline_fraction']:.4f} %")
+        return
+    w, c = out["wake_latency_us"], out["compute_us"]
+    print(f"{out['iterations']} periods at {out['rate_hz']:g} Hz\n"
+          f"  wake latency  p50 {w['p50']:8.1f} us  p99 {w['p99']:8.1f} us  max {w['max']:9.1f} us\n"
+          f"  compute       p50 {c['p50']:8.1f} us  p99 {c['p99']:8.1f} us  max {c['max']:9.1f} us\n"
+          f"  overruns {out['overruns']}, skipped periods {skipped}, missed deadlines "
+          f"{100 * out['missed_deadline_fraction']:.4f} %")
+
+
+def _empty_loop(cfg, args, rate: float, clock) -> int:
+    """Absolute deadlines, the same wait and real-time set-up as the loop, nothing in the period: a period
+    counts as missed when the wake-up came after the next deadline (catch-up, like the loop's default)."""
+    import numpy as np
+    from rig.rt import enter_realtime, leave_realtime
+    period = int(round(1e9 / rate))
+    n = int(math.ceil(args.seconds * rate))
+    if clock.spin_ns is None:                           # as the Loop does: [loop] spin_us unless --spin-us
+        clock.spin_ns = int(round(cfg.loop.spin_us * 1e3))
+    wake = np.empty(n, dtype=np.int64)
+    comp = np.empty(n, dtype=np.int64)
+    rt = None
+    if cfg.loop.realtime and not args.no_realtime:
+        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+    print(f"rig bench loop --empty: {rate:g} Hz for {args.seconds:g} s, spin {clock.spin_ns / 1e3:g} us, "
+          f"{rt.summary() if rt else 'no real-time hygiene'}", file=sys.stderr)
+    missed = 0
+    try:
+        t = clock.now_ns() + period
+        for i in range(n):
+            clock.sleep_until(t)
+            w = clock.now_ns()
+            done = clock.now_ns()
+            wake[i], comp[i] = w - t, done - w
+            t += period
+            if done > t:
+                missed += 1
+    finally:
+        if rt is not None:
+            leave_realtime(rt)
+
+    def pct(a):
+        a = a * 1e-3
+        return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2),
+                "max": round(float(a.max()), 2)}
+    out = {"rate_hz": rate, "iterations": n, "wake_latency_us": pct(wake), "compute_us": pct(comp),
+           "overruns": missed, "missed_deadline_fraction": missed / n}
+    _print_loop_figures(out, args.json, 0)
     return 0
