@@ -60,6 +60,18 @@ _V, _I, _C, _S, _B, _ON, _U, _K, _SUS, _A = range(10)
 _N = 10
 
 
+def _cascade(sections, state: list, i: int, x: float) -> tuple[float, int]:
+    """Biquads in series (transposed direct form II), their states from state[i]; returns (output, next i).
+    The compiled bank (controllers/bank.py) runs the same operations in the same order."""
+    for b0, b1, b2, a1, a2 in sections:
+        yk = b0 * x + state[i]
+        state[i] = b1 * x - a1 * yk + state[i + 1]
+        state[i + 1] = b2 * x - a2 * yk
+        x = yk
+        i += 2
+    return x, i
+
+
 @dataclass(frozen=True)
 class IsolationParams:
     """Continuous design parameters of one mount's loop (SI units; frequencies in Hz)."""
@@ -214,30 +226,10 @@ class IsolationController:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
         a, s = meas
         o = self._o
-        # y = H/s^2 a + F stroke, then v = Comp y (transposed direct form II sections, inlined)
-        x = a
-        i = 0
-        for b0, b1, b2, a1, a2 in self.h_acc:
-            yk = b0 * x + state[i]
-            state[i] = b1 * x - a1 * yk + state[i + 1]
-            state[i + 1] = b2 * x - a2 * yk
-            x = yk
-            i += 2
-        y = x
-        x = s
-        for b0, b1, b2, a1, a2 in self.f_str:
-            yk = b0 * x + state[i]
-            state[i] = b1 * x - a1 * yk + state[i + 1]
-            state[i + 1] = b2 * x - a2 * yk
-            x = yk
-            i += 2
-        x += y
-        for b0, b1, b2, a1, a2 in self.comp:
-            yk = b0 * x + state[i]
-            state[i] = b1 * x - a1 * yk + state[i + 1]
-            state[i + 1] = b2 * x - a2 * yk
-            x = yk
-            i += 2
+        # y = H/s^2 a + F stroke, then v = Comp y
+        y, i = _cascade(self.h_acc, state, 0, a)
+        x, i = _cascade(self.f_str, state, i, s)
+        x, i = _cascade(self.comp, state, i, x + y)
         v = x
         h = 0.5 * dt
         on = state[o + _ON] > 0.5 and state[o + _SUS] < 0.5
