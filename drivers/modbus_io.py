@@ -183,7 +183,7 @@ class ModbusAnalogIO(TriggeredPoller):
                 conv[c] = tuple(raw_to_volts(regs[b + 1 + j]) / k for j in ch)
             if ((newest - c) & 0xFFFF) > ((newest - oldest) & 0xFFFF):
                 oldest = c
-        return have >= 0 and ((oldest - have) & 0xFFFF) > 1 and ((newest - have) & 0xFFFF) < 0x8000
+        return have >= 0 and 1 < ((oldest - have) & 0xFFFF) < 0x8000     # a gap after `have`
 
     def conversions_since(self, counter: int) -> tuple[int, int, tuple, list]:
         """(n, newest counter, newest accel, older): n = conversions after `counter` up to the newest fetched (counter -1: the

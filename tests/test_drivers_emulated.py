@@ -198,7 +198,13 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module
     their count (the integration's time base) stays exact."""
     arr, client = modbus_alone
     drv = _fifo_driver(client.comm_params.port)
-    drv.client = client                                             # the module fixture's connection
+    requests = []
+
+    class Counting:                                                 # the module fixture's connection, counted
+        def read_holding_registers(self, *a, **kw):
+            requests.append(a)
+            return client.read_holding_registers(*a, **kw)
+    drv.client = Counting()
     assert drv._poll_once()
     n, last, acc, older = drv.conversions_since(-1)
     assert (n, last, older) == (1, 1, [])
@@ -207,14 +213,18 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module
         for k in ks:
             sh.publish(arr, k * 1e-3, [0.01 * k] * 4, [0.0] * 4)
     publish(range(2, 7))                                            # five conversions before the next poll
+    requests.clear()
     assert drv._poll_once()
+    assert len(requests) == 1                                       # the newest 16 cover them: one request
     n, last, acc, older = drv.conversions_since(1)
     assert n == 5 and last == 6
     assert [o[0] for o in older] == pytest.approx([0.02, 0.03, 0.04, 0.05], abs=1e-4)
     assert acc[0] == pytest.approx(0.06, abs=1e-4)
     assert drv.conversions_since(6)[0] == 0                         # nothing new: the loop holds
     publish(range(7, 57))                                           # fifty: beyond the first 16 entries
+    requests.clear()
     assert drv._poll_once()
+    assert len(requests) == 3                                       # and two chunks further back
     n, last, acc, older = drv.conversions_since(6)
     assert n == 50 and last == 56 and len(older) == 49
     assert [o[0] for o in older] == pytest.approx([0.01 * k for k in range(7, 56)], abs=1e-4)
