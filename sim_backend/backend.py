@@ -71,7 +71,7 @@ class SimBackend:
 
     def __init__(self, plant, dt: float, *, n_mounts: int | None = None, clock=None, seed: int = 0,
                  accel_noise_mps2: float = 1e-4, stroke_noise_m: float = 2e-9,
-                 cmd_delay_periods: int = 0) -> None:
+                 cmd_delay_periods: int = 0, sample_driven: bool = False) -> None:
         self.plant = plant
         self.dt = float(dt)
         self.dt_ns = int(round(dt * 1e9))
@@ -90,6 +90,11 @@ class SimBackend:
         self._nx = (stroke_noise_m * rng.standard_normal(self._noise_len)).tolist()
         self._ni = 0
         self._noiseless = accel_noise_mps2 == 0.0 and stroke_noise_m == 0.0   # the rig plant adds its own
+        # sample-driven (like the FIFO accelerometer module, drivers/port.py): every plant step is a conversion,
+        # and a read after skipped periods hands over the ones in between, so the controllers' integration of
+        # acceleration sees them all (Measurements.new_samples / accel_older); noiseless plants only
+        self.sample_driven = bool(sample_driven) and self._noiseless
+        self._first_read = True
         self.opened = False
         self.safe_calls = 0
         self.writes = 0
@@ -122,7 +127,11 @@ class SimBackend:
             self._t0_ns = t_ns
         target = (t_ns - self._t0_ns) // self.dt_ns
         plant = self.plant
+        k0 = self._k
+        older = []
         while self._k < target:
+            if self.sample_driven and self._k > k0:
+                older.append(plant.accel_mps2)         # a conversion the loop did not read (a fresh list)
             if self.cmd_delay_periods:
                 self._pipe.append(self._cmd)
                 plant.step(self._pipe.pop(0))
@@ -134,6 +143,10 @@ class SimBackend:
         xs = plant.stroke_m
         if self._noiseless:
             meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n)
+            if self.sample_driven:
+                meas.new_samples = self._k - k0 + (1 if self._first_read else 0)
+                meas.accel_older = tuple(older)
+                self._first_read = False
             if self._faults:
                 self._apply_faults(t_ns, meas)
             return meas
@@ -214,7 +227,9 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
     The plants add their own sensor noise, so the backend adds none unless asked (accel_noise_mps2=...,
     stroke_noise_m=...), except a 1e-10 m / 1e-6 m/s^2 floor on a noiseless stand (the stuck check).
     Rig mode applies each command one period after it is written (cmd_delay_periods=1), as the controller
-    analysis assumes (ZOH plus one period of computation); stand mode applies it at once, as
+    analysis assumes (ZOH plus one period of computation), and is sample-driven (every plant step reaches the
+    controllers, also across skipped periods; sample_driven=False for a latest-value sensor); stand mode applies
+    it at once, as
     simulate_stand does, so a chirp recording matches the stand model without an extra delay."""
     seed = cfg.vibration.seed if seed is None else seed
     kw.setdefault("accel_noise_mps2", 0.0)
@@ -229,6 +244,7 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
             floor = FloorMotion.from_config(cfg, dt)
         plant = RigPlant(cfg, dt, floor=floor or None, seed=seed)
         kw.setdefault("cmd_delay_periods", 1)
+        kw.setdefault("sample_driven", True)
         return SimBackend(plant, dt, n_mounts=4, clock=clock, seed=seed, **kw)
     if mode == "stand":
         try:

@@ -1,5 +1,5 @@
 """Saturation recovery in the running loop (simulated time): a scheduling gap (skip policy, sim backend's
-overrun knob) leaves the isolation controllers' double integration with a velocity error that drives the
+overrun knob, a latest-value sensor) leaves the isolation controllers' double integration with a velocity error that drives the
 valves to the clamp for seconds; without recovery the safety check faults (saturation_s). With the
 controllers' recovery ([controller] sat_reset_s) isolation is suspended bumplessly, the valves leave the
 clamp, and isolation resumes by itself: no FAULT, back in the linear range, isolating again."""
@@ -23,15 +23,17 @@ STALL_S = 0.006              # 30 skipped periods, well below the 50 ms watchdog
 AT_S = 0.8                   # (how long the valves stay at the clamp depends on the floor motion at the gap)
 
 
-def run_stall(controller: dict, seconds: float):
+def run_stall(controller: dict, seconds: float, sample_driven: bool = False, stall_s: float = STALL_S,
+              at_s: float = AT_S):
     cfg = config_from_dict({"loop": {"overrun_policy": "skip"}, "controller": controller})
     clk = SimClock()
-    port = make_sim_port(cfg, DT, clock=clk)
+    # sample_driven=False: a latest-value sensor, the gap's samples are lost (a sample-driven port replays them)
+    port = make_sim_port(cfg, DT, clock=clk, sample_driven=sample_driven)
     ctrls = make_isolation_controllers(cfg, DT)
     loop = Loop(cfg, port, ctrls, clock=clk, rate_hz=RATE, stop_on_fault=False)
     loop.configure()
     loop.activate()
-    port.inject("overrun", at_s=AT_S, extra_s=STALL_S)
+    port.inject("overrun", at_s=at_s, extra_s=stall_s)
     plant = port.plant
     rows = []
 
@@ -70,3 +72,15 @@ def test_recovery_returns_to_isolation_without_fault(caplog):
     sus = [r.message for r in caplog.records if "isolation suspended" in r.message]
     res = [r.message for r in caplog.records if "isolation resumed" in r.message]
     assert sus and len(sus) == len(res)                  # each suspension logged once, and its resumption
+
+
+@pytest.mark.parametrize("stall_s, at_s", [(0.006, 0.8), (0.01, 0.5)])
+def test_a_sample_driven_port_makes_the_gap_harmless(stall_s, at_s):
+    """The default sim backend hands over every conversion of the gap (as the FIFO accelerometer module does
+    through the drivers): the controllers integrate them exactly, and the valves never reach the clamp."""
+    loop, cmd, table, floor, suspended = run_stall({"sat_reset_s": 0.0}, 3.0, True, stall_s, at_s)
+    assert loop.skipped == round(stall_s / DT)
+    assert loop.lc.fault_reason is None
+    assert np.max(np.abs(cmd)) < 0.9 * 10.0
+    late = slice(int(1.5 * RATE), None)
+    assert np.std(table[late]) < 0.6 * np.std(floor[late])
