@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from controllers.discrete import sos_frf, sos_ss, sos_tf
+from controllers.discrete import sos_frf, sos_ss, sos_step, sos_tf
 from controllers.discrete import tustin_section as _tustin
 
 # scalar states after the filter sections: last v, PI integral, centring integral, last stroke, fade offset,
@@ -58,18 +58,6 @@ from controllers.discrete import tustin_section as _tustin
 # mean of v while suspended
 _V, _I, _C, _S, _B, _ON, _U, _K, _SUS, _A = range(10)
 _N = 10
-
-
-def _cascade(sections, state: list, i: int, x: float) -> tuple[float, int]:
-    """Biquads in series (transposed direct form II), their states from state[i]; returns (output, next i).
-    The compiled bank (controllers/bank.py) runs the same operations in the same order."""
-    for b0, b1, b2, a1, a2 in sections:
-        yk = b0 * x + state[i]
-        state[i] = b1 * x - a1 * yk + state[i + 1]
-        state[i + 1] = b2 * x - a2 * yk
-        x = yk
-        i += 2
-    return x, i
 
 
 @dataclass(frozen=True)
@@ -226,11 +214,10 @@ class IsolationController:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
         a, s = meas
         o = self._o
-        # y = H/s^2 a + F stroke, then v = Comp y
-        y, i = _cascade(self.h_acc, state, 0, a)
-        x, i = _cascade(self.f_str, state, i, s)
-        x, i = _cascade(self.comp, state, i, x + y)
-        v = x
+        # y = H/s^2 a + F stroke, then v = Comp y (the compiled bank runs the same operations in the same order)
+        y = sos_step(self.h_acc, state, 0, a)
+        x = sos_step(self.f_str, state, self._is, s)
+        v = sos_step(self.comp, state, self._ic, x + y)
         h = 0.5 * dt
         on = state[o + _ON] > 0.5 and state[o + _SUS] < 0.5
         if on:
