@@ -73,15 +73,14 @@ class Module:
         self.frozen = None
         count_, accel, fifo = sh.snapshot_fifo(self.arr)
         lo, hi = max(address, REG_FIFO), min(address + count, N_REGS)
-        if lo < hi:                                 # the FIFO entries asked for (newest first)
-            ring = sorted(((c, acc) for c, acc in fifo if 0 <= count_ - c < sh.FIFO_SLOTS), reverse=True)
+        if lo < hi:                                 # the FIFO entries asked for: entry e = conversion count_ - e
             for e in range((lo - REG_FIFO) // 5, (hi - 1 - REG_FIFO) // 5 + 1):
                 base = REG_FIFO + 5 * e
-                if e < len(ring):
-                    c, acc = ring[e]
+                c, acc = fifo[(count_ - e) % sh.FIFO_SLOTS]
+                if c == count_ - e >= 0:
                     regs[base] = c & 0xFFFF
                     regs[base + 1:base + 5] = [volts_to_raw(a * self.k) for a in acc]
-                else:
+                else:                               # not converted yet
                     regs[base:base + 5] = [(count_ + 1) & 0xFFFF, 32768, 32768, 32768, 32768]
         for ch in range(6):
             v = accel[ch] * self.k if ch < sh.N_MOUNTS else 0.0
