@@ -11,6 +11,7 @@ import ctypes.util
 import gc
 import logging
 import os
+import struct
 import sys
 from dataclasses import dataclass, field
 
@@ -27,6 +28,8 @@ class RtState:
     cpu: int | None = None
     mlocked: bool = False
     gc_frozen: bool = False
+    cpu_latency_us: int | None = None       # PM QoS request held (None: none)
+    _qos_fd: int | None = None
     _old_sched: tuple | None = None
     _old_affinity: set | None = None
     _old_switch: float | None = None
@@ -35,6 +38,8 @@ class RtState:
     def summary(self) -> str:
         parts = [f"SCHED_FIFO={'yes' if self.fifo else 'no'}", f"cpu={self.cpu if self.cpu is not None else 'any'}",
                  f"mlockall={'yes' if self.mlocked else 'no'}", f"gc.freeze={'yes' if self.gc_frozen else 'no'}"]
+        if self.cpu_latency_us is not None:
+            parts.append(f"cpu_dma_latency={self.cpu_latency_us}us")
         return " ".join(parts)
 
 
@@ -43,9 +48,31 @@ def _note(state: RtState, text: str) -> None:
     log.warning("real-time: %s; carrying on without it", text)
 
 
+PM_QOS_DEVICE = "/dev/cpu_dma_latency"
+
+
+def request_cpu_latency(st: RtState, us: int, device: str = PM_QOS_DEVICE) -> None:
+    """Hold a PM QoS request: the kernel keeps CPUs out of idle states slower to leave than `us` for as long
+    as the file stays open (closed by leave_realtime, or by the kernel when the process dies)."""
+    try:
+        fd = os.open(device, os.O_WRONLY)
+    except OSError as e:
+        _note(st, f"CPU wake-up latency request not allowed ({device}: {e.strerror})")
+        return
+    try:
+        os.write(fd, struct.pack("i", int(us)))
+    except OSError as e:
+        os.close(fd)
+        _note(st, f"CPU wake-up latency request refused ({device}: {e.strerror})")
+        return
+    st._qos_fd, st.cpu_latency_us = fd, int(us)
+
+
 def enter_realtime(*, priority: int = 80, cpu: int | None = -1, lock_memory: bool = True,
-                   freeze_gc: bool = True, switch_interval_s: float = 2e-4) -> RtState:
-    """Apply SCHED_FIFO(priority), pin to `cpu` (-1 = last CPU, None = leave), mlockall, gc.freeze.
+                   freeze_gc: bool = True, switch_interval_s: float = 2e-4,
+                   cpu_latency_us: int | None = None) -> RtState:
+    """Apply SCHED_FIFO(priority), pin to `cpu` (-1 = last CPU, None = leave), mlockall, gc.freeze, and with
+    cpu_latency_us >= 0 a PM QoS wake-up latency request (process-wide; None or -1: leave it alone).
 
     The GIL switch interval is shortened so a helper thread holding the GIL delays the loop by at most
     about switch_interval_s (default 5 ms otherwise).
@@ -76,6 +103,8 @@ def enter_realtime(*, priority: int = 80, cpu: int | None = -1, lock_memory: boo
                 st.mlocked = True
         except OSError as e:
             _note(st, f"mlockall not available ({e})")
+    if cpu_latency_us is not None and cpu_latency_us >= 0:
+        request_cpu_latency(st, cpu_latency_us)
     st._old_switch = sys.getswitchinterval()
     sys.setswitchinterval(switch_interval_s)
     if freeze_gc:
@@ -90,7 +119,13 @@ def enter_realtime(*, priority: int = 80, cpu: int | None = -1, lock_memory: boo
 
 
 def leave_realtime(st: RtState) -> None:
-    """Undo what enter_realtime applied (back to the normal policy, GC on)."""
+    """Undo what enter_realtime applied (back to the normal policy, GC on, PM QoS request dropped)."""
+    if st._qos_fd is not None:
+        try:
+            os.close(st._qos_fd)
+        except OSError:
+            pass
+        st._qos_fd = None
     if st.gc_frozen:
         gc.unfreeze()
         if st._gc_was_enabled:

@@ -158,7 +158,8 @@ def bench_loop(args) -> int:
     loop.activate()
     rt = None
     if cfg.loop.realtime and not args.no_realtime:
-        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
+                            cpu_latency_us=cfg.loop.cpu_latency_us)
     print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
           f"{loop.policy}, spin {clock.spin_ns / 1e3:g} us, {rt.summary() if rt else 'no real-time hygiene'}",
           file=sys.stderr)
@@ -210,7 +211,8 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
     comp = np.empty(n, dtype=np.int64)
     rt = None
     if cfg.loop.realtime and not args.no_realtime:
-        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
+                            cpu_latency_us=cfg.loop.cpu_latency_us)
     print(f"rig bench loop --empty: {rate:g} Hz for {args.seconds:g} s, spin {clock.spin_ns / 1e3:g} us, "
           f"{rt.summary() if rt else 'no real-time hygiene'}", file=sys.stderr)
     missed = 0

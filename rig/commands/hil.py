@@ -191,7 +191,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         loop.recorder = rec
         loop.configure()
         if realtime:
-            rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu)
+            rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
+                                cpu_latency_us=cfg.loop.cpu_latency_us)
         time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
         phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
         phases.start()

@@ -208,7 +208,7 @@ def run(args) -> int:
         if want_rt:
             # process-wide part first: mlockall and a GC pass hold up every thread (a driver thread stalled
             # for >100 ms if done after the port was opened); then the port's threads start already locked
-            pre = enter_realtime(priority=0, cpu=None)
+            pre = enter_realtime(priority=0, cpu=None, cpu_latency_us=cfg.loop.cpu_latency_us)
         loop.configure()
         log.info("backend %s, %d mounts at %g Hz, isolation %s, pid %d (SIGUSR1 toggles isolation%s)",
                  backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
