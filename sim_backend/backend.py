@@ -7,7 +7,8 @@ clock; a late loop makes the plant take several steps with the held command, as 
 
 Plants (any object with these):
   .step(valve_cmd_V: list[float])  one loop period with the command held
-  .accel_mps2, .stroke_m           sensor values after the step (sequences, one per mount)
+  .accel_mps2, .stroke_m           sensor values after the step (lists, one per mount; new list objects
+                                   every step, never edited in place: read() hands them on without a copy)
 Four mounts: sim_backend.rig_plant.RigPlant. One actuator on its stand: StandPlant wrapped by `StandAdapter`
 (n_mounts = 1; stroke_m is the stand's position_m).
 
@@ -58,8 +59,8 @@ class StandAdapter:
 
     def step(self, valve_cmd_V) -> None:
         pos, acc = self.stand.step(float(valve_cmd_V[0]))
-        self.accel_mps2[0] = float(acc)
-        self.stroke_m[0] = float(pos)
+        self.accel_mps2 = [float(acc)]          # fresh lists every step (the backend does not copy them)
+        self.stroke_m = [float(pos)]
 
 
 class SimBackend:
@@ -82,7 +83,9 @@ class SimBackend:
         self._cmd = [0.0] * n
         self._pipe = [[0.0] * n for _ in range(self.cmd_delay_periods)]
         self._t0_ns: int | None = None
-        self._k = 0
+        self._k = 0                               # plant steps taken
+        self._k_read = 0                          # plant step of the last read
+        self._older: list = []                    # accelerations of steps not read (sample-driven)
         self._faults: list[_Fault] = []
         rng = np.random.default_rng(seed)
         self._noise_len = 65521                  # prime: the table does not line up with the period
@@ -122,34 +125,42 @@ class SimBackend:
         self.last_written = c
         self.writes += 1
 
+    def _step(self) -> None:
+        """One plant period with the held command (delayed by cmd_delay_periods)."""
+        plant = self.plant
+        if self.sample_driven and self._k > self._k_read:
+            self._older.append(plant.accel_mps2)       # a conversion the loop did not read (a fresh list)
+        if self.cmd_delay_periods:
+            self._pipe.append(self._cmd)
+            plant.step(self._pipe.pop(0))
+        else:
+            plant.step(self._cmd)
+        self._k += 1
+
     def read(self, t_ns: int) -> Measurements:
         if self._t0_ns is None:
             self._t0_ns = t_ns
         target = (t_ns - self._t0_ns) // self.dt_ns
-        plant = self.plant
-        k0 = self._k
-        older = []
         while self._k < target:
-            if self.sample_driven and self._k > k0:
-                older.append(plant.accel_mps2)         # a conversion the loop did not read (a fresh list)
-            if self.cmd_delay_periods:
-                self._pipe.append(self._cmd)
-                plant.step(self._pipe.pop(0))
-            else:
-                plant.step(self._cmd)
-            self._k += 1
+            self._step()
+        plant = self.plant
         n = self.n_mounts
         acc = plant.accel_mps2
         xs = plant.stroke_m
         if self._noiseless:
-            meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n)
+            # the plant publishes fresh lists every step: no copy, unless fault knobs edit them in place
+            meas = (Measurements(t_ns, acc, xs, [t_ns] * n) if not self._faults else
+                    Measurements(t_ns, list(acc), list(xs), [t_ns] * n))
             if self.sample_driven:
-                meas.new_samples = self._k - k0 + (1 if self._first_read else 0)
-                meas.accel_older = tuple(older)
+                meas.new_samples = self._k - self._k_read + (1 if self._first_read else 0)
+                meas.accel_older = tuple(self._older)
+                self._older.clear()
                 self._first_read = False
+            self._k_read = self._k
             if self._faults:
                 self._apply_faults(t_ns, meas)
             return meas
+        self._k_read = self._k
         i = self._ni
         na, nx, L = self._na, self._nx, self._noise_len
         a_out = [0.0] * n
@@ -166,7 +177,12 @@ class SimBackend:
 
     # ---- fault knobs --------------------------------------------------------------------------------
     def idle(self) -> None:
-        """Housekeeping in the loop's slack: the plant draws its next block of floor motion and noise."""
+        """The loop's slack after a period (real clock): the plant takes the coming period's step now, with
+        the command just written, as real hardware moves while the controller sleeps (read then finds it
+        done; the sequence is the same as stepping in read), and draws its next block of floor motion and
+        noise."""
+        if self._t0_ns is not None and self._k == self._k_read:
+            self._step()
         pre = getattr(self.plant, "prefetch", None)
         if pre is not None:
             pre()
