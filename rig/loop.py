@@ -176,6 +176,7 @@ class Loop:
     def recorder(self, rec) -> None:
         self._recorder = rec
         self._row = None                       # the row layout is checked against the new recorder
+        self._row_flags = None                 # flags last packed into the row buffer
 
     # ---- lifecycle ----------------------------------------------------------------------------------
     @property
@@ -427,11 +428,14 @@ class Loop:
             mv[0] = t_s
             mv[9], mv[10], mv[11], mv[12] = cmd
             k = self._iflag
-            mv[k] = float(lst)
-            mv[k + 1] = 1.0 if self.isolation else 0.0
-            mv[k + 2] = 1.0 if lst is _FAULT else 0.0
-            mv[k + 3] = float(self.overruns)
-            mv[k + 4] = float(self.skipped)
+            flags = (lst, self.isolation, self.overruns, self.skipped)
+            if flags != self._row_flags:           # rare changes: the row buffer keeps them between periods
+                self._row_flags = flags
+                mv[k] = float(lst)
+                mv[k + 1] = 1.0 if self.isolation else 0.0
+                mv[k + 2] = 1.0 if lst is _FAULT else 0.0
+                mv[k + 3] = float(self.overruns)
+                mv[k + 4] = float(self.skipped)
             mv[k + 5] = 1.0 if self.limiter.limited else 0.0
             mv[k + 6] = wake_lat_ns * 1e-3
             mv[k + 7] = compute_prev_ns * 1e-3
