@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from operator import eq as _eq
 
 from rig.config import MOUNTS, Config
 
@@ -43,7 +42,6 @@ class SensorCheck:
         self._last_x = [float("nan")] * n
         self._same_a = [0] * n
         self._same_x = [0] * n
-        self._repeats = False                   # some stuck count is running: check mount by mount
 
     def check(self, m, t_ns: int) -> str | None:
         if m.device_fault:
@@ -51,23 +49,6 @@ class SensorCheck:
         acc, xs, ts = m.accel_mps2, m.stroke_m, m.sample_t_ns
         ar = self.accel_range
         xb = self._x_bound                      # min(stroke range, stroke limit): one test in the common case
-        # the common case in a few C-level calls: all finite (a NaN or inf makes s - s NaN), in range, fresh,
-        # every sample new and different from the last one
-        s = sum(acc) + sum(xs)
-        if (s - s == 0.0 and -ar <= min(acc) and max(acc) <= ar and -xb <= min(xs) and max(xs) <= xb
-                and min(ts) >= t_ns - self.stale_ns and not self._repeats
-                and not (any(map(_eq, ts, self._last_ts)) or any(map(_eq, acc, self._last_a))
-                         or any(map(_eq, xs, self._last_x)))):
-            self._last_ts = ts[:]
-            self._last_a = acc[:]
-            self._last_x = xs[:]
-            return None
-        return self._check_each(acc, xs, ts, t_ns)
-
-    def _check_each(self, acc, xs, ts, t_ns: int) -> str | None:
-        """Mount by mount: the first implausible value, or the stuck count of repeated values."""
-        ar = self.accel_range
-        xb = self._x_bound
         oldest = t_ns - self.stale_ns
         last_ts = self._last_ts
         for i in range(self.n):
@@ -94,7 +75,6 @@ class SensorCheck:
                 else:
                     self._same_x[i] = 0
                     self._last_x[i] = x
-        self._repeats = any(self._same_a) or any(self._same_x)
         return None
 
     def _reason(self, i: int, a: float, x: float, tsi: int, t_ns: int) -> str:
