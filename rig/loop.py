@@ -41,6 +41,7 @@ import numpy as np
 from rig.clock import MonotonicClock
 from rig.config import MOUNTS, Config
 from rig.lifecycle import Lifecycle, State
+from rig.period import LIMIT_NAN, _period4
 from rig.port import Commands
 from rig.recorder import Channel
 from rig.safety import CommandLimiter, SensorCheck, Watchdog
@@ -143,6 +144,7 @@ class Loop:
         self._prev_xs = [0.0] * self.n
         self._failed = None
         self._stepped = False
+        self._kran = False
         self._susp_every = max(1, int(round(0.1 * self.rate_hz)))   # suspension watch (event/log), 10 Hz
         self._susp_count = self._susp_every
         self._susp = [False] * self.n
@@ -152,9 +154,15 @@ class Loop:
             self._rowbuf = np.zeros(1 + 16 + self.states.size + len(FLAG_CHANNELS))
             self._rowmv = memoryview(self._rowbuf)
             self._iflag = 17 + self.states.size
-            bank.bind(self._rowbuf, 1, 13, 17)
+            # check -> bank -> limit in one compiled call (rig/period.py); the check and limiter objects are
+            # the kernel's (same decisions, state in its array)
+            from rig.period import CompiledPeriod
+            self._kern = CompiledPeriod(cfg, bank, self.names, self.dt, self._rowbuf, 1, 13, 17, 9,
+                                        self._iflag + 5)
+            self.check, self.limiter = self._kern.check, self._kern.limiter
         else:
             self._rowbuf = None
+            self._kern = None
 
         # counters and timing (ring of the last keep_timing periods)
         self.iterations = 0
@@ -167,6 +175,17 @@ class Loop:
         self.t_ns = 0
         self._last_cycle_t = None            # start of the previous cycle (skipped periods in between)
         self.fault_t_ns: int | None = None
+
+    @property
+    def raw(self) -> list:
+        """The controllers' commands of the last step, before the limits."""
+        if self._kern is not None:
+            return self._rowbuf[13:17].tolist()
+        return self._raw
+
+    @raw.setter
+    def raw(self, v) -> None:
+        self._raw = v
 
     @property
     def recorder(self):
@@ -290,6 +309,78 @@ class Loop:
             return
         self.last_meas = m
         st = lc.state
+        kern = self._kern
+        if kern is not None and st is not _FAULT and not m.device_fault:
+            self._cycle_compiled(kern, m, t_ns, prev_t, st)
+        else:
+            self._cycle_stages(m, t_ns, prev_t, st)
+        if self._recorder is not None:
+            self._record(t_ns, m.accel_mps2, m.stroke_m, wake_lat_ns, compute_prev_ns)
+        self._susp_count -= 1
+        if self._susp_count <= 0:
+            self._susp_count = self._susp_every
+            self._watch_suspension()
+
+    def _cycle_compiled(self, kern, m, t_ns: int, prev_t, st) -> None:
+        """The four-mount bank path: check -> update -> limit in one compiled call (rig/period.py)."""
+        acc = m.accel_mps2
+        xs = m.stroke_m
+        bank = self.bank
+        states = self.states
+        active = st is _ACTIVE
+        try:
+            ns = m.new_samples
+            step = True
+            if ns is None:
+                if prev_t is not None and t_ns - prev_t > self.period_ns:
+                    # periods were skipped: the filters must still see the time pass (their double
+                    # integration of acceleration would otherwise lose it); outputs are not written
+                    bank.replay(states, (self._prev_acc, self._prev_xs), (acc, xs),
+                                (t_ns - prev_t) // self.period_ns - 1, self.MAX_HELD_STEPS)
+            elif ns:
+                # sample-driven port: one step per conversion, in order (outputs of the older ones are not
+                # written); skipped periods are among the conversions
+                for a_old in m.accel_older:
+                    bank.step_into(states, a_old, xs)
+            else:
+                step = False                      # no new conversion: the command holds
+            a0, a1, a2, a3 = acc
+            s0, s1, s2, s3 = xs
+            t0, t1, t2, t3 = m.sample_t_ns
+            ar, xb, stale_ns, stuck_n = kern.params
+            max_v, step_v, sat_limit = kern.lparams
+            code = _period4(states, kern.cf, kern.sv, self._rowbuf, 1, 13, 17, 9, kern.ilim, a0, a1, a2, a3,
+                            s0, s1, s2, s3, t0, t1, t2, t3, t_ns, ar, xb, stale_ns, stuck_n, step, active,
+                            max_v, step_v, sat_limit)
+        except Exception as e:              # noqa: BLE001
+            self._stepped = False
+            self.fault(f"controller {self._failed_name()} failed: {e.__class__.__name__}: {e}")
+            return
+        self._prev_acc = acc
+        self._prev_xs = xs
+        self._kran = code == 0 or code >= LIMIT_NAN       # the kernel wrote the limited flag into the row
+        if code:
+            if code < LIMIT_NAN:               # the check failed: nothing was stepped
+                self._stepped = False
+                self.fault(kern.check.reason(code, acc, xs, m.sample_t_ns, t_ns))
+            else:
+                self._stepped = step
+                self.fault(kern.limiter.reason(code))
+            return
+        self._stepped = step
+        if active:
+            self.cmd[:] = self._rowmv[9:13]
+            try:
+                self.port.write(t_ns, self._commands)
+            except Exception as e:  # noqa: BLE001
+                self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+        else:
+            self._safe_write_null()
+
+    def _cycle_stages(self, m, t_ns: int, prev_t, st) -> None:
+        """The stages one by one: Python controllers, other mount counts, a device fault, FAULT."""
+        lc = self.lc
+        self._kran = False
         if st is not _FAULT:
             reason = self.check.check(m, t_ns)
             if reason is not None:
@@ -346,12 +437,6 @@ class Loop:
                             self.port.write(t_ns, self._commands)
                         except Exception as e:  # noqa: BLE001
                             self.fault(f"port write failed: {e.__class__.__name__}: {e}")
-        if self._recorder is not None:
-            self._record(t_ns, acc, xs, wake_lat_ns, compute_prev_ns)
-        self._susp_count -= 1
-        if self._susp_count <= 0:
-            self._susp_count = self._susp_every
-            self._watch_suspension()
 
     def _watch_suspension(self) -> None:
         """Log (once per change) the controllers' saturation recovery suspending or resuming isolation."""
@@ -436,7 +521,8 @@ class Loop:
                 mv[k + 2] = 1.0 if lst is _FAULT else 0.0
                 mv[k + 3] = float(self.overruns)
                 mv[k + 4] = float(self.skipped)
-            mv[k + 5] = 1.0 if self.limiter.limited else 0.0
+            if not self._kran:
+                mv[k + 5] = 1.0 if self.limiter.limited else 0.0
             mv[k + 6] = wake_lat_ns * 1e-3
             mv[k + 7] = compute_prev_ns * 1e-3
             rec.push_row(self._rowbuf)

@@ -1,0 +1,224 @@
+"""The compiled period of the four-mount bank path: sensor check -> controller bank -> command limit in one
+numba call, so the loop pays one dispatch per period for the arithmetic of three stages.
+
+The stages keep their meaning and their owners: the check and the limit are rig/safety.py's SensorCheck and
+CommandLimiter (KernelCheck / KernelLimiter below are those classes with their state in one float64 array and
+the same decisions, property-tested against them in tests/test_runtime_period.py), and the controllers are
+controllers/bank.py's compiled bank. A nonzero return code names the stage, the mount and the reason; the
+loop turns it into the same one-line fault text the Python stages give (off the hot path).
+
+Safety state array `sv` (n mounts): check [last sample time stamp n | last accel n | last stroke n |
+same-accel count n | same-stroke count n], then limiter [last command n | sat_run | clamped | limited].
+Time stamps are kept as float64: exact below 2**53 ns (104 days of monotonic time), and beyond that still
+distinct for samples a period apart, which is all the stuck check asks of them.
+"""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from controllers.bank import _step4
+from rig.safety import CommandLimiter, SensorCheck
+
+# return codes: 0 ok; CHECK_* + mount; LIMIT_NAN + mount; LIMIT_LATCHED
+CHECK_IMPLAUSIBLE, CHECK_STUCK_ACCEL, CHECK_STUCK_STROKE = 100, 200, 300
+LIMIT_NAN, LIMIT_LATCHED = 400, 500
+
+
+@numba.njit(cache=True, inline="always")
+def _check_mount(sv, n, i, a, x, tsi, ar, xb, oldest, stuck_n):
+    """SensorCheck.check for mount i (the same tests in the same order); 0 or a code."""
+    if not (-ar <= a <= ar and -xb <= x <= xb and tsi >= oldest):      # also false for NaN
+        return CHECK_IMPLAUSIBLE + i
+    if tsi != sv[i]:                                                  # a new sample: stuck check
+        sv[i] = tsi
+        if a == sv[n + i]:
+            sv[3 * n + i] += 1.0
+            if sv[3 * n + i] >= stuck_n:
+                return CHECK_STUCK_ACCEL + i
+        else:
+            sv[3 * n + i] = 0.0
+            sv[n + i] = a
+        if x == sv[2 * n + i]:
+            sv[4 * n + i] += 1.0
+            if sv[4 * n + i] >= stuck_n:
+                return CHECK_STUCK_STROKE + i
+        else:
+            sv[4 * n + i] = 0.0
+            sv[2 * n + i] = x
+    return 0
+
+
+@numba.njit(cache=True, inline="always")
+def _limit(sv, n, raw, iraw, out, iout, max_v, step_v, sat_limit):
+    """CommandLimiter.limit: raw[iraw:iraw+n] -> out[iout:iout+n]; 0 or a code."""
+    o = 5 * n
+    hit = False
+    at_clamp = False
+    for i in range(n):
+        u = raw[iraw + i]
+        if u != u:
+            return LIMIT_NAN + i
+        if u >= max_v:
+            u = max_v
+            hit = at_clamp = True
+        elif u <= -max_v:
+            u = -max_v
+            hit = at_clamp = True
+        p = sv[o + i]
+        if u - p > step_v:
+            u = p + step_v
+            hit = True
+        elif p - u > step_v:
+            u = p - step_v
+            hit = True
+        out[iout + i] = u
+        sv[o + i] = u
+    sv[o + n + 2] = 1.0 if hit else 0.0
+    if hit:
+        sv[o + n + 1] += 1.0
+    if at_clamp:
+        sv[o + n] += 1.0
+        if sv[o + n] >= sat_limit:
+            return LIMIT_LATCHED
+    else:
+        sv[o + n] = 0.0
+    return 0
+
+
+@numba.njit(cache=True)
+def _check_n(sv, acc, xs, ts, t_ns, ar, xb, stale_ns, stuck_n):
+    n = acc.shape[0]
+    oldest = t_ns - stale_ns
+    for i in range(n):
+        c = _check_mount(sv, n, i, acc[i], xs[i], ts[i], ar, xb, oldest, stuck_n)
+        if c:
+            return c
+    return 0
+
+
+@numba.njit(cache=True)
+def _limit_n(sv, raw, out, max_v, step_v, sat_limit):
+    return _limit(sv, raw.shape[0], raw, 0, out, 0, max_v, step_v, sat_limit)
+
+
+@numba.njit(cache=True)
+def _period4(st, cf, sv, row, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
+             ar, xb, stale_ns, stuck_n, step, active, max_v, step_v, sat_limit):
+    """One period of four mounts: check the measurement; if it passes and `step`, step the bank (inputs,
+    raw commands and states into `row`, as IsolationBank.step_into); if `active`, limit the raw commands
+    (row[iu:iu+4]) into row[icmd:icmd+4]; row[ilim] gets the limiter's `limited` flag."""
+    oldest = t_ns - stale_ns
+    c = _check_mount(sv, 4, 0, a0, s0, t0, ar, xb, oldest, stuck_n)
+    if c == 0:
+        c = _check_mount(sv, 4, 1, a1, s1, t1, ar, xb, oldest, stuck_n)
+    if c == 0:
+        c = _check_mount(sv, 4, 2, a2, s2, t2, ar, xb, oldest, stuck_n)
+    if c == 0:
+        c = _check_mount(sv, 4, 3, a3, s3, t3, ar, xb, oldest, stuck_n)
+    if c:
+        return c
+    if step:
+        _step4(st, cf, row, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3)
+    if active:
+        c = _limit(sv, 4, row, iu, row, icmd, max_v, step_v, sat_limit)
+    row[ilim] = sv[4 * 5 + 4 + 2]
+    return c
+
+
+class KernelCheck(SensorCheck):
+    """SensorCheck with its state in the shared array `sv` (the compiled period's), same decisions."""
+
+    def __init__(self, cfg, n_mounts: int, names=None, sv: np.ndarray | None = None) -> None:
+        self.sv = sv if sv is not None else np.zeros(6 * n_mounts + 3)
+        super().__init__(cfg, n_mounts, names)
+
+    def reset(self) -> None:
+        n = self.n
+        self.sv[0:3 * n] = math.nan            # no sample seen yet
+        self.sv[3 * n:5 * n] = 0.0
+
+    def check(self, m, t_ns: int) -> str | None:
+        if m.device_fault:
+            return f"device fault: {m.device_fault}"
+        c = _check_n(self.sv, np.asarray(m.accel_mps2, dtype=np.float64), np.asarray(m.stroke_m, dtype=np.float64),
+                     np.asarray(m.sample_t_ns, dtype=np.float64), t_ns, self.accel_range, self._x_bound,
+                     self.stale_ns, self.stuck_n)
+        return self.reason(c, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns) if c else None
+
+    def reason(self, code: int, acc, xs, ts, t_ns: int) -> str:
+        """The fault text of a check code (the words of SensorCheck.check)."""
+        i = code % 100
+        n = self.n
+        if code - i == CHECK_STUCK_ACCEL:
+            return (f"{self.names[i]}: accelerometer stuck at {acc[i]!r} m/s^2 "
+                    f"for {int(self.sv[3 * n + i])} samples")
+        if code - i == CHECK_STUCK_STROKE:
+            return (f"{self.names[i]}: displacement transducer stuck at {xs[i]!r} m "
+                    f"for {int(self.sv[4 * n + i])} samples")
+        return self._reason(i, acc[i], xs[i], ts[i], t_ns)
+
+
+class KernelLimiter(CommandLimiter):
+    """CommandLimiter with its state in the shared array `sv` (the compiled period's), same decisions."""
+
+    def __init__(self, cfg, n_mounts: int, dt: float, sv: np.ndarray | None = None) -> None:
+        self.sv = sv if sv is not None else np.zeros(6 * n_mounts + 3)
+        self._o = 5 * n_mounts
+        super().__init__(cfg, n_mounts, dt)
+
+    # the CommandLimiter attributes, read from and written to the array
+    last = property(lambda self: self.sv[self._o:self._o + self.n].tolist(),
+                    lambda self, v: self.sv.__setitem__(slice(self._o, self._o + self.n), v))
+    sat_run = property(lambda self: int(self.sv[self._o + self.n]),
+                       lambda self, v: self.sv.__setitem__(self._o + self.n, v))
+    clamped = property(lambda self: int(self.sv[self._o + self.n + 1]),
+                       lambda self, v: self.sv.__setitem__(self._o + self.n + 1, v))
+    limited = property(lambda self: bool(self.sv[self._o + self.n + 2]),
+                       lambda self, v: self.sv.__setitem__(self._o + self.n + 2, 1.0 if v else 0.0))
+
+    def reset(self) -> None:
+        self.sv[self._o:self._o + self.n + 1] = 0.0      # last commands (the valve is at null) and sat_run
+
+    def limit(self, raw: list, out: list) -> str | None:
+        res = np.zeros(self.n)
+        c = _limit_n(self.sv, np.asarray(raw, dtype=np.float64), res, self.max_V, self.step_V, self.sat_limit)
+        if c >= LIMIT_NAN and c < LIMIT_LATCHED:
+            return self.reason(c)
+        out[:] = res.tolist()
+        return self.reason(c) if c else None
+
+    def reason(self, code: int) -> str:
+        if code == LIMIT_LATCHED:
+            return (f"valve command at the +-{self.max_V:g} V clamp for {self.sat_run} periods: "
+                    f"the loop is not in control")
+        return f"controller {code - LIMIT_NAN}: valve command is NaN"
+
+
+class CompiledPeriod:
+    """The loop's four-mount bank path: one call per period (see the module docstring)."""
+
+    def __init__(self, cfg, bank, names, dt: float, row: np.ndarray, ia: int, iu: int, ist: int,
+                 icmd: int, ilim: int) -> None:
+        n = bank.n
+        if n != 4:
+            raise ValueError("CompiledPeriod: four mounts")
+        self.sv = np.zeros(6 * n + 3)
+        self.check = KernelCheck(cfg, n, names, self.sv)
+        self.limiter = KernelLimiter(cfg, n, dt, self.sv)
+        self.bank = bank
+        self.row = row
+        self.cf = bank.cf
+        self.ia, self.iu, self.ist, self.icmd, self.ilim = ia, iu, ist, icmd, ilim
+        c, lim = self.check, self.limiter
+        # typed as the warm-up call below, so the first period finds the compiled version
+        self.params = (float(c.accel_range), float(c._x_bound), int(c.stale_ns), int(c.stuck_n))
+        self.lparams = (float(lim.max_V), float(lim.step_V), int(lim.sat_limit))
+        bank.bind(row, ia, iu, ist)
+        st = bank.initial_state()
+        sv = np.zeros_like(self.sv)
+        scratch = np.zeros_like(row)
+        _period4(st, self.cf, sv, scratch, ia, iu, ist, icmd, ilim, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                 0, 0, 0, 0, 0, 1.0, 1.0, 1, 1, True, True, 1.0, 1.0, 1)   # compile before the first period
