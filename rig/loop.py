@@ -195,6 +195,7 @@ class Loop:
     def recorder(self, rec) -> None:
         self._recorder = rec
         self._row = None                       # the row layout is checked against the new recorder
+        self._kring = None                     # its ring, for the compiled period
         self._row_flags = None                 # flags last packed into the row buffer
 
     # ---- lifecycle ----------------------------------------------------------------------------------
@@ -311,18 +312,22 @@ class Loop:
         st = lc.state
         kern = self._kern
         if kern is not None and st is not _FAULT and not m.device_fault:
-            self._cycle_compiled(kern, m, t_ns, prev_t, st)
+            if self._cycle_compiled(kern, m, t_ns, prev_t, st, wake_lat_ns, compute_prev_ns):
+                pass                               # the compiled period recorded the row itself
+            elif self._recorder is not None:
+                self._record(t_ns, m.accel_mps2, m.stroke_m, wake_lat_ns, compute_prev_ns)
         else:
             self._cycle_stages(m, t_ns, prev_t, st)
-        if self._recorder is not None:
-            self._record(t_ns, m.accel_mps2, m.stroke_m, wake_lat_ns, compute_prev_ns)
+            if self._recorder is not None:
+                self._record(t_ns, m.accel_mps2, m.stroke_m, wake_lat_ns, compute_prev_ns)
         self._susp_count -= 1
         if self._susp_count <= 0:
             self._susp_count = self._susp_every
             self._watch_suspension()
 
-    def _cycle_compiled(self, kern, m, t_ns: int, prev_t, st) -> None:
-        """The four-mount bank path: check -> update -> limit in one compiled call (rig/period.py)."""
+    def _cycle_compiled(self, kern, m, t_ns: int, prev_t, st, wake_lat_ns: int, compute_prev_ns: int) -> bool:
+        """The four-mount bank path: check -> update -> limit -> record in one compiled call (rig/period.py).
+        True when the period's row went to the recorder's ring (else the caller records it)."""
         acc = m.accel_mps2
         xs = m.stroke_m
         bank = self.bank
@@ -349,33 +354,72 @@ class Loop:
             t0, t1, t2, t3 = m.sample_t_ns
             ar, xb, stale_ns, stuck_n = kern.params
             max_v, step_v, sat_limit = kern.lparams
-            code = _period4(states, kern.cf, kern.sv, self._rowbuf, 1, 13, 17, 9, kern.ilim, a0, a1, a2, a3,
-                            s0, s1, s2, s3, t0, t1, t2, t3, t_ns, ar, xb, stale_ns, stuck_n, step, active,
-                            max_v, step_v, sat_limit)
+            ring, slot = self._ring_slot(st)
+            code = _period4(states, kern.cf, kern.sv, self._rowbuf, ring, slot, 1, 13, 17, 9, kern.ilim,
+                            a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
+                            (t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0,
+                            wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, ar, xb, stale_ns, stuck_n, step,
+                            active, max_v, step_v, sat_limit)
         except Exception as e:              # noqa: BLE001
-            self._stepped = False
+            self._stepped = self._kran = False
             self.fault(f"controller {self._failed_name()} failed: {e.__class__.__name__}: {e}")
-            return
+            return False
         self._prev_acc = acc
         self._prev_xs = xs
-        self._kran = code == 0 or code >= LIMIT_NAN       # the kernel wrote the limited flag into the row
         if code:
+            self._kran = code >= LIMIT_NAN    # the kernel wrote the limited flag into the row
             if code < LIMIT_NAN:               # the check failed: nothing was stepped
                 self._stepped = False
                 self.fault(kern.check.reason(code, acc, xs, m.sample_t_ns, t_ns))
             else:
                 self._stepped = step
                 self.fault(kern.limiter.reason(code))
-            return
-        self._stepped = step
+            return slot < 0 and ring is not kern.no_ring    # a full ring: the row is dropped (counted once)
         if active:
             self.cmd[:] = self._rowmv[9:13]
             try:
                 self.port.write(t_ns, self._commands)
             except Exception as e:  # noqa: BLE001
+                self._kran = self._stepped = True
                 self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+                return False                   # recorded again by the caller, with the fault
         else:
             self._safe_write_null()
+            if self.lc.state is _FAULT:        # the null could not be written
+                self._kran = self._stepped = True
+                return False
+        if slot >= 0:
+            self._recorder.commit()
+            return True
+        self._kran = self._stepped = True
+        return ring is not kern.no_ring        # full ring: dropped and counted; no recorder: nothing to do
+
+    def _ring_slot(self, st):
+        """The recorder's ring and the row index for this period's compiled record (ring rows of the loop's
+        layout), or (no_ring, -1) without a row-compatible recorder (then _record does it); the rare flags
+        are refreshed in the row first."""
+        rec = self._recorder
+        kern = self._kern
+        if rec is None:
+            return kern.no_ring, -1
+        row = self._row
+        if row is None:
+            row = self._row = self._row_ok(rec)
+            self._kring = rec.ring_rows() if row and hasattr(rec, "ring_rows") else None
+        ring = self._kring
+        if ring is None:
+            return kern.no_ring, -1
+        flags = (st, self.isolation, self.overruns, self.skipped)
+        if flags != self._row_flags:
+            self._row_flags = flags
+            mv = self._rowmv
+            k = self._iflag
+            mv[k] = float(st)
+            mv[k + 1] = 1.0 if self.isolation else 0.0
+            mv[k + 2] = 1.0 if st is _FAULT else 0.0
+            mv[k + 3] = float(self.overruns)
+            mv[k + 4] = float(self.skipped)
+        return ring, rec.next_row()
 
     def _cycle_stages(self, m, t_ns: int, prev_t, st) -> None:
         """The stages one by one: Python controllers, other mount counts, a device fault, FAULT."""

@@ -105,11 +105,16 @@ def _limit_n(sv, raw, out, max_v, step_v, sat_limit):
 
 
 @numba.njit(cache=True)
-def _period4(st, cf, sv, row, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
-             ar, xb, stale_ns, stuck_n, step, active, max_v, step_v, sat_limit):
-    """One period of four mounts: check the measurement; if it passes and `step`, step the bank (inputs,
-    raw commands and states into `row`, as IsolationBank.step_into); if `active`, limit the raw commands
-    (row[iu:iu+4]) into row[icmd:icmd+4]; row[ilim] gets the limiter's `limited` flag."""
+def _period4(st, cf, sv, row, ring, slot, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s2, s3,
+             t0, t1, t2, t3, t_ns, t_s, wake_us, comp_us, ar, xb, stale_ns, stuck_n, step, active, max_v,
+             step_v, sat_limit):
+    """One period of four mounts, in the recording row `row` (the loop's layout, rig/loop.loop_channels):
+    check the measurement; step the bank if `step` (inputs, raw commands and states into the row, as
+    IsolationBank.step_into), else put the inputs in the row (the controllers hold); limit the raw commands
+    into row[icmd:icmd+4] if `active`, else null there; row[ilim] the limiter's flag, then time, wake-up
+    latency and the previous compute time; with slot >= 0 copy the row into ring[slot] (Recorder.next_row;
+    the caller commits). A nonzero code (a check or limit fault) returns before the copy: the caller records
+    that period itself."""
     oldest = t_ns - stale_ns
     c = _check_mount(sv, 4, 0, a0, s0, t0, ar, xb, oldest, stuck_n)
     if c == 0:
@@ -122,10 +127,29 @@ def _period4(st, cf, sv, row, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s
         return c
     if step:
         _step4(st, cf, row, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3)
+    else:
+        row[ia] = a0
+        row[ia + 1] = a1
+        row[ia + 2] = a2
+        row[ia + 3] = a3
+        row[ia + 4] = s0
+        row[ia + 5] = s1
+        row[ia + 6] = s2
+        row[ia + 7] = s3
     if active:
         c = _limit(sv, 4, row, iu, row, icmd, max_v, step_v, sat_limit)
+        if c:
+            return c
+    else:
+        for i in range(4):
+            row[icmd + i] = 0.0
     row[ilim] = sv[4 * 5 + 4 + 2]
-    return c
+    row[0] = t_s
+    row[ilim + 1] = wake_us
+    row[ilim + 2] = comp_us
+    if slot >= 0:
+        ring[slot, :] = row
+    return 0
 
 
 class KernelCheck(SensorCheck):
@@ -220,5 +244,7 @@ class CompiledPeriod:
         st = bank.initial_state()
         sv = np.zeros_like(self.sv)
         scratch = np.zeros_like(row)
-        _period4(st, self.cf, sv, scratch, ia, iu, ist, icmd, ilim, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                 0, 0, 0, 0, 0, 1.0, 1.0, 1, 1, True, True, 1.0, 1.0, 1)   # compile before the first period
+        self.no_ring = np.zeros((1, len(row)))          # stands in for the ring without a recorder (slot -1)
+        _period4(st, self.cf, sv, scratch, self.no_ring, 0, ia, iu, ist, icmd, ilim, 0.0, 0.0, 0.0, 0.0, 0.0,
+                 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0, 0.0, 1.0, 1.0, 1, 1, True, True, 1.0, 1.0, 1)
+        # (compiled before the first period, with the argument types the loop passes)

@@ -72,6 +72,7 @@ class Recorder:
         self.error: str | None = None
         self._proc: subprocess.Popen | None = None
         self._mm: mmap.mmap | None = None
+        self._ring: np.ndarray | None = None     # ring_rows() view
 
     # ---- set-up and tear-down (not in the period) ----------------------------------------------------
     def start(self, timeout_s: float = 60.0) -> "Recorder":
@@ -124,7 +125,11 @@ class Recorder:
             self.error = f"writer exited with code {self._proc.returncode}"
         self._proc = None
         if self._mm is not None:
-            self._mm.close()
+            self._ring = None
+            try:
+                self._mm.close()
+            except BufferError:                # a ring_rows() view is still held: unmapped with it
+                pass
             self._mm = None
         if self.error:
             raise RecordingError(f"{self.path}: recording failed: {self.error}")
@@ -141,15 +146,29 @@ class Recorder:
     # ---- the period -----------------------------------------------------------------------------------
     def _slot(self) -> int:
         """Byte offset of the next free row in the ring, or -1 when it is full (the row is dropped, counted)."""
+        r = self.next_row()
+        return -1 if r < 0 else _HDR + r * self._rowbytes
+
+    def next_row(self) -> int:
+        """Index in ring_rows() of the next free row, or -1 when the ring is full (the row is dropped and
+        counted). Filling the row and then commit() is push_row by hand (the loop's compiled period)."""
         h = self._head
         if h - self._tail_seen >= self._cap:
             self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
             if h - self._tail_seen >= self._cap:
                 self.dropped_rows += 1
                 return -1
-        return _HDR + (h % self._cap) * self._rowbytes
+        return h % self._cap
 
-    def _publish(self) -> None:
+    def ring_rows(self) -> np.ndarray:
+        """The ring as a (rows, ncols) float64 array on the shared map (written in place, then commit())."""
+        if self._ring is None:
+            self._ring = np.frombuffer(self._mm, dtype=np.float64, count=self._cap * self.ncols,
+                                       offset=_HDR).reshape(self._cap, self.ncols)
+        return self._ring
+
+    def commit(self) -> None:
+        """Publish the row filled at next_row() to the writer."""
         self._head = h = self._head + 1
         _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
 
@@ -159,7 +178,7 @@ class Recorder:
         if off < 0:
             return False
         self._pack(self._mm, off, *values)
-        self._publish()
+        self.commit()
         return True
 
     def push_row(self, row) -> bool:
@@ -169,7 +188,7 @@ class Recorder:
         if off < 0:
             return False
         self._mm[off:off + self._rowbytes] = row      # exact size or IndexError: the layout must match
-        self._publish()
+        self.commit()
         return True
 
     def event(self, t_s: float, text: str) -> None:
