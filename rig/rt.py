@@ -148,3 +148,18 @@ def leave_realtime(st: RtState) -> None:
             os.sched_setaffinity(0, st._old_affinity)
         except OSError:
             pass
+
+
+def cpu_steal_ms(cpu: int | None) -> float | None:
+    """Time the hypervisor ran something else while this guest's CPU `cpu` wanted to run (the steal column of
+    /proc/stat, in ms since boot); None where unknown (not Linux, no such CPU)."""
+    if cpu is None:
+        return None
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                if line.startswith(f"cpu{cpu} "):
+                    return int(line.split()[8]) * 1000.0 / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+    return None

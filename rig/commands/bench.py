@@ -116,7 +116,7 @@ def bench_loop(args) -> int:
     from rig.config import load_config
     from rig.loop import Loop, loop_channels
     from rig.recorder import Recorder
-    from rig.rt import enter_realtime, leave_realtime
+    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
     from sim_backend.backend import make_sim_port
 
     if not logging.getLogger().handlers:
@@ -163,6 +163,7 @@ def bench_loop(args) -> int:
     print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
           f"{loop.policy}, spin {clock.spin_ns / 1e3:g} us, {rt.summary() if rt else 'no real-time hygiene'}",
           file=sys.stderr)
+    steal0 = cpu_steal_ms(rt.cpu if rt else None)
     try:
         loop.run(seconds=args.seconds)
     finally:
@@ -182,8 +183,25 @@ def bench_loop(args) -> int:
     if loop.lc.fault_reason:
         print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
               file=sys.stderr)
+    import numpy as np
+    n = min(loop.iterations, loop.keep)
+    _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0,
+                       cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
     _print_loop_figures(out, args.json, loop.skipped)
     return 0
+
+
+def _print_host_stalls(wake_ns, period_ns: int, steal0, steal1, cpu) -> None:
+    """stderr: the wake-ups that came more than a period late (the machine, not the loop's work: the same
+    shows in --empty) and the hypervisor's steal time on the loop's CPU over the run."""
+    import numpy as np
+    late = wake_ns > period_ns
+    edges = np.flatnonzero(np.diff(np.concatenate(([False], late)).astype(np.int8)) == 1)
+    text = (f"rig bench loop: wake-ups more than one period late: {int(late.sum())} in {len(edges)} stalls, "
+            f"longest {wake_ns.max() / 1e3:.0f} us")
+    if steal0 is not None and steal1 is not None:
+        text += f"; hypervisor steal time on CPU {cpu}: {steal1 - steal0:.0f} ms"
+    print(text, file=sys.stderr)
 
 
 def _print_loop_figures(out: dict, as_json: bool, skipped: int) -> None:
@@ -202,7 +220,7 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
     """Absolute deadlines, the same wait and real-time set-up as the loop, nothing in the period: a period
     counts as missed when the wake-up came after the next deadline (catch-up, like the loop's default)."""
     import numpy as np
-    from rig.rt import enter_realtime, leave_realtime
+    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
     period = int(round(1e9 / rate))
     n = int(math.ceil(args.seconds * rate))
     if clock.spin_ns is None:                           # as the Loop does: [loop] spin_us unless --spin-us
@@ -216,6 +234,7 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
     print(f"rig bench loop --empty: {rate:g} Hz for {args.seconds:g} s, spin {clock.spin_ns / 1e3:g} us, "
           f"{rt.summary() if rt else 'no real-time hygiene'}", file=sys.stderr)
     missed = 0
+    steal0 = cpu_steal_ms(rt.cpu if rt else None)
     try:
         t = clock.now_ns() + period
         for i in range(n):
@@ -236,5 +255,6 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
                 "max": round(float(a.max()), 2)}
     out = {"rate_hz": rate, "iterations": n, "wake_latency_us": pct(wake), "compute_us": pct(comp),
            "overruns": missed, "missed_deadline_fraction": missed / n}
+    _print_host_stalls(wake, period, steal0, cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
     _print_loop_figures(out, args.json, 0)
     return 0
