@@ -352,14 +352,11 @@ class Loop:
             a0, a1, a2, a3 = acc
             s0, s1, s2, s3 = xs
             t0, t1, t2, t3 = m.sample_t_ns
-            ar, xb, stale_ns, stuck_n = kern.params
-            max_v, step_v, sat_limit = kern.lparams
             ring, slot = self._ring_slot(st)
             code = _period4(states, kern.cf, kern.sv, self._rowbuf, ring, slot, 1, 13, 17, 9, kern.ilim,
                             a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
                             (t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0,
-                            wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, ar, xb, stale_ns, stuck_n, step,
-                            active, max_v, step_v, sat_limit)
+                            wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, step, active, *kern.limits)
         except Exception as e:              # noqa: BLE001
             self._stepped = self._kran = False
             self.fault(f"controller {self._failed_name()} failed: {e.__class__.__name__}: {e}")

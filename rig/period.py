@@ -106,7 +106,7 @@ def _limit_n(sv, raw, out, max_v, step_v, sat_limit):
 
 @numba.njit(cache=True)
 def _period4(st, cf, sv, row, ring, slot, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s2, s3,
-             t0, t1, t2, t3, t_ns, t_s, wake_us, comp_us, ar, xb, stale_ns, stuck_n, step, active, max_v,
+             t0, t1, t2, t3, t_ns, t_s, wake_us, comp_us, step, active, ar, xb, stale_ns, stuck_n, max_v,
              step_v, sat_limit):
     """One period of four mounts, in the recording row `row` (the loop's layout, rig/loop.loop_channels):
     check the measurement; step the bank if `step` (inputs, raw commands and states into the row, as
@@ -238,13 +238,13 @@ class CompiledPeriod:
         self.ia, self.iu, self.ist, self.icmd, self.ilim = ia, iu, ist, icmd, ilim
         c, lim = self.check, self.limiter
         # typed as the warm-up call below, so the first period finds the compiled version
-        self.params = (float(c.accel_range), float(c._x_bound), int(c.stale_ns), int(c.stuck_n))
-        self.lparams = (float(lim.max_V), float(lim.step_V), int(lim.sat_limit))
+        self.limits = (float(c.accel_range), float(c._x_bound), int(c.stale_ns), int(c.stuck_n),
+                       float(lim.max_V), float(lim.step_V), int(lim.sat_limit))      # _period4's last arguments
         bank.bind(row, ia, iu, ist)
         st = bank.initial_state()
         sv = np.zeros_like(self.sv)
         scratch = np.zeros_like(row)
         self.no_ring = np.zeros((1, len(row)))          # stands in for the ring without a recorder (slot -1)
         _period4(st, self.cf, sv, scratch, self.no_ring, 0, ia, iu, ist, icmd, ilim, 0.0, 0.0, 0.0, 0.0, 0.0,
-                 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0, 0.0, 1.0, 1.0, 1, 1, True, True, 1.0, 1.0, 1)
+                 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0, 0.0, True, True, *self.limits)
         # (compiled before the first period, with the argument types the loop passes)

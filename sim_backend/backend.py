@@ -32,6 +32,7 @@ from rig.port import Commands, Measurements
 from rig.errors import RigError
 
 KINDS = ("drop", "stale", "nan", "stuck", "range", "device", "overrun")
+_NO_SPOOL = ()                 # Measurements.spool_actual of the simulated backend: no spool feedback
 
 
 @dataclass
@@ -148,17 +149,23 @@ class SimBackend:
         acc = plant.accel_mps2
         xs = plant.stroke_m
         if self._noiseless:
-            # the plant publishes fresh lists every step: no copy, unless fault knobs edit them in place
-            meas = (Measurements(t_ns, acc, xs, [t_ns] * n) if not self._faults else
-                    Measurements(t_ns, list(acc), list(xs), [t_ns] * n))
             if self.sample_driven:
-                meas.new_samples = self._k - self._k_read + (1 if self._first_read else 0)
-                meas.accel_older = tuple(self._older)
-                self._older.clear()
-                self._first_read = False
+                new = self._k - self._k_read
+                if self._first_read:
+                    new += 1
+                    self._first_read = False
+                older = ()
+                if self._older:
+                    older = tuple(self._older)
+                    self._older.clear()
+            else:
+                new, older = None, ()
             self._k_read = self._k
-            if self._faults:
-                self._apply_faults(t_ns, meas)
+            if not self._faults:
+                # the plant publishes fresh lists every step: handed on without a copy
+                return Measurements(t_ns, acc, xs, [t_ns] * n, _NO_SPOOL, None, new, older)
+            meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n, [], None, new, older)
+            self._apply_faults(t_ns, meas)             # (the knobs edit the lists in place)
             return meas
         self._k_read = self._k
         i = self._ni
