@@ -41,7 +41,7 @@ import numpy as np
 from rig.clock import MonotonicClock
 from rig.config import MOUNTS, Config
 from rig.lifecycle import Lifecycle, State
-from rig.period import LIMIT_NAN, _period4
+from rig.period import LIMIT_NAN, CompiledPeriod, _period4
 from rig.port import Commands
 from rig.recorder import Channel
 from rig.safety import CommandLimiter, SensorCheck, Watchdog
@@ -149,16 +149,16 @@ class Loop:
         self._susp_count = self._susp_every
         self._susp = [False] * self.n
         if bank is not None and self.n == 4:
-            # the bank leaves the measurement, raw commands and states in the recording row itself
-            # (loop_channels layout: time, accel 4, stroke 4, cmd 4, raw 4, states, flags)
-            self._rowbuf = np.zeros(1 + 16 + self.states.size + len(FLAG_CHANNELS))
-            self._rowmv = memoryview(self._rowbuf)
+            # check -> bank -> limit -> record in one compiled call (rig/period.py), which leaves the
+            # measurement, commands and states in the recording row itself (loop_channels layout: time,
+            # accel 4, stroke 4, cmd 4, raw 4, states, flags); the check and limiter objects are the kernel's
+            # (same decisions, state in its block), and so are the controller states
             self._iflag = 17 + self.states.size
-            # check -> bank -> limit in one compiled call (rig/period.py); the check and limiter objects are
-            # the kernel's (same decisions, state in its array)
-            from rig.period import CompiledPeriod
-            self._kern = CompiledPeriod(cfg, bank, self.names, self.dt, self._rowbuf, 1, 13, 17, 9,
-                                        self._iflag + 5)
+            self._kern = CompiledPeriod(cfg, bank, self.names, self.dt, len(FLAG_CHANNELS), self._iflag + 5)
+            self._kern.states[:] = self.states
+            self.states = self._kern.states
+            self._rowbuf = self._kern.row
+            self._rowmv = memoryview(self._rowbuf)
             self.check, self.limiter = self._kern.check, self._kern.limiter
         else:
             self._rowbuf = None
@@ -238,7 +238,12 @@ class Loop:
 
     def _fresh_states(self):
         if self.bank is not None:
-            return self.bank.set_enabled(self.bank.initial_state(), False)
+            fresh = self.bank.set_enabled(self.bank.initial_state(), False)
+            kern = getattr(self, "_kern", None)
+            if kern is not None:                 # in place: the compiled period's block holds the states
+                kern.states[:] = fresh
+                return kern.states
+            return fresh
         return [c.set_enabled(c.initial_state(), False) for c in self.ctrls]
 
     def _set_enabled(self, states, on: bool):
@@ -353,10 +358,9 @@ class Loop:
             s0, s1, s2, s3 = xs
             t0, t1, t2, t3 = m.sample_t_ns
             ring, slot = self._ring_slot(st)
-            code = _period4(states, kern.cf, kern.sv, self._rowbuf, ring, slot, 1, 13, 17, 9, kern.ilim,
-                            a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
+            code = _period4(kern.mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
                             (t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0,
-                            wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, step, active, *kern.limits)
+                            wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, step, active)
         except Exception as e:              # noqa: BLE001
             self._stepped = self._kran = False
             self.fault(f"controller {self._failed_name()} failed: {e.__class__.__name__}: {e}")

@@ -104,17 +104,45 @@ def _limit_n(sv, raw, out, max_v, step_v, sat_limit):
     return _limit(sv, raw.shape[0], raw, 0, out, 0, max_v, step_v, sat_limit)
 
 
+# header of the memory block (float64 slots): row offsets, limits, where each part starts
+_H_IA, _H_IU, _H_IST, _H_ICMD, _H_ILIM = 0, 1, 2, 3, 4
+_H_LIMITS = 5                       # 7 slots: accel range, stroke bound, stale ns, stuck n, max V, step V, sat n
+_H_CF, _H_NCF, _H_SV, _H_ST, _H_L, _H_ROW, _H_NROW = 12, 13, 14, 15, 16, 17, 18
+_HDR = 20
+
+
 @numba.njit(cache=True)
-def _period4(st, cf, sv, row, ring, slot, ia, iu, ist, icmd, ilim, a0, a1, a2, a3, s0, s1, s2, s3,
-             t0, t1, t2, t3, t_ns, t_s, wake_us, comp_us, step, active, ar, xb, stale_ns, stuck_n, max_v,
-             step_v, sat_limit):
-    """One period of four mounts, in the recording row `row` (the loop's layout, rig/loop.loop_channels):
-    check the measurement; step the bank if `step` (inputs, raw commands and states into the row, as
-    IsolationBank.step_into), else put the inputs in the row (the controllers hold); limit the raw commands
-    into row[icmd:icmd+4] if `active`, else null there; row[ilim] the limiter's flag, then time, wake-up
-    latency and the previous compute time; with slot >= 0 copy the row into ring[slot] (Recorder.next_row;
-    the caller commits). A nonzero code (a check or limit fault) returns before the copy: the caller records
-    that period itself."""
+def _period4(mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns, t_s, wake_us, comp_us,
+             step, active):
+    """One period of four mounts on the memory block `mem` (CompiledPeriod: header, bank coefficients, safety
+    state, controller states, the recording row in the loop's layout): check the measurement; step the bank
+    if `step` (inputs, raw commands and states into the row, as IsolationBank.step_into), else put the inputs
+    in the row (the controllers hold); limit the raw commands into the row's command columns if `active`,
+    else null there; then the limiter's flag, time, wake-up latency and the previous compute time; with
+    slot >= 0 copy the row into ring[slot] (Recorder.next_row; the caller commits). A nonzero code (a check
+    or limit fault) returns before the copy: the caller records that period itself. One block and the ring
+    are the only arrays passed: each array argument costs ~0.1 us of dispatch, measured."""
+    ia = int(mem[_H_IA])
+    iu = int(mem[_H_IU])
+    ist = int(mem[_H_IST])
+    icmd = int(mem[_H_ICMD])
+    ilim = int(mem[_H_ILIM])
+    ar = mem[_H_LIMITS]
+    xb = mem[_H_LIMITS + 1]
+    stale_ns = int(mem[_H_LIMITS + 2])
+    stuck_n = mem[_H_LIMITS + 3]
+    max_v = mem[_H_LIMITS + 4]
+    step_v = mem[_H_LIMITS + 5]
+    sat_limit = mem[_H_LIMITS + 6]
+    o_cf = int(mem[_H_CF])
+    o_sv = int(mem[_H_SV])
+    o_st = int(mem[_H_ST])
+    nst = int(mem[_H_L])
+    o_row = int(mem[_H_ROW])
+    cf = mem[o_cf:o_cf + int(mem[_H_NCF])]
+    sv = mem[o_sv:o_st]
+    st = mem[o_st:o_st + 4 * nst].reshape((4, nst))
+    row = mem[o_row:o_row + int(mem[_H_NROW])]
     oldest = t_ns - stale_ns
     c = _check_mount(sv, 4, 0, a0, s0, t0, ar, xb, oldest, stuck_n)
     if c == 0:
@@ -222,29 +250,43 @@ class KernelLimiter(CommandLimiter):
 
 
 class CompiledPeriod:
-    """The loop's four-mount bank path: one call per period (see the module docstring)."""
+    """The loop's four-mount bank path: one call per period (see the module docstring). Owns one float64
+    memory block holding the bank's coefficients (the bank steps with the same ones), the safety state, the
+    controller states (`states`, the loop's) and the recording row (`row`, the loop's)."""
 
-    def __init__(self, cfg, bank, names, dt: float, row: np.ndarray, ia: int, iu: int, ist: int,
-                 icmd: int, ilim: int) -> None:
+    IA, IU, IST, ICMD = 1, 13, 17, 9      # the loop's row: time, accel 4, stroke 4, cmd 4, raw 4, states, flags
+
+    def __init__(self, cfg, bank, names, dt: float, n_flags: int, i_limited: int) -> None:
         n = bank.n
         if n != 4:
             raise ValueError("CompiledPeriod: four mounts")
-        self.sv = np.zeros(6 * n + 3)
+        nst = bank.state_len
+        ncf = len(bank.cf)
+        nrow = 1 + 16 + n * nst + n_flags
+        o_cf = _HDR
+        o_sv = o_cf + ncf
+        o_st = o_sv + 6 * n + 3
+        o_row = o_st + n * nst
+        self.mem = mem = np.zeros(o_row + nrow)
+        mem[o_cf:o_sv] = bank.cf
+        bank.cf = mem[o_cf:o_sv]
+        self.sv = mem[o_sv:o_st]
+        self.states = mem[o_st:o_row].reshape(n, nst)
+        self.row = mem[o_row:]
         self.check = KernelCheck(cfg, n, names, self.sv)
         self.limiter = KernelLimiter(cfg, n, dt, self.sv)
         self.bank = bank
-        self.row = row
-        self.cf = bank.cf
-        self.ia, self.iu, self.ist, self.icmd, self.ilim = ia, iu, ist, icmd, ilim
+        self.ilim = i_limited
         c, lim = self.check, self.limiter
-        # typed as the warm-up call below, so the first period finds the compiled version
-        self.limits = (float(c.accel_range), float(c._x_bound), int(c.stale_ns), int(c.stuck_n),
-                       float(lim.max_V), float(lim.step_V), int(lim.sat_limit))      # _period4's last arguments
-        bank.bind(row, ia, iu, ist)
-        st = bank.initial_state()
-        sv = np.zeros_like(self.sv)
-        scratch = np.zeros_like(row)
-        self.no_ring = np.zeros((1, len(row)))          # stands in for the ring without a recorder (slot -1)
-        _period4(st, self.cf, sv, scratch, self.no_ring, 0, ia, iu, ist, icmd, ilim, 0.0, 0.0, 0.0, 0.0, 0.0,
-                 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0, 0.0, True, True, *self.limits)
-        # (compiled before the first period, with the argument types the loop passes)
+        mem[_H_IA], mem[_H_IU], mem[_H_IST], mem[_H_ICMD], mem[_H_ILIM] = (self.IA, self.IU, self.IST,
+                                                                          self.ICMD, i_limited)
+        mem[_H_LIMITS:_H_LIMITS + 7] = (c.accel_range, c._x_bound, c.stale_ns, c.stuck_n, lim.max_V,
+                                        lim.step_V, lim.sat_limit)
+        mem[_H_CF], mem[_H_NCF], mem[_H_SV], mem[_H_ST], mem[_H_L], mem[_H_ROW], mem[_H_NROW] = (
+            o_cf, ncf, o_sv, o_st, nst, o_row, nrow)
+        self.states[:] = bank.initial_state()
+        bank.bind(self.row, self.IA, self.IU, self.IST)
+        self.no_ring = np.zeros((1, nrow))          # stands in for the ring without a recorder (slot -1)
+        # compiled before the first period, with the argument types the loop passes, on a scratch copy
+        _period4(mem.copy(), self.no_ring, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0,
+                 0.0, True, True)
