@@ -26,9 +26,12 @@
   error: 5 ms of gap drove the valves to the clamp for seconds, measured).
 - The controllers' saturation recovery (controllers/isolation.py) suspending or resuming a mount's isolation
   is logged and recorded as an event once per change (checked at 10 Hz, off the per-period path).
-- Hot path in plain floats and lists or compiled code; the recording row is packed by one compiled call into
-  a preallocated buffer and copied into the ring (Recorder.push_row). The per-period allocations are the
-  port's Measurements and small lists (no reference cycles, so gc can stay off during the run).
+- Hot path in plain floats and lists or compiled code. With the four-mount bank, check -> update -> limit ->
+  record is one compiled call (rig/period.py: the same decisions as rig/safety.py's stages, tested equal),
+  which also copies the recording row into the recorder's ring; the loop keeps the port calls, the faults'
+  texts and the rare flags. Other controllers go stage by stage, the row packed here (Recorder.push/push_row).
+  The per-period allocations are the port's Measurements and small lists (no reference cycles, so gc can
+  stay off during the run).
 """
 from __future__ import annotations
 
