@@ -131,11 +131,9 @@ def _step_mount(st, cf, m, a, s):
     return u
 
 
-@numba.njit(cache=True)
-def _step4(st, cf, io, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3):
-    """Four mounts, one period, inputs as scalars (cheaper to pass than to copy into an array). io gets the
-    inputs at ia (accelerations, strokes), the commands at iu and, if ist >= 0, a copy of the states at ist:
-    io can be the loop's recording row, so the period is recorded without another pass."""
+@numba.njit(cache=True, inline="always")
+def put_inputs4(io, ia, a0, a1, a2, a3, s0, s1, s2, s3):
+    """The four accelerations, then the four strokes, into io[ia:ia+8]."""
     io[ia] = a0
     io[ia + 1] = a1
     io[ia + 2] = a2
@@ -144,6 +142,14 @@ def _step4(st, cf, io, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3):
     io[ia + 5] = s1
     io[ia + 6] = s2
     io[ia + 7] = s3
+
+
+@numba.njit(cache=True)
+def _step4(st, cf, io, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3):
+    """Four mounts, one period, inputs as scalars (cheaper to pass than to copy into an array). io gets the
+    inputs at ia (accelerations, strokes), the commands at iu and, if ist >= 0, a copy of the states at ist:
+    io can be the loop's recording row, so the period is recorded without another pass."""
+    put_inputs4(io, ia, a0, a1, a2, a3, s0, s1, s2, s3)
     io[iu] = _step_mount(st, cf, 0, a0, s0)
     io[iu + 1] = _step_mount(st, cf, 1, a1, s1)
     io[iu + 2] = _step_mount(st, cf, 2, a2, s2)

@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-from controllers.bank import _step4
+from controllers.bank import _step4, put_inputs4
 from rig.safety import CommandLimiter, SensorCheck
 
 # return codes: 0 ok; CHECK_* + mount; LIMIT_NAN + mount; LIMIT_LATCHED
@@ -156,14 +156,7 @@ def _period4(mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_
     if step:
         _step4(st, cf, row, ia, iu, ist, a0, a1, a2, a3, s0, s1, s2, s3)
     else:
-        row[ia] = a0
-        row[ia + 1] = a1
-        row[ia + 2] = a2
-        row[ia + 3] = a3
-        row[ia + 4] = s0
-        row[ia + 5] = s1
-        row[ia + 6] = s2
-        row[ia + 7] = s3
+        put_inputs4(row, ia, a0, a1, a2, a3, s0, s1, s2, s3)      # the controllers hold
     if active:
         c = _limit(sv, 4, row, iu, row, icmd, max_v, step_v, sat_limit)
         if c:
