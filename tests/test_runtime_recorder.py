@@ -87,3 +87,27 @@ def test_realtime_not_allowed_gives_one_note_and_carries_on(caplog):
     assert not st.fifo and st.cpu is None
     assert len(st.notes) == 2 and any("SCHED_FIFO" in n for n in st.notes) and any("affinity" in n for n in st.notes)
     assert sum("carrying on" in r.getMessage() for r in caplog.records) == 2
+
+
+def test_cpu_latency_request_is_held_for_the_run_and_dropped_after(tmp_path):
+    """The PM QoS request writes the latency as a 32-bit integer and holds the file open until
+    leave_realtime (closing it is what ends a request); a device that cannot be opened is one note."""
+    import os
+    import struct
+
+    import rig.rt as rt
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(b"")                                  # a plain file stands in for the device
+    st = rt.RtState()
+    rt.request_cpu_latency(st, 7, device=str(dev))
+    assert st.cpu_latency_us == 7 and "cpu_dma_latency=7us" in st.summary()
+    fd = st._qos_fd
+    os.fstat(fd)                                          # open while the run lasts
+    assert struct.unpack("i", dev.read_bytes()) == (7,)
+    rt.leave_realtime(st)
+    assert st._qos_fd is None
+    with pytest.raises(OSError):
+        os.fstat(fd)                                      # closed: the request ends
+    missing = rt.RtState()
+    rt.request_cpu_latency(missing, 0, device=str(tmp_path / "absent"))
+    assert missing.cpu_latency_us is None and len(missing.notes) == 1 and "absent" in missing.notes[0]
