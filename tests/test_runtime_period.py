@@ -150,3 +150,38 @@ def test_compiled_period_records_like_the_stages(tmp_path):
     assert np.all(rk["valve_cmd_V"][-1] == 0.0) and rk["fault"][-1] == 1 and rk["fault"][-2] == 0
     assert [e[1] for e in rk["events"]] == [e[1] for e in rs["events"]]
     assert np.all(rk["compute_prev_us"][1:] >= 30.0) and np.all(rk["wake_latency_us"] == 0.0)
+
+
+def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
+    """The writer stopped (SIGSTOP) so nothing drains: the ring fills, later rows are dropped and counted once
+    each, on the compiled path as on the stage path, and the rows kept are the first ones."""
+    import signal
+
+    from rig.loop import loop_channels
+    from rig.recorder import Recorder, read_recording
+    out = {}
+    for compiled in (True, False):
+        cfg = Config()
+        dt = 2e-4
+        clock = SimClock()
+        port = make_sim_port(cfg, dt, clock=clock)
+        loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
+                    watchdog_thread=False, use_bank=compiled)
+        path = tmp_path / f"full{compiled}.h5"
+        rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / dt,
+                       ring_s=0.0).start()                        # the smallest ring: 4096 rows
+        cap = rec._cap
+        rec._proc.send_signal(signal.SIGSTOP)
+        try:
+            loop.recorder = rec
+            loop.run(iterations=cap + 300, activate_after_s=0.01)
+        finally:
+            rec._proc.send_signal(signal.SIGCONT)
+        dropped = rec.dropped_rows
+        rec.close()
+        r = read_recording(path)
+        out[compiled] = (dropped, len(r["time_s"]), r["time_s"][-1], r["attrs"].get("dropped_rows"))
+    assert out[True] == out[False]
+    dropped, rows, t_last, attr = out[True]
+    assert rows == cap and dropped == 300 and attr == 300
+    assert abs(t_last - (cap - 1) * 2e-4) < 1e-9
