@@ -38,13 +38,14 @@ from __future__ import annotations
 import array
 import logging
 import math
+import struct
 
 import numpy as np
 
 from rig.clock import MonotonicClock
 from rig.config import MOUNTS, Config
 from rig.lifecycle import Lifecycle, State
-from rig.period import LIMIT_NAN, CompiledPeriod, _period4
+from rig.period import LIMIT_NAN, CompiledPeriod, ring_ok
 from rig.port import Commands
 from rig.recorder import Channel
 from rig.safety import CommandLimiter, SensorCheck, Watchdog
@@ -52,6 +53,7 @@ from rig.safety import CommandLimiter, SensorCheck, Watchdog
 log = logging.getLogger("rig.loop")
 
 _ACTIVE, _INACTIVE, _FAULT = State.ACTIVE, State.INACTIVE, State.FAULT
+_unpack_cmd4 = struct.Struct("<4d").unpack_from
 
 # Per-row flag columns recorded after the per-mount channels.
 FLAG_CHANNELS = (
@@ -361,7 +363,7 @@ class Loop:
             s0, s1, s2, s3 = xs
             t0, t1, t2, t3 = m.sample_t_ns
             ring, slot = self._ring_slot(st)
-            code = _period4(kern.mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
+            code = kern.call(kern.mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_ns,
                             (t_ns - self.t0_ns) * 1e-9 if self.t0_ns is not None else 0.0,
                             wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, step, active)
         except Exception as e:              # noqa: BLE001
@@ -380,7 +382,7 @@ class Loop:
                 self.fault(kern.limiter.reason(code))
             return slot < 0 and ring is not kern.no_ring    # a full ring: the row is dropped (counted once)
         if active:
-            self.cmd[:] = self._rowmv[9:13]
+            self.cmd[:] = _unpack_cmd4(self._rowbuf, 8 * CompiledPeriod.ICMD)     # the limited commands
             try:
                 self.port.write(t_ns, self._commands)
             except Exception as e:  # noqa: BLE001
@@ -409,7 +411,8 @@ class Loop:
         row = self._row
         if row is None:
             row = self._row = self._row_ok(rec)
-            self._kring = rec.ring_rows() if row and hasattr(rec, "ring_rows") else None
+            ring = rec.ring_rows() if row and hasattr(rec, "ring_rows") else None
+            self._kring = ring if ring is not None and ring_ok(ring) else None
         ring = self._kring
         if ring is None:
             return kern.no_ring, -1
@@ -430,7 +433,10 @@ class Loop:
         lc = self.lc
         self._kran = False
         if st is not _FAULT:
-            reason = self.check.check(m, t_ns)
+            try:
+                reason = self.check.check(m, t_ns)
+            except Exception as e:          # noqa: BLE001 - a malformed measurement (a driver bug)
+                reason = f"sensor check failed: {e.__class__.__name__}: {e}"
             if reason is not None:
                 self.fault(reason)
                 st = lc.state

@@ -173,6 +173,25 @@ def _period4(mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_
     return 0
 
 
+def native_entry(dispatcher):
+    """The compiled function's own entry point (argument unboxing only) for its one compiled signature,
+    skipping the dispatcher's type resolution: 1.2 -> 0.7 us per _period4 call, measured. The caller must
+    pass exactly those types (values convert as Python's float()/int() would, numeric text included; None or
+    any other object is a TypeError) and arrays of the compiled layout: C-contiguous float64, never a strided
+    view (ring_ok). Falls back to the dispatcher where numba does not offer this."""
+    try:
+        (sig,) = dispatcher.signatures
+        return dispatcher.overloads[sig].entry_point
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return dispatcher
+
+
+def ring_ok(ring) -> bool:
+    """A recorder ring the compiled period may write: 2-D C-contiguous float64 (native_entry checks nothing)."""
+    return (isinstance(ring, np.ndarray) and ring.ndim == 2 and ring.dtype == np.float64
+            and ring.flags.c_contiguous and ring.flags.writeable)
+
+
 class KernelCheck(SensorCheck):
     """SensorCheck with its state in the shared array `sv` (the compiled period's), same decisions."""
 
@@ -283,3 +302,4 @@ class CompiledPeriod:
         # compiled before the first period, with the argument types the loop passes, on a scratch copy
         _period4(mem.copy(), self.no_ring, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0.0, 0.0,
                  0.0, True, True)
+        self.call = native_entry(_period4)           # the loop's per-period call

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -185,3 +186,48 @@ def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
     dropped, rows, t_last, attr = out[True]
     assert rows == cap and dropped == 300 and attr == 300
     assert abs(t_last - (cap - 1) * 2e-4) < 1e-9
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_malformed_measurement_faults_on_either_path(compiled):
+    """A driver bug (a sensor value None) is a fault with the valves at null, never a dead loop."""
+    cfg = Config()
+    dt = 2e-4
+    clock = SimClock()
+    port = make_sim_port(cfg, dt, clock=clock)
+    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
+                watchdog_thread=False, use_bank=compiled)
+    read = port.read
+
+    def bad_read(t_ns):
+        m = read(t_ns)
+        if t_ns - port._t0_ns >= int(0.05e9):
+            m.accel_mps2 = [m.accel_mps2[0], m.accel_mps2[1], None, m.accel_mps2[3]]
+        return m
+    port.read = bad_read
+    assert loop.run(iterations=2000, activate_after_s=0.01) == "fault"
+    assert "TypeError" in loop.lc.fault_reason and port.last_written == [0.0] * 4
+
+
+def test_the_loop_calls_the_compiled_entry_point_and_a_bad_value_faults():
+    """The per-period call skips numba's type dispatch (native_entry); a measurement of the wrong kind then
+    is a TypeError inside the call, which the loop turns into FAULT with the valves at null."""
+    from rig.period import _period4
+    cfg = Config()
+    dt = 2e-4
+    clock = SimClock()
+    port = make_sim_port(cfg, dt, clock=clock)
+    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
+                watchdog_thread=False)
+    assert loop._kern.call is not _period4 and callable(loop._kern.call)
+    read = port.read
+
+    def bad_read(t_ns):
+        m = read(t_ns)
+        if t_ns - port._t0_ns >= int(0.05e9):
+            m.stroke_m = [m.stroke_m[0], None, m.stroke_m[2], m.stroke_m[3]]    # a driver bug: no value
+        return m
+    port.read = bad_read
+    loop.run(iterations=2000, activate_after_s=0.01)
+    assert loop.lc.fault_reason is not None and "TypeError" in loop.lc.fault_reason
+    assert port.last_written == [0.0] * 4 and abs(loop.fault_t_ns - port._t0_ns - int(0.05e9)) < int(dt * 1e9)
