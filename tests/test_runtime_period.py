@@ -73,20 +73,28 @@ def test_kernel_limiter_decides_like_command_limiter(raws, resets):
                                                                     ref.limited)
 
 
-def _run(compiled: bool, inject=None):
+DT = 2e-4
+
+
+def _sim_loop(compiled: bool, knobs=()):
+    """A four-mount loop on the simulated rig in simulated time: compiled period or stage by stage."""
     cfg = Config()
-    dt = 2e-4
     clock = SimClock()
-    port = make_sim_port(cfg, dt, clock=clock)
-    if inject:
-        port.inject(**inject)
+    port = make_sim_port(cfg, DT, clock=clock)
+    for knob in knobs:
+        port.inject(**knob)
+    loop = Loop(cfg, port, make_isolation_controllers(cfg, DT), clock=clock, rate_hz=1 / DT,
+                watchdog_thread=False, use_bank=compiled)
+    assert (loop._kern is not None) == compiled
+    return loop, port
+
+
+def _run(compiled: bool, inject=None):
+    loop, port = _sim_loop(compiled, [inject] if inject else ())
     written = []
     write = port.write
     port.write = lambda t, c: (written.append(list(c.valve_cmd_V)), write(t, c))
     port.written = written
-    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
-                watchdog_thread=False, use_bank=compiled)
-    assert (loop._kern is not None) == compiled
     loop.run(iterations=3000, activate_after_s=0.02)
     return loop, port
 
@@ -116,16 +124,9 @@ def test_compiled_loop_faults_like_the_stages():
 def _recorded(tmp_path, compiled: bool, inject=(), ring_s=2.0):
     from rig.loop import loop_channels
     from rig.recorder import Recorder, read_recording
-    cfg = Config()
-    dt = 2e-4
-    clock = SimClock()
-    port = make_sim_port(cfg, dt, clock=clock)
-    for knob in inject:
-        port.inject(**knob)
-    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
-                watchdog_thread=False, use_bank=compiled)
+    loop, port = _sim_loop(compiled, inject)
     path = tmp_path / f"{'compiled' if compiled else 'stages'}.h5"
-    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / dt, ring_s=ring_s).start()
+    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / DT, ring_s=ring_s).start()
     loop.recorder = rec
     loop.run(iterations=2500, activate_after_s=0.1)
     rec.close()
@@ -162,14 +163,9 @@ def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
     from rig.recorder import Recorder, read_recording
     out = {}
     for compiled in (True, False):
-        cfg = Config()
-        dt = 2e-4
-        clock = SimClock()
-        port = make_sim_port(cfg, dt, clock=clock)
-        loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
-                    watchdog_thread=False, use_bank=compiled)
+        loop, port = _sim_loop(compiled)
         path = tmp_path / f"full{compiled}.h5"
-        rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / dt,
+        rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / DT,
                        ring_s=0.0).start()                        # the smallest ring: 4096 rows
         cap = rec._cap
         rec._proc.send_signal(signal.SIGSTOP)
@@ -185,18 +181,18 @@ def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
     assert out[True] == out[False]
     dropped, rows, t_last, attr = out[True]
     assert rows == cap and dropped == 300 and attr == 300
-    assert abs(t_last - (cap - 1) * 2e-4) < 1e-9
+    assert abs(t_last - (cap - 1) * DT) < 1e-9
 
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_a_malformed_measurement_faults_on_either_path(compiled):
-    """A driver bug (a sensor value None) is a fault with the valves at null, never a dead loop."""
-    cfg = Config()
-    dt = 2e-4
-    clock = SimClock()
-    port = make_sim_port(cfg, dt, clock=clock)
-    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
-                watchdog_thread=False, use_bank=compiled)
+    """A driver bug (a sensor value None) is a fault in that period with the valves at null, never a dead
+    loop. The compiled period is called through its native entry point (no numba type dispatch), where the
+    None is a TypeError inside the call."""
+    from rig.period import _period4
+    loop, port = _sim_loop(compiled)
+    if compiled:
+        assert loop._kern.call is not _period4 and callable(loop._kern.call)
     read = port.read
 
     def bad_read(t_ns):
@@ -207,27 +203,4 @@ def test_a_malformed_measurement_faults_on_either_path(compiled):
     port.read = bad_read
     assert loop.run(iterations=2000, activate_after_s=0.01) == "fault"
     assert "TypeError" in loop.lc.fault_reason and port.last_written == [0.0] * 4
-
-
-def test_the_loop_calls_the_compiled_entry_point_and_a_bad_value_faults():
-    """The per-period call skips numba's type dispatch (native_entry); a measurement of the wrong kind then
-    is a TypeError inside the call, which the loop turns into FAULT with the valves at null."""
-    from rig.period import _period4
-    cfg = Config()
-    dt = 2e-4
-    clock = SimClock()
-    port = make_sim_port(cfg, dt, clock=clock)
-    loop = Loop(cfg, port, make_isolation_controllers(cfg, dt), clock=clock, rate_hz=1 / dt,
-                watchdog_thread=False)
-    assert loop._kern.call is not _period4 and callable(loop._kern.call)
-    read = port.read
-
-    def bad_read(t_ns):
-        m = read(t_ns)
-        if t_ns - port._t0_ns >= int(0.05e9):
-            m.stroke_m = [m.stroke_m[0], None, m.stroke_m[2], m.stroke_m[3]]    # a driver bug: no value
-        return m
-    port.read = bad_read
-    loop.run(iterations=2000, activate_after_s=0.01)
-    assert loop.lc.fault_reason is not None and "TypeError" in loop.lc.fault_reason
-    assert port.last_written == [0.0] * 4 and abs(loop.fault_t_ns - port._t0_ns - int(0.05e9)) < int(dt * 1e9)
+    assert abs(loop.fault_t_ns - port._t0_ns - int(0.05e9)) < int(DT * 1e9)
