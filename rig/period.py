@@ -1,5 +1,5 @@
-"""The compiled period of the four-mount bank path: sensor check -> controller bank -> command limit in one
-numba call, so the loop pays one dispatch per period for the arithmetic of three stages.
+"""The compiled period of the four-mount bank path: sensor check -> controller bank -> command limit -> record
+in one numba call, so the loop pays one dispatch per period for the arithmetic of four stages.
 
 The stages keep their meaning and their owners: the check and the limit are rig/safety.py's SensorCheck and
 CommandLimiter (KernelCheck / KernelLimiter below are those classes with their state in one float64 array and
@@ -164,7 +164,7 @@ def _period4(mem, ring, slot, a0, a1, a2, a3, s0, s1, s2, s3, t0, t1, t2, t3, t_
     else:
         for i in range(4):
             row[icmd + i] = 0.0
-    row[ilim] = sv[4 * 5 + 4 + 2]
+    row[ilim] = sv[4 * 5 + 4 + 2]                      # the limiter's `limited` (sv layout above)
     row[0] = t_s
     row[ilim + 1] = wake_us
     row[ilim + 2] = comp_us
@@ -207,8 +207,9 @@ class KernelCheck(SensorCheck):
     def check(self, m, t_ns: int) -> str | None:
         if m.device_fault:
             return f"device fault: {m.device_fault}"
-        c = _check_n(self.sv, np.asarray(m.accel_mps2, dtype=np.float64), np.asarray(m.stroke_m, dtype=np.float64),
-                     np.asarray(m.sample_t_ns, dtype=np.float64), t_ns, self.accel_range, self._x_bound,
+        f64 = np.float64
+        c = _check_n(self.sv, np.asarray(m.accel_mps2, dtype=f64), np.asarray(m.stroke_m, dtype=f64),
+                     np.asarray(m.sample_t_ns, dtype=f64), t_ns, self.accel_range, self._x_bound,
                      self.stale_ns, self.stuck_n)
         return self.reason(c, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns) if c else None
 

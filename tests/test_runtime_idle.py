@@ -1,6 +1,7 @@
-"""Port.idle(): the simulated plant takes the coming period's step and draws its next block of floor motion and
-sensor noise in the loop's slack instead of inside a period. The sequence it produces must be the same whether or not (and whenever) the
-prefetch ran, and the loop must call idle() only on the real clock, between periods."""
+"""Port.idle(): the simulated plant takes the coming period's step and draws its next block of floor motion
+and sensor noise in the loop's slack instead of inside a period. The sequence it produces must be the same
+whether or not (and whenever) the prefetch ran, and the loop must call idle() only on the real clock,
+between periods."""
 from __future__ import annotations
 
 import numpy as np
