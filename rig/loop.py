@@ -322,9 +322,8 @@ class Loop:
         st = lc.state
         kern = self._kern
         if kern is not None and st is not _FAULT and not m.device_fault:
-            if self._cycle_compiled(kern, m, t_ns, prev_t, st, wake_lat_ns, compute_prev_ns):
-                pass                               # the compiled period recorded the row itself
-            elif self._recorder is not None:
+            recorded = self._cycle_compiled(kern, m, t_ns, prev_t, st, wake_lat_ns, compute_prev_ns)
+            if not recorded and self._recorder is not None:
                 self._record(t_ns, m.accel_mps2, m.stroke_m, wake_lat_ns, compute_prev_ns)
         else:
             self._cycle_stages(m, t_ns, prev_t, st)
