@@ -404,17 +404,22 @@ class Loop:
         layout), or (no_ring, -1) without a row-compatible recorder (then _record does it); the rare flags
         are refreshed in the row first."""
         rec = self._recorder
-        kern = self._kern
-        if rec is None:
-            return kern.no_ring, -1
-        row = self._row
-        if row is None:
-            row = self._row = self._row_ok(rec)
-            ring = rec.ring_rows() if row and hasattr(rec, "ring_rows") else None
-            self._kring = ring if ring is not None and ring_ok(ring) else None
-        ring = self._kring
-        if ring is None:
-            return kern.no_ring, -1
+        if rec is None or (self._row is None and not self._bind_row()) or self._kring is None:
+            return self._kern.no_ring, -1
+        self._pack_flags(st)
+        return self._kring, rec.next_row()
+
+    def _bind_row(self) -> bool:
+        """Once per recorder: whether the bank's row goes to it as it is (push_row), and its ring for the
+        compiled period to write into (None: the compiled period leaves the record to _record)."""
+        rec = self._recorder
+        row = self._row = self._row_ok(rec)
+        ring = rec.ring_rows() if row and self._kern is not None and hasattr(rec, "ring_rows") else None
+        self._kring = ring if ring is not None and ring_ok(ring) else None
+        return row
+
+    def _pack_flags(self, st) -> None:
+        """The rare flags into the row buffer, only when they changed (the buffer keeps them between periods)."""
         flags = (st, self.isolation, self.overruns, self.skipped)
         if flags != self._row_flags:
             self._row_flags = flags
@@ -425,7 +430,6 @@ class Loop:
             mv[k + 2] = 1.0 if st is _FAULT else 0.0
             mv[k + 3] = float(self.overruns)
             mv[k + 4] = float(self.skipped)
-        return ring, rec.next_row()
 
     def _cycle_stages(self, m, t_ns: int, prev_t, st) -> None:
         """The stages one by one: Python controllers, other mount counts, a device fault, FAULT."""
@@ -555,7 +559,7 @@ class Loop:
         cmd = self.cmd
         row = self._row
         if row is None:
-            row = self._row = self._row_ok(rec)
+            row = self._bind_row()
         if row:
             # the bank wrote accel, stroke, raw commands and states into the row; add the rest, one copy
             mv = self._rowmv
@@ -566,14 +570,7 @@ class Loop:
             mv[0] = t_s
             mv[9], mv[10], mv[11], mv[12] = cmd
             k = self._iflag
-            flags = (lst, self.isolation, self.overruns, self.skipped)
-            if flags != self._row_flags:           # rare changes: the row buffer keeps them between periods
-                self._row_flags = flags
-                mv[k] = float(lst)
-                mv[k + 1] = 1.0 if self.isolation else 0.0
-                mv[k + 2] = 1.0 if lst is _FAULT else 0.0
-                mv[k + 3] = float(self.overruns)
-                mv[k + 4] = float(self.skipped)
+            self._pack_flags(lst)
             if not self._kran:
                 mv[k + 5] = 1.0 if self.limiter.limited else 0.0
             mv[k + 6] = wake_lat_ns * 1e-3

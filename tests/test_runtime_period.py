@@ -204,3 +204,25 @@ def test_a_malformed_measurement_faults_on_either_path(compiled):
     assert loop.run(iterations=2000, activate_after_s=0.01) == "fault"
     assert "TypeError" in loop.lc.fault_reason and port.last_written == [0.0] * 4
     assert abs(loop.fault_t_ns - port._t0_ns - int(0.05e9)) < int(DT * 1e9)
+
+
+def test_compiled_period_writes_the_ring_after_a_first_period_recorded_by_the_loop(tmp_path):
+    """The first recorded period is a fault period (the loop records it itself); after the fault is reset the
+    compiled period must still write its rows into the ring directly, and every period is in the file."""
+    from rig.loop import loop_channels
+    from rig.recorder import Recorder, read_recording
+    loop, port = _sim_loop(True, [dict(kind="device", at_s=0.0)])
+    loop.stop_on_fault = False
+    path = tmp_path / "first_fault.h5"
+    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=1 / DT).start()
+    loop.recorder = rec
+    loop.run(iterations=5)
+    assert loop.lc.fault_reason and "device fault" in loop.lc.fault_reason
+    port.clear_faults()
+    loop.reset_fault()
+    loop.stop_reason = None
+    loop.run(iterations=500, activate_after_s=0.01)
+    assert loop._kring is not None                     # the ring is bound for the compiled period
+    rec.close()
+    r = read_recording(path)
+    assert len(r["time_s"]) == 505 and r["fault"][:5].tolist() == [1.0] * 5 and r["lifecycle_state"][-1] == 2
