@@ -177,4 +177,16 @@ def test_shipped_hil_configs_load(name):
     from rig.config import load_config
     cfg = load_config(Path(drivers.__file__).parent / "devicemaps" / name)
     assert cfg.loop.rate_hz == cfg.hil.rate_hz
-    assert cfg.safety.stale_s == cfg.hil.stale_s
+    assert cfg.safety.stale_s == cfg.hil.stale_s and cfg.safety.watchdog_s == cfg.hil.watchdog_s
+
+
+def test_hil_runs_take_rate_staleness_and_watchdog_from_the_hil_section():
+    """`rig hil`, `rig run --backend hil` and `rig chirp --backend hil` run with [hil] rate_hz, stale_s and
+    watchdog_s; the [safety] values of the real rig are left as configured."""
+    from rig.commands.hil import hil_config
+    from rig.config import config_from_dict, hil_run_config
+    cfg = config_from_dict({"hil": {"rate_hz": 800.0, "stale_s": 0.2, "watchdog_s": 0.3}})
+    run = hil_run_config(cfg)
+    assert (run.loop.rate_hz, run.safety.stale_s, run.safety.watchdog_s) == (800.0, 0.2, 0.3)
+    assert hil_run_config(cfg, 400.0).loop.rate_hz == 400.0 and hil_config(cfg, 400.0) == hil_run_config(cfg, 400.0)
+    assert (cfg.safety.stale_s, cfg.safety.watchdog_s) == (0.002, 0.05)

@@ -3,24 +3,20 @@ backend and against the real drivers on the emulated rig. Real time, no floor vi
 nothing here asserts on timing."""
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 
 import pytest
 
 import drivers
-from rig.config import Config, HilConfig, VibrationConfig
+from rig.config import Config, HilConfig, VibrationConfig, hil_run_config
 from rig.port import Commands, Measurements, Port
 
 RATE_HZ = 1000.0
 
 
 def contract_config() -> Config:
-    cfg = Config()
-    return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=RATE_HZ), hil=HilConfig(rate_hz=RATE_HZ),
-                       vibration=VibrationConfig(rms_m=0.0),
-                       safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s))
+    return hil_run_config(Config().replace(hil=HilConfig(rate_hz=RATE_HZ), vibration=VibrationConfig(rms_m=0.0)))
 
 
 @pytest.fixture(scope="module", params=["sim", "hil"])

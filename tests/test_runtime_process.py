@@ -22,7 +22,9 @@ RATE = 5000.0
 
 def start_run(tmp_path, *extra, new_session=False):
     cfg = tmp_path / "rig.toml"
-    cfg.write_text("[vibration]\nrms_m = 1e-6\n[loop]\noverrun_policy = \"catch_up\"\n")
+    # watchdog above the shared VM's whole-machine stalls (45-51 ms measured, see README): these tests are about
+    # signals and recordings, and the watchdog has its own tests (test_runtime_faults)
+    cfg.write_text("[vibration]\nrms_m = 1e-6\n[loop]\noverrun_policy = \"catch_up\"\n[safety]\nwatchdog_s = 0.2\n")
     cmd = [sys.executable, "-m", "rig.cli", "run", "--config", str(cfg), "--backend", "sim", "--no-realtime",
            "--quiet", *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

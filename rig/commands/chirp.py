@@ -153,11 +153,11 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     from rig.recorder import Channel, Recorder
     from rig.recording import load_recording, save_recording_csv
 
-    from dataclasses import replace
-    if backend == "hil":
-        # driver threads deliver samples asynchronously: HIL runs use their own stale limit and rate
-        cfg = cfg.replace(safety=replace(cfg.safety, stale_s=cfg.hil.stale_s))
     rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+    if backend == "hil":
+        # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
+        from rig.config import hil_run_config
+        cfg = hil_run_config(cfg, rate)
     if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
         raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
                        f"got {amplitude_V:g}")

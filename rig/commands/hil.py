@@ -16,7 +16,6 @@ true table motion of the emulated plant under the same floor vibration.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -46,12 +45,13 @@ def add_arguments(p) -> None:
 
 
 def hil_config(cfg, rate_hz: float | None = None):
-    """The config of a HIL run: [hil] rate and staleness applied to the loop and the safety checks."""
+    """The config of a HIL run: [hil] rate, staleness limit and watchdog applied to the loop and the safety
+    checks (rig.config.hil_run_config), with the rate checked."""
+    from rig.config import hil_run_config
     rate = cfg.hil.rate_hz if rate_hz is None else rate_hz
     if not 0 < rate <= 5000:
         raise RigError(f"--rate: expected 0 < HZ <= 5000 for HIL, got {rate}")
-    return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=float(rate)),
-                       safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s))
+    return hil_run_config(cfg, rate)
 
 
 def _pct(xs: list[float]) -> dict:

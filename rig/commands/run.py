@@ -176,10 +176,9 @@ def run(args) -> int:
         raise RigError("--sim-time: only with --backend sim")
     hil = getattr(cfg, "hil", None)
     if backend == "hil" and hil is not None:
-        # HIL runs at the [hil] rate with its staleness limit (Modbus and the emulated devices set both)
-        import dataclasses
-        cfg = cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=hil.rate_hz),
-                          safety=dataclasses.replace(cfg.safety, stale_s=hil.stale_s))
+        # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
+        from rig.config import hil_run_config
+        cfg = hil_run_config(cfg)
     dt = 1.0 / cfg.loop.rate_hz
     clock = SimClock() if args.sim_time else MonotonicClock()
     port = make_port(cfg, backend, dt, clock)
