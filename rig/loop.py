@@ -642,7 +642,7 @@ class Loop:
                 if prev_wake is not None and wake - prev_wake > wd_limit and self.lc.state is not State.FAULT:
                     self.t_ns = t
                     self.fault(f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods "
-                               f"(limit safety.watchdog_s = {wd_limit / 1e6:g} ms)")
+                               f"(limit watchdog_s = {wd_limit / 1e6:g} ms)")
                 if wd is not None:
                     wd.beat += 1
                     if wd.tripped and self.lc.state is not State.FAULT:

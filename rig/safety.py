@@ -188,7 +188,7 @@ class Watchdog:
                 last_beat, last_change = b, now
             elif now - last_change > self.timeout_s and self.tripped is None:
                 self.tripped = f"watchdog: loop silent for {(now - last_change) * 1e3:.1f} ms " \
-                               f"(limit safety.watchdog_s = {self.timeout_s * 1e3:g} ms)"
+                               f"(limit watchdog_s = {self.timeout_s * 1e3:g} ms)"
                 try:
                     self._on_trip()
                 except Exception as e:   # the valve call failed: say so, the loop faults anyway

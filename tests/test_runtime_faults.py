@@ -54,7 +54,7 @@ CASES = [
     ("device", {"kind": "device", "mount": 3}, lambda c: K0, "device fault"),
     # a stall of 3 watchdog limits inside period K0: caught at the first wake after it
     ("overrun", {"kind": "overrun", "extra_s": 0.15}, lambda c: K0 + 1 + math.ceil(0.15 / DT),
-     "between periods (limit safety.watchdog_s = 50 ms)"),
+     "between periods (limit watchdog_s = 50 ms)"),
 ]
 
 
@@ -164,4 +164,4 @@ def test_watchdog_thread_nulls_valve_when_the_loop_hangs():
     threading.Timer(0.1, hang.set).start()
     reason = loop.run(seconds=1.0)
     assert seen["safe_calls_during_hang"] == 1          # the valve went to null while the loop hung
-    assert reason == "fault" and "(limit safety.watchdog_s = 50 ms)" in loop.lc.fault_reason
+    assert reason == "fault" and "(limit watchdog_s = 50 ms)" in loop.lc.fault_reason
