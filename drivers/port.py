@@ -80,6 +80,13 @@ class DriverPort:
     def safe_state(self) -> None:
         self.valves.null()
 
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         try:
             if self.opened:

@@ -17,6 +17,11 @@ from rig.errors import ConfigError
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
 
 
+def mount_names(n: int) -> tuple[str, ...]:
+    """Names of n mounts: MOUNTS order, `mount<i>` beyond the four."""
+    return MOUNTS[:n] if n <= len(MOUNTS) else tuple(f"mount{i}" for i in range(n))
+
+
 def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None):
     """A config field with its unit and physical range."""
     return field(default=default, metadata={"unit": unit, "gt": gt, "ge": ge, "le": le, "lt": lt,

@@ -73,6 +73,18 @@ class Recorder:
         self._proc: subprocess.Popen | None = None
         self._mm: mmap.mmap | None = None
         self._ring: np.ndarray | None = None     # ring_rows() view
+        self._final_attrs: dict = {}
+
+    # ---- as a context manager: started on entry, closed (with the final attributes) on exit -------------
+    def __enter__(self) -> "Recorder":
+        return self.start() if self._proc is None else self
+
+    def __exit__(self, *exc) -> None:
+        self.close(**self._final_attrs)
+
+    def set_final_attrs(self, **attrs) -> None:
+        """Attributes written at close by the context manager (stop reason, counters)."""
+        self._final_attrs.update(attrs)
 
     # ---- set-up and tear-down (not in the period) ----------------------------------------------------
     def start(self, timeout_s: float = 60.0) -> "Recorder":

@@ -108,6 +108,13 @@ class SimBackend:
     def open(self) -> None:
         self.opened = True
 
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         self.opened = False
 

@@ -15,8 +15,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.signal
 
+from rig.clock import SimClock
+from rig.config import VibrationConfig, load_config
 from rig.errors import RigError
+from rig.lifecycle import State
+from rig.session import Session
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,13 +41,11 @@ def _rms(x):
 
 
 def _band(x, fs, lo=1.0, hi=100.0):
-    import scipy.signal
     sos = scipy.signal.butter(4, (lo, hi), btype="bandpass", fs=fs, output="sos")
     return scipy.signal.sosfiltfilt(sos, np.asarray(x, dtype=float))
 
 
 def run(args) -> int:
-    from rig.config import load_config, VibrationConfig
     cfg = load_config(args.config)
     if not 0.5 <= args.seconds <= 600:
         raise RigError(f"--seconds: expected 0.5 to 600 s per phase, got {args.seconds}")
@@ -55,22 +58,10 @@ def run(args) -> int:
         cfg = cfg.replace(vibration=VibrationConfig(v.band_lo_hz, v.band_hi_hz, args.rms_um * 1e-6, v.seed))
     rate = cfg.loop.rate_hz
     dt = 1.0 / rate
-    from controllers.isolation import make_isolation_controllers
-    from rig.clock import SimClock
-    from rig.lifecycle import State
-    from rig.loop import Loop
-    from sim_backend.backend import make_sim_port
-
     v = cfg.vibration
     log = (lambda s: print(f"rig demo: {s}", file=sys.stderr, flush=True))
     log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms (seed {v.seed}); "
         f"loop {rate:g} Hz in simulated time; {args.seconds:g} s isolation off, then {args.seconds:g} s on")
-    port = make_sim_port(cfg, dt, cmd_delay_periods=1)
-    plant = port.plant
-    ctrls = make_isolation_controllers(cfg, dt)
-    loop = Loop(cfg, port, ctrls, clock=SimClock(), isolation=False, stop_on_fault=True)
-    loop.configure()
-    loop.activate()
     n = int(round(args.seconds * rate))
     N = 2 * n
     table = np.empty(N)
@@ -79,24 +70,26 @@ def run(args) -> int:
     cmd = np.empty((N, 4))
     stroke = np.empty((N, 4))
     limited = np.zeros(N, dtype=bool)
-    period = loop.period_ns
-    t0 = time.perf_counter()
-    for k in range(N):
-        if k == n:
-            loop.request_isolation(True)
-            log(f"t = {k * dt:.1f} s: isolation on")
-        loop.cycle(k * period)
-        if loop.state is State.FAULT:
-            raise RigError(f"demo: the loop faulted at t = {k * dt:.3f} s: {loop.lc.fault_reason}")
-        table[k] = plant.table_m
-        tool[k] = plant.tool_m
-        floor[k] = sum(plant.floor_m) * 0.25
-        cmd[k] = loop.cmd
-        stroke[k] = plant.stroke_m
-        limited[k] = loop.limiter.limited
-    wall = time.perf_counter() - t0
+    with Session(cfg, "sim", clock=SimClock(), isolation=False, port_options={"cmd_delay_periods": 1}) as session:
+        loop, plant = session.loop, session.port.plant
+        loop.activate()
+        period = loop.period_ns
+        t0 = time.perf_counter()
+        for k in range(N):
+            if k == n:
+                loop.request_isolation(True)
+                log(f"t = {k * dt:.1f} s: isolation on")
+            loop.cycle(k * period)
+            if loop.state is State.FAULT:
+                raise RigError(f"demo: the loop faulted at t = {k * dt:.3f} s: {loop.lc.fault_reason}")
+            table[k] = plant.table_m
+            tool[k] = plant.tool_m
+            floor[k] = sum(plant.floor_m) * 0.25
+            cmd[k] = loop.cmd
+            stroke[k] = plant.stroke_m
+            limited[k] = loop.limiter.limited
+        wall = time.perf_counter() - t0
     log(f"{N} periods in {wall:.1f} s wall ({wall / N * 1e6:.1f} us per period)")
-    loop.deactivate()
 
     s = int(round(args.settle * rate))
     off, on = slice(s, n), slice(n + s, N)
