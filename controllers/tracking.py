@@ -20,6 +20,7 @@ import control
 import numba
 import numpy as np
 
+from rig.config import ControllerConfig, SafetyConfig
 from sim_backend.linear import g_eha
 
 KIND = 3                      # rig/kernel.py dispatches on it
@@ -30,14 +31,17 @@ COEFFICIENTS = ("kp", "half_dt_ki", "ad", "bd", "limit_V", "slew_V")
 _KP, _HI, _AD, _BD, _LIM, _SLEW = range(6)
 
 
+_CC, _SC = ControllerConfig(), SafetyConfig()      # the one source of defaults: rig/config.py
+
+
 @dataclass(frozen=True)
 class PIDParams:
-    kp_V_per_m: float = 3.0e5
-    ki_V_per_ms: float = 1.0e7
-    kd_Vs_per_m: float = 0.0
-    deriv_hz: float = 1000.0
-    limit_V: float = 10.0
-    slew_V_per_s: float = 1.0e4
+    kp_V_per_m: float = _CC.track_kp_V_per_m
+    ki_V_per_ms: float = _CC.track_ki_V_per_ms
+    kd_Vs_per_m: float = _CC.track_kd_Vs_per_m
+    deriv_hz: float = _CC.track_deriv_hz
+    limit_V: float = _SC.valve_limit_V
+    slew_V_per_s: float = _SC.slew_V_per_s
 
 
 class TrackingPID:

@@ -2,9 +2,9 @@
 (controllers/isolation.py, unchanged structure) designed for the HIL loop rate and the drivers' timing.
 
 HIL timing (drivers/devicemaps/valve408_canopen.md): the sample read in period k is the plant at the SYNC of
-period k-1 and the command of period k acts from period k on, i.e. a ZOH plus one period of delay. Measured
-through the drivers at 500 Hz: one period in 92-99 % of the periods, the rest one or two more (a late Modbus
-reply; the port then holds the command and the controllers catch up on the conversions, drivers/port.py).
+period k-1 and the command of period k acts from period k on, i.e. a ZOH plus one period of delay; through
+the drivers mostly one period, now and then one or two more (a late Modbus reply; the port then holds the
+command and the controllers catch up on the conversions, drivers/port.py).
 
 Design, in the frequency domain (controllers/analysis.py, the discrete four-mount loop with all loops closed):
 maximise the predicted reduction of rms table motion under the configured floor spectrum, sensor noise and
@@ -27,6 +27,11 @@ import math
 import sys
 
 import numpy as np
+
+from controllers.analysis import DiscreteRig, mimo, siso
+from controllers.isolation import IsolationController, params_from_config
+from rig.config import Config
+from sim_backend.rig_plant import I_TABLE, FloorMotion, RigPlant
 
 KEYS = ("blend_hz", "kp_V_per_m", "pi_corner_hz", "lead1_zero_hz", "lead1_pole_hz", "lead2_zero_hz", "lead2_pole_hz",
         "rolloff_hz", "rolloff_zeta", "notch_hz", "prewarp_hz")
@@ -57,8 +62,6 @@ class Predictor:
     """Predicted isolation of a design on the discrete rig at one rate (the rig's responses computed once)."""
 
     def __init__(self, cfg, dt: float, lsb_mps2: float | None = None):
-        from controllers.analysis import DiscreteRig
-        from sim_backend.rig_plant import RigPlant
         self.cfg, self.dt = cfg, dt
         self.rig = DiscreteRig(cfg, dt)
         self.S = floor_psd(cfg, dt, self.rig.f)
@@ -70,9 +73,6 @@ class Predictor:
     def __call__(self, params, delays=(1,)) -> dict:
         """{delay: {stable, gm_db, pm_deg, crossover_hz, reduction_db, passive_um, noise_um}}; the reduction is
         20 log10(rms table motion passive / controlled) with correlated floor motion and sensor noise."""
-        from controllers.analysis import mimo, siso
-        from controllers.isolation import IsolationController
-        from sim_backend.rig_plant import I_TABLE
         rig, o, rho = self.rig, I_TABLE + 1, FLOOR_CORRELATION
         ctrls = [IsolationController(params, self.dt) for _ in range(4)]
         Ka = ctrls[0].frf(rig.w)[0]
@@ -104,8 +104,6 @@ def table_rms(cfg, params, dt: float, seconds: float, delay: int, isolation: boo
     if lsb_mps2 is None:
         lsb_mps2 = accel_lsb_mps2(cfg)
     import dataclasses
-    from controllers.isolation import IsolationController
-    from sim_backend.rig_plant import FloorMotion, RigPlant
     fcfg = cfg.replace(vibration=dataclasses.replace(cfg.vibration, seed=seed))
     plant = RigPlant(cfg, dt, floor=FloorMotion.from_config(fcfg, dt), seed=seed)
     ctrls = [IsolationController(params, dt) for _ in range(4)]
@@ -136,8 +134,6 @@ def tune(rate_hz: float = 500.0, nominal_delay: int = 2, gm_min: float = 4.0, pm
          maxiter: int = 600):
     """Nelder-Mead on the predicted reduction at the nominal delay, margins as penalties (see the module doc)."""
     import scipy.optimize
-    from controllers.isolation import params_from_config
-    from rig.config import Config
     cfg = Config()
     dt = 1.0 / rate_hz
     pred = Predictor(cfg, dt)

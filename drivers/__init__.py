@@ -19,9 +19,9 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
                       poll_s: float | None = None, on_close=None, priority: int | None = None,
                       sample_driven: bool | None = None):
     """The three drivers as one port (nothing is opened here; the hardware libraries load here)."""
-    from drivers.canopen_valves import CanopenValves
-    from drivers.modbus_io import ModbusAnalogIO
-    from drivers.serial_dta import DisplacementAmplifier
+    from drivers.canopen_valves import CanopenValves           # lazy: loads canopen and python-can
+    from drivers.modbus_io import ModbusAnalogIO               # lazy: loads pymodbus
+    from drivers.serial_dta import DisplacementAmplifier       # lazy: loads pyserial
     d = cfg.drivers
     names = list(MOUNTS)
     prio = d.thread_priority if priority is None else priority

@@ -19,6 +19,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
 from controllers.playback import SignalPlayback
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
@@ -196,33 +199,24 @@ def run(args) -> int:
     backend = args.backend or cfg.backend.name
     if args.realtime and backend != "sim":
         raise RigError("--realtime: only for --backend sim (hil and hardware always run in real time)")
-    try:
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-        bar = Progress(TextColumn("chirp"), BarColumn(), TextColumn("{task.completed:6.1f}/{task.total:.1f} s"),
-                       TimeRemainingColumn(), console=Console(stderr=True), redirect_stdout=False)
-    except ImportError:  # pragma: no cover - rich is a dependency
-        bar = None
+    bar = Progress(TextColumn("chirp"), BarColumn(), TextColumn("{task.completed:6.1f}/{task.total:.1f} s"),
+                   TimeRemainingColumn(), console=Console(stderr=True), redirect_stdout=False)
     task = None
 
     def progress(t_s, total_s):
         nonlocal task
-        if bar is None:
-            return
         if task is None:
             task = bar.add_task("chirp", total=total_s)
         bar.update(task, completed=t_s)
 
-    if bar is not None:
-        bar.start()
+    bar.start()
     try:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
                       duration_s=args.duration, rate_hz=args.rate, out=args.out, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
                       progress=progress)
     finally:
-        if bar is not None:
-            bar.stop()
+        bar.stop()
     print(f"chirp {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
           f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
           f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}", file=sys.stderr)
