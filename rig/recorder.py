@@ -8,7 +8,7 @@ interval and the file still opens. A full ring drops the row and counts it (`dro
 
 The writer is a thread of its own process (`python -m rig.recorder WRITER`), the ring a shared memory map.
 Why not a thread of the loop's process: h5py holds the GIL for each call, and a GIL-holding writer delays the
-loop's wake-up by up to the interpreter's switch interval (measured here: p99 wake latency doubled at 5 kHz).
+loop's wake-up by up to the interpreter's switch interval.
 If the loop's process dies (even by kill -9) the writer sees its command pipe close, drains what is in the
 ring and closes the file properly (attribute complete stays False).
 

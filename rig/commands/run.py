@@ -3,8 +3,8 @@
 Start-up: configure (open the port) -> INACTIVE for --settle seconds (reading and checking, valve at null,
 controllers stepped so their filters warm up) -> ACTIVE. On the hil and hardware backends the floor is already
 moving when the loop starts, and the isolation controllers' double integration of acceleration needs a few
-time constants of its blend to forget its cold start (2 / blend_hz: 5 s for the HIL design, 20 s for the
-5 kHz design); activating earlier with isolation on put the HIL valves at the clamp (measured). So --settle
+time constants of its blend to forget its cold start (2 / blend_hz); activating earlier with isolation on
+can put the valves at the clamp. So --settle
 defaults to that warm-up there, and to 0.05 s on the sim backend (the simulated plant starts at rest with
 the loop). Stop: --seconds elapsed, Ctrl-C (SIGINT) or SIGTERM -> safe stop (valve to null), recording closed.
 
