@@ -57,6 +57,8 @@ import numpy as np
 
 from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
+from controllers.limits import clamp, slew
+from controllers.state import step_law
 from rig.config import MOUNTS, ControllerConfig, SafetyConfig
 from sim_backend.linear import ActuatorParams
 
@@ -234,11 +236,7 @@ class IsolationController:
         itself). state: a float64 array or a list, updated in place and returned."""
         if abs(dt - self.dt) > 1e-6 * self.dt:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
-        st = state if isinstance(state, np.ndarray) else np.array(state, dtype=np.float64)
-        u = isolation_step(st, self._coef, float(meas[0]), float(meas[1]))
-        if st is not state:
-            state[:] = st.tolist()
-        return u, state
+        return step_law(isolation_step, state, self._coef, float(meas[0]), float(meas[1])), state
 
     def suspended(self, state: list) -> bool:
         """True while the saturation recovery holds isolation off (the request stays on)."""
@@ -359,22 +357,9 @@ def isolation_step(st, cf, a, s):
         u = -(kp * v + integ) + b - cent
     else:
         u = 0.0 + b - cent
-    up = st[o + _U]
-    slew = cf[_CF_SLEW]
-    sat = 0.0
-    if u - up > slew:
-        u = up + slew
-        sat = 1.0
-    elif up - u > slew:
-        u = up - slew
-        sat = -1.0
+    u, sat = slew(u, st[o + _U], cf[_CF_SLEW], 0.0)
     lim = cf[_CF_LIM]
-    if u > lim:
-        u = lim
-        sat = 1.0
-    elif u < -lim:
-        u = -lim
-        sat = -1.0
+    u, sat = clamp(u, lim, sat)
     if sat != 0.0:
         # anti-windup (conditional integration): drop increments that push further into the limit
         if d_i * sat < 0.0:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from controllers.state import step_law
+
 KIND = 2                      # rig/kernel.py dispatches on it
 
 STATE_NAMES = ("sample", "running")
@@ -40,11 +42,7 @@ class SignalPlayback:
         return [state[_K], 1.0 if on else 0.0]
 
     def step(self, state, meas, dt: float):
-        st = state if isinstance(state, np.ndarray) else np.array(state, dtype=np.float64)
-        u = playback_step(st, self.samples_V)
-        if st is not state:
-            state[:] = st.tolist()
-        return u, state
+        return step_law(playback_step, state, self.samples_V), state
 
 
 @numba.njit(cache=True)

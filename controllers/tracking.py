@@ -20,6 +20,8 @@ import control
 import numba
 import numpy as np
 
+from controllers.limits import clamp, slew
+from controllers.state import step_law
 from rig.config import ControllerConfig, SafetyConfig
 from sim_backend.linear import g_eha
 
@@ -76,11 +78,7 @@ class TrackingPID:
     def step(self, state, meas, dt: float):
         if abs(dt - self.dt) > 1e-6 * self.dt:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
-        st = state if isinstance(state, np.ndarray) else np.array(state, dtype=np.float64)
-        u = pid_step(st, self._coef, float(meas[0]), float(meas[1]))
-        if st is not state:
-            state[:] = st.tolist()
-        return u, state
+        return step_law(pid_step, state, self._coef, float(meas[0]), float(meas[1])), state
 
     def frf(self, w: np.ndarray) -> np.ndarray:
         """C(z) at z = exp(j w dt), linear range."""
@@ -98,22 +96,8 @@ def pid_step(st, cf, r, x):
     integ = st[_I] + d_i
     d = cf[_AD] * st[_D] + cf[_BD] * (e - st[_E])
     u = cf[_KP] * e + integ + d
-    lim = cf[_LIM]
-    sat = 0.0
-    if u > lim:
-        u = lim
-        sat = 1.0
-    elif u < -lim:
-        u = -lim
-        sat = -1.0
-    up = st[_U]
-    slew = cf[_SLEW]
-    if u - up > slew:
-        u = up + slew
-        sat = 1.0
-    elif up - u > slew:
-        u = up - slew
-        sat = -1.0
+    u, sat = clamp(u, cf[_LIM], 0.0)
+    u, sat = slew(u, st[_U], cf[_SLEW], sat)
     if sat * d_i > 0.0:
         integ -= d_i                     # anti-windup: no increment pushing further into the limit
     st[_I] = integ

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import time
 
-from rig.port import Commands, Measurements
+from rig.port import Commands, Measurements, PortContext
 
 
-class DriverPort:
+class DriverPort(PortContext):
     transports = ("canopen", "modbus_tcp", "serial")
 
     def __init__(self, name: str, valves, accel, stroke, *, n_mounts: int = 4, on_close=None,
@@ -79,13 +79,6 @@ class DriverPort:
 
     def safe_state(self) -> None:
         self.valves.null()
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def close(self) -> None:
         try:

@@ -51,21 +51,22 @@ def check_sensors(cs, lim, acc, xs, ts, t_ns):
             return CHECK_IMPLAUSIBLE + i
         if tsi != cs[_C_TS, i]:                                           # a new sample: stuck check
             cs[_C_TS, i] = tsi
-            if a == cs[_C_A, i]:
-                cs[_C_SA, i] += 1.0
-                if cs[_C_SA, i] >= stuck_n:
-                    return CHECK_STUCK_ACCEL + i
-            else:
-                cs[_C_SA, i] = 0.0
-                cs[_C_A, i] = a
-            if x == cs[_C_X, i]:
-                cs[_C_SX, i] += 1.0
-                if cs[_C_SX, i] >= stuck_n:
-                    return CHECK_STUCK_STROKE + i
-            else:
-                cs[_C_SX, i] = 0.0
-                cs[_C_X, i] = x
+            if _stuck(cs, _C_A, _C_SA, i, a, stuck_n):
+                return CHECK_STUCK_ACCEL + i
+            if _stuck(cs, _C_X, _C_SX, i, x, stuck_n):
+                return CHECK_STUCK_STROKE + i
     return 0
+
+
+@numba.njit(cache=True, inline="always")
+def _stuck(cs, last, count, i, v, stuck_n):
+    """Count a new sample equal to the last one; True once stuck_n of them came in a row."""
+    if v == cs[last, i]:
+        cs[count, i] += 1.0
+        return cs[count, i] >= stuck_n
+    cs[count, i] = 0.0
+    cs[last, i] = v
+    return False
 
 
 @numba.njit(cache=True)

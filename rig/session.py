@@ -70,8 +70,8 @@ class Session:
         try:
             if self._signals:
                 self._install_signals(stack)
-            self.port = stack.enter_context(_closing(make_port(self.cfg, self.backend, dt=self.dt,
-                                                                clock=self.clock, **self._port_options)))
+            self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
+            stack.callback(self.port.close)         # opened by the loop's configure, closed last
             ctrls = self._controllers
             if ctrls is None:
                 ctrls = make_isolation_controllers(self.cfg, self.dt)
@@ -189,26 +189,11 @@ class Session:
                 "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us()}
 
 
-class _closing(contextlib.AbstractContextManager):
-    """A port as a context manager (ports have open/close; the loop opens it, the session closes it)."""
+class _Helper(threading.Thread):
+    """A helper thread of the session: started on entry, halted and joined on exit."""
 
-    def __init__(self, port) -> None:
-        self.port = port
-
-    def __enter__(self):
-        return self.port
-
-    def __exit__(self, *exc) -> None:
-        self.port.close()
-
-
-class _StatusLine(threading.Thread):
-    """Live status line on stderr (a carriage-return line on a terminal, one line a second otherwise)."""
-
-    def __init__(self, loop) -> None:
-        super().__init__(name="rig-status", daemon=True)
-        self.loop = loop
-        self.tty = sys.stderr.isatty()
+    def __init__(self, name: str) -> None:
+        super().__init__(name=name, daemon=True)
         self._halt = threading.Event()
 
     def __enter__(self):
@@ -218,6 +203,18 @@ class _StatusLine(threading.Thread):
     def __exit__(self, *exc) -> None:
         self._halt.set()
         self.join(timeout=1.0)
+
+
+class _StatusLine(_Helper):
+    """Live status line on stderr (a carriage-return line on a terminal, one line a second otherwise)."""
+
+    def __init__(self, loop) -> None:
+        super().__init__("rig-status")
+        self.loop = loop
+        self.tty = sys.stderr.isatty()
+
+    def __exit__(self, *exc) -> None:
+        super().__exit__(*exc)
         if self.tty:
             sys.stderr.write("\n")
 
@@ -240,22 +237,13 @@ class _StatusLine(threading.Thread):
             sys.stderr.flush()
 
 
-class _ControlFile(threading.Thread):
+class _ControlFile(_Helper):
     """Polls a control file every 0.1 s: `on` / `off` switch isolation, `stop` stops safely."""
 
     def __init__(self, path: str, session: Session) -> None:
-        super().__init__(name="rig-control", daemon=True)
+        super().__init__("rig-control")
         self.path, self.session = path, session
-        self._halt = threading.Event()
         self._last = None
-
-    def __enter__(self):
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._halt.set()
-        self.join(timeout=1.0)
 
     def run(self) -> None:
         while not self._halt.wait(0.1):

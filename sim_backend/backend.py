@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig.errors import RigError
-from rig.port import Commands, Measurements
+from rig.port import Commands, Measurements, PortContext
 from sim_backend.actuator import Effects, StandPlant
 from sim_backend.linear import ActuatorParams
 from sim_backend.rig_plant import FloorMotion, RigPlant
@@ -67,7 +67,7 @@ class StandAdapter:
         self.stroke_m = [float(pos)]
 
 
-class SimBackend:
+class SimBackend(PortContext):
     """Port over a stepped plant. dt is the loop period (one plant step); noise is added here (seeded,
     Gaussian, rms accel_noise_mps2 / stroke_noise_m) unless set to 0: real sensors are never bit-exact
     constant, and the stuck check relies on that."""
@@ -110,13 +110,6 @@ class SimBackend:
     # ---- Port ---------------------------------------------------------------------------------------
     def open(self) -> None:
         self.opened = True
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def close(self) -> None:
         self.opened = False
