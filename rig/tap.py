@@ -11,7 +11,6 @@ from operator import itemgetter
 
 from rig.kernel import ring_ok
 from rig.lifecycle import State
-from rig.recorder import Channel
 
 
 class RecordingTap:

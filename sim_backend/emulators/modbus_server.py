@@ -21,7 +21,7 @@ import time
 from pymodbus.constants import ExcCodes
 
 from drivers.protocol.modbus_map import (N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT, REG_FIFO,
-                                        REG_STATUS, REG_WDOG, raw_to_volts, volts_to_raw)  # noqa: F401
+                                        REG_STATUS, REG_WDOG, volts_to_raw)
 from rig.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
