@@ -26,15 +26,16 @@ class RecordingTap:
         self._slot = -1
 
     def bind(self, recorder) -> None:
-        """Record into `recorder` from the next period on (None: nothing recorded)."""
-        self.recorder = recorder
-        self._flags = None
+        """Record into `recorder` from the next period on (None: nothing recorded). The recorder is set last:
+        another thread that sees it changed may close the old one."""
         ring = None
         if recorder is not None and getattr(recorder, "ncols", None) == len(self.row) and \
                 hasattr(recorder, "ring_rows") and hasattr(recorder, "next_row"):
             ring = recorder.ring_rows()
             ring = ring if ring_ok(ring) else None
         self._ring = ring
+        self._flags = None
+        self.recorder = recorder
 
     def flags(self, state: State, isolation: bool, overruns: int, skipped: int) -> None:
         """The rare flags into the row, only when they changed (the row keeps them between periods)."""
