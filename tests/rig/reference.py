@@ -2,10 +2,11 @@
 limit_commands): the first versions, kept so property tests can hold the compiled rules against them."""
 from __future__ import annotations
 
-from rig.config import Config, mount_names
+from rig.config import Config
+from rig.safety import SensorCheck
 
 
-class RefSensorCheck:
+class RefSensorCheck(SensorCheck):
     """Plausibility of one Measurements per period. `check` returns None or a one-line fault reason.
 
     NaN/inf, out of sensor range, stroke beyond the stroke limit, stale (sample time stamp older than
@@ -14,15 +15,8 @@ class RefSensorCheck:
     """
 
     def __init__(self, cfg: Config, n_mounts: int, names: tuple[str, ...] | None = None) -> None:
-        s = cfg.safety
-        self.n = n_mounts
-        self.names = names or mount_names(n_mounts)
-        self.accel_range = s.accel_range_mps2
-        self.stroke_range = s.stroke_range_m
-        self.stroke_limit = s.stroke_limit_m
-        self.stale_ns = int(round(s.stale_s * 1e9))
-        self.stuck_n = s.stuck_samples
-        self._x_bound = min(self.stroke_range, self.stroke_limit)
+        super().__init__(cfg, n_mounts, names)        # the limits from [safety], as the runtime's builder reads them
+        self._x_bound = self.x_bound
         self.reset()
 
     def reset(self) -> None:
