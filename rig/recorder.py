@@ -74,6 +74,7 @@ class Recorder:
         self._mm: mmap.mmap | None = None
         self._ring: np.ndarray | None = None     # ring_rows() view
         self._final_attrs: dict = {}
+        self._death_reported = False         # writer_died() said so: close() does not raise it again
 
     # ---- as a context manager: started on entry, closed (with the final attributes) on exit -------------
     def __enter__(self) -> "Recorder":
@@ -143,7 +144,7 @@ class Recorder:
             except BufferError:                # a ring_rows() view is still held: unmapped with it
                 pass
             self._mm = None
-        if self.error:
+        if self.error and not self._death_reported:
             raise RecordingError(f"{self.path}: recording failed: {self.error}")
 
     def _kill(self) -> None:
@@ -210,6 +211,22 @@ class Recorder:
                 self._send({"event": [float(t_s), str(text)]})
             except (OSError, ValueError) as e:
                 self.error = self.error or f"writer gone: {e}"
+
+    @property
+    def pid(self) -> int | None:
+        """The writer process's pid (None when not started)."""
+        return self._proc.pid if self._proc is not None else None
+
+    def writer_died(self) -> str | None:
+        """None while the writer runs (or before start / after close); else, once reported, what happened.
+        A waitpid without blocking: the loop asks at 10 Hz."""
+        if self._proc is None or self._proc.poll() is None:
+            return None
+        self._death_reported = True
+        rc = self._proc.returncode
+        how = f"killed by signal {-rc}" if rc < 0 else f"exit code {rc}"
+        return (f"the writer process of {self.path} ended ({how}) while recording: the rows it had not flushed "
+                f"are lost, the file keeps the ones before")
 
     def written(self) -> int:
         """Rows the writer has taken from the ring so far."""
