@@ -17,7 +17,7 @@ The emulated devices behind the real drivers (hil; sim_backend/emulators, set by
   range / nan               MOUNT:stroke         the amplifier flags the channel over range / not present
   silence / garbage / stale / fault / hold           MOUNT:valve   one valve node
 Both backends:
-  overrun   *:-    every period from T costs 1.5 periods more: the loop falls behind real time (lag rule)
+  overrun   *:-    every period from T costs 1.2 periods more: the loop falls behind real time (lag rule)
   stall     *:-    one stall of three watchdog limits inside the period at T (watchdog)
   recorder  *:-    the recording's writer process is killed (needs --record)
 """
@@ -41,7 +41,7 @@ HIL_DEVICE = {"accel": ("silence", "exception", "garbage", "stale"),
 HIL_CHANNEL = {"range": "OR", "nan": "NP"}                     # serial amplifier channel status
 HIL_VALVE = ("silence", "garbage", "stale", "fault", "hold")
 SIGNALS = ("accel", "stroke", "valve")
-OVERRUN_PERIODS = 1.5        # `overrun`: extra cost of every period, in periods
+OVERRUN_PERIODS = 1.2        # `overrun`: extra cost of every period, in periods
 STALL_WATCHDOGS = 3.0        # `stall`: one stall of this many watchdog limits
 
 
@@ -134,6 +134,7 @@ class Armed:
         self._thread: threading.Thread | None = None
         self._extra_ns = 0              # the slow-read proxy's cost per read (hil overrun/stall)
         self._extra_every = False
+        self.rows_at_kill: int | None = None      # `recorder`: rows the loop had committed when the writer died
 
     def __enter__(self) -> "Armed":
         s = self.session
@@ -182,6 +183,7 @@ class Armed:
     def _apply(self, inj: Injection) -> None:
         s = self.session
         if inj.kind == "recorder":
+            self.rows_at_kill = s.recorder.rows_committed
             os.kill(s.recorder.pid, signal.SIGKILL)
         elif inj.kind == "overrun":
             self._extra_ns, self._extra_every = int(OVERRUN_PERIODS * s.loop.period_ns), True

@@ -19,13 +19,14 @@ loop records, the run faults at once (valves to null) and says so. A run stops t
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 from rig.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
 from rig.gate import LifecycleGate
-from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, PeriodKernel
+from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
 from rig.lifecycle import State
 from rig.port import Commands
 from rig.safety import LIMIT_NAN, LIMIT_OSC
@@ -87,14 +88,27 @@ class Loop:
         gate.t_ns = t_ns
         if gate.pending:
             gate.apply_requests()
+        self._susp_count -= 1
+        if self._susp_count <= 0:           # 10 Hz: suspension events; the recorder's writer alive
+            self._susp_count = self._susp_every
+            self._watch_suspension()
+            if tap.recorder is not None:
+                self._watch_recorder()
         try:
             m = self.port.read(t_ns)
         except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
             gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
             return
         self.last_meas = m
+        wd = self.sched.wd
+        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
+            gate.fault(wd.tripped)          # held up inside this period: the watchdog's line, not the aftermath
         if m.device_fault and gate.lc.state is not _FAULT:
             gate.fault(f"device fault: {m.device_fault}")
+        if m.accel_older and len(m.accel_older) > OLDER_CAP and gate.lc.state is not _FAULT:
+            gate.fault(f"the loop fell {len(m.accel_older)} conversions behind the accelerometer module (it "
+                       f"replays at most {OLDER_CAP}): held up for about {len(m.accel_older) * self.dt * 1e3:.0f} ms")
+            m = dataclasses.replace(m, accel_older=())      # recorded as the fault period, newest only
         st = gate.lc.state
         recording = tap.recorder is not None
         if recording:
@@ -128,12 +142,6 @@ class Loop:
                 tap.flags(gate.lc.state, gate.isolation, self.sched.overruns, self.sched.skipped)
         if recording:
             tap.close(copied=code == 0 and slot >= 0 and not faulted)
-        self._susp_count -= 1
-        if self._susp_count <= 0:
-            self._susp_count = self._susp_every
-            self._watch_suspension()
-            if recording:
-                self._watch_recorder()
 
     def _reason(self, code: int, m, t_ns: int) -> str:
         if code < LIMIT_NAN:

@@ -7,6 +7,9 @@ an attribute, and flushes the file every flush_s (<= 0.1 s): a kill -9 loses at 
 interval and the file still opens. A full ring drops the row and counts it (`dropped_rows`), never waits.
 
 The writer is a thread of its own process (`python -m rig.recorder WRITER`), the ring a shared memory map.
+In real-time runs it raises itself to SCHED_FIFO `priority` (WRITER_PRIORITY: below the loop and the drivers,
+above everything else), so a loaded machine does not leave rows in the ring for long: what a kill -9 of the
+whole process group loses is what is not yet flushed.
 Why not a thread of the loop's process: h5py holds the GIL for each call, and a GIL-holding writer delays the
 loop's wake-up by up to the interpreter's switch interval.
 If the loop's process dies (even by kill -9) the writer sees its command pipe close, drains what is in the
@@ -34,11 +37,13 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import RecordingError
+from rig.rt import raise_priority
 
 log = logging.getLogger("rig.recorder")
 
 _HDR = 64                        # ring header: head (int64 @0), tail (int64 @8)
 _Q = struct.Struct("<q")
+WRITER_PRIORITY = 20             # SCHED_FIFO of the writer in real-time runs (loop 80, drivers 55, HIL devices 50)
 
 
 @dataclass(frozen=True)
@@ -52,13 +57,15 @@ class Channel:
 
 class Recorder:
     def __init__(self, path: str | Path, channels: list[Channel], *, rate_hz: float, flush_s: float = 0.05,
-                 ring_s: float = 2.0, chunk_rows: int = 1024, attrs: dict | None = None) -> None:
+                 ring_s: float = 2.0, chunk_rows: int = 1024, attrs: dict | None = None,
+                 priority: int = 0) -> None:
         if not channels:
             raise ValueError("a recording needs at least one channel")
         self.path = Path(path)
         self.channels = list(channels)
         self.ncols = sum(c.width for c in self.channels)
         self.rate_hz = float(rate_hz)
+        self.priority = int(priority)
         self.flush_s = min(float(flush_s), 0.1)
         self.chunk_rows = int(chunk_rows)
         self.attrs = {k: _jsonable(v) for k, v in (attrs or {}).items()}
@@ -98,7 +105,8 @@ class Recorder:
             os.close(fd)
         spec = {"path": str(self.path), "ring": ring_path, "cap": self._cap, "ncols": self.ncols,
                 "channels": [asdict(c) for c in self.channels], "rate_hz": self.rate_hz,
-                "flush_s": self.flush_s, "chunk_rows": self.chunk_rows, "attrs": self.attrs}
+                "flush_s": self.flush_s, "chunk_rows": self.chunk_rows, "attrs": self.attrs,
+                "priority": self.priority}
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", "rig.recorder"], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, text=True, bufsize=1,
@@ -211,6 +219,11 @@ class Recorder:
                 self._send({"event": [float(t_s), str(text)]})
             except (OSError, ValueError) as e:
                 self.error = self.error or f"writer gone: {e}"
+
+    @property
+    def rows_committed(self) -> int:
+        """Rows the producer has committed to the ring so far."""
+        return self._head
 
     @property
     def pid(self) -> int | None:
@@ -345,6 +358,7 @@ def _writer_main() -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     stdin = sys.stdin
     spec = json.loads(stdin.readline())
+    raise_priority(spec.get("priority", 0))
     try:
         w = _Writer(spec)
     except Exception as e:   # noqa: BLE001 - one line back to the loop's process
@@ -357,7 +371,7 @@ def _writer_main() -> int:
     last_flush = time.monotonic()
     try:
         while True:
-            r, _, _ = select.select([fd], [], [], flush_s)
+            r, _, _ = select.select([fd], [], [], flush_s / 2)
             msgs, closed = [], False
             if r:
                 chunk = os.read(fd, 65536)

@@ -12,7 +12,7 @@
 - The missed-deadline rule: more than missed_limit of the periods scheduled over the last missed_window_s
   missed their deadline -> fault. Counted in MISS_BLOCKS blocks per window (a few integer operations at a
   block's end, nothing per period beyond a countdown).
-- The start-up rate check (rate_check): over the first periods (START_PERIODS, at least START_MIN_S) the
+- The start-up rate check (rate_check): over the first periods (START_MIN_S, 50 to 2000 periods) the
   work of one period (wake-up to the next sleep: read, kernel, write, record and the loop's own bookkeeping)
   is measured; if its median exceeds period_budget of the period the loop cannot hold the rate on this
   machine, and the run is refused (RateRefused, a ConfigError, after a safe stop) with the figures.
@@ -36,7 +36,8 @@ from rig.safety import Watchdog
 _FAULT, _ACTIVE = State.FAULT, State.ACTIVE
 MISS_BLOCKS = 10            # blocks per missed-deadline window
 START_PERIODS = 50          # the start-up rate check measures at least this many periods ...
-START_MIN_S = 0.05          # ... and at least this long
+START_MIN_S = 0.05          # ... and at least this long, but ...
+START_MAX_PERIODS = 2000    # ... at most this many (a loop that cannot keep up would reach the lag limit first)
 MAX_CPU_SHARE = 0.9         # the loop thread on the CPU this share of the time over them: it never sleeps
 MAX_START_MISSED = 0.95     # this share of their deadlines missed: it never catches up
 
@@ -73,7 +74,8 @@ class Scheduler:
         self._block = max(1, int(round(missed_window_s * self.rate_hz / MISS_BLOCKS)))
         self._blocks: list[tuple[int, int]] = []      # (missed, scheduled) of the last MISS_BLOCKS blocks
         self.period_budget = float(period_budget)
-        self._start_n = max(START_PERIODS, int(math.ceil(START_MIN_S * self.rate_hz))) if rate_check else 0
+        self._start_n = (max(START_PERIODS, min(START_MAX_PERIODS, int(math.ceil(START_MIN_S * self.rate_hz))))
+                         if rate_check else 0)
         self.busy_ns = array.array("q", bytes(8 * self._start_n))   # the start-up check's periods
         self._start_done = 0
         self.start_figures: dict | None = None
@@ -145,6 +147,13 @@ class Scheduler:
                 gate.t_ns = t
                 gate.fault(f"loop lag: {(wake - t) / 1e6:.1f} ms behind real time (limit lag_limit_s = "
                            f"{lag_ns / 1e6:g} ms): the loop cannot keep up")
+            block_left -= 1
+            if block_left <= 0:                          # a block of periods ended: the missed-deadline rule
+                block_left = self._block
+                now = (self.overruns + self.skipped, self.iterations + self.skipped)
+                gate.t_ns = t
+                self._missed_block(gate, now[0] - block_start[0], now[1] - block_start[1])
+                block_start = now
             if wd is not None:
                 wd.beat += 1
                 if wd.tripped and gate.state is not _FAULT:
@@ -169,12 +178,6 @@ class Scheduler:
                     t += missed * period
             elif idle is not None and t - done > idle_ns:
                 idle()                      # the port's housekeeping, in the slack before the next period
-            block_left -= 1
-            if block_left <= 0:
-                block_left = self._block
-                now = (self.overruns + self.skipped, self.iterations + self.skipped)
-                self._missed_block(gate, now[0] - block_start[0], now[1] - block_start[1])
-                block_start = now
 
     # ---- the rules off the per-period path ------------------------------------------------------------------
     def _missed_block(self, gate, missed: int, scheduled: int) -> None:

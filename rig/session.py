@@ -27,7 +27,7 @@ from rig.config import Config
 from rig.errors import ConfigError
 from rig.lock import RigLock
 from rig.loop import Loop
-from rig.recorder import Recorder
+from rig.recorder import WRITER_PRIORITY, Recorder
 from rig.rt import enter_realtime, leave_realtime
 from rig.signals import take_held
 from rig.tap import Columns
@@ -125,7 +125,8 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs})
+                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       priority=WRITER_PRIORITY if self.realtime else 0)
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
@@ -195,7 +196,8 @@ class Session:
         """Record the loop's rows to `path` from the next period on (a running session)."""
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
-                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs}).start()
+                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs},
+                       priority=WRITER_PRIORITY if self.realtime else 0).start()
         self.loop.gate.request_recorder(rec)
         return rec
 

@@ -20,6 +20,7 @@ import dataclasses
 import json
 import logging
 import math
+import re
 import sys
 import tempfile
 import time
@@ -33,7 +34,8 @@ from rig.clock import MonotonicClock
 from rig.config import hil_run_config, load_config
 from rig.errors import ConfigError, RigError
 from rig.recorder import read_recording
-from rig.session import Session
+from controllers.isolation import make_isolation_controllers
+from rig.session import Session, check_stable
 
 T_SIM = 0.5          # knob time on the simulated backend (activation at 0.05 s)
 T_HIL = 1.0          # on the emulated devices (activation at 0.05 s, drivers settled)
@@ -56,7 +58,7 @@ SIM_CASES = [
     Case("accelerometer stuck", "sensor check: stuck", "stuck:front_left:accel"),
     Case("device reports a fault", "device fault", "device:front_right:-"),
     Case("loop stalls (150 ms in one period)", "watchdog", "stall:*:-"),
-    Case("loop falls behind (1.5 periods extra per period)", "lag rule", "overrun:*:-"),
+    Case("loop falls behind (1.2 periods extra per period)", "lag rule", "overrun:*:-"),
     Case("loop misses deadlines (skip policy)", "missed-deadline rule", "overrun:*:-", tweak="skip", seconds=2.0),
     Case("recording writer killed", "recorder watch", "recorder:*:-"),
     Case("limit cycle (kp x10, --force)", "oscillation rule", tweak="kp10"),
@@ -74,7 +76,7 @@ HIL_CASES = [
     Case("valve node silent", "device fault", "silence:front_left:valve"),
     Case("valve node in fault", "device fault", "fault:front_right:valve"),
     Case("loop stalls (300 ms in one period)", "watchdog", "stall:*:-"),
-    Case("loop falls behind (1.5 periods extra per period)", "lag rule", "overrun:*:-"),
+    Case("loop falls behind (1.2 periods extra per period)", "lag rule", "overrun:*:-"),
     Case("recording writer killed", "recorder watch", "recorder:*:-"),
     Case("limit cycle (kp x10, --force)", "oscillation rule", tweak="kp10"),
 ]
@@ -112,19 +114,33 @@ def drill_case(case: Case, backend: str, *, config: str | None = None, realtime:
     rec = folder / f"{backend}-{len(list(folder.iterdir()))}.h5"
     out = {"backend": backend, "case": case.name, "expected": case.rule, "inject": spec or case.tweak,
            "faulted": False, "line": "", "to_fault_ms": None, "valves_null": None, "rows_lost": None}
-    t0 = time.monotonic()
+    if case.tweak == "kp10-check":            # the start-up check alone, timed
+        ctrls = make_isolation_controllers(cfg, 1.0 / cfg.loop.rate_hz)
+        t0 = time.perf_counter()
+        try:
+            check_stable(cfg, ctrls, 1.0 / cfg.loop.rate_hz)
+        except ConfigError as e:
+            out.update(faulted=True, line=f"refused: {e}", valves_null=True,
+                       to_fault_ms=round((time.perf_counter() - t0) * 1e3, 1), measured_from="the check's start")
+        return out
+    session = None
     try:
-        session = Session(cfg, backend, clock=MonotonicClock(), isolation=backend == "sim", record=rec,
-                          record_attrs={"command": "rig drill", "case": case.name},
-                          realtime=realtime and cfg.loop.realtime, stability_check=case.tweak == "kp10-check")
+        # isolation on (hil: off, its controllers need a warm-up of 2 / blend_hz first; on for the limit cycle)
+        session = Session(cfg, backend, clock=MonotonicClock(), isolation=backend == "sim" or case.tweak == "kp10",
+                          record=rec, record_attrs={"command": "rig drill", "case": case.name},
+                          realtime=realtime and cfg.loop.realtime)
         with session:
             loop = session.loop
             with inject.Armed(session, injections) as armed:
                 session.run(seconds=at + case.seconds, activate_after_s=0.05)
             applied = armed.applied.get(spec)
-    except ConfigError as e:                  # refused at start-up: the line, and how long the refusal took
-        out.update(faulted=True, line=f"refused: {e}", to_fault_ms=round((time.monotonic() - t0) * 1e3, 1),
-                   valves_null=True, measured_from="the start of the command (set-up included)")
+            armed_rows = armed.rows_at_kill
+            held = _valves_at_null(session, backend)
+    except ConfigError as e:                  # refused at start-up (the rate): after how much loop time
+        lp = session.loop if session is not None else None
+        t = (lp.t_ns - lp.t0_ns) * 1e-3 if lp is not None and lp.t0_ns is not None else None
+        out.update(faulted=True, line=f"refused: {e}", valves_null=lp is None or all(v == 0.0 for v in lp.cmd),
+                   to_fault_ms=None if t is None else round(t / 1e3, 1), measured_from="the first period")
         return out
     reason = loop.lc.fault_reason
     out["line"] = reason or f"no fault (stopped: {loop.stop_reason})"
@@ -135,15 +151,23 @@ def drill_case(case: Case, backend: str, *, config: str | None = None, realtime:
     d = read_recording(rec)
     fault_rows = np.flatnonzero(d["fault"] > 0.5)
     k = int(fault_rows[0]) if fault_rows.size else None
-    if k is not None:
-        out["valves_null"] = bool(np.all(d["valve_cmd_V"][k:] == 0.0))
-    out["rows_lost"] = int(loop.iterations + 1 - len(d["time_s"]))
+    out["valves_null"] = held and (k is None or bool(np.all(d["valve_cmd_V"][k:] == 0.0)))
+    out["rows_lost"] = int(loop.iterations - len(d["time_s"]))
+    if armed_rows is not None:             # the writer killed: rows committed before the kill, not in the file
+        out["rows_lost_at_kill"] = max(0, int(armed_rows - len(d["time_s"])))
+        out["ms_lost_at_kill"] = round(out["rows_lost_at_kill"] / loop.rate_hz * 1e3, 1)
     start, what = applied, "the knob acting"
     if case.tweak == "kp10":                  # from the first swing beyond the oscillation level
         level = cfg.safety.oscillation_level * cfg.safety.valve_limit_V
         big = np.flatnonzero(np.any(np.abs(d["valve_cmd_V"]) >= level, axis=1))
         if big.size:
             start, what = float(d["time_s"][big[0]]), "the first command beyond +-level"
+    elif case.spec.startswith("stall"):         # held up inside one period: the watchdog thread's real time
+        silent = re.search(r"silent for ([0-9.]+) ms", reason) or re.search(r"([0-9.]+) ms between periods", reason)
+        if silent:
+            out["to_fault_ms"] = float(silent.group(1))
+            out["measured_from"] = "the stall's start (real time)"
+            return out
     elif case.spec.startswith("overrun") and k is not None and case.tweak != "skip":
         lag = d["wake_latency_us"] * 1e-6
         below = np.flatnonzero(lag[:k] <= cfg.safety.lag_limit_s)
@@ -155,6 +179,21 @@ def drill_case(case: Case, backend: str, *, config: str | None = None, realtime:
         out["to_fault_ms"] = round((t_fault - start) * 1e3, 2)
         out["measured_from"] = what
     return out
+
+
+def _valves_at_null(session, backend: str, wait_s: float = 0.5) -> bool:
+    """What the valves got last is null: the simulated backend's last write; the emulated valves' applied
+    commands (the driver's null takes effect at the SYNC it sends after it, handled in the emulator's thread:
+    polled for up to wait_s)."""
+    if backend == "sim":
+        return all(v == 0.0 for v in session.port.last_written)
+    emu = session.port.rig
+    end = time.monotonic() + wait_s
+    while not all(v == 0.0 for v in emu.last_cmd_V):
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.005)
+    return True
 
 
 def run(args) -> int:
@@ -192,12 +231,20 @@ def _row(r: dict) -> str:
 
 
 def table(results: list[dict]) -> str:
-    """Markdown: backend, case, injection, what the rig did, time to FAULT."""
-    lines = ["| backend | fault | injected | the rig's line | to FAULT |", "|---|---|---|---|---|"]
+    """Markdown: backend, case, injection, what the rig did, time to FAULT (and from what), valves, rows."""
+    lines = ["| backend | fault | injected | the rig's line | to FAULT | valves null | rows lost |",
+             "|---|---|---|---|---|---|---|"]
     for r in results:
         t = _ms(r["to_fault_ms"])
+        if r.get("measured_from") and r["measured_from"] != "the knob acting":
+            t += f" from {r['measured_from']}"
         if r.get("after_limit_crossed_ms") is not None:
             t += f" ({r['after_limit_crossed_ms']:g} ms after the lag crossed the limit)"
         line = r["line"].replace("|", "/")
-        lines.append(f"| {r['backend']} | {r['case']} | `{r['inject']}` | {line} | {t} |")
+        null = {True: "yes", False: "NO", None: "-"}[r["valves_null"]]
+        lost = "-" if r["rows_lost"] is None else str(r["rows_lost"])
+        if r.get("rows_lost_at_kill") is not None:
+            lost = (f"{r['rows_lost_at_kill']} committed before the kill ({r['ms_lost_at_kill']:g} ms), "
+                    f"{r['rows_lost']} in all")
+        lines.append(f"| {r['backend']} | {r['case']} | `{r['inject']}` | {line} | {t} | {null} | {lost} |")
     return "\n".join(lines)
