@@ -10,8 +10,8 @@
   runs behind real time: a controller acting on old data). Checked at every wake-up, so the fault comes in
   the period the limit is crossed.
 - The missed-deadline rule: more than missed_limit of the periods scheduled over the last missed_window_s
-  missed their deadline -> fault. Counted in MISS_BLOCKS blocks per window (a few integer operations at a
-  block's end, nothing per period beyond a countdown).
+  missed their deadline -> fault. Counted in MISS_BLOCKS blocks of loop time per window (a few integer
+  operations at a block's end, nothing per period beyond a compare).
 - The start-up rate check (rate_check): over the first periods (START_MIN_S, 50 to 2000 periods) the
   work of one period (wake-up to the next sleep: read, kernel, write, record and the loop's own bookkeeping)
   is measured; if its median exceeds period_budget of the period the loop cannot hold the rate on this
@@ -71,7 +71,7 @@ class Scheduler:
         self.lag_ns = int(round(lag_limit_s * 1e9)) if math.isfinite(lag_limit_s) else 1 << 62
         self.missed_limit = float(missed_limit)
         self.missed_window_s = float(missed_window_s)
-        self._block = max(1, int(round(missed_window_s * self.rate_hz / MISS_BLOCKS)))
+        self._block_ns = max(self.period_ns, int(round(missed_window_s * 1e9 / MISS_BLOCKS)))   # loop time
         self._blocks: list[tuple[int, int]] = []      # (missed, scheduled) of the last MISS_BLOCKS blocks
         self.period_budget = float(period_budget)
         self._start_n = (max(START_PERIODS, min(START_MAX_PERIODS, int(math.ceil(START_MIN_S * self.rate_hz))))
@@ -110,7 +110,7 @@ class Scheduler:
         idle = idle if clock.is_real else None
         idle_ns = period // 2
         lag_ns = self.lag_ns
-        block_left = self._block
+        block_t = t + self._block_ns                       # the end of the current block (loop time)
         block_start = (self.overruns + self.skipped, self.iterations + self.skipped)
         busy_a = self.busy_ns
         final = False                                      # this is the stop period
@@ -147,9 +147,8 @@ class Scheduler:
                 gate.t_ns = t
                 gate.fault(f"loop lag: {(wake - t) / 1e6:.1f} ms behind real time (limit lag_limit_s = "
                            f"{lag_ns / 1e6:g} ms): the loop cannot keep up")
-            block_left -= 1
-            if block_left <= 0:                          # a block of periods ended: the missed-deadline rule
-                block_left = self._block
+            if t >= block_t:                             # a block of loop time ended: the missed-deadline rule
+                block_t = t + self._block_ns
                 now = (self.overruns + self.skipped, self.iterations + self.skipped)
                 gate.t_ns = t
                 self._missed_block(gate, now[0] - block_start[0], now[1] - block_start[1])
@@ -191,7 +190,7 @@ class Scheduler:
         m = sum(b[0] for b in blocks)
         n = sum(b[1] for b in blocks)
         if n and m / n > self.missed_limit:
-            gate.fault(f"missed deadlines: {100 * m / n:.0f} % of {n} periods over the last "
+            gate.fault(f"missed deadlines: {100 * m / n:.1f} % of {n} periods over the last "
                        f"{self.missed_window_s:g} s (limit missed_limit = {100 * self.missed_limit:g} %): "
                        f"the loop cannot hold {self.rate_hz:g} Hz")
 
