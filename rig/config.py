@@ -102,7 +102,7 @@ class SafetyConfig:
     # limit cycle in the valve command (rig/safety.py check_oscillation): the command swinging between
     # +-oscillation_level * valve_limit_V at oscillation_hz or faster, over oscillation_window_s
     oscillation_level: float = _f(0.5, "", gt=0, le=1)
-    oscillation_hz: float = _f(50.0, "Hz", gt=0)
+    oscillation_hz: float = _f(30.0, "Hz", gt=0)
     oscillation_window_s: float = _f(0.1, "s", gt=0, le=1)
 
 

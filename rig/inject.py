@@ -202,7 +202,9 @@ class Armed:
 
 
 class _SlowRead:
-    """The loop's port with a read that costs extra time when an overrun or stall is being drilled."""
+    """The loop's port with a read that takes extra time when an overrun or stall is being drilled. It sleeps
+    rather than spins: the driver threads of the process keep the interpreter meanwhile, as they would while
+    the loop waits on a slow device (a spinning wait would starve them and fault them instead)."""
 
     def __init__(self, port, armed: Armed) -> None:
         self._port, self._armed = port, armed
@@ -213,9 +215,8 @@ class _SlowRead:
     def read(self, t_ns: int):
         a = self._armed
         if a._extra_ns:
-            end = time.monotonic_ns() + a._extra_ns
+            extra = a._extra_ns
             if not a._extra_every:
                 a._extra_ns = 0
-            while time.monotonic_ns() < end:
-                pass
+            time.sleep(extra * 1e-9)
         return self._port.read(t_ns)
