@@ -118,9 +118,10 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
               duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
-              stand_params=None, stand_effects=None, progress=None) -> dict:
+              stand_params=None, stand_effects=None, progress=None, on_session=None) -> dict:
     """Run the chirp through rig.loop and write the recording. Returns a summary dict.
-    progress: optional callable(t_s, total_s) polled from a helper thread."""
+    progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
+    callable(session) once the session is built (a console stops it safely from another thread)."""
     rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
     if backend == "hil":
         # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
@@ -166,6 +167,8 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     wall0 = time.perf_counter()
     with session:
         loop = session.loop
+        if on_session is not None:
+            on_session(session)
 
         def poll():
             while not done.wait(0.1):
