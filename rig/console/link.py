@@ -49,7 +49,7 @@ HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 PORT_TRIES = 10
 LIVE_RING_S = 2.0              # the server reads it every 50 ms
-TICK_S = 0.05                  # the link's copy period while a recording runs
+TICK_S = 0.02                  # the link's copy period while a recording runs
 STATUS_S = 0.1
 
 
@@ -115,7 +115,7 @@ class Console:
         self._identify: subprocess.Popen | None = None
         self._identify_err = b""
         self._identify_out = b""
-        self._identify_job: Job | None = None
+        self.shown_job: Job | None = None      # the latest job, as the page shows it
         self._identify_last = ""
 
     @property
@@ -356,7 +356,7 @@ class Console:
                          "running": True}
         elif self.last_recording is not None:
             recording = self.last_recording
-        job = self.job or self._identify_job
+        job = self.shown_job
         out = {"run": run, "recording": recording, "wall": time.time(),
                "job": None if job is None else {"phase": job.phase, "progress": job.progress, "text": job.text,
                                                 "recording": job.recording},
@@ -479,8 +479,8 @@ class Console:
             return False, f"in FAULT ({s.loop.lc.fault_reason}): reset the fault first"
         if self.backend != "sim" and mount not in MOUNTS:
             return False, f"mount: expected one of {', '.join(MOUNTS)}, got {mount!r}"
-        self.job = Job(amplitude_V, f0_hz, f1_hz, duration_s, mount, resume_active=s.loop.state is State.ACTIVE,
-                       text="stopping the run")
+        self.job = self.shown_job = Job(amplitude_V, f0_hz, f1_hz, duration_s, mount,
+                                        resume_active=s.loop.state is State.ACTIVE, text="stopping the run")
         s.safe_stop("console: chirp identification")
         return True, "chirp identification: the run stops safely, the chirp follows"
 
@@ -489,7 +489,7 @@ class Console:
         return self.job
 
     def job_progress(self, phase: str, progress: float, text: str) -> None:
-        job = self.job or self._identify_job
+        job = self.shown_job
         if job is not None:
             job.phase, job.progress, job.text = phase, max(0.0, min(1.0, progress)), text
 
@@ -509,7 +509,7 @@ class Console:
             cmd[4:4] = ["--config", self.config_path]
         cpu = self._loop_cpu()
         self._identify_out, self._identify_err, self._identify_last = b"", b"", ""
-        self._identify_job, self.job = job, None
+        self.job = None
 
         def off_loop_cpu():
             os.nice(5)
@@ -535,7 +535,7 @@ class Console:
         if p.stdout.closed and p.stderr.closed:
             code = p.wait()
             self._identify = None
-            job = self._identify_job
+            job = self.shown_job
             if code == 0:
                 try:
                     result = json.loads(self._identify_out)

@@ -63,16 +63,17 @@ class LiveRing:
 
     # ---- rows copied from a recording's ring (the console's thread, while the loop records elsewhere) ----
     def append(self, rows: np.ndarray) -> None:
-        n = len(rows)
+        total = n = len(rows)
         if n == 0:
             return
-        if n > self.capacity:
-            rows, n = rows[-self.capacity:], self.capacity
-        i = self._head % self.capacity
+        start = self._head
+        if n > self.capacity:            # only the newest fit; the older ones count as overwritten
+            rows, n, start = rows[-self.capacity:], self.capacity, start + n - self.capacity
+        i = start % self.capacity
         k = min(n, self.capacity - i)
         self._rows[i:i + k] = rows[:k]
         self._rows[:n - k] = rows[k:]
-        self._head = h = self._head + n
+        self._head = h = self._head + total
         _Q.pack_into(self._mm, 0, h)
 
     @property

@@ -9,6 +9,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import urllib.error
@@ -86,12 +87,21 @@ def command(console, cmd: str, **args) -> tuple[int, dict]:
     return code, json.loads(body)
 
 
+TEST_TOML = """# the console tests' rig: the defaults with a watchdog that tolerates the shared machine's stalls
+[safety]
+watchdog_s = 1.0
+"""
+
+
 @contextlib.contextmanager
-def rig_run_console(*extra: str, cwd=None):
+def rig_run_console(*extra: str, cwd=None, realtime: bool = False):
     """`rig run --console --port 0 ...` as a process: (process, url, stderr lines so far)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--console", "--port", "0", "--quiet",
-                             "--no-realtime", *extra], cwd=cwd or REPO, stderr=subprocess.PIPE, text=True, env=env)
+    with tempfile.NamedTemporaryFile("w", suffix=".toml", prefix="rig-console-test-", delete=False) as f:
+        f.write(TEST_TOML)
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--config", f.name, "--console", "--port", "0",
+                             "--quiet", *([] if realtime else ["--no-realtime"]), *extra], cwd=cwd or REPO, stderr=subprocess.PIPE,
+                            text=True, env=env)
     lines: list[str] = []
     url = None
     try:
@@ -113,3 +123,4 @@ def rig_run_console(*extra: str, cwd=None):
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        os.unlink(f.name)

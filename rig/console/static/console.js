@@ -108,15 +108,17 @@
     if (msg.status) status = msg.status;
     if (msg.now && Object.keys(msg.now).length) now = msg.now;
     const run = status.run || {};
-    const state = now.state || run.state || "-";
-    const iso = now.isolation !== undefined ? now.isolation : run.isolation;
+    // the rows' flags while a run is shown (they lead the status by up to 0.1 s), else the status
+    const fromRows = run.phase === undefined || run.phase === "run";
+    const state = (fromRows ? now.state || run.state : run.state) || "-";
+    const iso = fromRows && now.isolation !== undefined ? now.isolation : run.isolation;
     const st = $("state");
-    st.textContent = run.phase === "chirp" ? `${run.state || "-"} (chirp)` : state;
-    st.className = "badge " + (run.phase === "chirp" ? run.state : state);
+    st.textContent = run.phase === "chirp" ? `${state} (chirp)` : state;
+    st.className = "badge " + state;
     const isoEl = $("isolation");
     isoEl.textContent = iso === undefined ? "-" : (iso ? "on" : "off");
     isoEl.className = "badge " + (iso ? "on" : "off");
-    const faulted = state === "FAULT" || run.state === "FAULT";
+    const faulted = state === "FAULT";
     $("fault").hidden = !faulted;
     if (faulted) $("fault").textContent = "FAULT: " + (run.fault_reason || "(reason follows)");
     $("clock").textContent = now.t_s !== undefined ? `t = ${now.t_s.toFixed(2)} s` : "t = -";
