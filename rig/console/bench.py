@@ -1,7 +1,8 @@
 """`rig bench loop --console`: what the console costs the loop, with a real browser on the page.
 
 One loop run (four mounts on the simulated backend, real clock, the real-time set-up and recording of
-`rig bench loop`), cut into blocks that alternate between conditions:
+`rig bench loop`; with --no-record no recording, so the console's live ring is the ring the period writes),
+cut into blocks that alternate between conditions:
   none     no console: isolation toggled every TOGGLE_S through the session's request, as the page would;
   process  the console with its web server in a process of its own (the default of rig run --console), a
            headless chromium showing the page and clicking "isolation on" / "isolation off" every TOGGLE_S;
@@ -17,6 +18,7 @@ on the page (the frame after the state arrived).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -25,12 +27,14 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 
 import numpy as np
 
 from rig.console import browser
 from rig.console.link import Console
 from rig.errors import RigError
+from rig.lifecycle import State
 from rig.session import Session
 
 TOGGLE_S = 0.5
@@ -45,6 +49,9 @@ def add_arguments(p) -> None:
                    help="--console: where the web server runs in the console blocks (default both, alternating)")
     p.add_argument("--block-s", type=float, default=6.0, metavar="S", help="--console: block length (default 6)")
     p.add_argument("--rounds", type=int, default=4, help="--console: rounds of all conditions (default 4)")
+    p.add_argument("--no-record", action="store_true",
+                   help="--console: no recording: the console's live ring is then the ring the period writes "
+                        "(its whole cost on the loop's path), against none at all")
 
 
 def bench_console(args, cfg, rate: float, clock) -> int:
@@ -55,9 +62,14 @@ def bench_console(args, cfg, rate: float, clock) -> int:
         raise RigError(f"--rounds/--block-s: expected 1..100 rounds of 1..600 s, got {args.rounds}, {args.block_s}")
     conditions = ["none"] + (["process", "thread"] if args.serve == "both" else [args.serve])
     est_s = args.rounds * len(conditions) * (args.block_s + 8) + 10
-    fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
-    os.close(fd)
+    tmp = None
+    if not args.no_record:
+        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+        os.close(fd)
     realtime = cfg.loop.realtime and not args.no_realtime
+    # a stall of the shared machine must not leave the loop in FAULT (less work per period) for the rest of a
+    # block: the watchdog is relaxed here; the stall still shows in the wake-up figures
+    cfg = cfg.replace(safety=dataclasses.replace(cfg.safety, watchdog_s=max(cfg.safety.watchdog_s, 1.0)))
     session = Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy,
                       keep_timing=int(math.ceil(2 * est_s * rate)), stop_on_fault=False, record=tmp,
                       record_attrs={"command": "rig bench loop --console"}, realtime=realtime)
@@ -69,7 +81,8 @@ def bench_console(args, cfg, rate: float, clock) -> int:
             loop = session.loop
             loop.activate()
             say(f"{loop.n} mounts at {rate:g} Hz, {args.rounds} rounds of {conditions} in {args.block_s:g} s "
-                f"blocks; {'real-time set-up where allowed' if realtime else 'no real-time hygiene'}")
+                f"blocks, recording {'off' if args.no_record else 'on'}; "
+                f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}")
 
             def drive():
                 try:
@@ -84,10 +97,12 @@ def bench_console(args, cfg, rate: float, clock) -> int:
             session.run()
             t.join()
     finally:
-        os.unlink(tmp)
+        if tmp:
+            os.unlink(tmp)
     if failure:
         raise RigError(f"--console: {failure[0].__class__.__name__}: {failure[0]}")
     out = _figures(loop, conditions, blocks, rate)
+    out["recording"] = not args.no_record
     _print(out, args.json)
     return 0
 
@@ -101,13 +116,29 @@ def _drive(session, cfg, conditions, args, blocks, say) -> None:
     try:
         for r in range(args.rounds):
             for cond in conditions:
+                _active_again(session, say)
                 b = _block_none(session, args.block_s) if cond == "none" else \
                     _block_console(session, cfg, cond, args.block_s, drv)
-                b.update(cond=cond, round=r)
+                b.update(cond=cond, round=r, fault=loop.lc.fault_reason)
                 blocks.append(b)
-                say(f"round {r + 1}/{args.rounds}: {cond} done ({b['i1'] - b['i0']} periods)")
+                say(f"round {r + 1}/{args.rounds}: {cond} done ({b['i1'] - b['i0']} periods"
+                    f"{', FAULT: ' + b['fault'] if b['fault'] else ''})")
     finally:
         drv.close()
+
+
+def _active_again(session, say) -> None:
+    """Every block starts ACTIVE: a fault of the last one (a stall of the shared machine tripping the
+    watchdog) is reset, as an operator would."""
+    loop = session.loop
+    if loop.state is State.FAULT:
+        session.reset_fault()
+        while loop.state is State.FAULT:
+            time.sleep(0.01)
+    if loop.state is not State.ACTIVE:
+        session.request_active(True)
+        while loop.state is not State.ACTIVE and loop.state is not State.FAULT:
+            time.sleep(0.01)
 
 
 def _block_none(session, block_s: float) -> dict:
@@ -124,7 +155,7 @@ def _block_none(session, block_s: float) -> dict:
 
 def _block_console(session, cfg, serve: str, block_s: float, drv: "_Driver") -> dict:
     loop = session.loop
-    with Console(cfg, "sim", port=0, serve=serve) as console:
+    with Console(cfg, "sim", port=0, serve=serve, log_level=None) as console:
         console.attach(session)
         try:
             drv.ask({"open": console.url})
@@ -138,12 +169,19 @@ def _block_console(session, cfg, serve: str, block_s: float, drv: "_Driver") -> 
                 time.sleep(TOGGLE_S)
             i1 = loop.iterations
             page = drv.ask({"stats": True})
+            page["server"] = _server_stats(console)
             drv.ask({"click": "#iso-on"})
             time.sleep(0.2)
             drv.ask({"blank": True})
         finally:
             console.detach()
     return {"i0": i0, "i1": i1, "page": page}
+
+
+def _server_stats(console) -> dict:
+    """The web server's own work per update (its /api/state)."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{console.port}/api/state?token={console.token}", timeout=10) as r:
+        return json.loads(r.read())["server"]
 
 
 def _pct(a) -> dict:
@@ -166,7 +204,7 @@ def _figures(loop, conditions, blocks, rate) -> dict:
         per_block = [float(np.percentile(comp[np.arange(b["i0"], b["i1"]) % keep] * 1e-3, 99)) for b in bs]
         per_block_w = [float(np.percentile(wake[np.arange(b["i0"], b["i1"]) % keep] * 1e-3, 99)) for b in bs]
         period_ns = 1e9 / rate
-        d = {"blocks": len(bs), "periods": int(len(idx)), "compute_us": _pct(c), "wake_latency_us": _pct(w),
+        d = {"blocks": len(bs), "periods": int(len(idx)), "faults": sum(1 for b in bs if b["fault"]), "compute_us": _pct(c), "wake_latency_us": _pct(w),
              "compute_p99_by_block_us": [round(x, 2) for x in per_block],
              "wake_p99_by_block_us": [round(x, 2) for x in per_block_w],
              "compute_p99_median_of_blocks_us": round(float(np.median(per_block)), 2) if bs else None,
@@ -179,6 +217,8 @@ def _figures(loop, conditions, blocks, rate) -> dict:
             d["page_update_interval_ms"] = _pct(iv)
             d["page_updates_per_s"] = round(1e3 * len(iv) / span, 2) if span > 0 else None
             d["click_to_shown_ms"] = _pct(np.concatenate([p["iso_latency_ms"] for p in pages]))
+            d["page_render_work_ms"] = _pct(np.concatenate([p["render_work_ms"] for p in pages]))
+            d["server_tick_ms_p99_by_block"] = [p["server"]["tick_ms"]["p99"] for p in pages]
         out["conditions"][cond] = d
     base = out["conditions"]["none"]
     for cond, d in out["conditions"].items():
@@ -202,14 +242,20 @@ def _print(out: dict, as_json: bool) -> None:
         diff = "" if cond == "none" else f"{d['compute_p99_minus_none_us']:+.2f} us"
         print(f"  {cond:10s} {d['blocks']:6d} {c['p50']:8.1f} {c['p99']:8.1f} {c['max']:8.0f} "
               f"{w['p50']:8.1f} {w['p99']:8.1f} {w['max']:8.0f} {diff:>20s}")
+    med = {cond: d["compute_p99_median_of_blocks_us"] for cond, d in out["conditions"].items()}
+    print("  compute p99, median of the blocks' p99: " + ", ".join(
+        f"{cond} {v:.2f} us" + ("" if cond == "none" else f" ({v - med['none']:+.2f})") for cond, v in med.items()))
     for cond, d in out["conditions"].items():
         print(f"  {cond:10s} compute p99 by block: {d['compute_p99_by_block_us']} us; wake p99 by block: "
-              f"{d['wake_p99_by_block_us']} us")
+              f"{d['wake_p99_by_block_us']} us; blocks with a fault (watchdog): {d['faults']}")
         if "page_updates_per_s" in d:
             iv, cl = d["page_update_interval_ms"], d["click_to_shown_ms"]
             print(f"  {cond:10s} page: {d['page_updates_per_s']} updates/s (interval p50 {iv['p50']} ms, p99 "
                   f"{iv['p99']} ms, max {iv['max']} ms); click isolation -> shown: n={cl['n']}, p50 {cl['p50']} ms, "
                   f"p99 {cl['p99']} ms, max {cl['max']} ms")
+            rw = d["page_render_work_ms"]
+            print(f"  {cond:10s} the page's drawing per update p50 {rw['p50']} ms, p99 {rw['p99']} ms; the server's "
+                  f"work per update, p99 by block: {d['server_tick_ms_p99_by_block']} ms")
 
 
 # ---- the browser, in a process of its own ---------------------------------------------------------------------
@@ -253,13 +299,14 @@ def _drive_main() -> int:
                     browser.wait_for(page, "window.rigStats && rigStats.deltas > 10 && rigStats.renders > 5", 30)
                     ans = {"ok": True}
                 elif "reset" in req:
-                    page.evaluate("rigStats.renderTimes = []; rigStats.isoLatencyMs = []")
+                    page.evaluate("rigStats.renderTimes = []; rigStats.isoLatencyMs = []; rigStats.renderMs = []")
                     ans = {"ok": True}
                 elif "click" in req:
                     page.click(req["click"])
                     ans = {"ok": True}
                 elif "stats" in req:
-                    ans = page.evaluate("({renders_ms: rigStats.renderTimes, iso_latency_ms: rigStats.isoLatencyMs})")
+                    ans = page.evaluate("({renders_ms: rigStats.renderTimes, iso_latency_ms: rigStats.isoLatencyMs, "
+                                        "render_work_ms: rigStats.renderMs})")
                 elif "blank" in req:
                     page.goto("about:blank")
                     ans = {"ok": True}

@@ -42,6 +42,7 @@ from rig.console.protocol import check_command, receive, send
 from rig.errors import RigError
 from rig.lifecycle import State
 from rig.recorder import Recorder
+from rig.rt import raise_priority
 
 log = logging.getLogger("rig.console")
 
@@ -51,6 +52,11 @@ PORT_TRIES = 10
 LIVE_RING_S = 2.0              # the server reads it every 50 ms
 TICK_S = 0.02                  # the link's copy period while a recording runs
 STATUS_S = 0.1
+# SCHED_FIFO of the link thread when the loop runs real-time: a thread of the loop's process that is preempted
+# by an ordinary process while it holds the interpreter lock stalls the loop for as long (milliseconds on a
+# busy machine); at a real-time priority below the loop's and the drivers', off the loop's CPU, it finishes its
+# short work instead
+LINK_PRIORITY = 40
 
 
 @dataclass
@@ -83,10 +89,13 @@ class _LogTap(logging.Handler):
 
 class Console:
     """The operator console of a run. Use as a context manager; `attach(session)` / `detach()` around each
-    session it shows (rig run --console runs several when the page asks for a chirp identification)."""
+    session it shows (rig run --console runs several when the page asks for a chirp identification).
+    log_level: the rig's loggers log at least this while the console runs (its commands are logged at INFO);
+    None leaves them as they are (the benchmark)."""
 
     def __init__(self, cfg, backend: str, *, port: int | None = None, read_only: bool = False,
-                 serve: str = "process", config_path: str | None = None) -> None:
+                 serve: str = "process", config_path: str | None = None,
+                 log_level: int | None = logging.INFO) -> None:
         if serve not in ("process", "thread"):
             raise ValueError(f"serve {serve!r}")
         self.cfg, self.backend = cfg, backend
@@ -110,6 +119,7 @@ class Console:
         self._thread: threading.Thread | None = None
         self._sock = None
         self._logtap = _LogTap()
+        self._log_level = log_level           # at least this for the rig's loggers (None: leave them)
         self._old_level = logging.NOTSET
         self._copy_from = None          # (recorder, rows already copied) while a recording runs
         self._identify: subprocess.Popen | None = None
@@ -151,8 +161,8 @@ class Console:
         rig_log = logging.getLogger("rig")
         rig_log.addHandler(self._logtap)
         self._old_level = rig_log.level
-        if rig_log.getEffectiveLevel() > logging.INFO:      # commands are logged, whoever set up logging
-            rig_log.setLevel(logging.INFO)
+        if self._log_level is not None and rig_log.getEffectiveLevel() > self._log_level:
+            rig_log.setLevel(self._log_level)           # commands are logged, whoever set up logging
         self._thread = threading.Thread(target=self._run, name="rig-console-link", daemon=True)
         self._thread.start()
         return self
@@ -283,7 +293,14 @@ class Console:
     # ---- the link thread -------------------------------------------------------------------------------------
     def _run(self) -> None:
         next_status = 0.0
+        raised = False
         while not self._halt.is_set():
+            if not raised and self.session is not None and self.session.realtime:
+                raised = True
+                cpu = self._loop_cpu()
+                if cpu is not None:          # this thread only: off the loop's CPU, where the loop preempts it
+                    os.sched_setaffinity(0, (os.sched_getaffinity(0) - {cpu}) or os.sched_getaffinity(0))
+                raise_priority(LINK_PRIORITY)
             waits = [self._sock]
             if self._identify is not None:
                 waits += [p for p in (self._identify.stdout, self._identify.stderr) if not p.closed]

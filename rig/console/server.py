@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import hmac
 import json
 import logging
@@ -26,6 +27,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 from rig.console.feed import Feed
 from rig.console.live import LiveReader
@@ -60,6 +63,7 @@ class ConsoleState:
         self.gone = asyncio.Event()
         self.ready = asyncio.Event()
         self.attached = 0                 # attach count (a page resets its plots on a new one)
+        self.tick_ms = collections.deque(maxlen=400)      # the server's own work per update (CPU time)
         self.events: list[dict] = []      # the loop's log records and the isolation switches, oldest first
         self._new_events: list[dict] = []
 
@@ -155,7 +159,8 @@ class ConsoleState:
         base = self.feed.full() if self.feed is not None else {"layout": None}
         return {"type": "full", "seq": self.seq, "attached": self.attached, "read_only": self.read_only,
                 "hello": {k: v for k, v in self.hello.items() if k != "token"}, "status": self.status,
-                "result": self.result, "ended": self.ended, "events": self.events[-100:], **base}
+                "result": self.result, "ended": self.ended, "events": self.events[-100:],
+                "server": {"tick_ms": _pct(self.tick_ms), "tick_s": TICK_S}, **base}
 
     def tick(self) -> None:
         """One update: new rows into the feed, and what changed to every page."""
@@ -207,6 +212,13 @@ class _Client:
     async def pump(self) -> None:
         while True:
             await self.ws.send_text(await self.queue.get())
+
+
+def _pct(a) -> dict:
+    if not a:
+        return {"p50": None, "p99": None, "max": None}
+    p50, p99 = np.percentile(np.asarray(a), [50, 99])
+    return {"p50": round(float(p50), 2), "p99": round(float(p99), 2), "max": round(float(max(a)), 2)}
 
 
 def _finite(o):
@@ -315,8 +327,10 @@ def create_app(state: ConsoleState, port: int):
     async def ticker() -> None:
         next_t = time.monotonic()
         while not state.gone.is_set():
+            t0 = time.thread_time()
             try:
                 state.tick()
+                state.tick_ms.append((time.thread_time() - t0) * 1e3)
             except Exception as e:      # noqa: BLE001 - one bad tick must not end the console
                 log.error("console: update failed: %s: %s", e.__class__.__name__, e)
             next_t += TICK_S

@@ -4,8 +4,8 @@
 (() => {
   const $ = (id) => document.getElementById(id);
   const TRACE_S = 10;
-  const stats = window.rigStats = {deltas: 0, renders: 0, renderTimes: [], isoLatencyMs: [], replies: [],
-                                   attached: 0, seq: 0, lastNow: null};
+  const stats = window.rigStats = {deltas: 0, renders: 0, renderTimes: [], renderMs: [], isoLatencyMs: [],
+                                   replies: [], attached: 0, seq: 0, lastNow: null};
   const QUANT = [  // per mount: what, unit shown, scale from SI, the limit's key in layout.limits
     {name: "acceleration", unit: "m/s²", k: 1, lim: "accel_range_mps2"},
     {name: "stroke", unit: "µm", k: 1e6, lim: "stroke_limit_m"},
@@ -318,10 +318,13 @@
 
   function render() {
     dirty = false;
+    const t0 = performance.now();
     if (layout && tr.t.length) {
       for (const c of charts) c.u.setData([tr.t, tr.v[c.idx]]);
     }
     const t = performance.now();
+    stats.renderMs.push(t - t0);
+    if (stats.renderMs.length > 1200) stats.renderMs.splice(0, 600);
     stats.renders += 1;
     stats.renderTimes.push(t);
     if (stats.renderTimes.length > 1200) stats.renderTimes.splice(0, 600);
