@@ -38,6 +38,7 @@ STATIC = Path(__file__).with_name("static")
 TICK_S = 0.05                  # the page's update period (20 Hz)
 COOKIE = "rig_console_token"
 COMMAND_TIMEOUT_S = 30.0       # a recording start waits for its writer process
+EXTRA_TICKS_S = (0.005, 0.025)  # extra updates after a command (a recording's rows arrive every 20 ms)
 log = logging.getLogger("rig.console.server")
 
 
@@ -62,6 +63,7 @@ class ConsoleState:
         self.seq = 0
         self.gone = asyncio.Event()
         self.ready = asyncio.Event()
+        self.soon = asyncio.Event()       # an extra update now: a command has just been applied
         self.attached = 0                 # attach count (a page resets its plots on a new one)
         self.tick_ms = collections.deque(maxlen=400)      # the server's own work per update (CPU time)
         self.events: list[dict] = []      # the loop's log records and the isolation switches, oldest first
@@ -148,7 +150,11 @@ class ConsoleState:
         self.pending[cid] = fut
         try:
             send(self.control, {"type": "cmd", "id": cid, "cmd": name, "args": args, "client": client})
-            return await asyncio.wait_for(fut, COMMAND_TIMEOUT_S)
+            reply = await asyncio.wait_for(fut, COMMAND_TIMEOUT_S)
+            loop = asyncio.get_running_loop()
+            for delay in EXTRA_TICKS_S:     # the loop applies a request at its next period: show it at once
+                loop.call_later(delay, self.soon.set)
+            return reply
         except (OSError, asyncio.TimeoutError) as e:
             self.pending.pop(cid, None)
             return {"ok": False, "text": f"no reply from the run ({e.__class__.__name__})"}
@@ -337,7 +343,12 @@ def create_app(state: ConsoleState, port: int):
             delay = next_t - time.monotonic()
             if delay < 0:
                 next_t, delay = time.monotonic(), 0.0
-            await asyncio.sleep(delay)
+            try:
+                await asyncio.wait_for(state.soon.wait(), delay)
+                state.soon.clear()
+                next_t = time.monotonic()
+            except asyncio.TimeoutError:
+                pass
 
     import contextlib
 
@@ -399,11 +410,17 @@ def main(argv=None) -> int:
     p.add_argument("--control-fd", type=int, required=True)
     p.add_argument("--listen-fd", type=int, required=True)
     p.add_argument("--avoid-cpu", type=int, default=None, help="keep off this CPU (the loop's)")
+    p.add_argument("--nice", type=int, default=0, help="scheduling niceness (negative: ahead of ordinary work)")
     a = p.parse_args(argv)
     if a.avoid_cpu is not None and hasattr(os, "sched_setaffinity"):
         cpus = os.sched_getaffinity(0) - {a.avoid_cpu}
         if cpus:
             os.sched_setaffinity(0, cpus)
+    if a.nice:
+        try:
+            os.nice(a.nice)
+        except OSError:         # not allowed here: ordinary priority, the page updates when it can
+            pass
     logging.basicConfig(level=logging.WARNING, format="rig console: %(message)s", stream=sys.stderr)
     control = socket.socket(fileno=a.control_fd)
     listen = socket.socket(fileno=a.listen_fd)
