@@ -124,3 +124,20 @@ def rig_run_console(*extra: str, cwd=None, realtime: bool = False):
                 proc.kill()
                 proc.wait()
         os.unlink(f.name)
+
+
+def open_when_active(chromium, url: str, width: int = 1400, height: int = 1300):
+    """A page on the console at `url`, once it shows the run ACTIVE."""
+    from rig.console.browser import wait_for
+    page = chromium.new_page(viewport={"width": width, "height": height})
+    page.goto(url)
+    wait_for(page, "window.rigStats && rigStats.lastNow && rigStats.lastNow.state === 'ACTIVE'", 60)
+    return page
+
+
+def ask_for_chirp(page, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float) -> None:
+    """Fill in the page's chirp form and press its button."""
+    for sel, v in (("#chirp-amp", amplitude_V), ("#chirp-f0", f0_hz), ("#chirp-f1", f1_hz),
+                   ("#chirp-dur", duration_s)):
+        page.fill(sel, str(v))
+    page.click("#chirp-run")

@@ -14,7 +14,7 @@ import psutil
 import pytest
 
 from rig.console.browser import wait_for
-from tests.console.support import http, rig_run_console, wait
+from tests.console.support import ask_for_chirp, http, open_when_active, rig_run_console, wait
 from tests.paths import REPO
 
 
@@ -77,12 +77,8 @@ def test_a_busy_port_is_one_line():
 @pytest.mark.slow
 def test_chirp_identification_from_the_page(chromium, tmp_path):
     with rig_run_console("--seconds", "300", cwd=tmp_path) as (proc, url, lines):
-        page = chromium.new_page(viewport={"width": 1400, "height": 1300})
-        page.goto(url)
-        wait_for(page, "window.rigStats && rigStats.lastNow && rigStats.lastNow.state === 'ACTIVE'", 60)
-        for sel, v in (("#chirp-amp", "1"), ("#chirp-f0", "1"), ("#chirp-f1", "60"), ("#chirp-dur", "4")):
-            page.fill(sel, v)
-        page.click("#chirp-run")
+        page = open_when_active(chromium, url)
+        ask_for_chirp(page, 1, 1, 60, 4)
         progress = []
         end = time.monotonic() + 180
         while page.locator("#ident-table").count() == 0 and time.monotonic() < end:

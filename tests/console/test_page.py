@@ -3,15 +3,13 @@ switched from the page and seen on the page and in the recording, a sensor fault
 backend and its reason on the page, nothing without the token, read-only refusing, two browsers alike."""
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from rig.console.browser import wait_for
 from rig.lifecycle import State
 from rig.recorder import read_recording
-from tests.console.support import base, live_run, wait
+from tests.console.support import base, live_run
 
 pytestmark = pytest.mark.browser
 

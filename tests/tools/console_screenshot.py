@@ -9,11 +9,10 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 from rig.console import browser
 from rig.console.browser import wait_for
-from tests.console.support import rig_run_console
+from tests.console.support import ask_for_chirp, open_when_active, rig_run_console
 
 
 def main(out: str) -> int:
@@ -22,15 +21,11 @@ def main(out: str) -> int:
         print(f"console_screenshot: {why}", file=sys.stderr)
         return 2
     from playwright.sync_api import sync_playwright
-    with tempfile.TemporaryDirectory() as tmp, rig_run_console("--seconds", "600", cwd=tmp, realtime=True) as (proc, url, _), \
-            sync_playwright() as pw:
+    with tempfile.TemporaryDirectory() as tmp, sync_playwright() as pw, \
+            rig_run_console("--seconds", "600", cwd=tmp, realtime=True) as (proc, url, _):
         b = browser.launch(pw)
-        page = b.new_page(viewport={"width": 1500, "height": 1200})
-        page.goto(url)
-        wait_for(page, "rigStats.lastNow && rigStats.lastNow.state === 'ACTIVE'", 60)
-        for sel, v in (("#chirp-amp", "1"), ("#chirp-f0", "1"), ("#chirp-f1", "60"), ("#chirp-dur", "5")):
-            page.fill(sel, v)
-        page.click("#chirp-run")
+        page = open_when_active(b, url, 1500, 1200)
+        ask_for_chirp(page, 1, 1, 60, 5)
         wait_for(page, "document.getElementById('ident-table')", 180)
         wait_for(page, "rigStats.lastNow && rigStats.lastNow.state === 'ACTIVE'", 60)
         page.click("#iso-off")
