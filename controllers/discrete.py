@@ -80,6 +80,21 @@ def sos_step(sections, state: list, i0: int, x: float) -> float:
     return x
 
 
+def sos_step_array(coef: np.ndarray, state: np.ndarray, i0: int, x: float) -> float:
+    """sos_step on plain float arrays: coef (n, 5) rows (b0, b1, b2, a1, a2), state[i0 : i0 + 2 n].
+
+    Indexing only, no tuples or lists, so numba can compile it (numba.njit(sos_step_array)) for a compiled
+    period; plain Python runs it as it is."""
+    i = i0
+    for k in range(coef.shape[0]):
+        y = coef[k, 0] * x + state[i]
+        state[i] = coef[k, 1] * x - coef[k, 3] * y + state[i + 1]
+        state[i + 1] = coef[k, 2] * x - coef[k, 4] * y
+        x = y
+        i += 2
+    return x
+
+
 def section_dc(sec: Section) -> float:
     b0, b1, b2, a1, a2 = sec
     return (b0 + b1 + b2) / (1.0 + a1 + a2)

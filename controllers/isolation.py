@@ -75,6 +75,9 @@ class IsolationParams:
     notch_hz: float = 0.0             # optional notch (0 = none)
     notch_zeta_zero: float = 0.1
     notch_zeta_pole: float = 0.5
+    notch2_hz: float = 0.0            # optional second notch (or peak: zeta_zero > zeta_pole), 0 = none
+    notch2_zeta_zero: float = 0.1
+    notch2_zeta_pole: float = 0.5
     centring_hz: float = 0.02         # crossover of the slow centring loop while isolation is off
     dc_gain_m_per_V: float = 2.68e-6  # actuator static gain (sets the centring gain k_c)
     prewarp_hz: float = 200.0         # Tustin prewarp frequency of the compensator (phase-crossover region)
@@ -106,6 +109,8 @@ def params_from_config(cfg, mount: int = 0) -> IsolationParams:
                       lead2_zero_hz=c.lead2_zero_hz, lead2_pole_hz=c.lead2_pole_hz,
                       rolloff_hz=c.rolloff_hz, rolloff_zeta=c.rolloff_zeta, notch_hz=c.notch_hz,
                       notch_zeta_zero=c.notch_zeta_zero, notch_zeta_pole=c.notch_zeta_pole,
+                      notch2_hz=getattr(c, "notch2_hz", 0.0), notch2_zeta_zero=getattr(c, "notch2_zeta_zero", 0.1),
+                      notch2_zeta_pole=getattr(c, "notch2_zeta_pole", 0.5),
                       centring_hz=c.centring_hz, prewarp_hz=c.prewarp_hz, fade_s=c.fade_s, gain_trim=trim,
                       sat_reset_s=getattr(c, "sat_reset_s", base.sat_reset_s),
                       sat_resume_s=getattr(c, "sat_resume_s", base.sat_resume_s))
@@ -148,10 +153,11 @@ class IsolationController:
                 if fz > 0 and fp > 0:
                     wz, wp = 2 * math.pi * fz, 2 * math.pi * fp
                     comp.append(tustin_section([1 / wz, 1.0], [1 / wp, 1.0], dt, pw))   # (1+s/wz)/(1+s/wp)
-            if p.notch_hz > 0:
-                wn = 2 * math.pi * p.notch_hz
-                comp.append(tustin_section([1.0, 2 * p.notch_zeta_zero * wn, wn * wn],
-                                           [1.0, 2 * p.notch_zeta_pole * wn, wn * wn], dt, p.notch_hz))
+            for fn, zz, zp in ((p.notch_hz, p.notch_zeta_zero, p.notch_zeta_pole),
+                               (p.notch2_hz, p.notch2_zeta_zero, p.notch2_zeta_pole)):
+                if fn > 0:                             # (s^2 + 2 zz wn s + wn^2) / (s^2 + 2 zp wn s + wn^2)
+                    wn = 2 * math.pi * fn
+                    comp.append(tustin_section([1.0, 2 * zz * wn, wn * wn], [1.0, 2 * zp * wn, wn * wn], dt, fn))
             if p.rolloff_hz > 0:
                 wr = 2 * math.pi * p.rolloff_hz
                 comp.append(tustin_section([wr * wr], [1.0, 2 * p.rolloff_zeta * wr, wr * wr], dt, pw))

@@ -170,21 +170,31 @@ class StandConfig:
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """Isolation controller per mount (controllers/isolation.py): PI + two leads + notch + roll-off on the
-    mount's absolute motion (accelerometer blended with the stroke below blend_hz); defaults tuned on the
-    discrete loop (controllers/tune.py, ZOH + one period of delay at 5 kHz)."""
+    """Isolation controller per mount (controllers/isolation.py): PI + two leads + two notches + roll-off on the
+    mount's absolute motion (accelerometer blended with the stroke below blend_hz); defaults found by the
+    structured optimiser on the discrete loop (controllers/tune.py, `rig design --tune`: ZOH + one period of
+    delay at 5 kHz; disk margin >= 2/3 on every mount, at or above the paper's attenuation in every band).
+    Corners above the Nyquist frequency are allowed (Tustin maps them inside the unit circle): the leads then
+    act as near-differentiators up to Nyquist and the roll-off as its double zero at z = -1."""
     blend_hz: float = _f(0.1, "Hz", gt=0)               # accelerometer / stroke complementary blend
-    kp_V_per_m: float = _f(345000, "V/m", gt=0)           # PI proportional gain on the compensated position
-    pi_corner_hz: float = _f(12, "Hz", gt=0)            # PI integral corner
-    lead1_zero_hz: float = _f(8.69918, "Hz", gt=0)
-    lead1_pole_hz: float = _f(2212, "Hz", gt=0)
-    lead2_zero_hz: float = _f(42.731, "Hz", gt=0)
-    lead2_pole_hz: float = _f(622.716, "Hz", gt=0)
-    rolloff_hz: float = _f(2248.22, "Hz", ge=0)           # second-order low-pass (0 = none)
-    rolloff_zeta: float = _f(0.717525, "", gt=0)
-    notch_hz: float = _f(213.524, "Hz", ge=0)                # optional notch (0 = none)
-    notch_zeta_zero: float = _f(0.27982, "", ge=0)
-    notch_zeta_pole: float = _f(0.558031, "", gt=0)
+    kp_V_per_m: float = _f(288544, "V/m", gt=0)         # PI proportional gain on the compensated position
+    pi_corner_hz: float = _f(26.9524, "Hz", gt=0)       # PI integral corner
+    lead1_zero_hz: float = _f(5.56773, "Hz", gt=0)
+    lead1_pole_hz: float = _f(5000, "Hz", gt=0)
+    lead2_zero_hz: float = _f(26.8104, "Hz", gt=0)
+    lead2_pole_hz: float = _f(5000, "Hz", gt=0)
+    rolloff_hz: float = _f(5000, "Hz", ge=0)            # second-order low-pass (0 = none)
+    rolloff_zeta: float = _f(0.334788, "", gt=0)
+    notch_hz: float = _f(229.856, "Hz", ge=0)           # optional notch (0 = none)
+    notch_zeta_zero: float = _f(0.427624, "", ge=0)
+    notch_zeta_pole: float = _f(2.26149, "", gt=0)
+    notch2_hz: float = _f(97.368, "Hz", ge=0)              # optional second notch, or peak (zeta_zero > zeta_pole)
+    notch2_zeta_zero: float = _f(0.0984906, "", ge=0)
+    notch2_zeta_pole: float = _f(0.0353757, "", gt=0)
+    # floor-motion feedforward (controllers/feedforward.py): inverse actuator model on the floor accelerometer
+    ff_hp_hz: float = _f(0.1, "Hz", gt=0)              # floor accelerometer high-pass (double integration)
+    ff_lowpass_hz: float = _f(600.0, "Hz", gt=0)       # roll-off of the inverse (6th-order Butterworth)
+    ff_gain: float = _f(1.0, "", ge=0)                 # trim on the feedforward path (1 = cancel as modelled)
     centring_hz: float = _f(0.02, "Hz", gt=0)            # slow centring crossover while isolation is off
     prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp of the compensator (phase crossover)
     fade_s: float = _f(0.1, "s", gt=0)                   # bumpless on/off: switching offset decay time
