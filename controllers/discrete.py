@@ -13,6 +13,7 @@ from __future__ import annotations
 import cmath
 import math
 
+import numba
 import numpy as np
 
 Section = tuple[float, float, float, float, float]     # b0, b1, b2, a1, a2 (a0 = 1)
@@ -80,11 +81,12 @@ def sos_step(sections, state: list, i0: int, x: float) -> float:
     return x
 
 
+@numba.njit(cache=True)
 def sos_step_array(coef: np.ndarray, state: np.ndarray, i0: int, x: float) -> float:
     """sos_step on plain float arrays: coef (n, 5) rows (b0, b1, b2, a1, a2), state[i0 : i0 + 2 n].
 
-    Indexing only, no tuples or lists, so numba can compile it (numba.njit(sos_step_array)) for a compiled
-    period; plain Python runs it as it is."""
+    Compiled (numba), so a compiled period can call it, and so can any function of plain arrays that numba
+    compiles (controllers.feedforward.feedforward_step); Python calls it through the same dispatcher."""
     i = i0
     for k in range(coef.shape[0]):
         y = coef[k, 0] * x + state[i]

@@ -3,8 +3,10 @@ the actuator's stroke cancels the floor's motion there.
 
 The actuator is far stiffer than the machine, so the mount moves with the floor plus the stroke
 (x_p = x_g + stroke, Eq. 13 with K >> machine); commanding stroke = -x_g keeps the mount, and so the machine,
-still. With a model G(s) of valve voltage -> stroke (Eq. 10: valve Eq. 1 times actuator Eq. 8, the machine's
-share of mass on the piston) the command is
+still. Then the machine does not accelerate and the actuator only moves its own piston against the floor, so
+valve voltage -> stroke is the actuator's own G_EHA (Eq. 10: valve Eq. 1 times actuator Eq. 8 with the piston's
+mass M, its hydraulic mode at ~2 kHz), not the actuator loaded by the machine (~250 Hz): inverting the loaded
+one cost 12-15 dB of cancellation at 20-100 Hz on the simulated rig. With that model G(s) the command is
 
     u_ff = -G^-1(s) x_g,   x_g = a_g / s^2   (a_g: the floor accelerometer)
 
@@ -17,13 +19,12 @@ made realisable as one cascade of second-order sections, designed in continuous 
                                                                   gives a bounded transient, not a ramp)
                         x (s^2 + 2 zeta w_nv s + w_nv^2)/(K_v w_nv^2)         inverse valve, Eq. 1
                         x (A_p/K_Q) (d3 s^3 + d2 s^2 + d1 s + d0)             inverse actuator, Eq. 8
-                        x (1 + tau s)                                        phase lead for the delays
-                        x LP4(s)                                             4th-order Butterworth roll-off
+                        x (1 + tau s + (tau s)^2 / 2)                        phase lead for the delays
+                        x LP6(s)                                             6th-order Butterworth roll-off
 
-tau compensates, to first order, what the path delays: the zero-order hold (half a period), the loop's one
-period of computation delay and the roll-off's own group delay at low frequency (2.6131 / w_lp). The
-numerator and denominator orders are equal (6), so the filter is proper; above the roll-off its gain stays
-bounded. Why it stops working (PHYSICS_NOTES, "Floor-motion feedforward: the limit"): the residual is
+The lead (e^{s tau} to second order) gives back what the path delays: the zero-order hold (half a period),
+the loop's one period of computation delay and the roll-off's own group delay at low frequency
+(3.8637 / w_lp). Seven zeros over eight poles: the filter is strictly proper and rolls off above w_lp. Why it stops working (PHYSICS_NOTES, "Floor-motion feedforward: the limit"): the residual is
 |1 - (1 + e) e^{j phi}| of the floor motion for a gain error e and a phase error phi, so a 10 % gain error
 alone limits the cancellation to 20 dB; that is why `rig design --identified DIR` designs it on the
 identified actuator rather than Table 1.
@@ -54,7 +55,8 @@ def butterworth_pairs(order: int) -> list[float]:
 @dataclass(frozen=True)
 class FeedforwardParams:
     """The actuator model the feedforward inverts (paper symbols, SI; K_Q per mA, K_v in mA/V) and the
-    sensor/roll-off figures. M_kg is the mass the piston moves: its own plus the machine's share."""
+    sensor/roll-off figures. M_kg: the piston's moving mass (Table 1; the machine stays still when the floor
+    is cancelled)."""
     K_v: float = 2.0                  # mA/V, valve driver gain (Eq. 1)
     K_Q: float = 1.94e-6              # m^3/s/mA, flow gain (Eq. 3)
     K_C: float = 6.6e-11              # m^3/s/Pa, flow-pressure coefficient (Eq. 3)
@@ -65,10 +67,10 @@ class FeedforwardParams:
     C: float = 1951.0                 # N s/m (Eq. 7)
     V_t: float = 5.39e-4              # m^3 (Eq. 6)
     beta: float = 1.4e9               # Pa (Eq. 6)
-    M_kg: float = 4056.0              # moving mass: piston + machine share (Eq. 7)
+    M_kg: float = 56.0                # moving mass of the piston (Eq. 7)
     hp_hz: float = 0.1                # floor accelerometer high-pass (2nd-order Butterworth)
     lowpass_hz: float = 600.0         # Butterworth roll-off corner
-    lowpass_order: int = 6            # its order (even, >= 4: the inverse has two more zeros than poles)
+    lowpass_order: int = 6            # its order (even, >= 6: the inverse has 7 zeros, HP/s^2 2 poles)
     delay_s: float | None = None      # delay the lead compensates (None: 1.5 periods, ZOH + computation)
     prewarp_hz: float = 50.0          # Tustin prewarp: exact in the middle of the floor band
     gain: float = 1.0                 # trim on the whole path (1 = cancel as modelled)
@@ -78,13 +80,13 @@ class FeedforwardParams:
         return replace(self, **kw)
 
 
-def feedforward_params_from_config(cfg, n_mounts: int = 4) -> FeedforwardParams:
-    """The configured actuator (Table 1 unless the config says otherwise) with the machine's share on it, and
-    the [controller] feedforward settings."""
+def feedforward_params_from_config(cfg) -> FeedforwardParams:
+    """The configured actuator (Table 1 unless the config says otherwise) and the [controller] feedforward
+    settings."""
     a, v, fl = cfg.actuator, cfg.valve, cfg.fluid
     c = cfg.controller
     return FeedforwardParams(K_v=v.K_v, K_Q=v.K_Q, K_C=v.K_C, w_nv=v.w_nv, zeta=v.zeta, A_p=a.A_p, K_L=a.K_L,
-                             C=a.C, V_t=a.V_t, beta=fl.beta, M_kg=a.M + cfg.machine.mass_kg / n_mounts,
+                             C=a.C, V_t=a.V_t, beta=fl.beta, M_kg=a.M,
                              hp_hz=getattr(c, "ff_hp_hz", 0.1), lowpass_hz=getattr(c, "ff_lowpass_hz", 600.0),
                              gain=getattr(c, "ff_gain", 1.0))
 
@@ -115,8 +117,8 @@ class FeedforwardFilter:
     def __init__(self, params: FeedforwardParams, dt: float, name: str = ""):
         self.p, self.dt, self.name = params, float(dt), name
         p = params
-        if p.lowpass_order < 4 or p.lowpass_order % 2:
-            raise ValueError(f"lowpass_order: expected an even order >= 4, got {p.lowpass_order}")
+        if p.lowpass_order < 6 or p.lowpass_order % 2:
+            raise ValueError(f"lowpass_order: expected an even order >= 6, got {p.lowpass_order}")
         zl = butterworth_pairs(p.lowpass_order)
         # the lead's time constant: ZOH + computation delay, plus the roll-off's group delay at low frequency
         # (sum of 2 zeta_k / w_lp over the Butterworth pairs)
@@ -127,11 +129,15 @@ class FeedforwardFilter:
         first, second = _quadratics([1.0, d2 / d3, d1 / d3, d0 / d3])
         k = -p.gain * d3 * p.A_p / (p.K_Q * p.K_v * wnv * wnv)          # all constant factors
         w2 = wlp * wlp
+        # e^{s tau} to second order: 1 + tau s + (tau s)^2 / 2 keeps the magnitude within (w tau)^4 / 8 of 1,
+        # where the first-order lead 1 + tau s is already 30 % high at w tau = 0.83 (100 Hz)
+        lead = [0.5 * tau * tau, tau, 1.0]
         self.continuous = [
             ([1.0, 2 * p.zeta * wnv, wnv * wnv], [1.0, math.sqrt(2.0) * whp, whp * whp]),   # valve^-1 / (s^2 HP)
             ([w2 * c for c in second], [1.0, zl[0] * wlp, w2]),                          # actuator pair / LP
-            ([k * w2 * c for c in np.polymul(first, [tau, 1.0])], [1.0, zl[1] * wlp, w2]),  # real root, lead / LP
-        ] + [([w2], [1.0, z * wlp, w2]) for z in zl[2:]]                                # rest of the roll-off
+            ([w2 * c for c in lead], [1.0, zl[1] * wlp, w2]),                            # lead / LP
+            ([k * w2 * c for c in first], [1.0, zl[2] * wlp, w2]),                       # actuator root / LP
+        ] + [([w2], [1.0, z * wlp, w2]) for z in zl[3:]]                                # rest of the roll-off
         self.sections = tuple(tustin_section(n, d, dt, p.prewarp_hz) for n, d in self.continuous)
         self.coef = np.array(self.sections, dtype=float)
         self.fade = math.exp(-dt / p.fade_s)
@@ -180,5 +186,5 @@ def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_flo
 def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None) -> list[FeedforwardFilter]:
     """One filter per mount (rig.config.MOUNTS order)."""
     from rig.config import MOUNTS
-    p = params or feedforward_params_from_config(cfg, len(MOUNTS))
+    p = params or feedforward_params_from_config(cfg)
     return [FeedforwardFilter(p, dt, name=m) for m in MOUNTS]

@@ -305,7 +305,7 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
     ff = result["feedforward"]
     me = ff["model_error"]
     L += ["## Floor feedforward", "",
-          f"Inverse of the actuator model (valve Eq. 1 x actuator Eq. 8 with the machine's share of mass) on the "
+          f"Inverse of the actuator's own model G_EHA (valve Eq. 1 x actuator Eq. 8, Eq. 10) on the "
           f"floor accelerometer: high-pass {ff['params']['hp_hz']:g} Hz, roll-off {ff['params']['lowpass_hz']:g} Hz "
           f"(order {ff['params']['lowpass_order']}), lead {ff['lead_s'] * 1e3:.3f} ms for the ZOH, the period of "
           "computation and the roll-off's delay.", "",
@@ -341,17 +341,34 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
           "and it can only sit where the loop is still active: below the machine-on-actuator modes "
           "(~250-320 Hz), whose phase, with the valve's, the flow integrator's and the delay's, ends the loop's "
           "reach.", "",
-          "| mount | area below 100 Hz [Hz Np] | area above [Hz Np] | sum | |S| peak [dB] at [Hz] | amplified from "
-          "[Hz] | minimum width at |S| = 2 [Hz] |", "|---|---|---|---|---|---|---|"]
+          "| mount | area below 100 Hz [Hz Np] | area above [Hz Np] | sum | peak of S [dB] at [Hz] | amplified from "
+          "[Hz] | minimum width at S = 2 [Hz] |", "|---|---|---|---|---|---|---|"]
     for m, s in si.items():
         L.append(f"| {m} | {s['below_hz_nepers']:.1f} | {s['above_hz_nepers']:.1f} | {s['total_hz_nepers']:.2f} | "
                  f"{s['peak_db']:.1f} at {s['peak_hz']:.0f} | {s['amplified_from_hz']:.0f} | "
                  f"{-s['below_hz_nepers'] / math.log(2):.0f} |")
+    ts = result["tuning_slack"]
+    dm = min(ts["disk_margin"].values())
+    active = []
+    if dm - ts["disk_margin_min"] < 0.01:
+        active.append(f"the disk margin ({dm:.3f}, limit {ts['disk_margin_min']:.3f})")
+    if ts["hf_gain_V_per_mps2"] > 0.98 * ts["hf_gain_max_V_per_mps2"]:
+        active.append(f"the accelerometer -> valve gain above {ts['from_hz']:g} Hz ({ts['hf_gain_V_per_mps2']:.1f}, "
+                      f"limit {ts['hf_gain_max_V_per_mps2']:g} V per m/s^2)")
+    if ts["loop_gain_above_db"] > ts["loop_gain_above_max_db"] - 0.2:
+        active.append(f"the loop gain above {ts['from_hz']:g} Hz ({ts['loop_gain_above_db']:.1f} dB)")
+    ex = ts["band_excess_db"]
+    worst = min(ex.values())
+    tight = [BAND_LABELS[b] for b, v in ex.items() if v < worst + 0.2]
     L += ["", "The tuner (controllers/tune.py, `rig design --tune`) maximises the worst band's excess over the "
-              "paper with the disk margin >= 2/3 on every mount, |L| <= -10 dB and the accelerometer -> valve gain "
-              "<= 45 V per m/s^2 from 500 Hz on as hard constraints; at its optimum the disk margin, the "
-              "high-frequency gain cap and the 1 Hz, 5-10 Hz and rear 60-100 Hz goals are all active, so more of one "
-              "band costs margin, high-frequency gain or another band.", ""]
+              f"paper with the disk margin >= {ts['disk_margin_min']:.3f} on every mount, |L| <= "
+              f"{ts['loop_gain_above_max_db']:g} dB and the accelerometer -> valve gain <= "
+              f"{ts['hf_gain_max_V_per_mps2']:g} V per m/s^2 from {ts['from_hz']:g} Hz on as hard constraints. "
+              "For this design the band excesses over the paper are " + ", ".join(
+                  f"{BAND_LABELS[b]} {v:+.2f} dB" for b, v in ex.items()) + f" (worst mount); the tightest: "
+              f"{', '.join(tight)}; constraints at their limit: {', '.join(active) or 'none'}. Where a band and a "
+              "constraint are both at their limit, more of that band costs margin, high-frequency gain or "
+              "another band.", ""]
     L += ["## Other figures", "", f"- Fig. 10 (front-left, tool): {pi_note}.",
           f"- Fig. 4: actuator-alone PID tracking bandwidth {tracking_bw_hz:.1f} Hz (paper ~95 Hz).", ""]
     L += [f"![{n}]({n})" for n in figures] + [""]

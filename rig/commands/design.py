@@ -138,6 +138,8 @@ def run(args) -> int:
                              "feedback_feedforward_model_error": dict(predicted_rms(off, dt, ctrls, ffs),
                                                                      plant_factors=worst)}
     rep["predicted_vc"] = predicted_vc(cfg, dt, ctrls, ffs)
+    from controllers.tune import Problem
+    rep["tuning_slack"] = Problem(cfg, dt, params_from_config(cfg)).slack(params_from_config(cfg))
     rep["paper_targets_db"] = _targets()
     rep["meets_paper"] = _meets(rep)
     rep["design_model"] = model
