@@ -20,8 +20,10 @@ Why this compensator: the plant u -> x_p (valve, Eq. 1; flow integrator with the
 the machine's mass on the actuators' stiffness at 230-290 Hz, damping ~0.2) has lost ~210 deg of phase at
 100 Hz and ~300 deg at 200 Hz, ZOH and one period of computation delay included. Lead1 cancels the 7 Hz lag
 (so the loop gain stays up to the valve's 83 Hz), lead2 buys the phase at crossover, the notch takes the
-machine-on-actuator resonances down so they are gain-stabilised, and the roll-off keeps accelerometer noise and
-high-frequency modes out of the valve. The PI gives the low-frequency gain (>= 20 dB at 1 Hz).
+machine-on-actuator resonances down so they are gain-stabilised, the second notch (a peak when its zero is
+damped more than its pole) lifts the loop gain at the top of the 1-100 Hz band just below crossover, and the
+roll-off keeps accelerometer noise and high-frequency modes out of the valve. The PI gives the low-frequency
+gain (>= 25 dB at 1 Hz).
 
 Why Tustin, prewarped at prewarp_hz (200 Hz, the phase-crossover / resonance region where the gain margin is
 decided) for the compensator, plain for the slow blend: it maps a stable continuous factor to a stable discrete
@@ -39,9 +41,8 @@ isolation bumplessly (centring alone, filters running) and resumes it by itself 
 settled; see step. Measured cause of the latch: a scheduling gap leaves a velocity error in the double
 integration, which the 0.1 Hz blend forgets only in ~10 s (tests/test_runtime_saturation.py).
 
-Tuned defaults (rig/config.py [controller], 5 kHz, ZOH + 1 period delay): gain crossover 114-121 Hz, phase
-crossover 207-239 Hz, GM 4.6-4.9 dB, PM 60-70 deg, ground -> table/tool 20.3 dB at 1 Hz, >= 2.97 dB 1-100 Hz.
-The blend at 0.1 Hz keeps the accelerometer-noise wander (RigPlant: 2e-4 m/s^2 per sample) to ~1 V rms of valve.
+The defaults (rig/config.py [controller]) come from controllers/tune.py; `rig design` reports their margins and
+attenuation. The blend at 0.1 Hz keeps the double-integrated accelerometer noise from wandering off.
 """
 from __future__ import annotations
 

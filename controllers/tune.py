@@ -26,16 +26,18 @@ start that is also stable with all four loops closed wins. Run `rig design --tun
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # small eigenproblems: threads only contend (run as -m)
+import numpy as np                                    # noqa: E402
 
-from controllers.analysis import DiscreteRig, _fast_decay, disk_margin, is_stable
-from controllers.isolation import IsolationController, IsolationParams
-from rig.config import MOUNTS
-from sim_backend.rig_plant import I_ACCEL, I_STROKE, I_TABLE
+from controllers.analysis import DiscreteRig, _fast_decay, disk_margin, is_stable  # noqa: E402
+from controllers.isolation import IsolationController, IsolationParams              # noqa: E402
+from rig.config import MOUNTS                                                       # noqa: E402
+from sim_backend.rig_plant import I_ACCEL, I_STROKE, I_TABLE                        # noqa: E402
 
 # band -> (lo Hz, hi Hz, target dB per mount in MOUNTS order): the paper's Fig. 12 (ground -> table)
 PAPER_TABLE_TARGETS = {"1hz": (1.0, 1.0, (25.0, 25.0, 25.0, 25.0)),

@@ -116,3 +116,20 @@ def test_identified_errors_are_one_line(tmp_path, capsys, setup, words):
     assert main(["design", "--identified", str(d)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
+
+
+def test_rig_design_tune_writes_the_controller_section(tmp_path, capsys):
+    """--tune: the tuned [controller] section is analysed, reported and written (it loads as a config)."""
+    from rig.cli import main
+    from rig.config import load_config
+    rc = main(["design", "--tune", "--starts", "1", "--robust", "0", "--json", "--out", str(tmp_path)])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["tuned"]["worst_excess_db"] >= 0.0 and out["meets_paper"]["bands"] is True
+    toml = (tmp_path / "controller.toml").read_text()
+    assert toml.startswith("[controller]") and "notch2_hz" in toml
+    cfg = load_config(tmp_path / "controller.toml")
+    assert cfg.controller.kp_V_per_m == pytest.approx(float(toml.split("kp_V_per_m = ")[1].split()[0]))
+    md = (tmp_path / "design.md").read_text()
+    assert "Robust stability" in md and "sensitivity integral" in md
+    assert all((tmp_path / n).stat().st_size > 10000 for n in ("feedforward.png", "mimo_transmissibility.png",
+                                                               "sensitivity.png", "fig11_nyquist.png"))
