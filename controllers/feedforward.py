@@ -24,10 +24,11 @@ made realisable as one cascade of second-order sections, designed in continuous 
 
 The lead (e^{s tau} to second order) gives back what the path delays: the zero-order hold (half a period),
 the loop's one period of computation delay and the roll-off's own group delay at low frequency
-(3.8637 / w_lp). Seven zeros over eight poles: the filter is strictly proper and rolls off above w_lp. Why it stops working (PHYSICS_NOTES, "Floor-motion feedforward: the limit"): the residual is
-|1 - (1 + e) e^{j phi}| of the floor motion for a gain error e and a phase error phi, so a 10 % gain error
-alone limits the cancellation to 20 dB; that is why `rig design --identified DIR` designs it on the
-identified actuator rather than Table 1.
+(3.8637 / w_lp). Seven zeros over eight poles: the filter is strictly proper and rolls off above w_lp.
+
+Why it stops working: the residual is |1 - (1 + e) e^{j phi}| of the floor motion for a gain error e and a
+phase error phi (2 sin(phi/2) for phi alone), so a 10 % gain error alone limits the cancellation to 20 dB;
+that is why `rig design --identified DIR` designs it on the identified actuator rather than Table 1.
 
 The law takes the actuator figures it needs as parameters (FeedforwardParams; from the config or from an
 identification), not the simulator. The step is a plain function of float arrays (feedforward_step) that numba
@@ -72,6 +73,7 @@ class FeedforwardParams:
     lowpass_hz: float = 600.0         # Butterworth roll-off corner
     lowpass_order: int = 6            # its order (even, >= 6: the inverse has 7 zeros, HP/s^2 2 poles)
     delay_s: float | None = None      # delay the lead compensates (None: 1.5 periods, ZOH + computation)
+    lead_order: int = 2               # 2: 1 + tau s + (tau s)^2/2; 1: 1 + tau s (grows slower above the band)
     prewarp_hz: float = 50.0          # Tustin prewarp: exact in the middle of the floor band
     gain: float = 1.0                 # trim on the whole path (1 = cancel as modelled)
     fade_s: float = 0.1               # on/off: the output gain fades with this time constant
@@ -131,7 +133,7 @@ class FeedforwardFilter:
         w2 = wlp * wlp
         # e^{s tau} to second order: 1 + tau s + (tau s)^2 / 2 keeps the magnitude within (w tau)^4 / 8 of 1,
         # where the first-order lead 1 + tau s is already 30 % high at w tau = 0.83 (100 Hz)
-        lead = [0.5 * tau * tau, tau, 1.0]
+        lead = [0.5 * tau * tau, tau, 1.0] if p.lead_order == 2 else [0.0, tau, 1.0]
         self.continuous = [
             ([1.0, 2 * p.zeta * wnv, wnv * wnv], [1.0, math.sqrt(2.0) * whp, whp * whp]),   # valve^-1 / (s^2 HP)
             ([w2 * c for c in second], [1.0, zl[0] * wlp, w2]),                          # actuator pair / LP

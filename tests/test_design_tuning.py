@@ -97,7 +97,8 @@ def test_design_on_identified_actuator(tmp_path, capsys):
     rc = main(["design", "--json", "--robust", "0", "--identified", str(d)])
     out = json.loads(capsys.readouterr().out)
     assert rc == 0
-    assert out["design_model"]["actuator"].startswith("identified") and out["design_model"]["parameters"]["w_nv"] == 569.0
+    assert out["design_model"]["actuator"].startswith("identified")
+    assert out["design_model"]["parameters"]["w_nv"] == 569.0
     assert out["feedforward"]["params"]["w_nv"] == 569.0 and out["feedforward"]["params"]["K_L"] == 8.1e8
     assert out["mimo"]["feedback_feedforward"]["uniform"]["ground_to_table"]["min_1_100hz"] > 20.0
 
