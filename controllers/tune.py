@@ -106,11 +106,11 @@ class Problem:
             tg.append(np.repeat(np.asarray(tgt, dtype=float)[:, None], len(pts), axis=1))
         fb = np.asarray(fb)
         fm = np.concatenate([np.geomspace(0.05, 0.498 / dt, 300), np.geomspace(60.0, 700.0, 250)])
-        self.f = np.unique(np.concatenate([fb, fm]))
+        self.f = np.unique(np.concatenate([fb, fm[fm < 0.499 / dt]]))
         self.ib = np.searchsorted(self.f, fb)
         self.targets = np.hstack(tg)                                   # (4 mounts, band points)
         self.rig = DiscreteRig(cfg, dt, self.f)
-        self.hf = self.f >= goals.rolloff_from_hz
+        self.hf = self.f >= min(goals.rolloff_from_hz, 0.4 / dt)     # (at low loop rates: below Nyquist)
         self._key, self._val = None, None
         self.evaluations = 0
 
