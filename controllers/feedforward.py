@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from controllers.discrete import sos_frf, sos_step_array, tustin_section
+from rig.config import MOUNTS
 
 # state after the sections: output gain (fades between 0 and 1 when switched), switch request
 _G, _ON = 0, 1
@@ -187,6 +188,5 @@ def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_flo
 
 def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None) -> list[FeedforwardFilter]:
     """One filter per mount (rig.config.MOUNTS order)."""
-    from rig.config import MOUNTS
     p = params or feedforward_params_from_config(cfg)
     return [FeedforwardFilter(p, dt, name=m) for m in MOUNTS]

@@ -9,6 +9,7 @@ import numpy as np
 from controllers.analysis import (ACTUATOR_KEYS, BANDS, DiscreteRig, attenuation_db, disk_gm_pm, mimo,
                                   scaled_for_margins, siso, with_actuator)
 from controllers.isolation import IsolationController, params_from_config
+from controllers.vibration_criteria import plot_vc
 from rig.config import MOUNTS
 from sim_backend.rig_plant import I_TABLE, I_TOOL
 
@@ -199,7 +200,6 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
 def _feedforward_figures(save, plt, cfg, dt, rig, ctrls, ffs, data, result):
     """The feedforward filter against the inverse it approximates; feedback + feedforward on the nominal plant
     and on the worst plant of the +-10 % model-error check; the predicted VC curves."""
-    from rig.vibration_criteria import plot_vc
     f = rig.f
     band = (f >= 0.5) & (f <= 300)
     fig, axs = plt.subplots(1, 3, figsize=(16, 4.8))

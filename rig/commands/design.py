@@ -172,7 +172,7 @@ def predicted_vc(cfg, dt, ctrls, ffs) -> dict:
     (isolation off, feedback, feedback + feedforward) and the vibration criterion each meets."""
     import numpy as np
     from controllers.analysis import predicted_table_psd
-    from rig.vibration_criteria import band_velocity_rms_from_psd, vc_class
+    from controllers.vibration_criteria import band_velocity_rms_from_psd, vc_class
     fp = np.geomspace(0.8, 120.0, 1500)
     rep = {"band_hz": None, "velocity_um_s": {}, "vc_class": {}}
     for lab, c, ff in (("off", None, None), ("feedback", ctrls, None), ("feedback + feedforward", ctrls, ffs)):
