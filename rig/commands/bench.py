@@ -21,6 +21,7 @@ import os
 import sys
 import tempfile
 
+from rig import cliargs
 from rig.errors import RigError
 
 log = logging.getLogger("rig.bench")
@@ -30,14 +31,16 @@ def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="bench_what", metavar="WHAT")
     lp = sub.add_parser("loop", help="control loop timing: four mounts on the simulated backend")
     _config_arg(lp)
-    lp.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [loop] rate_hz)")
-    lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
+    lp.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
+                    help="loop rate (default [loop] rate_hz)")
+    lp.add_argument("--seconds", type=cliargs.seconds(le=3600), default=10.0, metavar="N",
+                    help="duration (default 10)")
     lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
     lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
-    lp.add_argument("--spin-us", type=float, default=None, metavar="US",
+    lp.add_argument("--spin-us", type=cliargs.Number(ge=0, le=1000, unit="us"), default=None, metavar="US",
                     help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
-    lp.add_argument("--record", metavar="FILE", default=None,
-                    help="keep the recording here (default: a temporary file, deleted)")
+    cliargs.output_arg(lp, "--record", metavar="FILE", default=None,
+                       help="keep the recording here (default: a temporary file, deleted)")
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
@@ -64,9 +67,10 @@ def run(args) -> int:
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
 def add_sim_arguments(p) -> None:
     """Arguments of `rig bench sim`."""
-    p.add_argument("--seconds", type=float, default=100.0, metavar="N", help="simulated time (default 100)")
-    p.add_argument("--rate", type=float, default=5000.0, metavar="HZ", help="loop rate (default 5000)")
-    p.add_argument("--repeats", type=int, default=3, help="batch runs to time (default 3)")
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=100.0, metavar="N",
+                   help="simulated time (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=5000.0, metavar="HZ", help="loop rate (default 5000)")
+    p.add_argument("--repeats", type=cliargs.count(1, 1000), default=3, help="batch runs to time (default 3)")
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
@@ -76,6 +80,7 @@ def bench_sim(args) -> int:
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
+    cliargs.check_rate(cfg, args.rate, "--rate", sections=("vibration",))   # timing only: any controller
     res = run_bench(cfg, args.seconds, args.rate, args.repeats,
                     progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
     if args.json:
@@ -123,6 +128,7 @@ def bench_loop(args) -> int:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
+    cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller
     if not (0 < rate <= 100000):
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):

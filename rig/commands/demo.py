@@ -12,22 +12,22 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from rig import cliargs
 from rig.errors import RigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=10.0, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
                    help="simulated seconds per phase (isolation off, then on; default 10)")
-    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=600), default=1.0, metavar="S",
                    help="seconds discarded at the start of each phase (default 1)")
-    p.add_argument("--rms-um", type=float, default=None, metavar="UM",
+    p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",
                    help="floor displacement rms in um (default: [vibration] rms_m of the config)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
 
 
 def _rms(x):

@@ -12,8 +12,8 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 
+from rig import cliargs
 from rig.errors import RigError
 
 PAPER = {  # Law et al. 2015, text of Figs. 11-13
@@ -27,8 +27,8 @@ PAPER = {  # Law et al. 2015, text of Figs. 11-13
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write the figures (PNG), design.md (beside the paper's numbers) and design.json")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write the figures (PNG), design.md (beside the paper's numbers) and design.json")
 
 
 def _clean(v):

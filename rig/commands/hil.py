@@ -26,6 +26,7 @@ import time
 
 from pathlib import Path
 
+from rig import cliargs
 from rig.errors import RigError
 
 log = logging.getLogger("rig.hil")
@@ -34,11 +35,12 @@ HIL_DEFAULT_CONFIG = Path(__import__("drivers").__file__).resolve().parent / "de
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=None, metavar="N",
                    help="run length, isolation off then on, half each (default [hil] seconds)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [hil] rate_hz)")
-    p.add_argument("--record", metavar="FILE", default=None,
-                   help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
+    p.add_argument("--rate", type=cliargs.rate_hz(le=5000), default=None, metavar="HZ",
+                   help="loop rate (default [hil] rate_hz)")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None,
+                       help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
     p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
@@ -51,6 +53,7 @@ def hil_config(cfg, rate_hz: float | None = None):
     rate = cfg.hil.rate_hz if rate_hz is None else rate_hz
     if not 0 < rate <= 5000:
         raise RigError(f"--rate: expected 0 < HZ <= 5000 for HIL, got {rate}")
+    cliargs.check_rate(cfg, rate, "HIL", sections=("controller",))
     return hil_run_config(cfg, rate)
 
 
