@@ -101,7 +101,7 @@ class RecordingConfig:
     """The HDF5 recorder (rig/recorder.py)."""
     flush_s: float = _f(0.05, "s", gt=0, le=0.1)        # kill -9 loses at most this much
     ring_s: float = _f(2.0, "s", gt=0, le=60)           # ring capacity; the loop never blocks on it
-    chunk_rows: int = _f(1024, "", gt=0, le=1000000)    # HDF5 chunk length
+    chunk_rows: int = _f(1024, "", gt=0, le=1000000)    # HDF5 chunk length, at most flush_s / 2 of rows
 
 
 @dataclass(frozen=True)

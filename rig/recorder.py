@@ -220,6 +220,10 @@ class Recorder:
             except (OSError, ValueError) as e:
                 self.error = self.error or f"writer gone: {e}"
 
+    def free_rows(self) -> int:
+        """Rows the ring can take now without dropping (for producers that may wait, not the loop)."""
+        return self._cap - (self._head - _Q.unpack_from(self._mm, 8)[0])
+
     def written(self) -> int:
         """Rows the writer has taken from the ring so far."""
         return _Q.unpack_from(self._mm, 8)[0] if self._mm is not None else self.rows_written

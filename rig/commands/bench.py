@@ -5,6 +5,8 @@
   rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
                                                   what the machine itself allows (same JSON)
   rig bench sim ...                               simulation speed of the plant
+  rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
+                                                  hour, gzip against none (rig/recorder_bench.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -48,6 +50,13 @@ def add_arguments(p) -> None:
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
+    rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
+    _config_arg(rp)
+    rp.add_argument("--seconds", type=cliargs.seconds(le=600), default=10.0, metavar="N",
+                    help="seconds of `rig run` (sim backend, real clock) recorded, then replayed (default 10)")
+    rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
+                    help="replays of each mode, alternating (default 3; medians are printed)")
+    rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -61,6 +70,8 @@ def run(args) -> int:
         return bench_loop(args)
     if what == "sim":
         return bench_sim(args)
+    if what == "recorder":
+        return bench_recorder(args)
     raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
 
 
@@ -94,6 +105,26 @@ def bench_sim(args) -> int:
           f"max {su['max']:.1f} us")
     print(f"stand chirp {st['simulated_s']:g} s at {st['rate_hz']:g} Hz: {st['wall_s']:.2f} s -> "
           f"{st['realtime_factor']:.0f}x real time")
+    return 0
+
+
+# ---- rig bench recorder ----------------------------------------------------------------------------------
+def bench_recorder(args) -> int:
+    from rig.config import load_config
+    from rig.recorder_bench import bench_recorder as run_bench
+    cfg = load_config(getattr(args, "config", None))
+    res = run_bench(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
+                    progress=lambda m: print(f"bench recorder: {m}", file=sys.stderr, flush=True))
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(f"recording of `rig run` at {res['rate_hz']:g} Hz: {res['columns']} columns a row "
+          f"({res['controller_state_columns']} of them controller states); medians of {res['rounds']} rounds")
+    for m, r in res["modes"].items():
+        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = {r['writer_cpu_percent_at_rate']:5.1f} % "
+              f"of a core at {res['rate_hz']:g} Hz; {r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s "
+              f"= {r['GB_per_hour_at_rate']:.2f} GB/h; rows lost {r['rows_lost']}")
+    print(f"  gzip/none: size x{res['gzip_size_ratio']}, writer CPU x{res['gzip_cpu_ratio']}")
     return 0
 
 

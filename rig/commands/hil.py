@@ -124,8 +124,6 @@ def run(args) -> int:
                   quiet=args.json)
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "recording")}
-    if res["fault_reason"]:
-        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)

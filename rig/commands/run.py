@@ -115,6 +115,8 @@ class _Status(threading.Thread):
 
     def stop(self) -> None:
         self._halt.set()
+        if self.ident is None:              # never started (the start-up failed): nothing to join
+            return
         self.join(timeout=1.0)
         if self.tty and not self.quiet:
             sys.stderr.write("\n")
@@ -152,7 +154,8 @@ class _ControlFile(threading.Thread):
 
     def stop(self) -> None:
         self._halt.set()
-        self.join(timeout=1.0)
+        if self.ident is not None:          # started
+            self.join(timeout=1.0)
 
 
 def run(args) -> int:
