@@ -137,7 +137,7 @@ def check_outputs(args) -> None:
 def check_settle(settle_s: float, seconds_s: float | None, *, default: str = "") -> None:
     """INACTIVE for settle_s, then ACTIVE: a run shorter than its settle time would never activate."""
     if seconds_s is not None and settle_s >= seconds_s:
-        what = f"--settle {settle_s:g} s" if not default else f"the settle time ({default}: {settle_s:g} s)"
+        what = f"--settle {settle_s:g} s" if not default else f"the settle time ({default}: {settle_s:.3g} s)"
         raise RigError(f"--seconds {seconds_s:g}: expected longer than {what}, or the run would end before "
                        f"activation (give a longer --seconds or a shorter --settle)")
 

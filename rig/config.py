@@ -85,7 +85,7 @@ class LoopConfig:
 @dataclass(frozen=True)
 class SafetyConfig:
     """Plausibility checks and limits applied every period (rig/safety.py)."""
-    valve_limit_V: float = _f(10.0, "V", gt=0)          # command clamp, <= valve.max_V
+    valve_limit_V: float = _f(10.0, "V", gt=0, le=50)   # command clamp, <= valve.max_V
     slew_V_per_s: float = _f(1.0e4, "V/s", gt=0, le=1e8)        # command slew limit
     accel_range_mps2: float = _f(50.0, "m/s^2", gt=0, le=1e4)   # accelerometer range (<= ~1000 g)
     stroke_range_m: float = _f(2.0e-3, "m", gt=0, le=1.0)       # transducer range; beyond = implausible
@@ -325,12 +325,13 @@ def _check_cross(cfg: Config) -> None:
 
 
 NYQUIST_SECTIONS = ("controller", "vibration", "stand")
+F_MIN_HZ = 1e-3          # a slower "frequency" (a period over 15 min) is a constant within any run
 
 
 def check_nyquist(cfg: Config, rate_hz: float, *, sections=NYQUIST_SECTIONS, rate_source: str | None = None) -> None:
     """Every frequency in Hz of `sections` (except the rates themselves; 0 = off) below rate_hz / 2: a
     discrete filter or a floor band cannot hold a frequency at or above Nyquist (a notch there turns into a
-    limit cycle, a band-pass design fails). ConfigError naming the key and the rate."""
+    limit cycle, a band-pass design fails); and not below F_MIN_HZ. ConfigError naming the key and the rate."""
     nyq = rate_hz / 2
     src = rate_source or f"loop.rate_hz = {rate_hz:g} Hz"
     for sec in sections:
@@ -339,6 +340,9 @@ def check_nyquist(cfg: Config, rate_hz: float, *, sections=NYQUIST_SECTIONS, rat
             if f.metadata.get("unit") != "Hz" or f.name.endswith("rate_hz") or not f.metadata.get("nyquist"):
                 continue
             v = getattr(obj, f.name)
+            if 0 < v < F_MIN_HZ:
+                off = "0 (off) or " if f.metadata.get("ge") == 0 else ""
+                raise ConfigError(f"{cfg.source}: {sec}.{f.name}: expected {off}>= {F_MIN_HZ:g} Hz, got {v:g}")
             if v > 0 and not v < nyq:
                 raise ConfigError(f"{cfg.source}: {sec}.{f.name}: expected < {nyq:g} Hz (the Nyquist frequency "
                                   f"of {src}), got {v:g}")

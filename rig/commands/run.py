@@ -226,7 +226,7 @@ def run(args) -> int:
             rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu, lock_memory=False,
                                 freeze_gc=False)
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(ctrls))
-        cliargs.check_settle(settle, args.seconds, default="the controllers' warm-up, 2 / blend_hz")
+        cliargs.check_settle(settle, args.seconds, default="the default --settle")
         if settle > 1.0:
             log.info("warming up the controllers for %.1f s before activation (valves at null)", settle)
         reason = loop.run(seconds=args.seconds, activate_after_s=settle)
