@@ -19,7 +19,8 @@ from rig.cli import main
 BAD = ["nan", "NaN", "inf", "-inf", "-1", "0", "-0", "1e9", "1e300", "-1e300", "abc", "", "1e", "0x10",
        "5e-324", "--", "１"]
 def _settings(n: int):
-    return settings(max_examples=n, deadline=None,
+    """n draws (times RIG_CAMPAIGN_SCALE from the environment, for a longer campaign by hand)."""
+    return settings(max_examples=n * int(os.environ.get("RIG_CAMPAIGN_SCALE", "1")), deadline=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 
 

@@ -85,9 +85,9 @@ def test_default_warm_up_longer_than_seconds_is_refused(tmp_path):
 
 
 def test_hil_rate_above_the_controllers_nyquist_is_refused(capsys):
-    """`rig hil --rate 100` with hil.toml (roll-off at 223 Hz): refused before the emulated rig starts."""
-    assert main(["hil", "--rate", "100", "--seconds", "1"]) == 2
-    _one_line_error(capsys, "controller.", "Nyquist", "100 Hz")
+    """`rig hil --rate 150` with hil.toml (roll-off at 223 Hz): refused before the emulated rig starts."""
+    assert main(["hil", "--rate", "150", "--seconds", "1"]) == 2
+    _one_line_error(capsys, "controller.", "Nyquist", "150 Hz")
 
 
 def test_model_plot_name_without_suffix_writes_what_it_says(tmp_path, capsys):
@@ -168,3 +168,12 @@ def test_overwrite_into_a_folder_keeps_other_files(tmp_path, capsys):
     assert main(["demo", "--seconds", "1", "--settle", "0.2", "--out", str(d), "--overwrite"]) == 0
     assert (d / "notes.md").read_text() == "mine"
     assert json.loads((d / "demo.json").read_text())["loop"]["periods"] > 0
+
+
+def test_demo_rms_option_keeps_the_spectrum(capsys):
+    """Found by the campaign: `rig demo --rms-um 1` rebuilt [vibration] positionally, the seed landed in the
+    spectrum field, and the floor model raised a ValueError (a traceback)."""
+    assert main(["demo", "--rms-um", "1", "--seconds", "0.5", "--settle", "0.1"]) == 0
+    out = capsys.readouterr().out
+    floor_um = float(out.split("rig demo: floor ")[1].split(" um")[0])
+    assert 0.5 < floor_um < 1.5                                  # the level asked for, not the default 3 um

@@ -8,6 +8,7 @@ table and tool-point motion (Y) of each half and the reduction in dB.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -42,7 +43,7 @@ def _band(x, fs, lo=1.0, hi=100.0):
 
 
 def run(args) -> int:
-    from rig.config import load_config, VibrationConfig
+    from rig.config import load_config
     cfg = load_config(args.config)
     if not 0.5 <= args.seconds <= 600:
         raise RigError(f"--seconds: expected 0.5 to 600 s per phase, got {args.seconds}")
@@ -52,7 +53,7 @@ def run(args) -> int:
         if not 0 < args.rms_um <= 1000:
             raise RigError(f"--rms-um: expected 0 < rms <= 1000 um, got {args.rms_um}")
         v = cfg.vibration
-        cfg = cfg.replace(vibration=VibrationConfig(v.band_lo_hz, v.band_hi_hz, args.rms_um * 1e-6, v.seed))
+        cfg = cfg.replace(vibration=dataclasses.replace(v, rms_m=args.rms_um * 1e-6))
     rate = cfg.loop.rate_hz
     dt = 1.0 / rate
     from controllers.isolation import make_isolation_controllers

@@ -53,7 +53,6 @@ def hil_config(cfg, rate_hz: float | None = None):
     rate = cfg.hil.rate_hz if rate_hz is None else rate_hz
     if not 0 < rate <= 5000:
         raise RigError(f"--rate: expected 0 < HZ <= 5000 for HIL, got {rate}")
-    cliargs.check_rate(cfg, rate, "HIL", sections=("controller",))
     return hil_run_config(cfg, rate)
 
 
@@ -120,6 +119,7 @@ def run(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
     if args.bench:
         return bench(cfg, seconds, args.json)
+    cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json)
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
