@@ -121,9 +121,10 @@ def bench_recorder(args) -> int:
     print(f"recording of `rig run` at {res['rate_hz']:g} Hz: {res['columns']} columns a row "
           f"({res['controller_state_columns']} of them controller states); medians of {res['rounds']} rounds")
     for m, r in res["modes"].items():
-        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = {r['writer_cpu_percent_at_rate']:5.1f} % "
-              f"of a core at {res['rate_hz']:g} Hz; {r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s "
-              f"= {r['GB_per_hour_at_rate']:.2f} GB/h; rows lost {r['rows_lost']}")
+        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = "
+              f"{r['writer_cpu_percent_at_rate']:5.1f} % of a core at {res['rate_hz']:g} Hz; "
+              f"{r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s = {r['GB_per_hour_at_rate']:.2f} GB/h; "
+              f"rows lost {r['rows_lost']}")
     print(f"  gzip/none: size x{res['gzip_size_ratio']}, writer CPU x{res['gzip_cpu_ratio']}")
     return 0
 
