@@ -142,6 +142,13 @@ def check_settle(settle_s: float, seconds_s: float | None, *, default: str = "")
                        f"activation (give a longer --seconds or a shorter --settle)")
 
 
+def check_periods(seconds_s: float, rate_hz: float, at_least: int = 10, option: str = "--seconds") -> None:
+    """A benchmark of fewer than at_least periods measures nothing (and an empty one has no percentiles)."""
+    if seconds_s * rate_hz < at_least:
+        raise RigError(f"{option} {seconds_s:g}: expected at least {at_least} periods at {rate_hz:g} Hz "
+                       f"(>= {at_least / rate_hz:g} s)")
+
+
 def check_rate(cfg, rate_hz: float, where: str = "", *, sections=("controller", "vibration")) -> None:
     """Frequencies of the configuration against the Nyquist frequency of the rate the command will run at
     (where: the option or key that set it, for the message)."""

@@ -177,3 +177,12 @@ def test_demo_rms_option_keeps_the_spectrum(capsys):
     out = capsys.readouterr().out
     floor_um = float(out.split("rig demo: floor ")[1].split(" um")[0])
     assert 0.5 < floor_um < 1.5                                  # the level asked for, not the default 3 um
+
+
+@pytest.mark.parametrize("argv", [["bench", "loop", "--no-realtime", "--seconds", "4.577290772920443e-59"],
+                                  ["bench", "sim", "--repeats", "1", "--seconds", "1e-9"]])
+def test_benchmark_shorter_than_ten_periods_is_refused(capsys, argv):
+    """Found by the campaign: a benchmark of (next to) no periods ended in a ValueError or IndexError from an
+    empty array's percentiles."""
+    assert main(argv) == 2
+    _one_line_error(capsys, "--seconds", "at least 10 periods")

@@ -52,7 +52,7 @@ def add_arguments(p) -> None:
     add_sim_arguments(sp)
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
-    rp.add_argument("--seconds", type=cliargs.seconds(le=600), default=10.0, metavar="N",
+    rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
                     help="seconds of `rig run` (sim backend, real clock) recorded, then replayed (default 10)")
     rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
                     help="replays of each mode, alternating (default 3; medians are printed)")
@@ -92,6 +92,7 @@ def bench_sim(args) -> int:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
     cliargs.check_rate(cfg, args.rate, "--rate", sections=("vibration",))   # timing only: any controller
+    cliargs.check_periods(args.seconds, args.rate)
     res = run_bench(cfg, args.seconds, args.rate, args.repeats,
                     progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
     if args.json:
@@ -161,6 +162,7 @@ def bench_loop(args) -> int:
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
     cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller
+    cliargs.check_periods(args.seconds, rate)
     if not (0 < rate <= 100000):
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):
