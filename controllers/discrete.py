@@ -6,7 +6,8 @@ bilinear (Tustin) map prewarped at one frequency: Tustin keeps a stable factor s
 j-axis onto the unit circle without aliasing, and prewarping makes the discrete response exact at the
 frequency that matters most (the loop's crossover). python-control does the mapping (`sample_system`).
 
-The same coefficients are used by the plain-float step (hot path) and by `sos_frf` (analysis): one code path.
+The same coefficients are run by the compiled laws (controllers/isolation.py) and evaluated by `sos_frf`
+(analysis).
 """
 from __future__ import annotations
 
@@ -58,18 +59,6 @@ def sos_tf(sections, dt: float):
     return g
 
 
-def sos_step(sections, state: list, i0: int, x: float) -> float:
-    """One sample through the cascade; state[i0 : i0 + 2 n] holds the section states (updated in place)."""
-    i = i0
-    for b0, b1, b2, a1, a2 in sections:
-        y = b0 * x + state[i]
-        state[i] = b1 * x - a1 * y + state[i + 1]
-        state[i + 1] = b2 * x - a2 * y
-        x = y
-        i += 2
-    return x
-
-
 def section_dc(sec: Section) -> float:
     b0, b1, b2, a1, a2 = sec
     return (b0 + b1 + b2) / (1.0 + a1 + a2)
@@ -85,7 +74,7 @@ def freq_at(sec_list, f_hz: float, dt: float) -> complex:
 
 
 def sos_ss(sections) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """State-space (A, B, C, D) of the cascade with exactly the states sos_step keeps (transposed direct form
+    """State-space (A, B, C, D) of the cascade with exactly the states the compiled law keeps (transposed direct form
     II, two per section, in the same order): well conditioned even with poles near z = 1, unlike a polynomial."""
     n = 2 * len(sections)
     A = np.zeros((n, n))

@@ -12,6 +12,7 @@ import argparse
 import math
 from pathlib import Path
 
+from rig.config import check_nyquist
 from rig.errors import RigError
 
 MAX_RATE_HZ = 100000.0        # the loop's own ceiling ([loop] rate_hz): 10 us a period
@@ -152,6 +153,5 @@ def check_periods(seconds_s: float, rate_hz: float, at_least: int = 10, option: 
 def check_rate(cfg, rate_hz: float, where: str = "", *, sections=("controller", "vibration")) -> None:
     """Frequencies of the configuration against the Nyquist frequency of the rate the command will run at
     (where: the option or key that set it, for the message)."""
-    from rig.config import check_nyquist
     check_nyquist(cfg, rate_hz, sections=sections,
                   rate_source=f"the loop at {rate_hz:g} Hz" + (f", {where}" if where else ""))

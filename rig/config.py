@@ -20,6 +20,11 @@ from rig.errors import ConfigError
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
 
 
+def mount_names(n: int) -> tuple[str, ...]:
+    """Names of n mounts: MOUNTS order, `mount<i>` beyond the four."""
+    return MOUNTS[:n] if n <= len(MOUNTS) else tuple(f"mount{i}" for i in range(n))
+
+
 def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None, n=None, nyquist=True):
     """A config field with its unit and physical range (for a list: of each value; n = its length).
     nyquist: a frequency (unit Hz) is also below the Nyquist frequency of the loop (check_nyquist)."""
@@ -73,12 +78,12 @@ class LoopConfig:
     realtime: bool = _f(True, "")               # try SCHED_FIFO, affinity, mlockall where allowed
     rt_priority: int = _f(80, "", ge=1, le=99)  # SCHED_FIFO priority of the loop thread
     cpu: int = _f(-1, "", ge=-1, le=4095)       # CPU the loop thread is pinned to (-1 = the last one)
-    # real clock: sleep until spin_us before each deadline, then spin (hybrid wait; 60 measured best at 5 kHz
-    # on the 2-core VM: wake p99 ~30 us instead of 60-5800 us)
+    # real clock: sleep until spin_us before each deadline, then spin (hybrid wait; compare with
+    # `rig bench loop --spin-us US`)
     spin_us: float = _f(60.0, "us", ge=0, le=1000)
     # CPU wake-up latency requested from the OS power management while the loop runs (PM QoS,
-    # /dev/cpu_dma_latency, as cyclictest does); -1 leaves it alone. 0 keeps idle CPUs out of halt: on the
-    # 2-core VM a 5 kHz sleep loop went from wake p99 116-193 us, 0.5-1 % missed to 44 us, 0.008 %
+    # /dev/cpu_dma_latency, as cyclictest does); -1 leaves it alone. 0 keeps idle CPUs out of halt, which
+    # shortens the wake-up tail of a sleeping loop (README: loop timing)
     cpu_latency_us: int = _f(0, "us", ge=-1, le=1000000)
 
 
@@ -150,8 +155,8 @@ class HilConfig:
     rate_hz: float = _f(500.0, "Hz", ge=10, le=5000)     # loop rate of HIL runs (Modbus, one GIL limit it)
     seconds: float = _f(10.0, "s", gt=0, le=86400)       # isolation off, then on: half each
     settle_s: float = _f(1.0, "s", ge=0, le=3600)        # discarded at the start of each half
-    # HIL runs on a shared dev/CI machine: whole-VM stalls of 45-51 ms were measured there, so the staleness
-    # limit and the loop watchdog of HIL runs sit above them (the hardware keeps [safety] watchdog_s = 50 ms)
+    # HIL runs on a shared dev/CI machine, where the whole VM stops for tens of ms at times, so the staleness
+    # limit and the loop watchdog of HIL runs sit above such stalls (the hardware keeps [safety] watchdog_s = 50 ms)
     stale_s: float = _f(0.1, "s", gt=0, le=10)           # staleness limit of HIL runs (drivers and safety)
     watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
@@ -161,7 +166,7 @@ class HilConfig:
 @dataclass(frozen=True)
 class StandConfig:
     """The simulated single-actuator test stand (chirp runs on the sim backend): effect switches, 0 = off.
-    Names as in ../shared/recordings/README.md; see docs/MODEL.md."""
+    Names as in docs/MODEL.md (the effect switches)."""
     delay_s: float = _f(0.0, "s", ge=0, le=0.1)                 # transport_delay
     saturation_limit_ma: float = _f(0.0, "mA", ge=0, le=1000)  # valve_saturation
     deadband_width_ma: float = _f(0.0, "mA", ge=0, le=1000)    # valve_deadband

@@ -8,7 +8,7 @@ interval and the file still opens. A full ring drops the row and counts it (`dro
 
 The writer is a thread of its own process (`python -m rig.recorder WRITER`), the ring a shared memory map.
 Why not a thread of the loop's process: h5py holds the GIL for each call, and a GIL-holding writer delays the
-loop's wake-up by up to the interpreter's switch interval (measured here: p99 wake latency doubled at 5 kHz).
+loop's wake-up by up to the interpreter's switch interval.
 If the loop's process dies (even by kill -9) the writer sees its command pipe close, drains what is in the
 ring and closes the file properly (attribute complete stays False).
 
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import zlib
 import logging
 import mmap
 import os
@@ -42,6 +41,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -93,6 +93,18 @@ class Recorder:
         self._proc: subprocess.Popen | None = None
         self._mm: mmap.mmap | None = None
         self._ring: np.ndarray | None = None     # ring_rows() view
+        self._final_attrs: dict = {}
+
+    # ---- as a context manager: started on entry, closed (with the final attributes) on exit -------------
+    def __enter__(self) -> "Recorder":
+        return self.start() if self._proc is None else self
+
+    def __exit__(self, *exc) -> None:
+        self.close(**self._final_attrs)
+
+    def set_final_attrs(self, **attrs) -> None:
+        """Attributes written at close by the context manager (stop reason, counters)."""
+        self._final_attrs.update(attrs)
 
     # ---- set-up and tear-down (not in the period) ----------------------------------------------------
     def start(self, timeout_s: float = 60.0) -> "Recorder":

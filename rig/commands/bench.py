@@ -6,7 +6,7 @@
                                                   what the machine itself allows (same JSON)
   rig bench sim ...                               simulation speed of the plant
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
-                                                  hour, gzip against none (rig/recorder_bench.py)
+                                                  hour, gzip against none (rig/commands/bench_recorder.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -23,8 +23,15 @@ import os
 import sys
 import tempfile
 
+import numpy as np
+
 from rig import cliargs
+from rig.clock import MonotonicClock
+from rig.config import load_config
 from rig.errors import RigError
+from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
+from rig.session import Session
+from sim_backend.bench import bench_sim as run_bench
 
 log = logging.getLogger("rig.bench")
 
@@ -86,8 +93,6 @@ def add_sim_arguments(p) -> None:
 
 
 def bench_sim(args) -> int:
-    from rig.config import load_config
-    from sim_backend.bench import bench_sim as run_bench
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
@@ -111,10 +116,9 @@ def bench_sim(args) -> int:
 
 # ---- rig bench recorder ----------------------------------------------------------------------------------
 def bench_recorder(args) -> int:
-    from rig.config import load_config
-    from rig.recorder_bench import bench_recorder as run_bench
+    from rig.commands.bench_recorder import bench_recorder as measure
     cfg = load_config(getattr(args, "config", None))
-    res = run_bench(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
+    res = measure(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
                     progress=lambda m: print(f"bench recorder: {m}", file=sys.stderr, flush=True))
     if args.json:
         print(json.dumps(res, indent=2))
@@ -131,32 +135,7 @@ def bench_recorder(args) -> int:
 
 
 # ---- rig bench loop --------------------------------------------------------------------------------------
-class _CentringOnly:
-    """Stand-in when controllers/isolation.py is missing: proportional stroke centring (same interface and
-    similar cost as one isolation controller), so the loop can still be timed."""
-
-    def __init__(self, kp_V_per_m: float = 1e5) -> None:
-        self.kp = kp_V_per_m
-
-    def initial_state(self):
-        return [1.0, 0.0]
-
-    def step(self, s, meas, dt):
-        v = 0.999 * s[1] + meas[0] * dt
-        return -self.kp * meas[1] - 0.0 * s[0] * v, [s[0], v]
-
-    def set_enabled(self, s, on):
-        return [1.0 if on else 0.0, s[1]]
-
-
 def bench_loop(args) -> int:
-    from rig.clock import MonotonicClock
-    from rig.config import load_config
-    from rig.loop import Loop, loop_channels
-    from rig.recorder import Recorder
-    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
-    from sim_backend.backend import make_sim_port
-
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
@@ -169,52 +148,34 @@ def bench_loop(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {args.seconds}")
     if args.spin_us is not None and not (0 <= args.spin_us <= 1000):
         raise RigError(f"--spin-us: expected 0 <= US <= 1000, got {args.spin_us}")
-    dt = 1.0 / rate
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
-    port = make_sim_port(cfg, dt, mode="rig", clock=clock)
-    try:
-        from controllers.isolation import make_isolation_controllers
-        ctrls = list(make_isolation_controllers(cfg, dt))
-        which = "controllers.isolation (compiled bank)"
-    except ImportError:
-        ctrls = [_CentringOnly() for _ in range(port.n_mounts)]
-        which = "stand-in centring law (controllers/isolation.py missing)"
-    n_it = int(math.ceil(args.seconds * rate)) + 16
-    loop = Loop(cfg, port, ctrls, clock=clock, rate_hz=rate, overrun_policy=args.policy, keep_timing=n_it,
-                stop_on_fault=False)
-    path = args.record
-    tmp = None
+    path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
         os.close(fd)
         path = tmp
-    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=rate,
-                   flush_s=cfg.recording.flush_s, ring_s=cfg.recording.ring_s,
-                   chunk_rows=cfg.recording.chunk_rows, attrs={"command": "rig bench loop"}).start()
-    loop.recorder = rec
-    loop.configure()
-    loop.activate()
-    rt = None
-    if cfg.loop.realtime and not args.no_realtime:
-        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
-                            cpu_latency_us=cfg.loop.cpu_latency_us)
-    print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
-          f"{loop.policy}, spin {clock.spin_ns / 1e3:g} us, {rt.summary() if rt else 'no real-time hygiene'}",
-          file=sys.stderr)
-    steal0 = cpu_steal_ms(rt.cpu if rt else None)
+    realtime = cfg.loop.realtime and not args.no_realtime
+    session = Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy,
+                      keep_timing=int(math.ceil(args.seconds * rate)) + 16, stop_on_fault=False, record=path,
+                      record_attrs={"command": "rig bench loop"}, realtime=realtime)
     try:
-        loop.run(seconds=args.seconds)
+        with session:
+            loop = session.loop
+            loop.activate()
+            print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, compiled period "
+                  f"kernel, policy {loop.policy}, spin {clock.spin_ns / 1e3:g} us, "
+                  f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}", file=sys.stderr)
+            cpu = _loop_cpu(cfg) if realtime else None
+            steal0 = cpu_steal_ms(cpu)
+            session.run(seconds=args.seconds)
+            steal1 = cpu_steal_ms(cpu)
     finally:
-        if rt is not None:
-            leave_realtime(rt)
-        port.close()
-        try:
-            rec.close()
-        finally:
-            if tmp:
-                os.unlink(tmp)
+        if tmp:
+            os.unlink(tmp)
+    if realtime:
+        print(f"rig bench loop: {session.rt_summary}", file=sys.stderr)
     tm = loop.timing_us()
     out = {"rate_hz": rate, "iterations": loop.iterations,
            "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
@@ -223,18 +184,21 @@ def bench_loop(args) -> int:
     if loop.lc.fault_reason:
         print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
               file=sys.stderr)
-    import numpy as np
     n = min(loop.iterations, loop.keep)
-    _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0,
-                       cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
+    _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0, steal1, cpu)
     _print_loop_figures(out, args.json, loop.skipped)
     return 0
+
+
+def _loop_cpu(cfg) -> int | None:
+    """The CPU the loop thread is pinned to ([loop] cpu, -1 = the last one)."""
+    n = os.cpu_count() or 1
+    return n - 1 if cfg.loop.cpu < 0 else cfg.loop.cpu
 
 
 def _print_host_stalls(wake_ns, period_ns: int, steal0, steal1, cpu) -> None:
     """stderr: the wake-ups that came more than a period late (the machine, not the loop's work: the same
     shows in --empty) and the hypervisor's steal time on the loop's CPU over the run."""
-    import numpy as np
     late = wake_ns > period_ns
     edges = np.flatnonzero(np.diff(np.concatenate(([False], late)).astype(np.int8)) == 1)
     text = (f"rig bench loop: wake-ups more than one period late: {int(late.sum())} in {len(edges)} stalls, "
@@ -259,8 +223,6 @@ def _print_loop_figures(out: dict, as_json: bool, skipped: int) -> None:
 def _empty_loop(cfg, args, rate: float, clock) -> int:
     """Absolute deadlines, the same wait and real-time set-up as the loop, nothing in the period: a period
     counts as missed when the wake-up came after the next deadline (catch-up, like the loop's default)."""
-    import numpy as np
-    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
     period = int(round(1e9 / rate))
     n = int(math.ceil(args.seconds * rate))
     if clock.spin_ns is None:                           # as the Loop does: [loop] spin_us unless --spin-us
