@@ -69,12 +69,15 @@ class Channel:
 class Recorder:
     def __init__(self, path: str | Path, channels: list[Channel], *, rate_hz: float, flush_s: float = 0.05,
                  ring_s: float = 2.0, chunk_rows: int = 1024, attrs: dict | None = None,
-                 compression: str | None = "gzip") -> None:
+                 compression: str | None = "gzip", wait_when_full: bool = False) -> None:
         if not channels:
             raise ValueError("a recording needs at least one channel")
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(map(str, COMPRESSION))}, got {compression!r}")
         self.compression = compression
+        # simulated time: nothing is late, so a full ring waits for the writer instead of dropping the row (a
+        # loop in simulated time outruns the writer; on the real clock the loop must never wait)
+        self.wait_when_full = wait_when_full
         self.path = Path(path)
         self.channels = list(channels)
         self.ncols = sum(c.width for c in self.channels)
@@ -188,6 +191,10 @@ class Recorder:
         h = self._head
         if h - self._tail_seen >= self._cap:
             self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
+            while self.wait_when_full and h - self._tail_seen >= self._cap and self._proc is not None \
+                    and self._proc.poll() is None:
+                time.sleep(0.0005)
+                self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
             if h - self._tail_seen >= self._cap:
                 self.dropped_rows += 1
                 return -1

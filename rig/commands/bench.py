@@ -60,7 +60,7 @@ def add_arguments(p) -> None:
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
     rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
-                    help="seconds of `rig run` (sim backend, real clock) recorded, then replayed (default 10)")
+                    help="seconds of `rig run` (sim backend, simulated time) recorded, then replayed (default 10)")
     rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
                     help="replays of each mode, alternating (default 3; medians are printed)")
     rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")

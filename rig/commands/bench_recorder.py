@@ -1,8 +1,10 @@
 """`rig bench recorder`: what compression costs the recording writer, and what a recording weighs per hour.
 
-The rows are a real `rig run` of the simulated rig (four mounts, isolation on, real clock, timing columns
-included): recorded once without compression, then replayed into fresh recordings, compressed and not, in
-alternating rounds (the machine may be shared: the same conditions for both). The replay pushes as fast as
+The rows are a `rig run` of the simulated rig (four mounts, isolation on under the configured floor
+vibration), in simulated time so that the data do not depend on the machine's load (a loaded machine's
+late periods and faults change what the controller states do, and with them the size; the two timing
+columns are then zero): recorded once without compression, then replayed into fresh recordings, compressed
+and not, in alternating rounds (the machine may be shared: the same conditions for both). The replay pushes as fast as
 the ring takes rows, so the writer's CPU time per row is its cost; the writer runs in its own process, and
 its CPU time is that child's resource usage.
 """
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.clock import MonotonicClock
+from rig.clock import SimClock
 from rig.recorder import Recorder, read_recording
 from rig.session import Session
 
@@ -24,8 +26,8 @@ MODES = {"none": None, "gzip": "gzip"}
 
 
 def record_source(cfg, seconds: float, rate_hz: float, path: Path) -> tuple[list, np.ndarray]:
-    """A `rig run` recording (sim backend, real clock, isolation on); returns (channels, rows)."""
-    with Session(cfg, "sim", clock=MonotonicClock(), rate_hz=rate_hz, stop_on_fault=False, record=path) as s:
+    """A `rig run` recording (sim backend, simulated time, isolation on); returns (channels, rows)."""
+    with Session(cfg, "sim", clock=SimClock(), rate_hz=rate_hz, stop_on_fault=False, record=path) as s:
         s.run(seconds=seconds, activate_after_s=0.05)
         chans = list(s.recorder.channels)
     d = read_recording(path)
@@ -55,7 +57,7 @@ def replay(chans, rows: np.ndarray, path: Path, rate_hz: float, cfg, compression
 def bench_recorder(cfg, seconds: float, rate_hz: float, rounds: int, progress=lambda s: None) -> dict:
     with tempfile.TemporaryDirectory(prefix="rig-bench-rec-") as tmp:
         tmp = Path(tmp)
-        progress(f"recording {seconds:g} s of `rig run` (sim backend, real clock) at {rate_hz:g} Hz")
+        progress(f"recording {seconds:g} s of `rig run` (sim backend, simulated time) at {rate_hz:g} Hz")
         chans, rows = record_source(cfg, seconds, rate_hz, tmp / "source.h5")
         runs = {m: [] for m in MODES}
         for r in range(rounds):
