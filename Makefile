@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: install
-	$(BIN)/rig demo --out demo_out
+	$(BIN)/rig demo --out demo_out --overwrite
 
 # Debian's chromium for the console's browser tests; installing needs root (CI has it). Without it the
 # browser tests skip with one line saying why.

@@ -21,6 +21,7 @@ import logging
 import os
 import sys
 
+from rig import cliargs
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
@@ -41,14 +42,14 @@ def warmup_s(ctrls) -> float:
 def add_arguments(p) -> None:
     p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(), default=None, metavar="N",
                    help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
-    p.add_argument("--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
     p.add_argument("--control", metavar="FILE", default=None,
                    help="control file polled every 0.1 s: write `on`, `off` or `stop` into it")
-    p.add_argument("--settle", type=float, default=None, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=None, metavar="S",
                    help="seconds INACTIVE (reading, checking, valve null, filters warming) before activation "
                         "(default: sim 0.05, hil/hardware the controllers' warm-up, 2 / blend_hz)")
     p.add_argument("--policy", choices=("skip", "catch_up"), default=None,
@@ -60,7 +61,7 @@ def add_arguments(p) -> None:
     p.add_argument("--console", action="store_true",
                    help="serve the operator console (a live web page) on 127.0.0.1; its address, with a random "
                         "access token, is printed at start")
-    p.add_argument("--port", type=int, default=None, metavar="N",
+    p.add_argument("--port", type=cliargs.Number(ge=0, le=65535, integer=True), default=None, metavar="N",
                    help="console port (default: the first free one from 8765; 0: any free port)")
     p.add_argument("--read-only", action="store_true", help="console shows everything and accepts no command")
 
@@ -78,13 +79,14 @@ def run(args) -> int:
         raise RigError(f"--settle: expected 0 <= S <= 3600, got {args.settle}")
     if args.sim_time and backend != "sim":
         raise RigError("--sim-time: only with --backend sim")
+    if args.settle is not None:
+        cliargs.check_settle(args.settle, args.seconds)
     if backend == "hil":
         # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
         cfg = hil_run_config(cfg)
+        cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
     if (args.port is not None or args.read_only) and not args.console:
         raise RigError("--port/--read-only: only with --console")
-    if args.port is not None and not 0 <= args.port <= 65535:
-        raise RigError(f"--port: expected 0..65535, got {args.port}")
     clock = SimClock() if args.sim_time else MonotonicClock()
 
     def new_session(record=args.record) -> Session:
@@ -102,6 +104,7 @@ def run(args) -> int:
                  backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
                  f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
+        cliargs.check_settle(settle, args.seconds, default="the default --settle")
         if settle > 1.0:
             log.info("warming up the controllers for %.1f s before activation (valves at null)", settle)
         return settle

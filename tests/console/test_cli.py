@@ -53,7 +53,7 @@ def test_rig_run_console_address_token_loopback_and_safe_stop():
 @pytest.mark.parametrize("args, want", [
     (["--port", "8000"], "--port/--read-only: only with --console"),
     (["--read-only"], "--port/--read-only: only with --console"),
-    (["--console", "--port", "70000"], "--port: expected 0..65535, got 70000"),
+    (["--console", "--port", "70000"], "--port: expected an integer >= 0 and <= 65535, got '70000'"),
 ])
 def test_console_options_without_sense_are_refused_with_one_line(args, want):
     r = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--seconds", "1", *args], cwd=REPO,
