@@ -10,8 +10,8 @@
   what the isolation was doing (on: ACTIVE with isolation on; off: INACTIVE, or ACTIVE with isolation off),
   the first SETTLE_S after each switch left out, kept at about SPECTRUM_FS_HZ (block means); the amplitude
   spectral density of each (Welch) every SPECTRUM_EVERY_S, from the last SPECTRUM_S seconds of each.
-- VC curves (one-third-octave rms velocity against the vibration criteria) from the same spectra, where the
-  criteria module (controllers/vibration_criteria.py) is part of this version; otherwise the panel says so.
+- VC curves: one-third-octave rms velocity against the vibration criteria (controllers/vibration_criteria.py)
+  from the same spectra, and the class each meets.
 """
 from __future__ import annotations
 
@@ -21,10 +21,7 @@ import time
 import numpy as np
 import scipy.signal
 
-try:        # the VC criteria arrive with the isolation-design work; the panel is fed once they are there
-    from controllers import vibration_criteria as _vc
-except ImportError:                     # pragma: no cover - depends on the version merged
-    _vc = None
+from controllers import vibration_criteria as criteria
 
 TRACE_S = 10.0
 BUCKETS_PER_S = 100
@@ -80,9 +77,7 @@ class Feed:
         self.now: dict = {}
         self.timing: dict | None = None
         self.spectrum: dict | None = None
-        self.vc: dict | None = None if _vc is not None else {
-            "available": False, "why": "the VC criteria module (controllers/vibration_criteria.py) is not part "
-                                       "of this version: the panel is fed once it is"}
+        self.vc: dict | None = None
         self._new_events: list[dict] = []
         self._iso = None
         self.rows_seen = 0
@@ -197,7 +192,7 @@ class Feed:
         self.spectrum = {"f_hz": freqs, "classes": out, "rms_mps2": rms, "segment_s": SEGMENT_S,
                          "window_s": SPECTRUM_S}
         self.changed.add("spectrum")
-        if _vc is not None and psd:
+        if psd:
             self.vc = vc_panel(psd)
             self.changed.add("vc")
 
@@ -235,11 +230,11 @@ def vc_panel(psd: dict) -> dict:
     bands = None
     for name, (f, S) in psd.items():
         S_v = np.where(f > 0, S / np.maximum((2 * np.pi * f) ** 2, 1e-300), 0.0)    # a = j w v
-        bands, rms = _vc.band_velocity_rms_from_psd(f, S_v, kind="velocity", f_lo_hz=1.0, f_hi_hz=100.0)
+        bands, rms = criteria.band_velocity_rms_from_psd(f, S_v, kind="velocity", f_lo_hz=1.0, f_hi_hz=100.0)
         out["velocity_um_s"][name] = (rms * 1e6).tolist()
-        out["vc_class"][name] = _vc.vc_class(rms * 1e6, bands)
+        out["vc_class"][name] = criteria.vc_class(rms * 1e6, bands)
     out["band_hz"] = [float(b) for b in bands]
-    out["criteria"] = {name: _vc.criterion_um_s(name, bands).tolist() for name, _, _ in _vc.CRITERIA}
+    out["criteria"] = {name: criteria.criterion_um_s(name, bands).tolist() for name, _, _ in criteria.CRITERIA}
     return out
 
 
