@@ -14,7 +14,7 @@
   let layout = null, readOnly = true, ended = null, hello = {};
   let tr = {t: [], v: []};
   let charts = [];
-  let specChart = null, vcChart = null, vcKey = "";
+  let specChart = null, vcChart = null;
   let dirty = false, pendingIso = null, frame = 0;
   let now = {}, status = {};
   let ws = null;
@@ -250,9 +250,9 @@
   }
   const ticks = (u, vals) => vals.map(num);
 
-  function logChart(el, series, x, ys, w, h) {
+  function logChart(el, series, x, ys, w, h, plugins) {
     return new uPlot({
-      width: w, height: h, legend: {show: true}, cursor: {show: false},
+      width: w, height: h, legend: {show: true, live: false}, cursor: {show: false}, plugins: plugins || [],
       scales: {x: {time: false, distr: 3, log: 10, range: (u, lo, hi) => [lo, hi]}, y: {distr: 3, log: 10}},
       axes: [{size: 28, font: "10px system-ui", values: ticks}, {size: 56, font: "10px system-ui", values: ticks}],
       series: [{label: "Hz"}, ...series],
@@ -279,6 +279,25 @@
     }
   }
 
+  let vcCriteria = {};
+  const criterionLines = {hooks: {draw: [(u) => {      // the criteria as labelled dashed lines, not as series
+    const ctx = u.ctx, bx = u.bbox, f = u.data[0];
+    ctx.save();
+    ctx.beginPath(); ctx.rect(bx.left, bx.top, bx.width, bx.height); ctx.clip();
+    ctx.strokeStyle = "#9aa5b1"; ctx.fillStyle = "#52606d";
+    ctx.lineWidth = devicePixelRatio; ctx.setLineDash([5 * devicePixelRatio, 4 * devicePixelRatio]);
+    ctx.font = `${10 * devicePixelRatio}px system-ui`;
+    for (const [name, ys] of Object.entries(vcCriteria)) {
+      ctx.beginPath();
+      ys.forEach((y, i) => { const px = u.valToPos(f[i], "x", true), py = u.valToPos(y, "y", true);
+                             if (i) ctx.lineTo(px, py); else ctx.moveTo(px, py); });
+      ctx.stroke();
+      const py = u.valToPos(ys[ys.length - 1], "y", true);
+      if (py > bx.top + 8 && py < bx.top + bx.height) ctx.fillText(name, bx.left + bx.width - 120 * devicePixelRatio, py - 3);
+    }
+    ctx.restore();
+  }]}};
+
   function drawVC(vc) {
     const el = $("vc");
     if (!vc.available) {
@@ -290,21 +309,16 @@
       return;
     }
     const f = vc.band_hz;
-    const names = Object.keys(vc.criteria);
+    vcCriteria = vc.criteria;
     const cls = vc.vc_class || {};
-    $("vc-note").textContent = "one-third-octave rms velocity [µm/s]" +
+    $("vc-note").textContent = "one-third-octave rms velocity [µm/s], dashed: the criteria" +
       ["off", "on"].map((k) => (cls[k] ? `; ${k}: ${cls[k]}` : "")).join("");
     const ys = ["off", "on"].map((k) => positive(vc.velocity_um_s[k]) || f.map(() => null));
-    names.forEach((n) => ys.push(vc.criteria[n]));
-    const key = names.join("|");
-    if (!vcChart || key !== vcKey) {
-      if (vcChart) vcChart.destroy();
+    if (!vcChart) {
       el.innerHTML = "";
-      vcKey = key;
-      const series = [{label: "isolation off", stroke: "#7b8794", width: 1.5, points: {show: true}},
-                      {label: "isolation on", stroke: "#1565c0", width: 1.5, points: {show: true}},
-                      ...names.map((n) => ({label: n, stroke: "#bcccdc", width: 1, dash: [4, 4], points: {show: false}}))];
-      vcChart = logChart(el, series, f, ys, Math.max(300, el.clientWidth), 240);
+      vcChart = logChart(el, [{label: "isolation off", stroke: "#7b8794", width: 1.5, points: {show: true}},
+                              {label: "isolation on", stroke: "#1565c0", width: 1.5, points: {show: true}}],
+                         f, ys, Math.max(300, el.clientWidth), 240, [criterionLines]);
     } else {
       vcChart.setData([f, ...ys]);
     }
