@@ -77,6 +77,7 @@ class Session:
                                   f"polled there for on/off/stop)")
         self._held_toggles = 0               # SIGUSR1 before the loop existed: applied at its first period
         self.port = self.loop = self.recorder = None
+        self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
         self._rt_loop = None
 
@@ -126,6 +127,7 @@ class Session:
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
                        attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       wait_when_full=not self.clock.is_real,
                        priority=WRITER_PRIORITY if self.realtime else 0)
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
@@ -202,8 +204,8 @@ class Session:
         return rec
 
     def stop_recording(self, rec: Recorder, timeout_s: float = 1.0) -> None:
-        """Stop recording into `rec` at the next period boundary, then close it."""
-        self.loop.gate.request_recorder(None)
+        """Stop recording into `rec` at the next period boundary (back to idle_recorder), then close it."""
+        self.loop.gate.request_recorder(self.idle_recorder)
         end = time.monotonic() + timeout_s
         while self.loop.recorder is rec and time.monotonic() < end:
             time.sleep(0.002)
