@@ -353,7 +353,7 @@ def _check_cross(cfg: Config) -> None:
             raise ConfigError(f"{cfg.source}: machine.modal_model: file not found: {p}")
 
 
-NYQUIST_SECTIONS = ("controller", "vibration", "stand")
+NYQUIST_SECTIONS = ("controller", "vibration", "stand", "safety")
 F_MIN_HZ = 1e-3          # a slower "frequency" (a period over 15 min) is a constant within any run
 
 
