@@ -26,9 +26,10 @@ RATE_HZ = 1000.0          # the console's work does not depend on the rate; the 
 
 
 def test_config() -> Config:
-    """The default rig with a watchdog that tolerates the shared test machine's stalls (a browser, the suite)."""
+    """The default rig with a watchdog and timing rules that tolerate the shared test machine's stalls (a browser,
+    the suite): no lag or missed-deadline fault from a starved loop."""
     cfg = Config()
-    return cfg.replace(safety=dataclasses.replace(cfg.safety, watchdog_s=1.0))
+    return cfg.replace(safety=dataclasses.replace(cfg.safety, watchdog_s=1.0, lag_limit_s=10.0, missed_limit=1.0))
 
 
 @contextlib.contextmanager
@@ -90,6 +91,8 @@ def command(console, cmd: str, **args) -> tuple[int, dict]:
 TEST_TOML = """# the console tests' rig: the defaults with a watchdog that tolerates the shared machine's stalls
 [safety]
 watchdog_s = 1.0
+lag_limit_s = 10
+missed_limit = 1.0
 """
 
 

@@ -22,11 +22,12 @@ RATE = 5000.0
 
 def start_run(tmp_path, *extra, new_session=False):
     cfg = tmp_path / "rig.toml"
-    # watchdog and lag limit above the shared VM's whole-machine stalls (45-51 ms measured, see README), and no
+    # watchdog above the shared VM's whole-machine stalls (45-51 ms measured, see README), lag limit above a starved
+    # loop's drift (200 ms in 2 s seen with 4 test runs on 2 cores), and no
     # missed-deadline limit (without real-time priority a loaded machine misses many): these tests are about
     # signals and recordings; the timing rules have their own tests (test_faults, test_reliability)
     cfg.write_text("[vibration]\nrms_m = 1e-6\n[loop]\noverrun_policy = \"catch_up\"\n[safety]\nwatchdog_s = 0.2\n"
-                   "lag_limit_s = 0.2\nmissed_limit = 1.0\n")
+                   "lag_limit_s = 10\nmissed_limit = 1.0\n")
     cmd = [sys.executable, "-m", "rig.cli", "run", "--config", str(cfg), "--backend", "sim", "--no-realtime",
            "--quiet", *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

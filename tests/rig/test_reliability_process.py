@@ -18,9 +18,10 @@ from rig.recorder import read_recording
 from tests.rig.support import Command
 
 PY = sys.executable
-# timing rules relaxed above the shared machine's stalls (45-51 ms) and its missed deadlines without real-time
-# priority: these tests are about the control path; the timing rules have their own (test_reliability.py)
-RELAXED = "[safety]\nwatchdog_s = 0.2\nlag_limit_s = 0.2\nmissed_limit = 1.0\n[vibration]\nrms_m = 1e-6\n"
+# timing rules relaxed above the shared machine's stalls (45-51 ms), its missed deadlines without real-time
+# priority and its lag (a starved 5 kHz loop fell 200 ms behind in 2 s): these tests are about the control path;
+# the timing rules have their own (test_reliability.py)
+RELAXED = "[safety]\nwatchdog_s = 0.2\nlag_limit_s = 10\nmissed_limit = 1.0\n[vibration]\nrms_m = 1e-6\n"
 
 
 @pytest.fixture(autouse=True)
