@@ -200,19 +200,20 @@ def run(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.CRITICAL, stream=sys.stderr)     # the drill prints the lines itself
     backends = ("sim", "hil") if args.backend == "both" else (args.backend,)
+    if args.only and not all(w.strip() for w in args.only):
+        raise RigError("--only: an empty word would match every case; give words of the case names")
+    chosen = {b: [c for c in (SIM_CASES if b == "sim" else HIL_CASES)
+                  if not args.only or any(w.lower() in c.name.lower() for w in args.only)] for b in backends}
+    if not any(chosen.values()):
+        raise RigError("--only: no drill case matches " + ", ".join(map(repr, args.only)))
     results = []
     with tempfile.TemporaryDirectory(prefix="rig-drill-") as tmp:
         for backend in backends:
-            cases = SIM_CASES if backend == "sim" else HIL_CASES
-            if args.only:
-                cases = [c for c in cases if any(w.lower() in c.name.lower() for w in args.only)]
-            for c in cases:
+            for c in chosen[backend]:
                 print(f"rig drill: {backend}: {c.name} ...", file=sys.stderr, flush=True)
                 r = drill_case(c, backend, config=args.config, realtime=not args.no_realtime, folder=Path(tmp))
                 results.append(r)
                 print(f"rig drill:   {_row(r)}", file=sys.stderr, flush=True)
-    if not results:
-        raise RigError("--only: no drill case matches " + ", ".join(args.only))
     if args.json:
         print(json.dumps(results, indent=1))
     else:
