@@ -60,6 +60,7 @@ class Scheduler:
         self.watchdog_ns = int(round(watchdog_s * 1e9))
         self.use_wd_thread = watchdog_thread
         self.wd: Watchdog | None = None
+        self.watchdog_priority = 0          # SCHED_FIFO of the watchdog thread (the session's, real-time runs)
         self.iterations = 0
         self.overruns = 0
         self.skipped = 0
@@ -81,9 +82,9 @@ class Scheduler:
         self.start_figures: dict | None = None
 
     def start_watchdog(self, on_trip) -> None:
-        """Started before the real-time set-up: the thread keeps the normal policy and any CPU."""
+        """Started before the loop thread's real-time set-up: any CPU; SCHED_FIFO watchdog_priority if set."""
         if self.use_wd_thread and self.wd is None:
-            self.wd = Watchdog(self.watchdog_s, on_trip).start()
+            self.wd = Watchdog(self.watchdog_s, on_trip, self.watchdog_priority).start()
 
     def stop_watchdog(self) -> None:
         if self.wd is not None:

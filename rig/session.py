@@ -99,6 +99,8 @@ class Session:
                 ctrls = ctrls(self.cfg, self.dt)
             self.loop = Loop(self.cfg, self.port, list(ctrls), clock=self.clock, rate_hz=self.rate_hz,
                              **self._loop_kw)
+            if self.realtime:     # the safety net preempts the loop it watches (a hung loop, a busy machine)
+                self.loop.sched.watchdog_priority = min(99, self.cfg.loop.rt_priority + 10)
             if self._held_toggles % 2:
                 log.info("isolation toggle (SIGUSR1) received during start-up: applied at the first period")
                 self.loop.toggle_isolation()

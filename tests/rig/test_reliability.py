@@ -256,6 +256,32 @@ def test_a_stop_request_records_the_null_in_the_next_period(tmp_path):
     assert d["lifecycle_state"][-1] == State.INACTIVE and np.all(d["valve_cmd_V"][-1] == 0.0)
 
 
+def _fifo_allowed() -> bool:
+    from rig.rt import raise_priority
+    got = []
+    th = threading.Thread(target=lambda: got.append(raise_priority(1)))
+    th.start()
+    th.join()
+    return got[0]
+
+
+def test_the_watchdog_thread_preempts_the_loop_in_real_time_runs():
+    """The drill on a busy machine: a 150 ms stall tripped the 50 ms watchdog only when the loop came back
+    (the watchdog thread, at normal priority, got no CPU). In real-time runs it now runs at SCHED_FIFO above
+    the loop; without real time it keeps the normal policy."""
+    if not _fifo_allowed():
+        pytest.skip("SCHED_FIFO is not allowed here")
+    for realtime, policy in ((True, os.SCHED_FIFO), (False, os.SCHED_OTHER)):
+        with Session(Config(), "sim", clock=MonotonicClock(), realtime=realtime) as s:
+            wd = s.loop.sched.wd
+            end = time.monotonic() + 5
+            while time.monotonic() < end and os.sched_getscheduler(wd._thread.native_id) != policy:
+                time.sleep(0.01)             # the thread raises itself when it starts
+            assert os.sched_getscheduler(wd._thread.native_id) == policy
+            if realtime:
+                assert os.sched_getparam(wd._thread.native_id).sched_priority == Config().loop.rt_priority + 10
+
+
 def test_a_dead_writer_faults_the_run_at_once_and_says_so(tmp_path, caplog):
     """Issue: if the recorder process died, the run carried on and said "recording failed" at the end. Now
     the loop looks at the writer at 10 Hz: FAULT (valves null) within 0.1 s of loop time, one line naming the
