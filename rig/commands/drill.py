@@ -50,9 +50,9 @@ class Case:
     seconds: float = 1.5            # run length after the knob time
 
 
-def _loop_cases(stall_ms: int) -> list[Case]:
-    """The loop's own faults, drilled on every backend (a stall of three watchdog limits)."""
-    return [Case(f"loop stalls ({stall_ms} ms in one period)", "watchdog", "stall:*:-"),
+def _loop_cases() -> list[Case]:
+    """The loop's own faults, drilled on every backend."""
+    return [Case("loop stalls (three watchdog limits in one period)", "watchdog", "stall:*:-"),
             Case("loop falls behind (1.2 periods extra per period)", "lag rule", "overrun:*:-"),
             Case("recording writer killed", "recorder watch", "recorder:*:-"),
             Case("limit cycle (kp x10, --force)", "oscillation rule", tweak="kp10")]
@@ -65,7 +65,7 @@ SIM_CASES = [
     Case("stroke samples no longer refreshed", "sensor check: stale", "drop:rear_right:stroke"),
     Case("accelerometer stuck", "sensor check: stuck", "stuck:front_left:accel"),
     Case("device reports a fault", "device fault", "device:front_right:-"),
-    *_loop_cases(stall_ms=150),
+    *_loop_cases(),
     Case("loop misses deadlines (skip policy)", "missed-deadline rule", "overrun:*:-", tweak="skip", seconds=2.0),
     Case("unstable controller (kp x10)", "start-up: stability check", tweak="kp10-check"),
     Case("rate the loop cannot hold (100 kHz)", "start-up: rate check", tweak="rate"),
@@ -80,7 +80,7 @@ HIL_CASES = [
     Case("stroke transducer not present", "device fault", "nan:front_left:stroke"),
     Case("valve node silent", "device fault", "silence:front_left:valve"),
     Case("valve node in fault", "device fault", "fault:front_right:valve"),
-    *_loop_cases(stall_ms=300),
+    *_loop_cases(),
 ]
 
 
