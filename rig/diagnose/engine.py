@@ -43,6 +43,9 @@ HARMONIC_SCREEN = 4.0              # odd-harmonic amplitude / noise that makes n
 LINE_RATIO = 40.0                  # spectral line / local median for a disturbance candidate
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
 EXPLAINED_SLOW = 1.02              # the same once a reduced (deadband/friction) model is in
+CMD_LIMIT_V = 1000.0               # servo-valve commands are +-10 V: beyond this the file is not in volts
+POS_LIMIT_M = 10.0                 # the stroke is mm: beyond this the file is not in metres
+MIN_BAND_RATIO = 2.0               # the chirp's band must span an octave for band FRFs and the fits
 MIN_GAIN = 0.003                   # an effect must cut the held-out residual variance by at least 0.3 %
 
 
@@ -409,7 +412,17 @@ def diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None 
         raise RecordingError(f"{src}: diagnosis needs at least 200 finite samples of valve_cmd_V and position_m")
     if np.ptp(cmd) <= 0 or np.ptp(pos) <= 0:
         raise RecordingError(f"{src}: valve_cmd_V or position_m is constant; diagnosis needs a chirp recording")
+    for name, a, limit, unit in (("valve_cmd_V", cmd, CMD_LIMIT_V, "V"), ("position_m", pos, POS_LIMIT_M, "m")):
+        peak = float(np.max(np.abs(a)))
+        if peak > limit:     # a wrong unit or a broken file; 1e300 would overflow the fits' squares
+            raise RecordingError(f"{src}: {name} reaches {peak:.3g} {unit}, expected |{name}| <= {limit:g} {unit}")
     pb = Problem(rec, p0)
+    phase, f_inst = locate.chirp_phase(pb.cmd, pb.fs)
+    band = locate.chirp_band(f_inst, pb.fs)
+    if not band[1] >= MIN_BAND_RATIO * band[0]:
+        raise RecordingError(f"{src}: the valve command sweeps only {band[0]:.3g}-{band[1]:.3g} Hz over "
+                             f"{pb.n / pb.fs:.3g} s; diagnosis needs a chirp over at least "
+                             f"{MIN_BAND_RATIO:g}x in frequency")
     nominal_lin = {k: getattr(p0, k) for k in LIN_KEYS}
 
     say("nominal model")
@@ -423,8 +436,6 @@ def diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None 
     pb.noise = locate.noise_rms(r_ref, pb.fs)
 
     say("locating the mismatch")
-    phase, f_inst = locate.chirp_phase(pb.cmd, pb.fs)
-    band = locate.chirp_band(f_inst, pb.fs)
     pb.base_band = (max(5.0, 1.1 * band[0]), 0.97 * band[1])
     lines = locate.spectral_lines(r_ref, pb.fs, pb.noise, ratio=LINE_RATIO)
     harm = locate.harmonics(_without_lines(pb, r_ref, lines), phase, pb.fs, pb.noise)

@@ -114,3 +114,26 @@ def test_bad_recording_one_line_nonzero(tmp_path, content, expected):
     assert len(lines) == 1 and str(path) in lines[0] and expected in lines[0], res.stderr
     assert "Traceback" not in res.stderr and res.stdout == ""
     assert not (out / "diagnosis.json").exists()
+
+
+def _csv(path, t, u, y):
+    np.savetxt(path, np.c_[t, u, y, 0 * t], delimiter=",", header="time_s,valve_cmd_V,position_m,accel_mps2",
+               comments="")
+    return path
+
+
+@pytest.mark.parametrize("what, expected", [
+    ("1 s of a 5 Hz sine", "the valve command sweeps only 5-5 Hz over 1 s"),
+    ("1e300 values", "valve_cmd_V reaches 1e+300 V, expected |valve_cmd_V| <= 1000 V"),
+])
+def test_a_recording_diagnosis_cannot_use_is_one_line_not_a_traceback(tmp_path, what, expected):
+    """Issue 17: a recording with 1e300 values, or only 1 s long, ended in a traceback."""
+    fs = 1000.0
+    t = np.arange(int(fs * (1 if what.startswith("1 s") else 10))) / fs
+    u = np.sin(2 * np.pi * 5 * t) * (1e300 if what == "1e300 values" else 1.0)
+    path = _csv(tmp_path / "bad.csv", t, u, 1e-6 * np.sin(2 * np.pi * 5 * t - 0.3))
+    res = _rig("diagnose", path, "--out", tmp_path / "out")
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    errs = [ln for ln in res.stderr.splitlines() if ": error: " in ln]
+    assert len(errs) == 1 and str(path) in errs[0] and expected in errs[0], res.stderr
+    assert not (tmp_path / "out").exists()
