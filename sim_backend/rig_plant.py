@@ -175,7 +175,7 @@ def _modal_form(Ad, Bd, C):
 
 
 class FloorMotion:
-    """Broadband vertical floor motion at the four mounts, streamed in blocks.
+    """Broadband vertical floor motion at the mounts (four unless n_mounts says), streamed in blocks.
 
     White noise through a 4th-order Butterworth band-pass (paper: 1-50 Hz, 1-50 um). With spectrum
     "velocity_flat" (default) a first-order low-pass at the lower band edge makes the displacement fall as 1/f
@@ -184,8 +184,9 @@ class FloorMotion:
     rocks. Velocity is the derivative of the band-limited displacement (central difference)."""
 
     def __init__(self, dt: float, band_hz=(1.0, 50.0), rms_m: float = 10e-6, seed: int = 1, rho: float = 0.5,
-                 block: int = 256, spectrum: str = "velocity_flat"):
+                 block: int = 256, spectrum: str = "velocity_flat", n_mounts: int = 4):
         self.dt = dt
+        self.n = n = int(n_mounts)
         self.rms_m = rms_m
         self.rho = rho
         self.rng = np.random.default_rng(seed)
@@ -195,13 +196,13 @@ class FloorMotion:
         elif spectrum != "displacement_flat":
             raise ValueError(f"floor spectrum {spectrum!r}: expected velocity_flat or displacement_flat")
         self.sos = sos
-        self.zi = np.zeros((5, self.sos.shape[0], 2))     # 4 mounts + common component
+        self.zi = np.zeros((n + 1, self.sos.shape[0], 2))     # the mounts + common component
         # noise gain of the filter, so rms_m is the displacement rms at every mount
         w, h = scipy.signal.sosfreqz(self.sos, worN=1 << 15, fs=1.0 / dt)
         self.gain = math.sqrt(np.mean(np.abs(h) ** 2))
         self.block = block
-        self._x = np.zeros((0, 4))
-        self._prev = np.zeros(4)
+        self._x = np.zeros((0, n))
+        self._prev = np.zeros(n)
         self._i = 0
 
     @classmethod
@@ -213,16 +214,17 @@ class FloorMotion:
     def _more(self):
         # small blocks through a compiled filter: a stepped plant refills every `block` periods inside the
         # control period (8192 samples through scipy took 2.5-3.5 ms: an overrun at 5 kHz each time)
-        white = self.rng.standard_normal((5, self.block))
+        n = self.n
+        white = self.rng.standard_normal((n + 1, self.block))
         out = np.empty_like(white)
         _sosfilt_rows(self.sos, white, self.zi, out)
         out *= self.rms_m / self.gain
-        x = (math.sqrt(1 - self.rho) * out[:4] + math.sqrt(self.rho) * out[4]).T
+        x = (math.sqrt(1 - self.rho) * out[:n] + math.sqrt(self.rho) * out[n]).T
         self._x = np.concatenate([self._x[self._i:], x])
         self._i = 0
 
     def next_block(self, n: int) -> np.ndarray:
-        """The next n periods as an (n, 8) array: x_g (4) then v_g (4)."""
+        """The next n periods as an (n, 2 n_mounts) array: x_g then v_g per mount."""
         while self._i + n + 1 > len(self._x):
             self._more()
         seg = self._x[self._i:self._i + n + 1]
@@ -234,7 +236,7 @@ class FloorMotion:
 
     def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         g = self.next_block(n)
-        return g[:, :4], g[:, 4:]
+        return g[:, :self.n], g[:, self.n:]
 
 
 class RigPlant:
