@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, asdict
 import numpy as np
 import numba
 
-from sim_backend.linear import ActuatorParams
+from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 
 FRICTION_V_SCALE = 2e-5     # m/s, the tanh smoothing of sign(v) used by the recordings' simulator
 
@@ -262,13 +262,25 @@ class StandPlant:
     one period; afterwards `position_m` is the transducer value at the new instant and `accel_mps2` the
     acceleration at the start of the period (as sampled by the ADC at t_k), both with sensor noise;
     `accel_now_mps2` is the acceleration at the new instant (with noise), `x_abs_m` the piston's true
-    absolute position. `ground` = (x_g, v_g at t_k, x_g, v_g at t_k+1): the floor under the stand."""
+    absolute position. `ground` = (x_g, v_g at t_k, x_g, v_g at t_k+1): the floor under the stand.
+
+    Linear effects only (no delay, saturation, deadband, friction or disturbance): the period is stepped
+    exactly (stand_state_space discretised, command held, floor interpolated: one matrix product), else by
+    RK4; a test holds the two against each other."""
 
     n_mounts = 1
 
     def __init__(self, p: ActuatorParams, fx: Effects = Effects(), fs: float = 1000.0, *,
                  inner_step: float | None = None):
         self.p, self.fx, self.fs = p, fx, float(fs)
+        self.linear = not (fx.delay_s or fx.saturation_limit_ma or fx.deadband_width_ma or fx.friction_force_n
+                           or (fx.disturbance_frequency_hz and fx.disturbance_force_n))
+        if self.linear:
+            A, B, C, D = stand_state_space(p, fx)
+            self._Ad, Bu, G0, G1 = discretize_zoh_foh(A, B[:, :1], B[:, 1:], 1.0 / self.fs)
+            self._Bu = np.ascontiguousarray(Bu[:, 0])
+            self._G = np.ascontiguousarray(np.hstack([G0, G1]))      # times (x_g, v_g at t_k, at t_k+1)
+            self._ca, self._da = np.ascontiguousarray(C[1]), np.ascontiguousarray(D[1, 1:])
         h = inner_step or inner_step_s(p, fx)
         self.n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
         m_b = fx.base_mass_kg
@@ -299,11 +311,14 @@ class StandPlant:
     def step(self, cmd_V: float, ground=None) -> tuple[float, float]:
         fx = self.fx
         g = self._still if ground is None else ground
-        self.hist[self.k % len(self.hist)] = cmd_V
-        _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
-                       fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
-                       fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
-                       fx.disturbance_phase_rad, g, self._out, self._work)
+        if self.linear:
+            _step_linear(self._Ad, self._Bu, self._G, self._ca, self._da, self.y, float(cmd_V), g, self._out)
+        else:
+            self.hist[self.k % len(self.hist)] = cmd_V
+            _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
+                           fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
+                           fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
+                           fx.disturbance_phase_rad, g, self._out, self._work)
         self.k += 1
         self.t_s = self.k / self.fs
         self.accel_mps2 = self._noisy_acc(float(self._out[0]))
@@ -314,12 +329,30 @@ class StandPlant:
         return self.position_m, self.accel_mps2
 
 
+@numba.njit(cache=True)
+def _step_linear(Ad, Bu, G, ca, da, y, u, g, out):
+    """One exact period of the linear stand: out as _advance_stand's (accel at t_k, x_p and accel at t_k+1)."""
+    n = Ad.shape[0]
+    x = y[:n]
+    out[0] = ca @ x + da[0] * g[0] + da[1] * g[1]
+    xn = Ad @ x + Bu * u + G[:, 0] * g[0] + G[:, 1] * g[1] + G[:, 2] * g[2] + G[:, 3] * g[3]
+    y[:n] = xn
+    out[1] = xn[3]
+    out[2] = ca @ xn + da[0] * g[2] + da[1] * g[3]
+
+
 class StandBank:
     """n actuators, each alone on its test stand, on one floor: the plant of the `stand` layout (one mount is
     the prototype). After `step(valve_cmd_V)` the attributes hold the values at the new instant, as the
     four-mount plant's do: accel_mps2 (absolute, the load's accelerometer) and stroke_m (the transducer,
     piston against the floor frame), with sensor noise; table_m the loads' true absolute positions (the
-    isolation figure), floor_m the floor. floor: a FloorMotion over n mounts (base_motion), or None."""
+    isolation figure), floor_m the floor. floor: a FloorMotion over n mounts (base_motion), or None.
+
+    When every stand is linear (StandPlant.linear) the bank steps them all in one exact matrix product, with
+    the floor and the sensor noise drawn in blocks (the loop's simulated port reads it every period);
+    otherwise each stand by its own RK4."""
+
+    BLOCK = 256
 
     def __init__(self, stands, floor=None) -> None:
         self.stands = list(stands)
@@ -328,30 +361,127 @@ class StandBank:
         self.accel_mps2 = [0.0] * n
         self.stroke_m = [float(s.position_m) for s in self.stands]
         self.table_m = [0.0] * n
-        self.floor_m = [0.0] * n
         self.t_s = 0.0
+        self.k = 0
         self._g = np.zeros((n, 4))
         self._block = np.zeros((0, 2 * n))
         self._j = 0
+        self.exact = all(s.linear for s in self.stands)
+        if self.exact:
+            self._build_exact()
+
+    def _build_exact(self) -> None:
+        """One block-diagonal system: X <- Ad X + B w, w = (u (n), floor at t_k (2n), at t_k+1 (2n));
+        Y = (accel, x_p at t_k+1) = C X + D w."""
+        n = self.n_mounts
+        sizes = [s._Ad.shape[0] for s in self.stands]
+        N = sum(sizes)
+        Ad, B = np.zeros((N, N)), np.zeros((N, 5 * n))
+        C, D = np.zeros((2 * n, N)), np.zeros((2 * n, 5 * n))
+        o = 0
+        for i, (s, k) in enumerate(zip(self.stands, sizes)):
+            Ad[o:o + k, o:o + k] = s._Ad
+            B[o:o + k, i] = s._Bu
+            for j, col in enumerate((n + 2 * i, n + 2 * i + 1, 3 * n + 2 * i, 3 * n + 2 * i + 1)):
+                B[o:o + k, col] = s._G[:, j]
+            C[i, o:o + k] = s._ca
+            D[i, 3 * n + 2 * i:3 * n + 2 * i + 2] = s._da
+            C[n + i, o + 3] = 1.0
+            o += k
+        self._X, self._w, self._y = np.zeros(N), np.zeros(5 * n), np.zeros(3 * n)
+        self._M = np.ascontiguousarray(np.vstack([np.hstack([Ad, B]), np.hstack([C, D])]))   # one array to hand over
+        fx = self.stands[0].fx
+        self._sd = np.array([s.fx.accel_noise_mps2 for s in self.stands] + [s.fx.position_noise_m for s in self.stands])
+        self._rng = np.random.default_rng(fx.seed)
+        self._noise = np.zeros((0, 2 * n))
+        self._nj = 0
+
+    def _floor_step(self) -> None:
+        g = self._g
+        if self.floor is not None:
+            if self._j >= len(self._block):             # floor motion drawn in blocks (a draw costs ~20 us)
+                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+            b = self._block[self._j]                    # x_g (n), v_g (n) at the new instant
+            self._j += 1
+            n = self.n_mounts
+            g[:, 0:2] = g[:, 2:4]
+            g[:, 2] = b[:n]
+            g[:, 3] = b[n:2 * n]
 
     def step(self, valve_cmd_V) -> None:
         n = self.n_mounts
         g = self._g
-        if self.floor is not None:
-            if self._j >= len(self._block):             # floor motion drawn in blocks (a draw costs ~20 us)
-                self._block, self._j = self.floor.next_block(256), 0
-            b = self._block[self._j]                    # x_g (n), v_g (n) at the new instant
+        if self.exact:
+            w = self._w
+            w[:n] = valve_cmd_V
+            if self._nj >= len(self._noise):
+                self._noise, self._nj = self._rng.standard_normal((self.BLOCK, 2 * n)) * self._sd, 0
+            if self.floor is not None and self._j >= len(self._block):
+                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+            y = self._y
+            _bank_step(self._M, self._X, w, g, self._block[self._j] if self.floor is not None else self._noise[0],
+                       self.floor is not None, self._noise[self._nj], y)
+            self._nj += 1
             self._j += 1
-            g[:, 0:2] = g[:, 2:4]
-            g[:, 2] = b[:n]
-            g[:, 3] = b[n:2 * n]
-        acc, xs, tab = [0.0] * n, [0.0] * n, [0.0] * n
-        for i, s in enumerate(self.stands):
-            s.step(float(valve_cmd_V[i]), g[i])
-            acc[i], xs[i], tab[i] = s.accel_now_mps2, s.position_m, s.x_abs_m
-        self.accel_mps2, self.stroke_m, self.table_m = acc, xs, tab      # fresh lists (never edited in place)
-        self.floor_m = g[:, 2].tolist()
-        self.t_s = self.stands[0].t_s
+            self.accel_mps2 = y[:n].tolist()             # fresh lists (never edited in place)
+            self.stroke_m = y[n:2 * n].tolist()
+            self.table_m = y[2 * n:].tolist()
+            self.k += 1
+            self.t_s = self.k / self.stands[0].fs
+        else:
+            self._floor_step()
+            acc, xs, tab = [0.0] * n, [0.0] * n, [0.0] * n
+            for i, s in enumerate(self.stands):
+                s.step(float(valve_cmd_V[i]), g[i])
+                acc[i], xs[i], tab[i] = s.accel_now_mps2, s.position_m, s.x_abs_m
+            self.accel_mps2, self.stroke_m, self.table_m = acc, xs, tab
+            self.t_s = self.stands[0].t_s
+
+    @property
+    def floor_m(self) -> list:
+        """The floor under each stand at the last instant."""
+        return self._g[:, 2].tolist()
+
+
+@numba.njit(cache=True)
+def _bank_step(M, X, w, g, b, moving, noise, y):
+    """The stand bank's exact period: the floor g moves on to b (x_g, v_g at t_k+1) if moving; w = (u, floor
+    at t_k, at t_k+1); X <- Ad X + B w; y = (accel + noise, x_p - x_g + noise, x_p) at t_k+1 from C X + D w.
+    M = [[Ad, B], [C, D]]."""
+    N = X.shape[0]
+    n = g.shape[0]
+    if moving:
+        for i in range(n):
+            g[i, 0] = g[i, 2]
+            g[i, 1] = g[i, 3]
+            g[i, 2] = b[i]
+            g[i, 3] = b[n + i]
+    for i in range(n):
+        w[n + 2 * i] = g[i, 0]
+        w[n + 2 * i + 1] = g[i, 1]
+        w[3 * n + 2 * i] = g[i, 2]
+        w[3 * n + 2 * i + 1] = g[i, 3]
+    nw = w.shape[0]
+    Xn = np.empty(N)
+    for r in range(N):
+        acc = 0.0
+        for c in range(N):
+            acc += M[r, c] * X[c]
+        for c in range(nw):
+            acc += M[r, N + c] * w[c]
+        Xn[r] = acc
+    X[:] = Xn
+    for r in range(2 * n):
+        acc = 0.0
+        for c in range(N):
+            acc += M[N + r, c] * X[c]
+        for c in range(nw):
+            acc += M[N + r, N + c] * w[c]
+        if r < n:
+            y[r] = acc + noise[r]                      # accelerometer
+        else:
+            y[n + r] = acc                             # the load's true x_p
+            y[r] = acc - g[r - n, 2] + noise[r]        # transducer, against the floor frame
 
 
 def stand_state_space(p: ActuatorParams, fx: Effects = Effects()):

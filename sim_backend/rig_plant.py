@@ -24,7 +24,7 @@ import scipy.linalg
 import scipy.signal
 
 from rig.config import MOUNTS, Config
-from sim_backend.linear import ActuatorParams
+from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 from sim_backend.machine import ModalModel, modal_model_from_config
 
 OUTPUTS = tuple([f"accel_{m}" for m in MOUNTS] + [f"stroke_{m}" for m in MOUNTS] + [f"x_{m}" for m in MOUNTS]
@@ -125,20 +125,7 @@ def discretize_foh_ground(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, ...
 
     Holding the ground instead would put a spurious K_L/m (x_g[k+1] - x_g[k]) into the accelerometer at
     the next sample, larger than the true acceleration below ~1.5 Hz: the floor moves continuously."""
-    n = ss.A.shape[0]
-    m = 8
-    big = np.zeros((n + 4 + 2 * m, n + 4 + 2 * m))
-    big[:n, :n] = ss.A * dt
-    big[:n, n:n + 4] = ss.B[:, 0:4] * dt
-    big[:n, n + 4:n + 4 + m] = ss.B[:, 4:12] * dt
-    big[n + 4:n + 4 + m, n + 4 + m:] = np.eye(m)
-    e = scipy.linalg.expm(big)
-    Ad = e[:n, :n]
-    Bu = e[:n, n:n + 4]
-    Gam0 = e[:n, n + 4:n + 4 + m]        # int_0^T e^{A s} ds B_g
-    Gam1 = e[:n, n + 4 + m:]             # (1/T) int_0^T e^{A (T - s)} s ds B_g
-    return (np.ascontiguousarray(Ad), np.ascontiguousarray(Bu), np.ascontiguousarray(Gam0 - Gam1),
-            np.ascontiguousarray(Gam1))
+    return discretize_zoh_foh(ss.A, ss.B[:, 0:4], ss.B[:, 4:12], dt)
 
 
 @numba.njit(cache=True)

@@ -4,6 +4,11 @@
                                                   real clock, real-time hygiene where allowed, recording on
   rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
                                                   what the machine itself allows (same JSON)
+  rig bench loop --layout prototype ...           the prototype instead: one mount on its stand, tracking a
+                                                  sine (the isolation filters stepped alongside)
+  rig bench loop --layout both ...                four mounts and one, alternately in one run (two rounds
+                                                  each of --seconds / 4): {"machine", "prototype",
+                                                  "compute_p99_ratio"} (prototype / machine, per round)
   rig bench sim ...                               simulation speed of the plant
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
@@ -48,6 +53,9 @@ def add_arguments(p) -> None:
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
+    lp.add_argument("--layout", choices=("machine", "prototype", "both"), default="machine",
+                    help="machine: four mounts (default); prototype: one mount on its stand, tracking; both: "
+                         "alternately in one run, with the ratio of their compute p99")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
@@ -112,6 +120,9 @@ def bench_loop(args) -> int:
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
+    layout = getattr(args, "layout", "machine")
+    if layout != "machine":
+        return _bench_layouts(cfg, args, rate, layout)
     path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
@@ -220,4 +231,61 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
            "overruns": missed, "missed_deadline_fraction": missed / n}
     _print_host_stalls(wake, period, steal0, cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
     _print_loop_figures(out, args.json, 0)
+    return 0
+
+
+PROTOTYPE_BENCH_MODE = "track sine:amp=10um,freq=5"
+
+
+def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
+    """One timed run on the simulated backend (cfg's layout; mode: the stand's operating mode), recording to a
+    temporary file: the loop figures."""
+    fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+    os.close(fd)
+    realtime = cfg.loop.realtime and not args.no_realtime
+    clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
+    try:
+        with Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy, mode=mode,
+                     keep_timing=int(math.ceil(seconds * rate)) + 16, stop_on_fault=False, record=tmp,
+                     record_attrs={"command": "rig bench loop"}, realtime=realtime) as session:
+            loop = session.loop
+            loop.activate()
+            session.run(seconds=seconds)
+    finally:
+        os.unlink(tmp)
+    tm = loop.timing_us()
+    return {"mounts": loop.n, "rate_hz": rate, "iterations": loop.iterations,
+            "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
+            "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
+            "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
+
+
+def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
+    """The prototype alone, or both layouts alternately (machine, prototype, machine, prototype) in one run."""
+    from rig.commands.run import LAYOUTS
+    proto = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
+    if proto.layout.plant != "stand":
+        raise RigError(f"--layout {layout}: {proto.source} is not a stand layout")
+    order = [("prototype", proto)] if layout == "prototype" else [("machine", cfg), ("prototype", proto)] * 2
+    seconds = args.seconds if layout == "prototype" else args.seconds / 4
+    runs: dict = {}
+    for name, c in order:
+        print(f"rig bench loop: {name} ({len(c.layout.mounts) or 4} mount(s)) at {rate:g} Hz for {seconds:g} s"
+              f"{', ' + PROTOTYPE_BENCH_MODE if name == 'prototype' else ''}", file=sys.stderr)
+        runs.setdefault(name, []).append(_bench_once(c, args, rate, seconds,
+                                                     PROTOTYPE_BENCH_MODE if name == "prototype" else None))
+    if layout == "prototype":
+        _print_loop_figures(runs["prototype"][0], args.json, 0)
+        return 0
+    ratios = [p["compute_us"]["p99"] / m["compute_us"]["p99"] for m, p in zip(runs["machine"], runs["prototype"])]
+    out = {"machine": runs["machine"], "prototype": runs["prototype"], "compute_p99_ratio": [round(r, 3) for r in ratios]}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    for name in ("machine", "prototype"):
+        for r in runs[name]:
+            c, w = r["compute_us"], r["wake_latency_us"]
+            print(f"{name:9s} {r['mounts']} mount(s): compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us"
+                  f" | wake p99 {w['p99']:7.1f} us | overruns {r['overruns']}")
+    print(f"compute p99, prototype / machine, per round: {', '.join(f'{r:.2f}' for r in ratios)}")
     return 0
