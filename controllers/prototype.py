@@ -346,3 +346,78 @@ def main(argv=None) -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def write_figures(rep: dict, out, cfg: Config, dt: float, delay: int = 1) -> list:
+    """The report's figures as PNG in `out`: Fig. 4 on the stand (|T| and phase, PID alone and with the
+    feedforward), the 2 um step and the isolation transmissibility. Returns the paths."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from pathlib import Path
+    out = Path(out)
+    tr, iso = rep["tracking"], rep["isolation"]
+    paths = []
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.5, 6.5), sharex=True)
+    for T, style, label in ((tr["_T"], dict(color="tab:blue"), f"PID (Fig. 4): {tr['bandwidth_hz']:.1f} Hz"),
+                            (tr["_Tff"], dict(color="tab:orange", ls="--"),
+                             f"with the reference feedforward: {tr['bandwidth_ff_hz']:.1f} Hz")):
+        a1.semilogx(tr["_f"], 20 * np.log10(np.abs(T)), label=label, **style)
+        a2.semilogx(tr["_f"], np.degrees(np.unwrap(np.angle(T))), **style)
+    a1.axhline(-3, color="0.5", lw=0.8, ls=":")
+    a1.axvline(PAPER_BANDWIDTH_HZ, color="0.5", lw=0.8, ls=":")
+    a1.set_ylim(-20, 6)
+    a1.set_ylabel("|x_p / r| [dB]")
+    a2.set_ylabel("phase [deg]")
+    a2.set_xlabel("frequency [Hz]")
+    a1.legend(loc="lower left", fontsize=8)
+    a1.set_title(f"tracking on the stand at {tr['rate_hz']:g} Hz: GM {tr['gain_margin_db']:.1f} dB, "
+                 f"PM {tr['phase_margin_deg']:.0f} deg (paper Fig. 4: ~95 Hz)", fontsize=9)
+    for a in (a1, a2):
+        a.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    paths.append(out / "prototype_fig4_tracking.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    loops = StandLoops(cfg, dt, delay)
+    c = tracking_from_config(cfg, dt, act=loops.act)
+    t, r, x, u = _run(c, loops, "step:amp=2e-6", 0.05)
+    st = tr["step_2um"]
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.5, 5), sharex=True)
+    a1.plot(t * 1e3, r * 1e6, color="tab:orange", ls="--", label="reference")
+    a1.plot(t * 1e3, x * 1e6, color="tab:blue", label="position")
+    a1.axhspan(2 * 0.98, 2 * 1.02, color="0.85")
+    a1.set_ylabel("[um]")
+    a1.legend(fontsize=8)
+    a1.set_title(f"2 um step: settles within 2 % in {st['settling_2pct_ms']:.1f} ms, overshoot "
+                 f"{st['overshoot_pct']:.1f} %, command peak {st['peak_command_V']:.2f} V", fontsize=9)
+    a2.plot(t * 1e3, u, color="0.3")
+    a2.set_ylabel("valve [V]")
+    a2.set_xlabel("time since the request [ms]")
+    for a in (a1, a2):
+        a.grid(True, alpha=0.3)
+    fig.tight_layout()
+    paths.append(out / "prototype_step.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    fig, a = plt.subplots(figsize=(7.5, 4.5))
+    a.semilogx(iso["_f"], 20 * np.log10(np.abs(iso["_Tpass"])), color="0.5", label="valve null (passive)")
+    a.semilogx(iso["_f"], 20 * np.log10(np.abs(iso["_Tiso"])), color="tab:green", label="isolating")
+    a.set_xlim(0.1, 0.5 / dt)
+    a.set_ylabel("floor -> load |x_p / x_g| [dB]")
+    a.set_xlabel("frequency [Hz]")
+    a.set_title(f"isolation on the stand: GM {iso['gain_margin_db']:.1f} dB, PM {iso['phase_margin_deg']:.0f} deg; "
+                f"load rms {iso['load_rms_off_um']:.2f} -> {iso['load_rms_on_um']:.2f} um "
+                f"({iso['isolation_db']:.1f} dB)", fontsize=9)
+    a.legend(fontsize=8)
+    a.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    paths.append(out / "prototype_isolation.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+def clean(rep: dict) -> dict:
+    """The report without its arrays (JSON)."""
+    return {k: clean(v) if isinstance(v, dict) else v for k, v in rep.items() if not k.startswith("_")}

@@ -83,10 +83,20 @@ class ReferenceParams:
     headroom: float = 1.0                  # share of limit_V a reference's feedforward may need
 
 
-def preview_periods(act: ActuatorParams, dt: float, delay_periods: int) -> int:
-    """P: the valve's low-frequency delay 2 zeta / w_nv (Eq. 1) plus the ZOH's half period and the loop's
-    delay, in whole periods."""
-    return int(round((2 * act.zeta / act.w_nv) / dt + 0.5 + delay_periods))
+def preview_periods(act: ActuatorParams, dt: float, delay_periods: int, band_hz: tuple = (1.0, 50.0)) -> int:
+    """P: how far ahead the feedforward runs. The valve is a delay of about 2 zeta / w_nv at low frequency
+    (Eq. 1), growing towards its resonance; with the ZOH's half period and the loop's delay that is about
+    1.5 + 12 periods at 5 kHz. P is the whole number of periods that makes the feedforward alone closest to
+    the sampled actuator (ZOH, Eq. 10, the loop's delay) over band_hz: least sum of |1 - G F z^P|^2."""
+    f = np.linspace(band_hz[0], min(band_hz[1], 0.4 / dt), 60)
+    w = 2 * np.pi * f
+    z = np.exp(1j * w * dt)
+    Gd = control.sample_system(g_eha(act), dt, method="zoh")
+    G = np.asarray(Gd(z)).reshape(-1) * z ** (-delay_periods)
+    F = (1j * w + act.lag_corner) / (act.K_v * act.K_Q / act.A_p)
+    guess = int(round((2 * act.zeta / act.w_nv) / dt + 0.5 + delay_periods))
+    cands = range(max(0, guess - 4), guess + 8)
+    return min(cands, key=lambda P: float(np.sum(np.abs(1 - G * F * z ** P) ** 2)))
 
 
 def reference_params_from_config(cfg, dt: float, act: ActuatorParams | None = None) -> ReferenceParams:
@@ -405,8 +415,9 @@ def tune_tracking(act, dt: float, target_hz: float = 100.0, limit_V: float = 10.
                   delay: int = 1, *, noise_m: float = 2e-8, min_gm_db: float = 6.0, min_pm_deg: float = 45.0,
                   max_peak_db: float = 1.0) -> PIDParams:
     """Ki = Kp * (actuator lag corner); over a grid of derivative times Td = Kd/Kp and filter corners, Kp by
-    bisection for the target bandwidth of |T| (Fig. 4); of those with the margins and a flat |T|, keep the one
-    that puts the least transducer noise (rms noise_m, white) into the valve command. ValueError if none."""
+    bisection for the target bandwidth of |T| (Fig. 4); of those with the margins and a flat |T| (within
+    max_peak_db either way below 0.7 of the bandwidth), keep the one that puts the least transducer noise
+    (rms noise_m, white) into the valve command. ValueError if none."""
     lag = act.lag_corner
     fn = 0.5 / dt
     f = np.geomspace(0.5, 0.999 * fn, 1500)
@@ -428,8 +439,9 @@ def tune_tracking(act, dt: float, target_hz: float = 100.0, limit_V: float = 10.
             c = TrackingPID(PIDParams(lo, lo * lag, lo * td, fd, limit_V, slew_V_per_s), dt)
             T = tracking_response(act, c, f, delay)
             gm, pm = loop_margins(act, c, f, delay)
+            db = 20 * np.log10(np.abs(T))
             if abs(bandwidth_hz(f, T) - target_hz) > 0.03 * target_hz or gm < min_gm_db or pm < min_pm_deg \
-                    or np.max(20 * np.log10(np.abs(T))) > max_peak_db:
+                    or np.max(db) > max_peak_db or np.min(db[f < 0.7 * target_hz]) < -max_peak_db:
                 continue
             S = 1 - tracking_response(act, c, fl, delay)
             noise = noise_m * math.sqrt(np.mean(np.abs(c.frf(2 * np.pi * fl) * S) ** 2))

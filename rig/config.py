@@ -213,10 +213,10 @@ class ControllerConfig:
     # actuator reference-tracking PID (paper Fig. 4): Ki/Kp at the actuator lag corner, 100 Hz bandwidth with
     # GM >= 6 dB and PM >= 45 deg, the least transducer noise in the command (controllers/tracking.py
     # tune_tracking at 5 kHz, one period of delay)
-    track_kp_V_per_m: float = _f(1.34e6, "V/m", ge=0)
-    track_ki_V_per_ms: float = _f(6.26e7, "V/(m s)", ge=0)
-    track_kd_Vs_per_m: float = _f(5.78e3, "V s/m", ge=0)
-    track_deriv_hz: float = _f(100.0, "Hz", gt=0)        # derivative filter corner
+    track_kp_V_per_m: float = _f(2.24e6, "V/m", ge=0)
+    track_ki_V_per_ms: float = _f(1.044e8, "V/(m s)", ge=0)
+    track_kd_Vs_per_m: float = _f(3.83e3, "V s/m", ge=0)
+    track_deriv_hz: float = _f(250.0, "Hz", gt=0)        # derivative filter corner
     # the reference (controllers/tracking.py): feedforward through the actuator's inverse, previewed over the
     # valve's and the loop's delays; rate limit; what share of the clamp a reference may ask for; profile length
     track_ff: float = _f(1.0, "", ge=0, le=1)              # feedforward gain (0 = the PID alone, Fig. 4)

@@ -29,6 +29,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
     p.add_argument("--out", metavar="DIR", type=Path, default=None,
                    help="write the figures (PNG), design.md (beside the paper's numbers) and design.json")
+    p.add_argument("--layout", choices=("machine", "prototype"), default=None,
+                   help="prototype: the actuator on its stand, tracking and isolation (rig/commands/prototype_design.py)")
 
 
 def _clean(v):
@@ -40,8 +42,11 @@ def _clean(v):
 
 
 def run(args) -> int:
-    from rig.config import load_config
-    cfg = load_config(args.config)
+    from rig.commands.run import layout_config
+    cfg = layout_config(args)
+    if cfg.layout.plant == "stand":                      # the prototype's loops (its own module)
+        from rig.commands import prototype_design
+        return prototype_design.run(args, cfg)
     dt = 1.0 / cfg.loop.rate_hz
     log = (lambda s: print(f"rig design: {s}", file=sys.stderr, flush=True))
     from controllers.analysis import DiscreteRig, design_report, mimo_summary
