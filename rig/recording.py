@@ -8,6 +8,9 @@ Formats (all carry the same four signals, sampled uniformly at fs_hz):
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
   A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
+  An operated run of the stand layout (`rig run --layout prototype`, datasets mode, reference_m,
+  tracking_error_m) is read over its longest stretch in `track` mode while ACTIVE: closed-loop data
+  (Recording.closed_loop, with the reference the loop followed in Recording.reference_m).
 - MATLAB .mat: variables of the same names (row or column vectors); v5/v7 with scipy.io.loadmat, v7.3 (HDF5
   with a 512-byte MATLAB header) with h5py.
 
@@ -42,6 +45,11 @@ class Recording:
     accel_mps2: np.ndarray
     fs_hz: float
     source: str = "<memory>"
+    # closed-loop data (an operated run in track mode): the valve command was computed from the measured
+    # position, so the position's noise and disturbances reach the command too; reference_m is the external
+    # excitation the loop followed
+    closed_loop: bool = False
+    reference_m: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -204,11 +212,48 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
+            track = _track_rows(g, mount, source) if "mode" in g and "reference_m" in g else None
+            if track is not None:
+                sel, ref = track
+                cols = {c: a[sel] for c, a in cols.items()}
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
-    return _validated(cols, source)
+    rec = _validated(cols, source)
+    if track is not None:
+        rec.closed_loop, rec.reference_m = True, ref
+    return rec
+
+
+TRACK_MODE = 2            # controllers/modes.py: off, hold, track, isolate
+CLOSED_LOOP_NOTE = (
+    "closed-loop data (an operated run in track mode): the valve command was computed from the measured "
+    "position, so the transducer's noise and any disturbance reach the command as well as the position. The "
+    "valve -> position response estimated from command and position is the actuator's only where the "
+    "reference's excitation dominates them (the reference's band, where the coherence is high); where it does "
+    "not, the estimate drifts towards minus the inverse of the controller. Excite the band of interest with "
+    "the reference (a chirp), and read the fit over that band only. The command recorded in a period acts "
+    "from the next one (the loop's computation), which the fit sees as one period of transport delay.")
+
+
+def _track_rows(g, mount, source):
+    """An operated run: (slice of the longest stretch in track mode while ACTIVE, its reference)."""
+    def col(name):
+        a = np.asarray(g[name][()], dtype=float)
+        return a[:, _mount_index(g[name], mount, source)] if a.ndim == 2 and a.shape[1] > 1 else a.ravel()
+    mode = col("mode")
+    ok = mode == TRACK_MODE
+    if "lifecycle_state" in g:
+        ok &= np.asarray(g["lifecycle_state"][()]).ravel()[:len(ok)] == 2
+    if not ok.any():
+        raise RecordingError(f"{source}: an operated run without a stretch in track mode (identification needs "
+                             f"the valve driven: record a track run, e.g. a chirp reference)")
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], ok.astype(np.int8), [0]))))
+    starts, ends = edges[::2], edges[1::2]
+    k = int(np.argmax(ends - starts))
+    sel = slice(int(starts[k]), int(ends[k]))
+    return sel, col("reference_m")[sel]
 
 
 def _mount_index(ds, mount, source) -> int:

@@ -41,6 +41,9 @@ def run(args) -> int:
 
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
              f"{'Table 1' if cfg is None else cfg.source}")
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        progress(f"note: {CLOSED_LOOP_NOTE}")
     diag = diagnose(rec, p0, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:
@@ -49,7 +52,7 @@ def run(args) -> int:
         raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
     progress(f"done in {time.perf_counter() - t0:.1f} s")
     if args.json:
-        print(json.dumps(report.diagnosis_dict(diag, rec), indent=1))
+        print(json.dumps({**report.diagnosis_dict(diag, rec), "closed_loop": rec.closed_loop}, indent=1))
     else:
         print(report.summary_text(diag, rec))
         print("written: " + ", ".join(str(p) for p in paths.values()))

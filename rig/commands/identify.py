@@ -146,6 +146,9 @@ def run(args) -> int:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)
 
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)
     if args.repeat > 1:
@@ -160,7 +163,7 @@ def run(args) -> int:
                   f"{np.percentile(t, 50):.3f} s, p99 {np.percentile(t, 99):.3f} s, max {max(t):.3f} s", file=sys.stderr)
     paths = write_outputs(res, args.out) if args.out else {}
     if args.json:
-        print(json.dumps(res.to_json(), indent=1))
+        print(json.dumps({**res.to_json(), "closed_loop": rec.closed_loop}, indent=1))
         return 0
     print(f"Identified from {rec.source} ({rec.n} samples at {rec.fs_hz:g} Hz) in {res.timing_s['total_s']:.2f} s "
           f"({res.timing_s['cpu_s']:.2f} s cpu)\n")
