@@ -10,6 +10,8 @@
                                                   each of --seconds / 4): {"machine", "prototype",
                                                   "compute_p99_ratio"} (prototype / machine, per round)
   rig bench sim ...                               simulation speed of the plant
+  rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
+                                                  in simulated time (rig/commands/prototype_bench.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -60,6 +62,11 @@ def add_arguments(p) -> None:
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
+    pp = sub.add_parser("prototype", help="the prototype's tracking targets on the simulated stand")
+    _config_arg(pp)
+    pp.add_argument("--switches", type=int, default=100, help="random mode switches (default 100)")
+    pp.add_argument("--seed", type=int, default=18, help="seed of the switches (default 18)")
+    pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -73,6 +80,16 @@ def run(args) -> int:
         return bench_loop(args)
     if what == "sim":
         return bench_sim(args)
+    if what == "prototype":
+        from rig.commands import prototype_bench
+        from rig.commands.run import LAYOUTS
+        cfg = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
+        if cfg.layout.plant != "stand":
+            raise RigError(f"bench prototype: {cfg.source} is not a stand layout ([layout] plant = \"stand\")")
+        res = prototype_bench.run(cfg, switch_count=args.switches, seed=args.seed,
+                                  progress=lambda m: print(f"rig bench prototype: {m}", file=sys.stderr))
+        print(json.dumps(res, indent=1) if args.json else prototype_bench.text(res))
+        return 0
     raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
 
 
