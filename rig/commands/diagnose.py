@@ -52,7 +52,7 @@ def run(args) -> int:
         raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
     progress(f"done in {time.perf_counter() - t0:.1f} s")
     if args.json:
-        print(json.dumps({**report.diagnosis_dict(diag, rec), "closed_loop": rec.closed_loop}, indent=1))
+        print(json.dumps(report.diagnosis_dict(diag, rec), indent=1))
     else:
         print(report.summary_text(diag, rec))
         print("written: " + ", ".join(str(p) for p in paths.values()))

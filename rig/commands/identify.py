@@ -163,7 +163,7 @@ def run(args) -> int:
                   f"{np.percentile(t, 50):.3f} s, p99 {np.percentile(t, 99):.3f} s, max {max(t):.3f} s", file=sys.stderr)
     paths = write_outputs(res, args.out) if args.out else {}
     if args.json:
-        print(json.dumps({**res.to_json(), "closed_loop": rec.closed_loop}, indent=1))
+        print(json.dumps(res.to_json(), indent=1))
         return 0
     print(f"Identified from {rec.source} ({rec.n} samples at {rec.fs_hz:g} Hz) in {res.timing_s['total_s']:.2f} s "
           f"({res.timing_s['cpu_s']:.2f} s cpu)\n")
