@@ -11,7 +11,10 @@ hydraulic mode (flow integrator with the leakage lag); the valve, which at low f
 2 zeta / w_nv (~2.5 ms), and the loop's own delay (ZOH + computation) are covered by running the reference P
 periods ahead: the law generates the reference on that lead timeline, feeds it forward, and closes the loop
 on the same reference P periods later (a ring of the last P + 1 lead values). Explicit state, no clock, I/O
-or globals; conditional-integration anti-windup against the output clamp and slew limit.
+or globals; conditional-integration anti-windup against the output clamp and slew limit. A position sample
+equal to the last one, bit for bit, is taken as no new sample (a transducer that did not deliver: a serial
+amplifier slower than the loop): the feedback holds its last output while the reference and its
+feedforward move on, instead of integrating the same error again.
 
 The reference (controllers/reference.py requests): a hold position (`offset_m`) that moves towards its
 `target_m` at most at the rate limit, plus a waveform (sine, chirp, or a profile table in the coefficients)
@@ -42,9 +45,9 @@ KIND = 3                      # rig/kernel.py dispatches on it
 
 STATE_NAMES = ("integral_V", "error_m", "deriv_V", "cmd_prev_V", "reference_m", "feedforward_V", "lead_m",
                "lead_rate_mps", "offset_m", "offset_rate_mps", "target_m", "wave", "wave_t_s", "amp_m", "f0_hz",
-               "f1_hz", "span_s", "ring_at")
+               "f1_hz", "span_s", "ring_at", "position_prev_m", "feedback_V")
 (_I, _E, _D, _U, _R, _FF, _LEAD, _LV, _O, _OV, _TGT, _WAVE, _WT, _AMP, _F0, _F1, _SPAN,
- _AT) = range(len(STATE_NAMES))
+ _AT, _XP, _FB) = range(len(STATE_NAMES))
 _RING = len(STATE_NAMES)      # then ring0 .. ringP: the last P + 1 lead values
 COEFFICIENTS = ("kp", "half_dt_ki", "ad", "bd", "limit_V", "slew_V", "ff_V_per_mps", "lag_rad_s", "rate_mps",
                 "accel_mps2", "dt_s", "preview", "profile_len")
@@ -155,9 +158,10 @@ class TrackingPID:
         st[_WAVE] = st[_WT] = st[_SPAN] = st[_LV] = st[_OV] = 0.0
         ff = self.ff_V_per_mps * self.ref.lag_rad_s * x_m
         st[_FF] = ff
-        st[_I] = u_V - ff
+        st[_I] = st[_FB] = u_V - ff
         st[_E] = st[_D] = 0.0
         st[_U] = u_V
+        st[_XP] = math.nan                  # the next sample is new
         return st
 
     def apply(self, state, ref: Reference | None, coef=None) -> list:
@@ -373,20 +377,30 @@ def track_step(st, cf, x):
     r = st[_RING + at]                                 # the lead value of P periods ago
     # the PID on r, with the feedforward
     e = r - x
+    if x == st[_XP]:                     # no new position sample: the feedback holds
+        u, sat = clamp(st[_FB] + ff, cf[_LIM], 0.0)
+        u, sat = slew(u, st[_U], cf[_SLEW], sat)
+        st[_U] = u
+        st[_R] = r
+        st[_FF] = ff
+        return u
     d_i = cf[_HI] * (e + st[_E])
     integ = st[_I] + d_i
     d = cf[_AD] * st[_D] + cf[_BD] * (e - st[_E])
-    u = cf[_KP] * e + integ + d + ff
-    u, sat = clamp(u, cf[_LIM], 0.0)
+    fb = cf[_KP] * e + integ + d
+    u, sat = clamp(fb + ff, cf[_LIM], 0.0)
     u, sat = slew(u, st[_U], cf[_SLEW], sat)
     if sat * d_i > 0.0:
         integ -= d_i                     # anti-windup: no increment pushing further into the limit
+        fb -= d_i
     st[_I] = integ
     st[_E] = e
     st[_D] = d
     st[_U] = u
     st[_R] = r
     st[_FF] = ff
+    st[_XP] = x
+    st[_FB] = fb
     return u
 
 

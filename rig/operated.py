@@ -3,8 +3,9 @@ read back per segment, with the figures an operator asks for and the plot of ref
 
 A segment starts at each mode request the run recorded (events `<mount>: mode ...`) and at activation; its
 figures skip the first `settle_s` (the move to the reference's offset, a waveform's fade-in) and say:
-  every mode     peak valve command, share of periods the limiter acted, rms of the load's acceleration
-                 (the accelerometer on the moving part: compare isolate with hold under the same floor)
+  every mode     peak valve command, share of periods the limiter acted, rms of the load's acceleration,
+                 and the load's motion in 1-100 Hz from it (the accelerometer on the moving part, its spectrum
+                 divided by (2 pi f)^4: compare isolate with hold under the same floor)
   track / hold   rms and max tracking error, the reference's amplitude (half its peak-to-peak) and the rms
                  error in % of it
   isolate / off  rms of the transducer (isolating: the stroke the loop moved against the floor)
@@ -16,8 +17,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.signal
 
 from rig.errors import RecordingError
+
+LOAD_BAND_HZ = (1.0, 100.0)
 
 MODE_NAMES = ("off", "hold", "track", "isolate")
 
@@ -106,6 +110,7 @@ def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
         u = run.valve_cmd_V[sel]
         d["peak_command_V"] = float(np.max(np.abs(u)))
         d["accel_rms_mps2"] = float(np.std(run.accel_mps2[sel]))
+        d["load_motion_um"] = load_motion_m(run.accel_mps2[sel], 1.0 / float(np.median(np.diff(run.t_s)))) * 1e6
         d["limited_pct"] = float(100 * np.mean(run.limited[sel] > 0))
         if mode in ("hold", "track"):
             e = run.error_m[sel]
@@ -121,6 +126,14 @@ def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
     return out
 
 
+def load_motion_m(accel_mps2, fs_hz: float, band_hz=LOAD_BAND_HZ) -> float:
+    """The load's displacement rms in band_hz from its absolute acceleration: Welch spectrum / (2 pi f)^4."""
+    a = np.asarray(accel_mps2, dtype=float)
+    f, p = scipy.signal.welch(a - a.mean(), fs=fs_hz, nperseg=min(len(a), int(2 * fs_hz)))
+    sel = (f >= band_hz[0]) & (f <= band_hz[1])
+    return math.sqrt(float(np.trapezoid(p[sel] / (2 * np.pi * f[sel]) ** 4, f[sel]))) if sel.sum() > 1 else math.nan
+
+
 def figures_text(figs: list[dict]) -> str:
     """One line per segment."""
     lines = []
@@ -130,11 +143,11 @@ def figures_text(figs: list[dict]) -> str:
             pct = f" ({d['rms_error_pct']:.2f} % of {d['reference_amplitude_um']:.2f} um)" \
                 if d.get("rms_error_pct") is not None else ""
             lines.append(f"{head} tracking error rms {d['rms_error_um']:.4f} um{pct}, max {d['max_error_um']:.3f} um, "
-                         f"command peak {d['peak_command_V']:.2f} V, limited {d['limited_pct']:.1f} %, acceleration "
-                         f"rms {d['accel_rms_mps2'] * 1e3:.2f} mm/s^2")
+                         f"command peak {d['peak_command_V']:.2f} V, limited {d['limited_pct']:.1f} %, load "
+                         f"{d['load_motion_um']:.3f} um rms in 1-100 Hz")
         elif "position_rms_um" in d:
-            lines.append(f"{head} transducer rms {d['position_rms_um']:.3f} um, acceleration rms "
-                         f"{d['accel_rms_mps2'] * 1e3:.2f} mm/s^2, command peak {d['peak_command_V']:.2f} V")
+            lines.append(f"{head} load {d['load_motion_um']:.3f} um rms in 1-100 Hz (from the accelerometer), "
+                         f"transducer rms {d['position_rms_um']:.3f} um, command peak {d['peak_command_V']:.2f} V")
         else:
             lines.append(f"{head} (too short)")
     return "\n".join(lines)
@@ -163,10 +176,9 @@ def plot(run: OperatedRun, png, figs: list[dict] | None = None) -> Path:
             a.axvline(d["from_s"], color="0.6", lw=0.6, ls=":")
         a1.text(d["from_s"], 1.0, f" {d['request']}", transform=a1.get_xaxis_transform(), fontsize=7, va="bottom",
                 rotation=0)
-    lines = [f"{d['request']}: rms error {d['rms_error_um']:.3f} um"
-             + (f" = {d['rms_error_pct']:.2f} %" if d.get("rms_error_pct") is not None else "")
-             for d in figs if "rms_error_um" in d]
-    fig.suptitle(f"{Path(run.source).name} ({run.mount})\n" + "; ".join(lines), fontsize=9)
+    lines = [f"{d['request']}: rms error {d['rms_error_um']:.3f} um = {d['rms_error_pct']:.2f} %"
+             for d in figs if d.get("rms_error_pct") is not None]
+    fig.suptitle("\n".join([f"{Path(run.source).name} ({run.mount})"] + lines[:3]), fontsize=9)
     for a in (a1, a2, a3):
         a.grid(True, alpha=0.3)
     fig.tight_layout()

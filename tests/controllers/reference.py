@@ -150,6 +150,19 @@ def track_step(c, state: list, x: float, cf=None) -> float:
     st[T._AT] = at
     r = st[ring + at]
     e = r - x
+    if x == st[T._XP]:                      # no new position sample: the feedback holds
+        u = st[T._FB] + ff
+        if u > c.p.limit_V:
+            u = c.p.limit_V
+        elif u < -c.p.limit_V:
+            u = -c.p.limit_V
+        up = st[T._U]
+        if u - up > c.slew:
+            u = up + c.slew
+        elif up - u > c.slew:
+            u = up - c.slew
+        st[T._U], st[T._R], st[T._FF] = u, r, ff
+        return u
     d_i = c.hi * (e + st[T._E])
     integ = st[T._I] + d_i
     d = c.ad * st[T._D] + c.bd * (e - st[T._E])
@@ -164,9 +177,12 @@ def track_step(c, state: list, x: float, cf=None) -> float:
         u, sat = up + c.slew, 1.0
     elif up - u > c.slew:
         u, sat = up - c.slew, -1.0
+    fb = c.p.kp_V_per_m * e + integ + d
     if sat * d_i > 0.0:
         integ -= d_i
+        fb -= d_i
     st[T._I], st[T._E], st[T._D], st[T._U], st[T._R], st[T._FF] = integ, e, d, u, r, ff
+    st[T._XP], st[T._FB] = x, fb
     return u
 
 
