@@ -6,9 +6,12 @@
                                                   what the machine itself allows (same JSON)
   rig bench loop --layout prototype ...           the prototype instead: one mount on its stand, tracking a
                                                   sine (the isolation filters stepped alongside)
-  rig bench loop --layout both ...                four mounts and one, alternately in one run (two rounds
-                                                  each of --seconds / 4): {"machine", "prototype",
-                                                  "compute_p99_ratio"} (prototype / machine, per round)
+  rig bench loop --layout both ...                four mounts and one, alternately in one run (three rounds
+                                                  each of --seconds / 6): {"machine", "prototype",
+                                                  "compute_p99_ratio"} (prototype / machine, per round), and
+                                                  "kernel_us": the compiled period alone, per layout (the
+                                                  least of 5 x 20000 back-to-back calls: the code's cost
+                                                  without the shared host's noise)
   rig bench sim ...                               simulation speed of the plant
   rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
                                                   in simulated time (rig/commands/prototype_bench.py)
@@ -27,6 +30,7 @@ import math
 import os
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -283,8 +287,8 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
     proto = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
     if proto.layout.plant != "stand":
         raise RigError(f"--layout {layout}: {proto.source} is not a stand layout")
-    order = [("prototype", proto)] if layout == "prototype" else [("machine", cfg), ("prototype", proto)] * 2
-    seconds = args.seconds if layout == "prototype" else args.seconds / 4
+    order = [("prototype", proto)] if layout == "prototype" else [("machine", cfg), ("prototype", proto)] * 3
+    seconds = args.seconds if layout == "prototype" else args.seconds / 6
     runs: dict = {}
     for name, c in order:
         print(f"rig bench loop: {name} ({len(c.layout.mounts) or 4} mount(s)) at {rate:g} Hz for {seconds:g} s"
@@ -295,7 +299,9 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
         _print_loop_figures(runs["prototype"][0], args.json, 0)
         return 0
     ratios = [p["compute_us"]["p99"] / m["compute_us"]["p99"] for m, p in zip(runs["machine"], runs["prototype"])]
-    out = {"machine": runs["machine"], "prototype": runs["prototype"], "compute_p99_ratio": [round(r, 3) for r in ratios]}
+    kern = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
+    out = {"machine": runs["machine"], "prototype": runs["prototype"], "compute_p99_ratio": [round(r, 3) for r in ratios],
+           "kernel_us": kern}
     if args.json:
         print(json.dumps(out))
         return 0
@@ -305,4 +311,24 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
             print(f"{name:9s} {r['mounts']} mount(s): compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us"
                   f" | wake p99 {w['p99']:7.1f} us | overruns {r['overruns']}")
     print(f"compute p99, prototype / machine, per round: {', '.join(f'{r:.2f}' for r in ratios)}")
+    print(f"the compiled period alone: machine {kern['machine']:.3f} us, prototype {kern['prototype']:.3f} us "
+          f"({kern['prototype'] / kern['machine']:.2f}x)")
     return 0
+
+
+def _kernel_us(cfg, mode) -> float:
+    """The compiled period's own cost on the layout's controllers after a short run in simulated time: the
+    least of five means over 20000 back-to-back calls with the last measurement (ACTIVE, no recorder)."""
+    from rig.clock import SimClock
+    from rig.kernel import MODE_ACTIVE
+    with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
+        s.run(seconds=0.1, activate_after_s=0.01)
+        k, m = s.loop.kernel, s.loop.last_meas
+        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
+        best = math.inf
+        for _ in range(5):
+            t = time.perf_counter_ns()
+            for _ in range(20000):
+                k.call(k.mem, k.no_ring, -1, *args)
+            best = min(best, (time.perf_counter_ns() - t) / 20000 / 1e3)
+    return round(best, 4)
