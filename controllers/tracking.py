@@ -14,7 +14,8 @@ on the same reference P periods later (a ring of the last P + 1 lead values). Ex
 or globals; conditional-integration anti-windup against the output clamp and slew limit. A position sample
 equal to the last one, bit for bit, is taken as no new sample (a transducer that did not deliver: a serial
 amplifier slower than the loop): the feedback holds its last output while the reference and its
-feedforward move on, instead of integrating the same error again.
+feedforward move on, instead of integrating the same error again; for at most HOLD_MAX_S, after which a
+constant reading is taken as the position (a noise-free simulation at rest).
 
 The reference (controllers/reference.py requests): a hold position (`offset_m`) that moves towards its
 `target_m` at most at the rate limit, plus a waveform (sine, chirp, or a profile table in the coefficients)
@@ -45,13 +46,14 @@ KIND = 3                      # rig/kernel.py dispatches on it
 
 STATE_NAMES = ("integral_V", "error_m", "deriv_V", "cmd_prev_V", "reference_m", "feedforward_V", "lead_m",
                "lead_rate_mps", "offset_m", "offset_rate_mps", "target_m", "wave", "wave_t_s", "amp_m", "f0_hz",
-               "f1_hz", "span_s", "ring_at", "position_prev_m", "feedback_V")
+               "f1_hz", "span_s", "ring_at", "position_prev_m", "feedback_V", "held")
 (_I, _E, _D, _U, _R, _FF, _LEAD, _LV, _O, _OV, _TGT, _WAVE, _WT, _AMP, _F0, _F1, _SPAN,
- _AT, _XP, _FB) = range(len(STATE_NAMES))
+ _AT, _XP, _FB, _HELD) = range(len(STATE_NAMES))
 _RING = len(STATE_NAMES)      # then ring0 .. ringP: the last P + 1 lead values
 COEFFICIENTS = ("kp", "half_dt_ki", "ad", "bd", "limit_V", "slew_V", "ff_V_per_mps", "lag_rad_s", "rate_mps",
-                "accel_mps2", "dt_s", "preview", "profile_len")
-(_KP, _HI, _AD, _BD, _LIM, _SLEW, _FFK, _LAG, _RATE, _ACC, _DT, _PRE, _PLEN) = range(len(COEFFICIENTS))
+                "accel_mps2", "dt_s", "preview", "profile_len", "hold_max")
+(_KP, _HI, _AD, _BD, _LIM, _SLEW, _FFK, _LAG, _RATE, _ACC, _DT, _PRE, _PLEN, _HMAX) = range(len(COEFFICIENTS))
+HOLD_MAX_S = 0.05             # a repeated position is no new sample for at most this long (then it is the position)
 _TABLE = len(COEFFICIENTS)    # then the profile table (profile_len samples at dt)
 WAVE_NONE, WAVE_SINE, WAVE_CHIRP, WAVE_TABLE = 0, 1, 2, 3
 _WAVES = {"sine": WAVE_SINE, "chirp": WAVE_CHIRP, "csv": WAVE_TABLE}
@@ -137,11 +139,14 @@ class TrackingPID:
     def coefficients(self) -> np.ndarray:
         r = self.ref
         head = (self.p.kp_V_per_m, self.hi, self.ad, self.bd, self.p.limit_V, self.slew, self.ff_V_per_mps,
-                r.lag_rad_s, r.rate_m_per_s, r.accel_m_per_s2, self.dt, self.preview, r.profile_len)
+                r.lag_rad_s, r.rate_m_per_s, r.accel_m_per_s2, self.dt, self.preview, r.profile_len,
+                max(1, int(round(HOLD_MAX_S / self.dt))))
         return np.concatenate([np.array(head, dtype=np.float64), np.zeros(r.profile_len)])
 
     def initial_state(self) -> list[float]:
-        return [0.0] * len(self.state_names)
+        st = [0.0] * len(self.state_names)
+        st[_XP] = math.nan                     # the first sample is new
+        return st
 
     def set_enabled(self, state, on: bool):
         """No isolation to switch: the PID holds its reference either way."""
@@ -161,7 +166,7 @@ class TrackingPID:
         st[_I] = st[_FB] = u_V - ff
         st[_E] = st[_D] = 0.0
         st[_U] = u_V
-        st[_XP] = math.nan                  # the next sample is new
+        st[_XP], st[_HELD] = math.nan, 0.0   # the next sample is new
         return st
 
     def apply(self, state, ref: Reference | None, coef=None) -> list:
@@ -377,7 +382,8 @@ def track_step(st, cf, x):
     r = st[_RING + at]                                 # the lead value of P periods ago
     # the PID on r, with the feedforward
     e = r - x
-    if x == st[_XP]:                     # no new position sample: the feedback holds
+    if x == st[_XP] and st[_HELD] < cf[_HMAX]:     # no new position sample: the feedback holds
+        st[_HELD] += 1.0
         u, sat = clamp(st[_FB] + ff, cf[_LIM], 0.0)
         u, sat = slew(u, st[_U], cf[_SLEW], sat)
         st[_U] = u
@@ -401,6 +407,7 @@ def track_step(st, cf, x):
     st[_FF] = ff
     st[_XP] = x
     st[_FB] = fb
+    st[_HELD] = 0.0
     return u
 
 

@@ -322,7 +322,10 @@ class _StatusLine(_Helper):
         m = lp.last_meas
         xs = " ".join(f"{x * 1e6:+7.2f}" for x in m.stroke_m) if m is not None else "-"
         us = " ".join(f"{u:+5.2f}" for u in lp.cmd)
-        return (f"t={t:7.2f}s {lp.state.name:8s} iso={'on ' if lp.isolation else 'off'} "
+        k = lp.kernel
+        what = (f"mode={','.join(MODES[int(v)] if v == v else '-' for v in k.row[k.layout['mode']:][:k.n])}"
+                if "mode" in k.published else f"iso={'on ' if lp.isolation else 'off'}")
+        return (f"t={t:7.2f}s {lp.state.name:8s} {what} "
                 f"wake p99={tm['wake_latency_us']['p99']:6.1f}us compute p99={tm['compute_us']['p99']:5.1f}us "
                 f"overruns={lp.overruns} stroke_um=[{xs}] cmd_V=[{us}]")
 

@@ -150,7 +150,8 @@ def track_step(c, state: list, x: float, cf=None) -> float:
     st[T._AT] = at
     r = st[ring + at]
     e = r - x
-    if x == st[T._XP]:                      # no new position sample: the feedback holds
+    if x == st[T._XP] and st[T._HELD] < max(1, int(round(T.HOLD_MAX_S / dt))):   # no new sample: hold
+        st[T._HELD] += 1.0
         u = st[T._FB] + ff
         if u > c.p.limit_V:
             u = c.p.limit_V
@@ -182,7 +183,7 @@ def track_step(c, state: list, x: float, cf=None) -> float:
         integ -= d_i
         fb -= d_i
     st[T._I], st[T._E], st[T._D], st[T._U], st[T._R], st[T._FF] = integ, e, d, u, r, ff
-    st[T._XP], st[T._FB] = x, fb
+    st[T._XP], st[T._FB], st[T._HELD] = x, fb, 0.0
     return u
 
 
