@@ -68,6 +68,10 @@ class Recorder:
         self._head = 0
         self._tail_seen = 0
         self.dropped_rows = 0
+        # simulated time: a full ring waits for the writer instead of dropping (nothing waits on the loop's
+        # clock there, and a loop faster than the writer would otherwise lose rows); at most wait_s
+        self.wait_when_full = False
+        self.wait_s = 10.0
         self.rows_written = 0
         self.error: str | None = None
         self._proc: subprocess.Popen | None = None
@@ -167,6 +171,11 @@ class Recorder:
         h = self._head
         if h - self._tail_seen >= self._cap:
             self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
+            if h - self._tail_seen >= self._cap and self.wait_when_full:
+                end = time.monotonic() + self.wait_s
+                while h - self._tail_seen >= self._cap and time.monotonic() < end:
+                    time.sleep(0.001)
+                    self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
             if h - self._tail_seen >= self._cap:
                 self.dropped_rows += 1
                 return -1

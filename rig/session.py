@@ -122,6 +122,7 @@ class Session:
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
                        attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs})
+        rec.wait_when_full = not self.clock.is_real          # simulated time: never drop a row
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
@@ -251,7 +252,9 @@ class Session:
         """Record the loop's rows to `path` from the next period on (a running session)."""
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
-                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs}).start()
+                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs})
+        rec.wait_when_full = not self.clock.is_real
+        rec.start()
         self.loop.gate.request_recorder(rec)
         return rec
 
