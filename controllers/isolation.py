@@ -20,8 +20,10 @@ Why this compensator: the plant u -> x_p (valve, Eq. 1; flow integrator with the
 the machine's mass on the actuators' stiffness at 230-290 Hz, damping ~0.2) has lost ~210 deg of phase at
 100 Hz and ~300 deg at 200 Hz, ZOH and one period of computation delay included. Lead1 cancels the 7 Hz lag
 (so the loop gain stays up to the valve's 83 Hz), lead2 buys the phase at crossover, the notch takes the
-machine-on-actuator resonances down so they are gain-stabilised, and the roll-off keeps accelerometer noise and
-high-frequency modes out of the valve. The PI gives the low-frequency gain (>= 20 dB at 1 Hz).
+machine-on-actuator resonances down so they are gain-stabilised, the second notch (a peak when its zero is
+damped more than its pole) lifts the loop gain at the top of the 1-100 Hz band just below crossover, and the
+roll-off keeps accelerometer noise and high-frequency modes out of the valve. The PI gives the low-frequency
+gain (>= 25 dB at 1 Hz).
 
 Why Tustin, prewarped at prewarp_hz (200 Hz, the phase-crossover / resonance region where the gain margin is
 decided) for the compensator, plain for the slow blend: it maps a stable continuous factor to a stable discrete
@@ -97,6 +99,9 @@ class IsolationParams:
     notch_hz: float = _CC.notch_hz                # optional notch (0 = none)
     notch_zeta_zero: float = _CC.notch_zeta_zero
     notch_zeta_pole: float = _CC.notch_zeta_pole
+    notch2_hz: float = _CC.notch2_hz              # optional second notch, or peak (zeta_zero > zeta_pole); 0 = none
+    notch2_zeta_zero: float = _CC.notch2_zeta_zero
+    notch2_zeta_pole: float = _CC.notch2_zeta_pole
     centring_hz: float = _CC.centring_hz          # crossover of the slow centring loop while isolation is off
     dc_gain_m_per_V: float = ActuatorParams().dc_gain_m_per_V   # actuator static gain (sets the centring gain)
     prewarp_hz: float = _CC.prewarp_hz            # Tustin prewarp frequency of the compensator
@@ -161,10 +166,11 @@ class IsolationController:
                 if fz > 0 and fp > 0:
                     wz, wp = 2 * math.pi * fz, 2 * math.pi * fp
                     comp.append(tustin_section([1 / wz, 1.0], [1 / wp, 1.0], dt, pw))   # (1+s/wz)/(1+s/wp)
-            if p.notch_hz > 0:
-                wn = 2 * math.pi * p.notch_hz
-                comp.append(tustin_section([1.0, 2 * p.notch_zeta_zero * wn, wn * wn],
-                                           [1.0, 2 * p.notch_zeta_pole * wn, wn * wn], dt, p.notch_hz))
+            for fn, zz, zp in ((p.notch_hz, p.notch_zeta_zero, p.notch_zeta_pole),
+                               (p.notch2_hz, p.notch2_zeta_zero, p.notch2_zeta_pole)):
+                if fn > 0:                             # (s^2 + 2 zz wn s + wn^2) / (s^2 + 2 zp wn s + wn^2)
+                    wn = 2 * math.pi * fn
+                    comp.append(tustin_section([1.0, 2 * zz * wn, wn * wn], [1.0, 2 * zp * wn, wn * wn], dt, fn))
             if p.rolloff_hz > 0:
                 wr = 2 * math.pi * p.rolloff_hz
                 comp.append(tustin_section([wr * wr], [1.0, 2 * p.rolloff_zeta * wr, wr * wr], dt, pw))

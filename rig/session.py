@@ -70,6 +70,7 @@ class Session:
             if w.strip().lower() not in _WORDS:
                 self.parse(w, f"script at {t:g} s")     # a word that cannot be read fails here, not mid-run
         self.port = self.loop = self.recorder = None
+        self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
         self._rt_loop = None
 
@@ -121,8 +122,8 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs})
-        rec.wait_when_full = not self.clock.is_real          # simulated time: never drop a row
+                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       wait_when_full=not self.clock.is_real)
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
@@ -252,15 +253,15 @@ class Session:
         """Record the loop's rows to `path` from the next period on (a running session)."""
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
-                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs})
-        rec.wait_when_full = not self.clock.is_real
+                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs},
+                       wait_when_full=not self.clock.is_real)
         rec.start()
         self.loop.gate.request_recorder(rec)
         return rec
 
     def stop_recording(self, rec: Recorder, timeout_s: float = 1.0) -> None:
-        """Stop recording into `rec` at the next period boundary, then close it."""
-        self.loop.gate.request_recorder(None)
+        """Stop recording into `rec` at the next period boundary (back to idle_recorder), then close it."""
+        self.loop.gate.request_recorder(self.idle_recorder)
         end = time.monotonic() + timeout_s
         while self.loop.recorder is rec and time.monotonic() < end:
             time.sleep(0.002)

@@ -301,6 +301,12 @@ class StandPlant:
         self.accel_now_mps2 = 0.0
         self.x_abs_m = 0.0
         self.t_s = 0.0
+        # compile (or load) the step now: a first compile inside a running loop stalls it past its watchdog
+        _advance_stand(np.zeros(7), 0, np.zeros_like(self.hist), self.fs, 1, fx.delay_s, p.K_v, 0.0, self.prm,
+                       0.0, 0.0, 0.0, np.zeros(4), np.zeros(3), np.zeros((5, 7)))
+        if self.linear:
+            _step_linear(self._Ad, self._Bu, self._G, self._ca, self._da, np.zeros(7), 0.0, self._still,
+                         np.zeros(3))
 
     def _noisy_pos(self, x):
         return x + (self.fx.position_noise_m * self.rng.standard_normal() if self.fx.position_noise_m else 0.0)
@@ -395,6 +401,9 @@ class StandBank:
         self._rng = np.random.default_rng(fx.seed)
         self._noise = np.zeros((0, 2 * n))
         self._nj = 0
+        # compile (or load) the bank's step now, not in the loop's first period (the watchdog)
+        _bank_step(self._M, np.zeros(N), np.zeros(5 * n), np.zeros((n, 4)), np.zeros(2 * n), self.floor is not None,
+                   np.zeros(2 * n), np.zeros(3 * n))
 
     def _floor_step(self) -> None:
         g = self._g

@@ -12,6 +12,10 @@
                                                   "kernel_us": the compiled period alone, per layout (the
                                                   least of 5 x 20000 back-to-back calls: the code's cost
                                                   without the shared host's noise)
+  rig bench loop --console ...                    blocks without and with the operator console and a browser
+                                                  on its page, alternating (rig/console/bench.py)
+  rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
+                                                  hour, gzip against none (rig/commands/bench_recorder.py)
   rig bench sim ...                               simulation speed of the plant
   rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
                                                   in simulated time (rig/commands/prototype_bench.py)
@@ -34,8 +38,10 @@ import time
 
 import numpy as np
 
+from rig import cliargs
 from rig.clock import MonotonicClock
 from rig.config import load_config
+from rig.console import bench as console_bench
 from rig.errors import RigError
 from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
 from rig.session import Session
@@ -48,14 +54,16 @@ def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="bench_what", metavar="WHAT")
     lp = sub.add_parser("loop", help="control loop timing: four mounts on the simulated backend")
     _config_arg(lp)
-    lp.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [loop] rate_hz)")
-    lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
+    lp.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
+                    help="loop rate (default [loop] rate_hz)")
+    lp.add_argument("--seconds", type=cliargs.seconds(le=3600), default=10.0, metavar="N",
+                    help="duration (default 10)")
     lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
     lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
-    lp.add_argument("--spin-us", type=float, default=None, metavar="US",
+    lp.add_argument("--spin-us", type=cliargs.Number(ge=0, le=1000, unit="us"), default=None, metavar="US",
                     help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
-    lp.add_argument("--record", metavar="FILE", default=None,
-                    help="keep the recording here (default: a temporary file, deleted)")
+    cliargs.output_arg(lp, "--record", metavar="FILE", default=None,
+                       help="keep the recording here (default: a temporary file, deleted)")
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
@@ -63,14 +71,22 @@ def add_arguments(p) -> None:
                     help="machine: four mounts (default); prototype: one mount on its stand, tracking; both: "
                          "alternately in one run, with the ratio of their compute p99")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    console_bench.add_arguments(lp)
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
     pp = sub.add_parser("prototype", help="the prototype's tracking targets on the simulated stand")
     _config_arg(pp)
-    pp.add_argument("--switches", type=int, default=100, help="random mode switches (default 100)")
-    pp.add_argument("--seed", type=int, default=18, help="seed of the switches (default 18)")
+    pp.add_argument("--switches", type=cliargs.count(1, 100000), default=100, metavar="N", help="random mode switches (default 100)")
+    pp.add_argument("--seed", type=cliargs.seed(), default=18, metavar="N", help="seed of the switches (default 18)")
     pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
+    _config_arg(rp)
+    rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
+                    help="seconds of `rig run` (sim backend, simulated time) recorded, then replayed (default 10)")
+    rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
+                    help="replays of each mode, alternating (default 3; medians are printed)")
+    rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -94,15 +110,18 @@ def run(args) -> int:
                                   progress=lambda m: print(f"rig bench prototype: {m}", file=sys.stderr))
         print(json.dumps(res, indent=1) if args.json else prototype_bench.text(res))
         return 0
-    raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
+    if what == "recorder":
+        return bench_recorder(args)
+    raise RigError("bench: expected a benchmark: loop, sim, recorder or prototype (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
 def add_sim_arguments(p) -> None:
     """Arguments of `rig bench sim`."""
-    p.add_argument("--seconds", type=float, default=100.0, metavar="N", help="simulated time (default 100)")
-    p.add_argument("--rate", type=float, default=5000.0, metavar="HZ", help="loop rate (default 5000)")
-    p.add_argument("--repeats", type=int, default=3, help="batch runs to time (default 3)")
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=100.0, metavar="N",
+                   help="simulated time (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=5000.0, metavar="HZ", help="loop rate (default 5000)")
+    p.add_argument("--repeats", type=cliargs.count(1, 1000), default=3, help="batch runs to time (default 3)")
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
@@ -110,6 +129,8 @@ def bench_sim(args) -> int:
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
+    cliargs.check_rate(cfg, args.rate, "--rate", sections=("vibration",))   # timing only: any controller
+    cliargs.check_periods(args.seconds, args.rate)
     res = run_bench(cfg, args.seconds, args.rate, args.repeats,
                     progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
     if args.json:
@@ -126,12 +147,34 @@ def bench_sim(args) -> int:
     return 0
 
 
+# ---- rig bench recorder ----------------------------------------------------------------------------------
+def bench_recorder(args) -> int:
+    from rig.commands.bench_recorder import bench_recorder as measure
+    cfg = load_config(getattr(args, "config", None))
+    res = measure(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
+                    progress=lambda m: print(f"bench recorder: {m}", file=sys.stderr, flush=True))
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(f"recording of `rig run` at {res['rate_hz']:g} Hz: {res['columns']} columns a row "
+          f"({res['controller_state_columns']} of them controller states); medians of {res['rounds']} rounds")
+    for m, r in res["modes"].items():
+        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = "
+              f"{r['writer_cpu_percent_at_rate']:5.1f} % of a core at {res['rate_hz']:g} Hz; "
+              f"{r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s = {r['GB_per_hour_at_rate']:.2f} GB/h; "
+              f"rows lost {r['rows_lost']}")
+    print(f"  gzip/none: size x{res['gzip_size_ratio']}, writer CPU x{res['gzip_cpu_ratio']}")
+    return 0
+
+
 # ---- rig bench loop --------------------------------------------------------------------------------------
 def bench_loop(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
+    cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller
+    cliargs.check_periods(args.seconds, rate)
     if not (0 < rate <= 100000):
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):
@@ -144,6 +187,8 @@ def bench_loop(args) -> int:
     layout = getattr(args, "layout", "machine")
     if layout != "machine":
         return _bench_layouts(cfg, args, rate, layout)
+    if args.console:
+        return console_bench.bench_console(args, cfg, rate, clock)
     path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")

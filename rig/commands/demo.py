@@ -8,31 +8,32 @@ table and tool-point motion (Y) of each half and the reduction in dB.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.signal
 
+from rig import cliargs
 from rig.clock import SimClock
-from rig.config import VibrationConfig, load_config
+from rig.config import load_config
 from rig.errors import RigError
 from rig.lifecycle import State
 from rig.session import Session
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=10.0, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
                    help="simulated seconds per phase (isolation off, then on; default 10)")
-    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=600), default=1.0, metavar="S",
                    help="seconds discarded at the start of each phase (default 1)")
-    p.add_argument("--rms-um", type=float, default=None, metavar="UM",
+    p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",
                    help="floor displacement rms in um (default: [vibration] rms_m of the config)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
 
 
 def _rms(x):
@@ -85,7 +86,7 @@ def _demo_config(args):
         if not 0 < args.rms_um <= 1000:
             raise RigError(f"--rms-um: expected 0 < rms <= 1000 um, got {args.rms_um}")
         v = cfg.vibration
-        cfg = cfg.replace(vibration=VibrationConfig(v.band_lo_hz, v.band_hi_hz, args.rms_um * 1e-6, v.seed))
+        cfg = cfg.replace(vibration=dataclasses.replace(v, rms_m=args.rms_um * 1e-6))
     return cfg
 
 

@@ -39,7 +39,7 @@ import tempfile
 from pathlib import Path
 
 import drivers
-from rig import operated
+from rig import cliargs, operated
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
@@ -63,14 +63,14 @@ def warmup_s(ctrls) -> float:
 def add_arguments(p) -> None:
     p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(), default=None, metavar="N",
                    help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
-    p.add_argument("--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
     p.add_argument("--control", metavar="FILE", default=None,
                    help="control file polled every 0.1 s: write `on`, `off` or `stop` into it")
-    p.add_argument("--settle", type=float, default=None, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=None, metavar="S",
                    help="seconds INACTIVE (reading, checking, valve null, filters warming) before activation "
                         "(default: sim 0.05, hil/hardware the controllers' warm-up, 2 / blend_hz)")
     p.add_argument("--policy", choices=("skip", "catch_up"), default=None,
@@ -79,6 +79,12 @@ def add_arguments(p) -> None:
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
     p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument("--console", action="store_true",
+                   help="serve the operator console (a live web page) on 127.0.0.1; its address, with a random "
+                        "access token, is printed at start")
+    p.add_argument("--port", type=cliargs.Number(ge=0, le=65535, integer=True), default=None, metavar="N",
+                   help="console port (default: the first free one from 8765; 0: any free port)")
+    p.add_argument("--read-only", action="store_true", help="console shows everything and accepts no command")
     p.add_argument("--layout", choices=("machine", "prototype"), default=None,
                    help="machine: the config's (default); prototype: the actuator on its stand "
                         "(drivers/devicemaps/prototype.toml, prototype_hil.toml on hil) unless --config names one")
@@ -90,8 +96,8 @@ def add_arguments(p) -> None:
                         "chirp:amp=A,f0=F0,f1=F1,duration=T, csv:FILE")
     p.add_argument("--script", metavar="FILE", default=None,
                    help="timed control words, one per line: `<loop time s> <word>` (# comments)")
-    p.add_argument("--plot", metavar="PNG", default=None,
-                   help="stand layout: plot reference, position and tracking error after the run")
+    cliargs.output_arg(p, "--plot", metavar="PNG", default=None, suffix=".png",
+                       help="stand layout: plot reference, position and tracking error after the run")
 
 
 def layout_config(args, backend: str | None = None):
@@ -162,9 +168,14 @@ def run(args) -> int:
         raise RigError(f"--settle: expected 0 <= S <= 3600, got {args.settle}")
     if args.sim_time and backend != "sim":
         raise RigError("--sim-time: only with --backend sim")
+    if args.settle is not None:
+        cliargs.check_settle(args.settle, args.seconds)
     if backend == "hil":
         # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
         cfg = hil_run_config(cfg)
+        cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
+    if (args.port is not None or args.read_only) and not args.console:
+        raise RigError("--port/--read-only: only with --console")
     clock = SimClock() if args.sim_time else MonotonicClock()
     stand = cfg.layout.plant == "stand"
     start = start_request(args)
@@ -181,11 +192,17 @@ def run(args) -> int:
              "overrun_policy": args.policy or cfg.loop.overrun_policy, "layout": cfg.layout.plant}
     if stand:
         attrs["mode_at_start"] = start or "hold"
-    session = Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
-                      record=record, record_attrs=attrs, realtime=cfg.loop.realtime and not args.no_realtime,
-                      signals=True, status=not args.quiet, control_file=args.control, mode=start,
-                      script=read_script(args.script) if args.script else None)
-    with session:
+    script = read_script(args.script) if args.script else None
+
+    def new_session(record=record) -> Session:
+        # with the console a fault keeps the loop running in FAULT (valves safe, sensors read) for the operator
+        return Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
+                       record=record, record_attrs=attrs, realtime=cfg.loop.realtime and not args.no_realtime,
+                       signals=True, status=not args.quiet, control_file=args.control, mode=start, script=script,
+                       stop_on_fault=not args.console)
+
+    def started(session) -> float:
+        """Log the start; the settle time before activation."""
         loop = session.loop
         if stand:
             log.info("backend %s, %s on the stand at %g Hz, mode %s, pid %d (SIGUSR1 isolate <-> hold, SIGUSR2 "
@@ -196,9 +213,18 @@ def run(args) -> int:
                      backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
                      f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
+        cliargs.check_settle(settle, args.seconds, default="the default --settle")
         if settle > 1.0:
             log.info("warming up the controllers for %.1f s before activation (valves at null)", settle)
-        reason = session.run(seconds=args.seconds, activate_after_s=settle)
+        return settle
+
+    if args.console:
+        from rig.console.runner import run_with_console
+        loop, reason = run_with_console(args, cfg, backend, new_session, started)
+    else:
+        with new_session() as session:
+            loop = session.loop
+            reason = session.run(seconds=args.seconds, activate_after_s=started(session))
     tm = loop.timing_us()
     log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
              "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
