@@ -322,26 +322,33 @@ def design_report(cfg: Config, dt: float, delay: int = 1) -> dict:
     return {"tracking": tracking_report(cfg, dt, delay, loops), "isolation": isolation_report(cfg, dt, delay, loops)}
 
 
+def tune(cfg: Config, dt: float, delay: int = 1, bandwidth_hz: float = 100.0, progress=None) -> dict:
+    """Both loops tuned for the stand at this rate and delay: the [controller] values (isolation, then the
+    tracking PID of Fig. 4 for bandwidth_hz), ready for a config file."""
+    pid = tune_tracking(stand_actuator(cfg), dt, bandwidth_hz, cfg.safety.valve_limit_V, cfg.safety.slew_V_per_s,
+                        delay, noise_m=cfg.stand.position_noise_m)
+    out = tune_isolation(cfg, dt, delay, progress=progress)
+    out.update(track_kp_V_per_m=pid.kp_V_per_m, track_ki_V_per_ms=pid.ki_V_per_ms, track_kd_Vs_per_m=pid.kd_Vs_per_m,
+               track_deriv_hz=pid.deriv_hz, track_delay_periods=int(delay))
+    return out
+
+
+def toml(values: dict) -> str:
+    """The [controller] table of `tune`'s values."""
+    return "[controller]\n" + "".join(f"{k} = {v}\n" if isinstance(v, int) else f"{k} = {v:.6g}\n"
+                                      for k, v in values.items())
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m controllers.prototype",
-                                 description="design the prototype's tracking and isolation controllers")
+                                 description="design the prototype's tracking and isolation controllers "
+                                             "(as `rig design --layout prototype --tune`, at any rate and delay)")
     ap.add_argument("--config", default=None)
     ap.add_argument("--rate", type=float, default=5000.0)
     ap.add_argument("--delay", type=int, default=1)
     ap.add_argument("--bandwidth", type=float, default=100.0, help="tracking bandwidth target, Hz")
     a = ap.parse_args(argv)
-    cfg = load_config(a.config)
-    dt = 1.0 / a.rate
-    pid = tune_tracking(stand_actuator(cfg), dt, a.bandwidth, cfg.safety.valve_limit_V, cfg.safety.slew_V_per_s,
-                        a.delay, noise_m=cfg.stand.position_noise_m)
-    iso = tune_isolation(cfg, dt, a.delay)
-    print("[controller]")
-    for k, v in iso.items():
-        print(f"{k} = {v:.6g}")
-    for k, v in (("track_kp_V_per_m", pid.kp_V_per_m), ("track_ki_V_per_ms", pid.ki_V_per_ms),
-                 ("track_kd_Vs_per_m", pid.kd_Vs_per_m), ("track_deriv_hz", pid.deriv_hz)):
-        print(f"{k} = {v:.4g}")
-    print(f"track_delay_periods = {a.delay}")
+    print(toml(tune(load_config(a.config), 1.0 / a.rate, a.delay, a.bandwidth)), end="")
 
 
 if __name__ == "__main__":

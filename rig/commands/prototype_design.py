@@ -4,6 +4,7 @@ reference feedforward; a 2 um step and a 10 um 5 Hz sine through the compiled la
 (margins, floor -> load transmissibility, load motion under the floor spectrum)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -18,14 +19,27 @@ def _finite(v):
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
-def run(args, cfg) -> int:
-    """Print the report (stderr lines, --json on stdout), --out DIR: the figures and prototype_design.json."""
+def run(args, cfg, model: dict) -> int:
+    """Print the report (stderr lines, --json on stdout), --out DIR: the figures and prototype_design.json.
+    model: where the actuator came from (`rig design --identified`). --tune: both loops retuned first for
+    this rate and delay (controllers/prototype.py tune), printed as a [controller] table (--out:
+    controller.toml)."""
     dt = 1.0 / cfg.loop.rate_hz
     delay = cfg.controller.track_delay_periods
+    tuned = None
+    if args.tune:
+        print(f"rig design: tuning both loops for the stand at {cfg.loop.rate_hz:g} Hz, {delay} period(s) of delay",
+              file=sys.stderr)
+        values = prototype.tune(cfg, dt, delay, progress=lambda m: print(f"rig design: {m}", file=sys.stderr))
+        cfg = cfg.replace(controller=dataclasses.replace(cfg.controller, **values))
+        tuned = {"toml": prototype.toml(values), "values": values}
     print(f"rig design: the prototype on its stand at {cfg.loop.rate_hz:g} Hz (ZOH + {delay} period(s)) from "
           f"{cfg.source}", file=sys.stderr)
     rep = prototype.design_report(cfg, dt, delay)
     out = _finite(prototype.clean(rep))
+    out["design_model"] = model
+    if tuned:
+        out["tuned"] = tuned
     tr, iso = out["tracking"], out["isolation"]
     st, sn = tr["step_2um"], tr["sine_10um_5hz"]
     lines = [f"tracking (Fig. 4 PID): bandwidth {tr['bandwidth_hz']:.1f} Hz (paper ~{tr['paper_bandwidth_hz']:g} Hz), "
@@ -48,7 +62,11 @@ def run(args, cfg) -> int:
             raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
         files = prototype.write_figures(rep, args.out, cfg, dt, delay)
         (args.out / "prototype_design.json").write_text(json.dumps(out, indent=2))
-        print(f"rig design: wrote {len(files) + 1} files to {args.out}", file=sys.stderr)
+        if tuned:
+            (args.out / "controller.toml").write_text(tuned["toml"])
+        print(f"rig design: wrote {len(files) + 1 + bool(tuned)} files to {args.out}", file=sys.stderr)
+    if tuned and not args.json:
+        print(tuned["toml"], end="")
     if args.json:
         print(json.dumps(out, indent=2))
     ok = iso["stable"] and tr["gain_margin_db"] > 0 and tr["phase_margin_deg"] > 0
