@@ -78,3 +78,29 @@ def test_identify_reads_a_track_chirp_as_closed_loop_data(tmp_path):
     res = json.loads(out.stdout)
     p = res["parameters"]
     assert p["w_nv"] == pytest.approx(524.0, rel=0.12) and p["zeta"] == pytest.approx(0.65, rel=0.12)
+
+
+def test_design_on_the_identified_actuator(tmp_path):
+    """`rig design --layout prototype --identified DIR`: the stand's loops analysed on the actuator `rig identify`
+    found (here a valve 30 % stronger than Table 1's: the same PID closes a faster tracking loop)."""
+    from controllers.analysis import ACTUATOR_KEYS
+    from rig.commands.run import LAYOUTS
+    from rig.config import load_config
+    cfg = load_config(LAYOUTS["prototype"][None])
+    par = {k: getattr(cfg.actuator if sec == "actuator" else cfg.valve, k) for k, sec in ACTUATOR_KEYS.items()}
+    par["K_Q"] *= 1.3
+    (tmp_path / "identify.json").write_text(json.dumps({"parameters": par}))
+    base = json.loads(rig("design", "--layout", "prototype", "--json").stdout)
+    out = rig("design", "--layout", "prototype", "--json", "--identified", tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    assert res["design_model"]["actuator"].startswith("identified") and res["design_model"]["parameters"] == par
+    assert res["tracking"]["bandwidth_hz"] > base["tracking"]["bandwidth_hz"] + 5
+
+
+def test_run_plot_is_never_overwritten_without_overwrite(tmp_path):
+    png = tmp_path / "p.png"
+    png.write_bytes(b"old")
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "0.2", "--quiet", "--plot", png)
+    assert out.returncode == 2 and "--plot" in out.stderr and "--overwrite" in out.stderr
+    assert png.read_bytes() == b"old"
