@@ -171,11 +171,12 @@ def plot(run: OperatedRun, png, figs: list[dict] | None = None) -> Path:
     a3.plot(t, run.valve_cmd_V, color="0.3", lw=0.6)
     a3.set_ylabel("valve [V]")
     a3.set_xlabel("time [s]")
-    for d in figs:
+    for i, d in enumerate(figs):
         for a in (a1, a2, a3):
             a.axvline(d["from_s"], color="0.6", lw=0.6, ls=":")
-        a1.text(d["from_s"], 1.0, f" {d['request']}", transform=a1.get_xaxis_transform(), fontsize=7, va="bottom",
-                rotation=0)
+        # two rows of labels: a short segment's label does not run into the next one's
+        a1.text(d["from_s"], 1.0 + 0.05 * (i % 2), f" {d['request']}", transform=a1.get_xaxis_transform(),
+                fontsize=7, va="bottom", rotation=0)
     lines = [f"{d['request']}: rms error {d['rms_error_um']:.3f} um = {d['rms_error_pct']:.2f} %"
              for d in figs if d.get("rms_error_pct") is not None]
     fig.suptitle("\n".join([f"{Path(run.source).name} ({run.mount})"] + lines[:3]), fontsize=9)

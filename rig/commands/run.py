@@ -32,6 +32,7 @@ refused with one line, never clamped. After the run: the tracking figures per se
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
@@ -232,7 +233,7 @@ def run(args) -> int:
              f", recorded to {args.record}" if args.record else "")
     if stand and record is not None:
         try:
-            _report(record, args.plot, loop.names)
+            _report(record, args.plot, loop.names, title=None if tmp is None else "rig run")
         finally:
             if tmp:
                 os.unlink(tmp)
@@ -241,10 +242,13 @@ def run(args) -> int:
     return 0
 
 
-def _report(record, png, names) -> None:
-    """The operated run's figures per segment on stdout, per mount (and the first mount's plot)."""
+def _report(record, png, names, title: str | None = None) -> None:
+    """The operated run's figures per segment on stdout, per mount (and the first mount's plot, titled with
+    the recording's name, or `title` for a recording of its own that is not kept)."""
     for i, name in enumerate(names):
         run = operated.load_operated(record, name)
+        if title:
+            run = dataclasses.replace(run, source=title)
         figs = operated.figures(run)
         print(f"{name}:\n{operated.figures_text(figs)}" if len(names) > 1 else operated.figures_text(figs))
         if png and i == 0:
