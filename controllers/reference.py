@@ -140,6 +140,8 @@ def load_profile(path, dt: float, *, max_s: float = math.inf) -> np.ndarray:
     if "time_s" not in head or "position_m" not in head:
         raise RigError(f"{p}: header {lines[0][:80]!r}: expected columns time_s and position_m")
     it, ix = head.index("time_s"), head.index("position_m")
+    if len(lines) < 3:                                  # (numpy would only warn about an empty table)
+        raise RigError(f"{p}: expected at least 2 rows of {len(head)} numbers, got {len(lines) - 1} rows")
     try:
         data = np.loadtxt(io.StringIO("\n".join(lines[1:])), delimiter=",", ndmin=2, dtype=float)
     except ValueError as e:

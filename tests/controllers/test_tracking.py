@@ -192,3 +192,45 @@ def test_profile_loader_takes_or_refuses_in_one_line(tmp_path_factory, t, x):
         assert str(p) in str(e) and "\n" not in str(e)
         return
     assert np.all(np.isfinite(prof)) and len(prof) >= 1
+
+
+CSV_TEXT = st.lists(st.one_of(
+    st.just("time_s,position_m"), st.just("position_m,time_s"), st.just("# note"), st.just(""),
+    st.text(alphabet="0123456789.,-+eE naNinf\"#\t", max_size=24),
+    st.tuples(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True)).map(
+        lambda ab: f"{ab[0]!r},{ab[1]!r}")), max_size=12).map("\n".join)
+
+
+@settings(max_examples=200, deadline=None)
+@given(text=CSV_TEXT)
+def test_any_profile_text_is_a_profile_or_one_line_naming_the_file(tmp_path_factory, text):
+    """Whatever a CSV file holds (headers in any order, comments, blanks, nan/inf, ragged rows, junk), the
+    loader returns a finite profile or refuses in one line that names the file; never another exception."""
+    p = tmp_path_factory.mktemp("prof") / "p.csv"
+    p.write_text(text)
+    try:
+        prof = load_profile(p, 0.01, max_s=60.0)
+    except RigError as e:
+        assert str(p) in str(e) and "\n" not in str(e)
+        return
+    assert prof.ndim == 1 and len(prof) >= 1 and np.all(np.isfinite(prof))
+
+
+@settings(max_examples=100, deadline=None)
+@given(steps=st.lists(st.integers(1, 40), min_size=1, max_size=12),
+       x=st.lists(st.floats(-2e-5, 2e-5, allow_nan=False), min_size=13, max_size=13), t0=st.integers(-50, 50))
+def test_a_profile_passes_through_its_points_and_is_linear_between(tmp_path_factory, steps, x, t0):
+    """Times on the loop's grid: the resampled profile holds every given position at its time (from the first
+    time on, whatever it is) and moves linearly between them."""
+    dt = 0.002
+    k = np.concatenate([[0], np.cumsum(steps)])
+    t = (t0 + k) * dt
+    xs = np.array(x[:len(k)])
+    p = tmp_path_factory.mktemp("prof") / "p.csv"
+    p.write_text("time_s,position_m\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(t, xs)))
+    prof = load_profile(p, dt)
+    assert len(prof) == k[-1] + 1
+    assert prof[k] == pytest.approx(xs, abs=1e-12)
+    mid = (k[:-1] + k[1:]) / 2
+    whole = mid == np.floor(mid)
+    assert prof[mid[whole].astype(int)] == pytest.approx(((xs[:-1] + xs[1:]) / 2)[whole], abs=1e-12)
