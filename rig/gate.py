@@ -5,7 +5,9 @@ with cold filters under floor motion can kick the loop into a latched saturation
 commands; FAULT writes nothing after port.safe_state(). Requests (activation, isolation on/off, stop) are
 thread- and signal-safe: they are single assignments, applied at the next period boundary. On activation
 the controllers switch isolation on their own bumpless way and the limiter ramps from the null the valve
-held, so (re-)activation never jumps.
+held, so (re-)activation never jumps. Operating-mode requests (a mount's mode and reference, controllers/
+modes.py) are applied the same way, each mount's latest one, and so are timed requests (`schedule`: a script
+of requests at given loop times, applied at the first period boundary at or after their time).
 """
 from __future__ import annotations
 
@@ -35,6 +37,9 @@ class LifecycleGate:
         self._recorder_request = None        # (recorder,) to record into from the next period
         self.bind_recorder = None            # set by the loop: where a recorder request goes
         self._null = Commands([0.0] * kernel.n)
+        self._mode_requests: dict = {}       # mount index -> its latest operating-mode request
+        self._script: list = []              # (loop time s, action), time order
+        self.loop_time_s = lambda: 0.0       # set by the loop: the loop time of the period being run
 
     @property
     def state(self) -> State:
@@ -58,6 +63,16 @@ class LifecycleGate:
         self._reset_request = True
         self.pending = True
 
+    def request_mode(self, mount: int, request) -> None:
+        """Mount `mount` to an operating mode (a checked controllers.modes.ModeRequest) at the next boundary."""
+        self._mode_requests = {**self._mode_requests, mount: request}     # one assignment: thread-safe
+        self.pending = True
+
+    def schedule(self, at_s: float, action) -> None:
+        """action() at the first period boundary at or after loop time at_s (before the run: a script)."""
+        self._script = sorted(self._script + [(float(at_s), action)], key=lambda e: e[0])
+        self.pending = True
+
     def request_recorder(self, recorder) -> None:
         """Record into `recorder` (None: stop recording) from the next period boundary on."""
         self._recorder_request = (recorder,)
@@ -72,6 +87,11 @@ class LifecycleGate:
         """Pending requests, at the period boundary (one arriving meanwhile waits for the next)."""
         self.pending = False
         lc = self.lc
+        if self._script:
+            now = self.loop_time_s()
+            while self._script and self._script[0][0] <= now + 1e-12:
+                self._script.pop(0)[1]()
+            self.pending = self.pending or bool(self._script)     # keep looking while a script runs
         if self._recorder_request is not None:
             (rec,), self._recorder_request = self._recorder_request, None
             self.bind_recorder(rec)
@@ -85,6 +105,11 @@ class LifecycleGate:
                 self.activate()
             elif not req and lc.state is State.ACTIVE:
                 self.deactivate()
+        if self._mode_requests:
+            reqs, self._mode_requests = self._mode_requests, {}
+            for m, req in reqs.items():
+                self.kernel.switch(m, req, lc.state is State.ACTIVE)
+                self._event(f"{self.kernel.names[m]}: mode {req}")
         if self._iso_request is not None:
             on, self._iso_request = self._iso_request, None
             if on != self.isolation:
@@ -104,6 +129,7 @@ class LifecycleGate:
         """INACTIVE -> ACTIVE: warm states, isolation switched on bumplessly, the limiter from null."""
         self.lc.activate()
         self.kernel.set_enabled(self.isolation)
+        self.kernel.activated()
         self.kernel.reset_limiter()
         self._event("ACTIVE")
 

@@ -71,6 +71,7 @@ class Loop:
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
                                   stop_on_fault=stop_on_fault)
         self.gate.bind_recorder = self.tap.bind
+        self.gate.loop_time_s = lambda: self._t_s(self.gate.t_ns)
         self.check, self.limiter, self.states = self.kernel.check, self.kernel.limiter, self.kernel.states
         self._commands = Commands([0.0] * self.n)          # the port must copy, not keep, the list
         self.recorder = recorder
@@ -219,6 +220,10 @@ class Loop:
 
     def toggle_isolation(self) -> None:
         self.gate.toggle_isolation()
+
+    def request_mode(self, mount: int, request) -> None:
+        """Thread/signal-safe: an operating mode for one mount at the next period boundary (bumpless)."""
+        self.gate.request_mode(mount, request)
 
     def stop(self, reason: str) -> None:
         """Thread/signal-safe: leave the loop at the next period boundary, then stop safely."""

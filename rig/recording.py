@@ -8,8 +8,12 @@ Formats (all carry the same four signals, sampled uniformly at fs_hz):
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
   A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
-  A `rig run` / `rig hil` recording (isolation_on and lifecycle_state beside the signals) is closed loop: its
-  valve command was computed from the measured signals; `closed_loop` says so (identification refuses it).
+  An operated run of the stand layout (`rig run --layout prototype`, datasets mode, reference_m,
+  tracking_error_m) is read over its longest stretch in `track` mode while ACTIVE: closed-loop data
+  (Recording.closed_loop, with the reference the loop followed in Recording.reference_m).
+  Any other `rig run` / `rig hil` recording (isolation_on and lifecycle_state beside the signals) is closed
+  loop with no external excitation: its valve command was computed from the measured signals alone;
+  `closed_loop` says so and reference_m is None (identification refuses it).
 - MATLAB .mat: variables of the same names (row or column vectors); v5/v7 with scipy.io.loadmat, v7.3 (HDF5
   with a 512-byte MATLAB header) with h5py.
 
@@ -44,7 +48,11 @@ class Recording:
     accel_mps2: np.ndarray
     fs_hz: float
     source: str = "<memory>"
-    closed_loop: str = ""      # why the valve command depends on the measurement (feedback), "" if open loop
+    # why the valve command depends on the measurement (feedback), "" if open loop. In an operated track run
+    # the position's noise and disturbances reach the command too; reference_m is the external excitation the
+    # loop followed (None: feedback alone, nothing to identify from)
+    closed_loop: str = ""
+    reference_m: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -207,6 +215,10 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
+            track = _track_rows(g, mount, source) if "mode" in g and "reference_m" in g else None
+            if track is not None:
+                sel, ref = track
+                cols = {c: a[sel] for c, a in cols.items()}
             closed = _feedback_rows(g, f.attrs.get("command", "the loop"))
     except RecordingError:
         raise
@@ -214,6 +226,8 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
     rec = _validated(cols, source)
     rec.closed_loop = closed
+    if track is not None:
+        rec.closed_loop, rec.reference_m = "an operated run in track mode", ref
     return rec
 
 
@@ -227,6 +241,36 @@ def _feedback_rows(g, command) -> str:
         return ""
     return (f"recorded by {command} with the feedback controller driving the valves in {int(active.sum())} of "
             f"{active.size} rows")
+
+
+TRACK_MODE = 2            # controllers/modes.py: off, hold, track, isolate
+CLOSED_LOOP_NOTE = (
+    "closed-loop data (an operated run in track mode): the valve command was computed from the measured "
+    "position, so the transducer's noise and any disturbance reach the command as well as the position. The "
+    "valve -> position response estimated from command and position is the actuator's only where the "
+    "reference's excitation dominates them (the reference's band, where the coherence is high); where it does "
+    "not, the estimate drifts towards minus the inverse of the controller. Excite the band of interest with "
+    "the reference (a chirp), and read the fit over that band only. The command recorded in a period acts "
+    "from the next one (the loop's computation), which the fit sees as one period of transport delay.")
+
+
+def _track_rows(g, mount, source):
+    """An operated run: (slice of the longest stretch in track mode while ACTIVE, its reference)."""
+    def col(name):
+        a = np.asarray(g[name][()], dtype=float)
+        return a[:, _mount_index(g[name], mount, source)] if a.ndim == 2 and a.shape[1] > 1 else a.ravel()
+    mode = col("mode")
+    ok = mode == TRACK_MODE
+    if "lifecycle_state" in g:
+        ok &= np.asarray(g["lifecycle_state"][()]).ravel()[:len(ok)] == 2
+    if not ok.any():
+        raise RecordingError(f"{source}: an operated run without a stretch in track mode (identification needs "
+                             f"the valve driven: record a track run, e.g. a chirp reference)")
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], ok.astype(np.int8), [0]))))
+    starts, ends = edges[::2], edges[1::2]
+    k = int(np.argmax(ends - starts))
+    sel = slice(int(starts[k]), int(ends[k]))
+    return sel, col("reference_m")[sel]
 
 
 def _mount_index(ds, mount, source) -> int:

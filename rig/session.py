@@ -21,10 +21,11 @@ import time
 
 from controllers.analysis import unstable_loops
 from controllers.isolation import make_isolation_controllers
+from controllers.modes import MODES, ModeRequest, make_operating_controllers, parse_request
 from rig.backends import devices, make_port
 from rig.clock import MonotonicClock
-from rig.config import Config
-from rig.errors import ConfigError
+from rig.config import Config, layout_mounts
+from rig.errors import ConfigError, RigError
 from rig.lock import RigLock
 from rig.loop import Loop
 from rig.recorder import WRITER_PRIORITY, Recorder
@@ -37,14 +38,18 @@ log = logging.getLogger("rig.session")
 
 class Session:
     """A run from a config and a backend name. controllers: a list (one per mount), a callable
-    (cfg, dt) -> list, or None for the isolation controllers of cfg.controller. record: an HDF5 path (the
-    loop's layout, or `columns`: a Columns selection of it); realtime: the loop thread's real-time set-up
-    (real clock only); signals: SIGINT/SIGTERM stop the run safely, SIGUSR1 toggles isolation (also one
-    held since start-up, rig/signals.py); status / control_file: the status line on stderr, a control file
-    polled for on/off/stop (its folder must exist; only changes after the start count);
-    stability_check: refuse isolation controllers `rig design` calls unstable; rate_check: refuse a rate the
-    loop cannot hold (measured over its first periods, rig/scheduler.py). The devices the backend drives are
-    locked for the session (rig/lock.py): a second process driving them is refused, naming the holder."""
+    (cfg, dt) -> list, or None for the layout's: the isolation controllers of cfg.controller on the machine,
+    the operating modes (controllers/modes.py) on stands, starting in `mode` (a ModeRequest or its text,
+    default hold). record: an HDF5 path (the loop's layout, or `columns`: a Columns selection of it);
+    realtime: the loop thread's real-time set-up (real clock only); signals: SIGINT/SIGTERM stop the run
+    safely, SIGUSR1 toggles isolation (operating modes: isolate <-> hold), SIGUSR2 (operating modes) off <->
+    hold (signals held since start-up are applied at the first period, rig/signals.py); status /
+    control_file: the status line on stderr, a control file polled for control words (`control`; its folder
+    must exist; only changes after the start count); script: [(loop time s, control word)], applied at those
+    period boundaries; stability_check: refuse isolation controllers `rig design` calls unstable; rate_check:
+    refuse a rate the loop cannot hold (measured over its first periods, rig/scheduler.py). The devices the
+    backend drives are locked for the session (rig/lock.py): a second process driving them is refused,
+    naming the holder."""
 
     def __init__(self, cfg: Config, backend: str = "sim", *, controllers=None, clock=None,
                  rate_hz: float | None = None, port_options: dict | None = None, isolation: bool = True,
@@ -53,7 +58,7 @@ class Session:
                  rate_check: bool = True, stability_check: bool = False, record=None,
                  record_attrs: dict | None = None, columns: "Columns | None" = None,
                  realtime: bool = False, signals: bool = False, status: bool = False,
-                 control_file: str | None = None) -> None:
+                 control_file: str | None = None, mode=None, script=None) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clock = clock if clock is not None else MonotonicClock()
@@ -74,8 +79,13 @@ class Session:
             folder = os.path.dirname(os.path.abspath(control_file))
             if not os.path.isdir(folder):
                 raise ConfigError(f"control file {control_file}: folder {folder} does not exist (the file is "
-                                  f"polled there for on/off/stop)")
-        self._held_toggles = 0               # SIGUSR1 before the loop existed: applied at its first period
+                                  f"polled there for control words)")
+        self._held_signals: list[int] = []     # SIGUSR1/2 before the loop existed: applied at its first period
+        self._mode = self.parse(mode, "mode") if isinstance(mode, str) else mode
+        self._script = [(float(t), w) for t, w in (script or ())]
+        for t, w in self._script:
+            if w.strip().lower() not in _WORDS:
+                self.parse(w, f"script at {t:g} s")     # a word that cannot be read fails here, not mid-run
         self.port = self.loop = self.recorder = None
         self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
@@ -91,20 +101,27 @@ class Session:
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             ctrls = self._controllers
-            if ctrls is None:
+            if ctrls is None and self.cfg.layout.plant == "stand":
+                ctrls = make_operating_controllers(self.cfg, self.dt, self._mode)
+            elif ctrls is None:
+                if self._mode is not None:
+                    raise ConfigError(f"{self.cfg.source}: operating modes run on the stand layout "
+                                      f"([layout] plant = \"stand\"); the machine runs isolation")
                 ctrls = make_isolation_controllers(self.cfg, self.dt)
                 if self._stability_check:
                     check_stable(self.cfg, ctrls, self.dt)
             elif callable(ctrls):
                 ctrls = ctrls(self.cfg, self.dt)
-            self.loop = Loop(self.cfg, self.port, list(ctrls), clock=self.clock, rate_hz=self.rate_hz,
-                             **self._loop_kw)
+            ctrls = list(ctrls)
+            kw = dict(self._loop_kw)
+            if kw["names"] is None and len(ctrls) == len(layout_mounts(self.cfg)):
+                kw["names"] = layout_mounts(self.cfg)
+            self.loop = Loop(self.cfg, self.port, ctrls, clock=self.clock, rate_hz=self.rate_hz, **kw)
             if self.realtime:     # the safety net preempts the loop it watches (a hung loop, a busy machine)
                 self.loop.sched.watchdog_priority = min(99, self.cfg.loop.rt_priority + 10)
-            if self._held_toggles % 2:
-                log.info("isolation toggle (SIGUSR1) received during start-up: applied at the first period")
-                self.loop.toggle_isolation()
-            self._held_toggles = 0
+            for t, word in self._script:
+                self.loop.gate.schedule(t, lambda w=word, t=t: self.control(w, f"script at {t:g} s"))
+            self._apply_held_signals()
             if self.record is not None:
                 self.recorder = self._start_recorder(stack)
             stack.callback(self.loop.safe_stop)
@@ -153,18 +170,42 @@ class Session:
             else:
                 raise KeyboardInterrupt
 
-        def on_usr1(signum, frame):          # isolation toggle; held until the loop exists
-            if self.loop is not None:
-                self.loop.toggle_isolation()
-            else:
-                self._held_toggles += 1
+        def on_usr(signum, frame):
+            self._usr_signal(signum)
         try:
             old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
-            old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
+            old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr)
+            old[signal.SIGUSR2] = signal.signal(signal.SIGUSR2, on_usr)
         except ValueError:                   # not the main thread: the caller handles signals
             return
-        self._held_toggles += take_held()
+        self._held_signals += [signal.SIGUSR1] * take_held()
         stack.callback(lambda: [signal.signal(s, h) for s, h in old.items()])
+
+    def _usr_signal(self, signum: int) -> None:
+        """SIGUSR1: isolation toggle (operating modes: isolate <-> hold); SIGUSR2 (operating modes): off <->
+        hold. Held until the loop exists."""
+        if self.loop is None:
+            self._held_signals.append(signum)
+        elif not self.operated:
+            if signum == signal.SIGUSR1:
+                self.loop.toggle_isolation()
+        else:
+            other = "isolate" if signum == signal.SIGUSR1 else "off"
+            self.control("hold" if self.modes()[0] == other else other, signal.Signals(signum).name)
+
+    def _apply_held_signals(self) -> None:
+        held, self._held_signals = self._held_signals, []
+        if not held:
+            return
+        if not self.operated:                    # toggles: a pair cancels
+            if held.count(signal.SIGUSR1) % 2:
+                log.info("isolation toggle (SIGUSR1) received during start-up: applied at the first period")
+                self.loop.toggle_isolation()
+            return
+        log.info("%s received during start-up: applied at the first period",
+                 ", ".join(signal.Signals(s).name for s in held))
+        for s in held:
+            self._usr_signal(s)
 
     # ---- the run -------------------------------------------------------------------------------------
     def run(self, seconds: float | None = None, iterations: int | None = None,
@@ -193,6 +234,63 @@ class Session:
     def reset_fault(self) -> None:
         self.loop.gate.request_reset_fault()
 
+    # ---- operating modes (the stand layout) ---------------------------------------------------------------
+    @property
+    def operated(self) -> list[int]:
+        """The mounts whose controller has operating modes."""
+        return [m for m, c in enumerate(self.loop.ctrls) if hasattr(c, "switch")] if self.loop else []
+
+    def parse(self, text: str, where: str = "mode request") -> ModeRequest:
+        """A request from its text (controllers/modes.py parse_request; RigError naming what is wrong)."""
+        return parse_request(text, self.dt, max_profile_s=self.cfg.controller.track_profile_s, where=where)
+
+    def modes(self) -> list[str]:
+        """The mode of each operated mount (as requested last)."""
+        return [self.loop.ctrls[m].current.mode for m in self.operated]
+
+    def request_mode(self, request, mount: str | int | None = None) -> ModeRequest:
+        """An operating mode for one mount (name or index) or all operated ones, at the next period boundary,
+        bumpless. request: a ModeRequest or its text. Checked first: a reference the actuator cannot follow
+        raises RigError with one line and changes nothing (never a clamp)."""
+        req = self.parse(request) if isinstance(request, str) else request
+        ops = self.operated
+        if not ops:
+            raise RigError("mode request: this run has no operating modes (the stand layout has them)")
+        if mount is not None:
+            m = self.loop.names.index(mount) if isinstance(mount, str) and mount in self.loop.names else mount
+            if m not in ops:
+                raise RigError(f"mode request: no operated mount {mount!r} (have {', '.join(self.loop.names)})")
+            ops = [m]
+        for m in ops:
+            self.loop.ctrls[m].check(req, self.loop.kernel.states[m])
+        for m in ops:
+            self.loop.request_mode(m, req)
+        return req
+
+    def control(self, word: str, source: str = "control") -> bool:
+        """One control word (control file, script, signals, a console): `stop`; on the machine `on` / `off`
+        (isolation); with operating modes a mode request (`off`, `hold [POS]`, `track REF`, `isolate`,
+        `setpoint POS`). A word refused or not understood is logged (and recorded as an event) in one line;
+        False then."""
+        w = word.strip()
+        low = w.lower()
+        try:
+            if low == "stop":
+                self.safe_stop(f"{source}: stop")
+            elif not self.operated and low in ("on", "isolation on", "off", "isolation off"):
+                self.request_isolation(low.endswith("on"))
+            elif not self.operated:
+                raise RigError(f"unknown control word {w!r} (expected on, off or stop)")
+            else:
+                self.request_mode(self.parse(w, source))
+            return True
+        except RigError as e:
+            text = f"{source}: refused: {e}"
+            log.warning("%s", text)
+            if self.loop is not None:
+                self.loop.tap.event(self.loop._t_s(self.loop.t_ns), text)
+            return False
+
     def safe_stop(self, reason: str = "stop requested") -> None:
         self.loop.stop(reason)
 
@@ -201,6 +299,7 @@ class Session:
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
                        attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs},
+                       wait_when_full=not self.clock.is_real,
                        priority=WRITER_PRIORITY if self.realtime else 0).start()
         self.loop.gate.request_recorder(rec)
         return rec
@@ -221,7 +320,19 @@ class Session:
                 "isolation": lp.isolation, "fault_reason": lp.lc.fault_reason, "iterations": lp.iterations,
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,
-                "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us()}
+                "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us(),
+                **self._published()}
+
+    def _published(self) -> dict:
+        """The controllers' published state of the last period (operating modes: mode, reference, error)."""
+        k = self.loop.kernel
+        out = {}
+        for name in k.published:
+            c = k.layout[name]
+            out[name] = [float(v) for v in k.row[c:c + k.n]]
+        if "mode" in out:
+            out["mode"] = [MODES[int(v)] for v in out["mode"]]
+        return out
 
 
 def check_stable(cfg: Config, ctrls, dt: float) -> None:
@@ -270,9 +381,13 @@ class _StatusLine(_Helper):
         m = lp.last_meas
         xs = " ".join(f"{x * 1e6:+7.2f}" for x in m.stroke_m) if m is not None else "-"
         us = " ".join(f"{u:+5.2f}" for u in lp.cmd)
-        susp = lp.suspended_mounts if lp.isolation else []
-        iso = ("on " if not susp else f"SUSPENDED({','.join(susp)})") if lp.isolation else "off"
-        return (f"t={t:7.2f}s {lp.state.name:8s} iso={iso} "
+        k = lp.kernel
+        if "mode" in k.published:
+            what = f"mode={','.join(MODES[int(v)] if v == v else '-' for v in k.row[k.layout['mode']:][:k.n])}"
+        else:
+            susp = lp.suspended_mounts if lp.isolation else []
+            what = "iso=" + (("on " if not susp else f"SUSPENDED({','.join(susp)})") if lp.isolation else "off")
+        return (f"t={t:7.2f}s {lp.state.name:8s} {what} "
                 f"wake p99={tm['wake_latency_us']['p99']:6.1f}us compute p99={tm['compute_us']['p99']:5.1f}us "
                 f"overruns={lp.overruns} stroke_um=[{xs}] cmd_V=[{us}]")
 
@@ -284,8 +399,12 @@ class _StatusLine(_Helper):
             sys.stderr.flush()
 
 
+_WORDS = ("stop", "on", "off", "isolation on", "isolation off")
+
+
 class _ControlFile(_Helper):
-    """Polls a control file every 0.1 s: `on` / `off` switch isolation, `stop` stops safely."""
+    """Polls a control file every 0.1 s for one control word (Session.control): `stop`; `on` / `off`
+    (isolation) on the machine; mode requests with operating modes."""
 
     def __init__(self, path: str, session: Session) -> None:
         super().__init__("rig-control")
@@ -310,14 +429,8 @@ class _ControlFile(_Helper):
                     continue
                 self._last = key
                 with open(self.path) as f:
-                    word = f.read().strip().lower()
+                    word = f.read().strip()
             except OSError:
                 continue
-            if word in ("on", "isolation on"):
-                self.session.request_isolation(True)
-            elif word in ("off", "isolation off"):
-                self.session.request_isolation(False)
-            elif word == "stop":
-                self.session.safe_stop("control file: stop")
-            elif word:
-                log.warning("%s: unknown control word %r (expected on, off or stop)", self.path, word)
+            if word:
+                self.session.control(word, f"control file {self.path}")

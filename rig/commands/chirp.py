@@ -26,14 +26,14 @@ from controllers.playback import SignalPlayback
 from rig import cliargs
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
-from rig.config import MOUNTS, hil_run_config, load_config
+from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
 from rig.lifecycle import State
 from rig.recorder import Channel
 from rig.recording import load_recording, save_recording_csv
 from rig.session import Session
 from rig.tap import Columns
-from sim_backend.actuator import Effects, StandPlant
+from sim_backend.actuator import Effects, StandBank, StandPlant
 from sim_backend.linear import ActuatorParams
 
 
@@ -50,8 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="chirp length, s (default 100)")
     p.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
                    help="loop (and recording) rate, Hz (default: [loop] rate_hz; hil: [hil] rate_hz)")
-    p.add_argument("--mount", default="front_left", choices=MOUNTS,
-                   help="mount whose valve is chirped (hil/hardware)")
+    p.add_argument("--mount", default="front_left",
+                   help="mount whose valve is chirped (hil/hardware; a name of the config's layout)")
     p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=0.05, metavar="S",
                    help="seconds INACTIVE (valve at null, sensors checked) before the chirp (default 0.05)")
     p.add_argument("--realtime", action="store_true", help="sim backend: pace on the wall clock (default: "
@@ -85,23 +85,6 @@ def chirp_columns(mount: int) -> Columns:
                     (Channel("accel_mps2", "m/s^2", description="accelerometer at t_k"), "accel_mps2", mount)])
 
 
-class _StandBank:
-    """Four actuators alone on their stands as a four-mount plant (for the HIL emulator)."""
-
-    def __init__(self, stands) -> None:
-        self.stands = stands
-        self.accel_mps2 = [0.0] * len(stands)
-        self.stroke_m = [0.0] * len(stands)
-        self.table_m = self.stroke_m
-        self.t_s = 0.0
-
-    def step(self, valve_cmd_V) -> None:
-        for i, s in enumerate(self.stands):
-            x, a = s.step(float(valve_cmd_V[i]))
-            self.stroke_m[i], self.accel_mps2[i] = float(x), float(a)
-        self.t_s = self.stands[0].t_s
-
-
 def _sim_effects(cfg, seed: int | None):
     """The [stand] section: effect switches and sensor noise (real sensors are never bit-exact constant, and
     the loop's stuck check relies on that)."""
@@ -118,7 +101,8 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
     if backend == "sim":
         return dict(mode="stand", seed=seed or 0, stand_params=p, stand_effects=fx)
     if backend == "hil":
-        return dict(plant=_StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt) for i in range(4)]))
+        return dict(plant=StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt)
+                                     for i in range(len(layout_mounts(cfg)))]))
     return {}
 
 
@@ -152,13 +136,16 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     out = Path(out)
     if out.is_dir():
         raise RigError(f"--out {out}: is a folder, expected a recording file name")
-    n = 1 if backend == "sim" else len(MOUNTS)
-    if n == 1:
+    mounts = layout_mounts(cfg)
+    n = 1 if backend == "sim" else len(mounts)
+    if backend == "sim":
         m_idx, names = 0, ("stand",)
     else:
-        if mount not in MOUNTS:
-            raise RigError(f"--mount: expected one of {', '.join(MOUNTS)}, got {mount!r}")
-        m_idx, names = MOUNTS.index(mount), None
+        if n == 1 and mount == "front_left":          # the default names the machine's first mount
+            mount = mounts[0]
+        if mount not in mounts:
+            raise RigError(f"--mount: expected one of {', '.join(mounts)}, got {mount!r}")
+        m_idx, names = mounts.index(mount), mounts
     samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt)
     ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(n)]
     h5_path = out if not csv else out.with_name(out.name + ".part.h5")
@@ -168,7 +155,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                       port_options=chirp_port_options(cfg, backend, dt, seed=seed, stand_params=stand_params,
                                                       stand_effects=stand_effects),
                       record=h5_path, columns=chirp_columns(m_idx),
-                      record_attrs={"command": "rig chirp", "mount": names[0] if n == 1 else mount,
+                      record_attrs={"command": "rig chirp", "mount": names[m_idx],
                                     "amplitude_V": amplitude_V, "f0_hz": f0_hz, "f1_hz": f1_hz,
                                     "duration_s": duration_s, "chirp": "linear", "fs_hz": rate, "settle_s": settle_s})
     done = threading.Event()

@@ -42,6 +42,9 @@ def run(args) -> int:
 
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
              f"{'Table 1' if cfg is None else cfg.source}")
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
     diag = diagnose(rec, p0, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:

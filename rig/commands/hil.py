@@ -16,9 +16,16 @@ true table motion of the emulated plant under the same floor vibration.
 early (Ctrl-C, SIGTERM) it says so, gives no isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
+
+  rig hil --layout prototype [--seconds N] ...  the prototype on its stand (drivers/devicemaps/prototype_hil.toml
+                                                without --config) in three thirds: hold, track a 10 um 5 Hz
+                                                sine, isolate; the tracking error (rms, % of the amplitude)
+                                                and the load's true motion isolating against holding
+                                                (isolation_reduction_db); --json adds "tracking"
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
@@ -29,8 +36,9 @@ import time
 import numpy as np
 
 from drivers.protocol import dta as proto
-from rig import cliargs, inject
+from rig import cliargs, inject, operated
 from rig.backends import default_config, make_port
+from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
 from rig.port import Commands
@@ -58,6 +66,8 @@ def add_arguments(p) -> None:
     p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
                    help="fault rehearsal on the emulated devices at loop time T s, e.g. silence:*:accel@2 "
                         "(repeatable; see rig run --help)")
+    p.add_argument("--layout", choices=("machine", "prototype"), default=None,
+                   help="prototype: the actuator on its stand (hold, track a sine, isolate)")
 
 
 def hil_config(cfg, rate_hz: float | None = None):
@@ -123,7 +133,10 @@ def run(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig hil: %(message)s", stream=sys.stderr)
     logging.getLogger("canopen").setLevel(logging.WARNING)
-    cfg = hil_config(load_config(args.config if args.config else HIL_DEFAULT_CONFIG), args.rate)
+    if args.layout == "prototype" or (args.config and load_config(args.config).layout.plant == "stand"):
+        cfg = hil_config(layout_config(argparse.Namespace(config=args.config, layout="prototype"), "hil"), args.rate)
+    else:
+        cfg = hil_config(load_config(args.config if args.config else HIL_DEFAULT_CONFIG), args.rate)
     seconds = args.seconds if args.seconds is not None else cfg.hil.seconds
     if not 0 < seconds <= 3600:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
@@ -135,6 +148,8 @@ def run(args) -> int:
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     if not args.json:
         print(f"rig hil: config {cfg.source}", file=sys.stderr)
+    if cfg.layout.plant == "stand":
+        return _prototype(cfg, seconds, args)
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
@@ -292,3 +307,74 @@ def bench(cfg, seconds: float, as_json: bool) -> int:
         if faults:
             print(f"first device fault: {faults[0]}")
     return 0
+
+
+PROTOTYPE_SINE = "sine:amp=10um,freq=5"
+
+
+def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtime: bool = True,
+                      quiet: bool = False) -> dict:
+    """The prototype through the drivers on the emulated stand: hold, track PROTOTYPE_SINE, isolate (a third
+    each, [hil] settle_s of each not metered). Returns the figures (tracking per segment, true load motion)."""
+    if record is None:
+        record = time.strftime("hil-prototype-%Y%m%d-%H%M%S.h5")
+    q = seconds / 3
+    settle = min(cfg.hil.settle_s, q / 3)
+    holder = {}
+
+    def phase(name):
+        return lambda: holder["rig"].phase(name)
+    script = [(settle, phase("hold")), (q, phase(None)), (q, f"track {PROTOTYPE_SINE}"), (2 * q, "isolate"),
+              (2 * q + settle, phase("isolate"))]
+    session = Session(cfg, "hil", isolation=False, keep_timing=int(seconds * cfg.loop.rate_hz) + 16, record=record,
+                      record_attrs={"command": "rig hil --layout prototype", "transports": "canopen,modbus_tcp,serial"},
+                      realtime=realtime, signals=True, script=[(t, w) for t, w in script if isinstance(w, str)])
+    if not quiet:
+        print(f"rig hil: the prototype on its emulated stand at {cfg.loop.rate_hz:g} Hz: hold, track {PROTOTYPE_SINE}"
+              f", isolate ({q:.1f} s each)", file=sys.stderr)
+    with session:
+        port, loop = session.port, session.loop
+        holder["rig"] = port.rig
+        for t, action in script:
+            if not isinstance(action, str):
+                loop.gate.schedule(t, action)
+        time.sleep(0.2)              # driver threads refresh their samples after the set-up pause
+        session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+        port.rig.phase(None)
+        rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
+    rig = port.rig
+    hold, iso = (rig.table_rms_m(k) if k in rig.meter else math.nan for k in ("hold", "isolate"))
+    red = 20 * math.log10(hold / iso) if hold > 0 and iso > 0 else math.nan
+    figs = operated.figures(operated.load_operated(record))
+    track = next((d for d in figs if d["mode"] == "track"), {})
+    return {"transports": ["canopen", "modbus_tcp", "serial"], "faults": 1 if loop.lc.fault_reason else 0,
+            "overruns": loop.overruns, "iterations": loop.iterations,
+            "samples_recorded": session.recorder.rows_written if session.recorder is not None else 0,
+            "tracking": {k: track.get(k) for k in ("request", "rms_error_um", "rms_error_pct", "max_error_um",
+                                                   "peak_command_V")},
+            "isolation_reduction_db": None if math.isnan(red) else round(red, 2), "load_rms_hold_um": hold * 1e6,
+            "load_rms_isolate_um": iso * 1e6, "recording": str(record), "fault_reason": loop.lc.fault_reason,
+            "round_trip_us": rtt, "segments": figs}
+
+
+def _prototype(cfg, seconds: float, args) -> int:
+    res = run_hil_prototype(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
+                            quiet=args.json)
+    if res["fault_reason"]:
+        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
+    out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded", "tracking",
+                               "isolation_reduction_db", "recording")}
+    if args.json:
+        print(json.dumps(out))
+        return 1 if res["faults"] else 0
+    print(operated.figures_text(res["segments"]))
+    tr = res["tracking"]
+    red = res["isolation_reduction_db"]
+    print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at {cfg.loop.rate_hz:g} Hz, "
+          f"{out['faults']} faults, {out['overruns']} overruns, recorded to {out['recording']}")
+    if tr.get("rms_error_um") is not None:
+        print(f"tracking {tr['request']}: rms error {tr['rms_error_um']:.3f} um = {tr['rms_error_pct']:.2f} % of the "
+              f"amplitude (max {tr['max_error_um']:.3f} um)")
+    print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} um "
+          f"isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
+    return 1 if res["faults"] else 0

@@ -143,9 +143,10 @@ def run(args) -> int:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
     rec = load_recording(args.recording)                 # RecordingError: one line, exit 2
-    if rec.closed_loop:
-        # in closed loop the command is a function of the measured position (and its noise): an FRF fit of
-        # position/command gives the loop's sensitivity, not the actuator, and looks confident doing so
+    if rec.closed_loop and rec.reference_m is None:
+        # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
+        # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.
+        # A track run has its reference as external excitation: identified, with CLOSED_LOOP_NOTE below
         raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
                        "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
 
@@ -153,6 +154,9 @@ def run(args) -> int:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)
 
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)
     if args.repeat > 1:

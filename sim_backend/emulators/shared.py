@@ -72,17 +72,19 @@ class SharedFile:
 
 
 def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None) -> None:
-    """A new plant state; count = conversions so far (default: one more than before)."""
+    """A new plant state; count = conversions so far (default: one more than before). A plant of fewer mounts
+    (the prototype: one) leaves the devices' other channels at zero."""
     seq = arr[SEQ] + 1.0
     arr[SEQ] = seq                          # odd: writing
     arr[T_S] = t_s
     count = int(arr[COUNT]) + 1 if count is None else int(count)
     arr[COUNT] = float(count)
-    acc = [float(a) for a in accel_mps2]
-    arr[ACCEL:ACCEL + N_MOUNTS] = acc
+    pad = [0.0] * (N_MOUNTS - len(accel_mps2))
+    acc = [float(a) for a in accel_mps2] + pad
     base = FIFO + 5 * (count % FIFO_SLOTS)
     arr[base:base + 5] = [float(count)] + acc
-    arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m]
+    arr[ACCEL:ACCEL + N_MOUNTS] = acc
+    arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m] + pad
     arr[SEQ] = seq + 1.0                    # even: consistent
 
 

@@ -35,9 +35,9 @@ def test_config() -> Config:
 
 
 @contextlib.contextmanager
-def live_run(*, read_only: bool = False, isolation: bool = True, record=None, serve: str = "process"):
-    """(session, console): the simulated rig running in a thread, ACTIVE, its console attached."""
-    cfg = test_config()
+def live_run(*, read_only: bool = False, isolation: bool = True, record=None, serve: str = "process", cfg=None):
+    """(session, console): the simulated rig (or cfg's) running in a thread, ACTIVE, its console attached."""
+    cfg = cfg or test_config()
     s = Session(cfg, "sim", clock=MonotonicClock(), rate_hz=RATE_HZ, stop_on_fault=False, isolation=isolation,
                 record=record)
     with s, Console(cfg, "sim", port=0, read_only=read_only, serve=serve) as console:
