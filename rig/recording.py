@@ -18,7 +18,7 @@ from __future__ import annotations
 import gzip
 import io
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ class Recording:
     accel_mps2: np.ndarray
     fs_hz: float
     source: str = "<memory>"
+    meta: dict = field(default_factory=dict)     # the file's attributes (HDF5: e.g. command = "rig run")
 
     @property
     def n(self) -> int:
@@ -100,6 +101,15 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
     off = np.abs(dt - step) > UNIFORM_TOL * step
     if off.any():
         k = int(np.argmax(off)) + 1
+        if dt[k - 1] > step:
+            # a gap: one line naming the first one (segments are not stitched: the plant's state across the gap
+            # is unknown, so each side would need its own start transient)
+            missing = int(round(dt[k - 1] / step)) - 1
+            more = int(off.sum()) - 1
+            raise RecordingError(
+                f"{source}: time_s not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after t = {t[k - 1]:.6g} s "
+                f"(about {missing} samples missing, expected steps of {step:.6g} s"
+                f"{f'; {more} more irregular steps after it' if more else ''}): split the recording at the gap")
         raise RecordingError(f"{source}: time_s not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
                              f"expected {step:.6g} s")
     # the sample rate from the whole span (robust to per-step rounding of printed times)
@@ -108,6 +118,22 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
         raise RecordingError(f"{source}: cannot determine a sample rate from time_s")
     return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
                      accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
+
+
+# Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
+# beyond them is a wrong unit or a corrupt file.
+PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
+
+
+def check_plausible(rec: Recording) -> None:
+    """One clear line for a value no sensor or command of a rig can have (e.g. 1e300 from a corrupt export)."""
+    for name, lim in PLAUSIBLE_ABS.items():
+        a = getattr(rec, name)
+        bad = np.abs(a) > lim
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RecordingError(f"{rec.source}: {name} is {a[k]:.6g} at sample {k} (t = {rec.t_s[k]:.6g} s): not a "
+                                 f"plausible value (expected |{name}| < {lim:g}); check the column's units")
 
 
 # ---- readers ----------------------------------------------------------------------------------------
@@ -204,11 +230,19 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
+            meta = {}
+            for k, v in f.attrs.items():
+                if isinstance(v, bytes):
+                    v = v.decode(errors="replace")
+                if isinstance(v, (str, int, float, bool, np.integer, np.floating, np.bool_)):
+                    meta[str(k)] = v.item() if hasattr(v, "item") else v
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
-    return _validated(cols, source)
+    rec = _validated(cols, source)
+    rec.meta = meta
+    return rec
 
 
 def _mount_index(ds, mount, source) -> int:

@@ -53,7 +53,10 @@ def frf_bands(cmd_V, meas_m, models: dict[str, np.ndarray], fs: float, f_lo: flo
     n = len(cmd_V)
     U = np.fft.rfft(cmd_V); Y = np.fft.rfft(meas_m)
     f = np.fft.rfftfreq(n, 1.0 / fs)
-    edges = np.geomspace(max(f_lo, 2 * fs / n), f_hi, n_bands + 1)
+    f_lo = max(f_lo, 2 * fs / n)
+    if not f_hi > 1.01 * f_lo:
+        f_hi = max(0.45 * fs, 1.02 * f_lo)
+    edges = np.geomspace(f_lo, f_hi, n_bands + 1)
     idx = np.searchsorted(f, edges)
     Ms = {k: np.fft.rfft(v) for k, v in models.items()}
     fc, H, coh, sig = [], [], [], []
@@ -78,9 +81,11 @@ def frf_bands(cmd_V, meas_m, models: dict[str, np.ndarray], fs: float, f_lo: flo
 
 def mismatch_bands(frf: dict, model_key: str, k_sigma: float = 3.0) -> list[list[float]]:
     """Bands where |H_meas - H_model| exceeds k_sigma times the coherence-based uncertainty."""
+    fc = frf["freqs_hz"]
+    if len(fc) == 0:                                   # no band holds two frequency bins (short or slow recording)
+        return []
     err = np.abs(frf["measured"] - frf[model_key])
     bad = err > k_sigma * np.maximum(frf["sigma"], 1e-300)
-    fc = frf["freqs_hz"]
     # band edges: geometric midpoints between centres
     lo = np.r_[fc[0] / 1.05, np.sqrt(fc[:-1] * fc[1:])]
     hi = np.r_[np.sqrt(fc[:-1] * fc[1:]), fc[-1] * 1.05]
@@ -102,8 +107,10 @@ def mismatch_windows(resid: np.ndarray, fs: float, noise: float, win_s: float = 
     return wins, worst_w, rms
 
 
-def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float, noise: float) -> dict:
-    """Residual rms / noise by command magnitude tercile and by piston velocity sign (reversals apart)."""
+def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float, noise: float,
+            use: np.ndarray | None = None) -> dict:
+    """Residual rms / noise by command magnitude tercile and by piston velocity sign (reversals apart), over the
+    samples in use."""
     a = np.abs(cmd_V); peak = float(np.max(a)) or 1.0
     v = np.gradient(meas_m) * fs
     k = max(1, int(fs / 200))
@@ -117,6 +124,8 @@ def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float,
     }
     out = {}
     for name, m in sel.items():
+        if use is not None:
+            m = m & use
         if m.sum() > 10:
             out[name] = {"fraction": round(float(m.mean()), 4),
                          "rms_over_noise": round(float(np.sqrt(np.mean(resid[m] ** 2)) / noise), 3)}

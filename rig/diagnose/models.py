@@ -118,9 +118,13 @@ def driver_current(p: ActuatorParams, cmd_V: np.ndarray, sat_ma: float = 0.0) ->
 
 
 def sim_linear(p: ActuatorParams, cmd_V: np.ndarray, fs: float, *, delay_s: float = 0.0,
-               base: tuple[float, float, float] | None = None, sat_ma: float = 0.0) -> np.ndarray:
-    """Exact sampled response (position at the sample instants, before u_k acts), metres."""
+               base: tuple[float, float, float] | None = None, sat_ma: float = 0.0,
+               output: str = "position") -> np.ndarray:
+    """Exact sampled response at the sample instants (before u_k acts): position [m], or with
+    output="accel" the piston's absolute acceleration [m/s^2] (Eq. 7: the force balance over M)."""
     Am, Bm, Cm = ss_model(p, base)
+    if output == "accel":
+        Cm = Am[4].copy()                   # dv_p/dt = (internal force) / M; the input enters via the spool only
     Ad, G0, G1, m = discretise(Am, Bm, 1.0 / fs, delay_s)
     out = np.empty(len(cmd_V))
     _run_ss(Ad, G0, G1, Cm, driver_current(p, cmd_V, sat_ma), m, out)
