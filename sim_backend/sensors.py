@@ -8,7 +8,7 @@ simulate_stand with its noise off) into what the converters record:
   noise: a filter in the signal path would add its group delay to the position, which a recording of command and
   position alone cannot tell from a transport delay);
 - the transducer's zero: offset plus drift, linear, exponential (thermal settling toward a new zero) or a slow
-  random wander;
+  smooth random wander (white noise through two lags);
 - line pickup at the mains frequency and its harmonics on either channel (not a force: the other sensor does
   not see it);
 - quantisation of each converter (step in m or m/s^2), then clipping at the converter's range;
@@ -39,7 +39,7 @@ class SensorHabits:
     offset_m: float = 0.0
     drift_m_per_s: float = 0.0
     drift_shape: str = "linear"             # linear | exponential | wander
-    drift_tau_s: float = 60.0               # exponential: time constant; wander: correlation time
+    drift_tau_s: float = 60.0               # exponential: time constant; wander: the lags' time constant
     wander_m: float = 0.0                   # rms of the random wander (drift_shape "wander")
     position_lines: tuple[Line, ...] = ()
     accel_lines: tuple[Line, ...] = ()
@@ -76,13 +76,14 @@ class SensorHabits:
         else:
             z += self.drift_m_per_s * t
         if self.drift_shape == "wander" and self.wander_m > 0:
+            # thermal wander: white noise through two first-order lags of time constant tau (smooth, not a
+            # random walk: the zero of a transducer follows its temperature)
             rng = rng or np.random.default_rng(self.seed + 1)
-            a = math.exp(-1.0 / (fs * self.drift_tau_s))       # Ornstein-Uhlenbeck, correlation time tau
-            e = rng.standard_normal(n) * math.sqrt(1 - a * a)
+            a = math.exp(-1.0 / (fs * self.drift_tau_s))
             from scipy.signal import lfilter
-            ou = lfilter([1.0], [1.0, -a], e)
-            ou -= ou[0]
-            z += self.wander_m * ou / max(float(np.std(ou)), 1e-300)
+            w = lfilter([1.0], [1.0, -a], lfilter([1.0], [1.0, -a], rng.standard_normal(n)))
+            w -= w[0]
+            z += self.wander_m * w / max(float(np.std(w)), 1e-300)
         return z
 
     def apply(self, position_m: np.ndarray, accel_mps2: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:

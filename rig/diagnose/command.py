@@ -55,8 +55,9 @@ class Command:
 
     @property
     def starts_mid_run(self) -> bool:
-        """A command far from null at the first sample: the plant was moving before the recording began."""
-        return abs(self.start_V) > 0.02 * max(self.peak_V, 1e-12) and self.kind != "steps"
+        """A command far from null at the first sample: the plant was moving before the recording began (or the
+        command jumps at t = 0; either way a model started from rest is wrong for the first instants)."""
+        return abs(self.start_V) > 0.02 * max(self.peak_V, 1e-12)
 
     def describe(self) -> str:
         lo, hi = self.band_hz
@@ -102,7 +103,8 @@ def _repetition(cmd: np.ndarray, fs: float) -> int:
     lags = np.arange(n)
     ov = np.maximum(n - lags, 1)
     acn = ac / ac[0] * n / ov
-    lo = int(max(0.5 * fs, 0.05 * n))
+    below = np.flatnonzero(acn[: n // 2] < 0.3)
+    lo = int(max(0.2 * fs, below[0] if below.size else n))     # past the command's own correlation time
     hi = int(0.8 * n)
     if hi <= lo:
         return 0
@@ -140,7 +142,7 @@ def _segments(cmd: np.ndarray, lag: int) -> list[Segment]:
 def _sweep_phase(cmd: np.ndarray, fs: float, segments: list[Segment]) -> tuple[np.ndarray, np.ndarray, bool, str]:
     """Instantaneous phase/frequency per segment (analytic signal) and whether it reads as one sweep."""
     phase = np.zeros(len(cmd))
-    finst = np.zeros(len(cmd))
+    finst = np.full(len(cmd), np.nan)          # nan where the command is off (pauses between levels)
     ok, laws = [], []
     for s in segments:
         x = cmd[s.i0:s.i1]
@@ -150,8 +152,8 @@ def _sweep_phase(cmd: np.ndarray, fs: float, segments: list[Segment]) -> tuple[n
         ph = np.unwrap(np.angle(z))
         phase[s.i0:s.i1] = ph
         fi = np.gradient(ph) * fs / (2 * math.pi)
-        finst[s.i0:s.i1] = fi
         env = np.abs(z)
+        finst[s.i0:s.i1] = np.where(env > 0.3 * np.max(env), fi, np.nan)
         m = len(x) // 20
         core = slice(m, len(x) - m) if len(x) > 40 else slice(None)
         on = env[core] > 0.3 * np.max(env)
@@ -222,9 +224,12 @@ def analyse(cmd_V: np.ndarray, fs: float) -> Command:
     if sweep:
         out.kind, out.phase, out.sweep_law = "sweep", phase, law
         from scipy.ndimage import median_filter
-        fi = median_filter(finst, size=max(3, int(0.5 * fs) | 1), mode="nearest")
+        on = np.isfinite(finst)
+        fi = median_filter(np.where(on, finst, 0.0), size=max(3, int(0.5 * fs) | 1), mode="nearest")
         m = n // 200
-        lo, hi = np.percentile(np.clip(fi[m:n - m], 0.0, fs / 2), [0.5, 99.5])
+        core = np.zeros(n, bool)
+        core[m:n - m] = True
+        lo, hi = np.percentile(np.clip(fi[core & on], 0.0, fs / 2), [0.5, 99.5])
         out.band_hz = (max(float(lo), 3.0 * fs / n), min(float(hi), 0.45 * fs))
         return out
     # one sine: nearly all power in one Welch bin

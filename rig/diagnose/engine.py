@@ -51,7 +51,8 @@ from sim_backend.linear import ActuatorParams
 
 LIN_KEYS = ("K_L", "K_C", "K_Q", "w_nv", "zeta")
 LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
-N_BLOCKS = 50                      # interleaved blocks (2 s blocks of a 100 s chirp)
+N_BLOCKS = 51                      # interleaved blocks (2 s blocks of a 100 s chirp); odd: the first and the last
+                                   # are fit blocks, so the slow sensor terms never extrapolate into a held-out end
 MAX_EFFECTS = 2
 LINEAR_SIM = ("transport_delay", "base_resonance", "valve_saturation")   # exact in sim_linear
 SLOW = ("valve_deadband", "coulomb_friction")                           # need sim_reduced
@@ -64,7 +65,8 @@ MIN_CLAIM_S = 5.0                  # shorter recordings get no claim
 MIN_SNR = 10.0                     # response rms / noise below which the recording is too poorly excited
 VERDICT_AT_NOISE = 1.3             # augmented residual / noise: "explains the recording"
 VERDICT_NOT_DESCRIBED = 3.0        # above: the model does not describe the recording, nothing is named
-START_TRANSIENT_S = 0.5            # left out when the recording starts mid-run (the plant forgets in ~0.1 s)
+START_TRANSIENT_S = 1.0            # left out when the recording starts mid-run (the plant forgets in ~0.1 s, a
+                                   # lightly damped stand mode in ~1 s)
 
 
 @dataclass
@@ -345,7 +347,7 @@ def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, ban
         return lin, fx
     if name == "coulomb_friction":
         grid = [60, 200, 600] if pb.quick else [3, 40, 100, 200, 400, 800, 1400]
-        lin, fx, _ = _grid_best(pb, lins[:1], fx_base, name, "force_n", grid)
+        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", grid)
         return lin, fx
     if name == "base_resonance":
         best = None
@@ -453,25 +455,49 @@ def _choose_wander(pb: Problem, fit: Fit, max_terms: int) -> int:
     return best[1]
 
 
+def _on_grid(f: float, grid_hz: float, T: float) -> int | None:
+    """The grid index k when f is within one resolution bin of k grid_hz, else None."""
+    if not grid_hz:
+        return None
+    k = int(round(f / grid_hz))
+    return k if k >= 1 and abs(f - k * grid_hz) <= 1.0 / T else None
+
+
 def _lines(pb: Problem, r: np.ndarray, acc: np.ndarray, acc_model: np.ndarray | None, check, fs: float,
-           exclude_hz: list[float], acc_use: np.ndarray):
+           cmd_info: command_mod.Command, acc_use: np.ndarray):
     """Lines of the position residual sorted by the two sensors into pickup (sensor) and force (physics);
-    plus lines the accelerometer alone shows (pickup on that channel)."""
-    found = locate.spectral_lines(r * pb.use, fs, pb.noise, ratio=LINE_RATIO, top=10)
+    plus lines the accelerometer alone shows (pickup on that channel).
+
+    A periodic command puts its own response (linear and nonlinear) on its line grid: a line there is the
+    command's, unless only the position shows it (pickup) or it stands ten times above its unexcited neighbours
+    (a force that happens to fall on the grid)."""
     T = pb.n / fs
-    found = [l for l in found if all(abs(l["frequency_hz"] - f) > 2.0 / T for f in exclude_hz)]
+    grid = fs / cmd_info.period if cmd_info.kind == "multisine" and cmd_info.period else 0.0
+    excited = set(int(k) for k in cmd_info.excited_lines) if grid else set()
+    found = locate.spectral_lines(r * pb.use, fs, pb.noise, ratio=LINE_RATIO, top=12)
     a_res = None
     if check is not None and check.usable and acc_model is not None:
         a_res = acc - check.gain.real * acc_model - np.mean(acc)       # gain phase is ~0 for a real sensor
+    R = np.abs(np.fft.rfft(r * pb.use)) if grid else None
     pickup, force = [], []
     for l in found:
         f = locate.refine_line(r * pb.use, fs, l["frequency_hz"])
+        k = _on_grid(f, grid, T)
+        if k is not None and k in excited:
+            continue
         xa, xs = sensor_mod.line_amplitude(r, fs, f, pb.use)
         if a_res is not None:
             aa, asig = sensor_mod.line_amplitude(a_res, fs, f, acc_use)
         else:
             aa, asig = 0j, 0.0
         src, ratio, ev = sensor_mod.classify_line(f, xa, xs, aa, asig, check or sensor_mod.AccelCheck(False))
+        if k is not None and src == "force":
+            near = [j for j in range(max(1, k - int(5 / grid)), k + int(5 / grid) + 1)
+                    if j != k and j not in excited]
+            idx = [int(round(j * grid * T)) for j in near if int(round(j * grid * T)) < len(R)]
+            ref = float(np.median(R[idx])) if idx else 0.0
+            if R[int(round(f * T))] < 10 * ref:
+                continue                         # one of the distortion lines of the periodic command
         line = sensor_mod.SensorLine(frequency_hz=f, amplitude=abs(xa), phase_rad=float(np.angle(xa)),
                                      channel="position_m", source=src, accel_ratio=ratio, evidence=ev)
         (force if src == "force" else pickup).append(line)
@@ -482,10 +508,12 @@ def _lines(pb: Problem, r: np.ndarray, acc: np.ndarray, acc_model: np.ndarray | 
             f = locate.refine_line(a_res * acc_use, fs, l["frequency_hz"])
             if any(abs(f - x.frequency_hz) < 2.0 / T for x in pickup + force):
                 continue
+            if _on_grid(f, grid, T) is not None and not sensor_mod.mains_harmonic(f):
+                continue
             aa, asig = sensor_mod.line_amplitude(a_res, fs, f, acc_use)
             xa, xs = sensor_mod.line_amplitude(r, fs, f, pb.use)
             x_pred = abs(aa) / ((2 * math.pi * f) ** 2 * abs(check.gain))
-            if x_pred > 5 * xs and abs(xa) < 0.5 * x_pred:
+            if x_pred > 5 * xs and abs(xa) < 0.2 * x_pred:
                 acc_lines.append(sensor_mod.SensorLine(
                     frequency_hz=f, amplitude=abs(aa), phase_rad=float(np.angle(aa)), channel="accel_mps2",
                     source="pickup", accel_ratio=None,
@@ -639,6 +667,15 @@ def _residual_spectra(pb: Problem, models: dict) -> dict:
 
 # ---- main entry ------------------------------------------------------------------------------------------------
 
+def _floor(pb: Problem, r: np.ndarray, cmd_info: command_mod.Command) -> noise_mod.NoiseFloor:
+    """The noise floor of a residual, the response taken out as the command's kind allows (rig.diagnose.noise)."""
+    if cmd_info.kind == "multisine":
+        return noise_mod.floor(r, pb.fs, pb.use, period=cmd_info.period)
+    if cmd_info.kind in ("noise", "steps"):
+        return noise_mod.floor(r * pb.use, pb.fs, pb.use, cmd=pb.cmd)
+    return noise_mod.floor(r, pb.fs, pb.use)
+
+
 def _validate(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     src = getattr(rec, "source", "recording")
     cmd = np.asarray(rec.valve_cmd_V, dtype=float)
@@ -697,8 +734,9 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     transient_s = 0.0
     if cmd_info.starts_mid_run:
         transient_s = START_TRANSIENT_S
-        notes.append(f"the command is {cmd_info.start_V:.3g} V at the first sample, so the plant was moving before "
-                     f"the recording began: the first {transient_s:g} s are left out of the fit (the start transient)")
+        notes.append(f"the command is {cmd_info.start_V:.3g} V at the first sample, so the plant was not at rest "
+                     f"when the recording began (a mid-run start): the first {transient_s:g} s are left out of the "
+                     f"fit (the start transient)")
     else:
         transient_s = 0.05                      # start-up instants carry no information
     use[: int(transient_s * fs)] = False
@@ -712,7 +750,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
 
     say("nominal model")
     nom = pb.evaluate(nominal_lin, {}, k=0)
-    pb.noise = noise_mod.floor(pb.y - pb.series(nom), fs, use).rms_m or 1e-12
+    pb.noise = _floor(pb, pb.y - pb.series(nom), cmd_info).rms_m or 1e-12
 
     say("refit of the linear parameters")
     refit = pb.fit(nominal_lin, {}, max_iter=10)
@@ -723,28 +761,26 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
 
     # sensor terms: slow wander, the converter step, clipping, lines by the two sensors
     say("sensor terms")
-    wander_max = sensor_mod.max_wander_terms(rec.duration_s, max(band[0], 1.0 / max(rec.duration_s, 1e-3)))
+    wander_max = min(sensor_mod.max_wander_terms(rec.duration_s, max(band[0], 1.0 / max(rec.duration_s, 1e-3))),
+                     N_BLOCKS // 4)     # a cosine spans at least four blocks: it interpolates over a held-out one
     k_w = _choose_wander(pb, refit, wander_max)
     if k_w:
         pb.set_basis(pb.basis.with_(wander_terms=k_w))
         refit = pb.fit(refit.lin, {}, max_iter=4)
     r_ref0 = pb.y - pb.series(refit)
-    pb.noise = noise_mod.floor(r_ref0, fs, use).rms_m or pb.noise
+    pb.noise = _floor(pb, r_ref0, cmd_info).rms_m or pb.noise
     acc_clip, _, _ = sensor_mod.flat_tops(acc) if np.ptp(acc) > 0 else (np.zeros(n, bool), None, None)
     acc_use = use & ~acc_clip
     check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), acc, fs, band, acc_use)
     acc_model = sim_linear(pb.params(refit.lin), cmd, fs, output="accel") if check.usable else None
-    excl = []
-    if cmd_info.kind == "multisine":
-        excl = [k * fs / cmd_info.period for k in cmd_info.excited_lines]
-    pickup, force_lines, acc_pickup = _lines(pb, r_ref0, acc, acc_model, check, fs, excl, acc_use)
+    pickup, force_lines, acc_pickup = _lines(pb, r_ref0, acc, acc_model, check, fs, cmd_info, acc_use)
     if pickup:
         pb.set_basis(pb.basis.with_(lines_hz=tuple(l.frequency_hz for l in pickup)))
         refit = pb.fit(refit.lin, {}, max_iter=4)
     nom = pb.evaluate(nominal_lin, {}, k=0)
     y_nom, y_ref = pb.series(nom), pb.series(refit)
     r_ref = pb.y - y_ref
-    floor_ref = noise_mod.floor(r_ref, fs, use)
+    floor_ref = _floor(pb, r_ref, cmd_info)
     pb.noise = floor_ref.rms_m or pb.noise
     q = noise_mod.quantisation_step(pos)
     q_acc = noise_mod.quantisation_step(acc) if np.ptp(acc) > 0 else 0.0
@@ -788,6 +824,9 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
             screen.append("periodic_disturbance")
         screen += ["valve_saturation", "valve_deadband", "coulomb_friction"]
         harmonic_now = True if nonlinear_hint is None else nonlinear_hint
+        # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor:
+        # there, no round is skipped for having reached "the noise"
+        stop_at_noise = cmd_info.kind not in ("noise", "steps")
         for step in range(MAX_EFFECTS):
             results = []
             over = math.sqrt(current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
@@ -797,7 +836,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
             for name in screen:
                 if name in chosen:
                     continue
-                if name != "periodic_disturbance" and over < explained:
+                if name != "periodic_disturbance" and over < explained and stop_at_noise:
                     continue        # the held-out residual is already at the noise: nothing left to explain
                 say(f"candidate {'+'.join(chosen + [name])}")
                 lins = [current.lin] if chosen else [refit.lin, nominal_lin]
@@ -844,7 +883,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     augmented = current
     y_aug = pb.series(augmented)
     r_aug = pb.y - y_aug
-    floor_aug = noise_mod.floor(r_aug, fs, use)
+    floor_aug = _floor(pb, r_aug, cmd_info)
     noise_final = min(pb.noise, max(floor_aug.rms_m, q / math.sqrt(12.0) if q else 0.0)) or pb.noise
     pb.noise = noise_final
 

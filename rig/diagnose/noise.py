@@ -1,10 +1,13 @@
 """The measurement noise of a recording, from a model residual: its spectrum, its rms, and the converter step.
 
-The noise floor is taken as the median over time of the residual's short-time power spectrum, bin by bin, then
-median-smoothed across frequency. A swept excitation leaves its model error in a few windows of each bin (the
-sweep passes once) and a spectral line in a few bins, so neither moves the medians; coloured noise (a filter before
-the converter, a 1/f part) keeps its shape, and its rms is the integral of that floor. A transducer's converter
-step q adds q^2/12 of white noise, which the floor then contains.
+The noise floor is the residual's power spectrum with the command's response taken out, median-smoothed across
+frequency (so that a spectral line does not count), and its rms is the integral of that floor: coloured noise (a
+filter before the converter, a 1/f part) keeps its shape. How the response is taken out depends on the command:
+  sweep       the median over time of the short-time spectra, bin by bin: the sweep passes each bin once, so
+              its model error sits in a few windows and does not move the median;
+  multisine   the residual minus its average period: what repeats is the response (linear or not), the rest noise;
+  broadband   (noise, steps) the part of the residual coherent with the command is removed, S_rr (1 - coh^2).
+A transducer's converter step q adds q^2/12 of white noise, which the floor then contains.
 """
 from __future__ import annotations
 
@@ -34,9 +37,7 @@ class NoiseFloor:
         return float(10 * math.log10(np.max(p[sel]) / np.min(p[sel]))) if sel.sum() > 2 else 0.0
 
 
-def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, win_s: float = 1.0) -> NoiseFloor:
-    """Noise floor of a residual (mask: samples to use; windows with masked samples are left out)."""
-    r = np.asarray(resid, float)
+def _windows(r: np.ndarray, fs: float, mask, win_s: float):
     n = len(r)
     nw = int(min(max(64, round(win_s * fs)), max(16, n // 4)))
     hop = nw // 2
@@ -44,15 +45,61 @@ def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, win_s: f
     if mask is not None:
         bad = np.r_[0, np.cumsum(~np.asarray(mask, bool))]
         starts = starts[(bad[starts + nw] - bad[starts]) == 0]
-    if len(starts) < 3:                     # too short or too masked: one periodogram of what there is
+    if len(starts) < 3:                     # too short or too masked: what there is
         starts = np.arange(0, max(1, n - nw + 1), max(1, hop))[:max(1, len(starts))]
+    return nw, starts
+
+
+def _spectra(x: np.ndarray, nw: int, starts: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
     w = np.hanning(nw)
-    seg = r[starts[:, None] + np.arange(nw)[None, :]]
+    seg = x[starts[:, None] + np.arange(nw)[None, :]]
     seg = seg - seg.mean(axis=1, keepdims=True)
-    P = np.abs(np.fft.rfft(seg * w, axis=1)) ** 2 * (2.0 / (fs * np.sum(w ** 2)))
-    f = np.fft.rfftfreq(nw, 1.0 / fs)
-    med = np.median(P, axis=0) / math.log(2.0) if len(starts) > 2 else np.mean(P, axis=0)
-    psd = median_filter(med, size=11, mode="nearest")
+    X = np.fft.rfft(seg * w, axis=1) * math.sqrt(2.0 / (fs * np.sum(w ** 2)))
+    return np.fft.rfftfreq(nw, 1.0 / fs), X
+
+
+def deperiodize(resid: np.ndarray, period: int, mask: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The residual minus its average over whole periods (a periodic command's response, linear or not, is the
+    same in every period; the noise is not), and the variance factor P / (P - 1) that restores the noise."""
+    r = np.asarray(resid, float).copy()
+    n = len(r)
+    i0 = int(np.argmax(mask)) if mask is not None and np.any(mask) else 0
+    k = (n - i0) // period
+    if period <= 0 or k < 2:
+        return r, 1.0
+    blk = r[i0:i0 + k * period].reshape(k, period)
+    blk -= blk.mean(axis=0, keepdims=True)
+    r[i0:i0 + k * period] = blk.ravel()
+    return r, k / (k - 1.0)
+
+
+def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, *, win_s: float = 1.0, period: int = 0,
+          cmd: np.ndarray | None = None) -> NoiseFloor:
+    """Noise floor of a residual (mask: samples to use; windows with masked samples are left out).
+
+    period > 0 (a periodic command): the residual's part that repeats every period is the command's response
+    and is removed first. cmd given (a broadband command, noise or steps, whose response is in every window):
+    the part coherent with the command is removed, S_rr (1 - coherence^2). Otherwise (a sweep) the median over
+    time of the short-time spectra."""
+    r = np.asarray(resid, float)
+    n = len(r)
+    factor = 1.0
+    if period:
+        r, factor = deperiodize(r, period, mask)
+    nw, starts = _windows(r, fs, mask, win_s)
+    f, X = _spectra(r, nw, starts, fs)
+    P = np.abs(X) ** 2
+    if cmd is not None and len(starts) > 2:
+        _, U = _spectra(np.asarray(cmd, float), nw, starts, fs)
+        Suu = np.mean(np.abs(U) ** 2, axis=0)
+        Srr = np.mean(P, axis=0)
+        Sur = np.mean(np.conj(U) * X, axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            coh = np.where(Suu * Srr > 0, np.abs(Sur) ** 2 / (Suu * Srr), 0.0)
+        med = Srr * np.clip(1.0 - coh, 0.0, 1.0)
+    else:
+        med = np.median(P, axis=0) / math.log(2.0) if len(starts) > 2 else np.mean(P, axis=0)
+    psd = median_filter(med * factor, size=11, mode="nearest")
     psd[0] = psd[1]
     df = fs / nw
     hi = (f > 0.6 * fs / 2) & (f < 0.95 * fs / 2)

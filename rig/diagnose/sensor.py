@@ -4,8 +4,8 @@ effects (PHYSICS_NOTES, "Real recordings: what the sensors add").
 Position channel, as nuisance regressors of every model (nominal, refit, augmented), fitted by linear least
 squares inside each evaluation (variable projection):
   offset and linear drift        the transducer's arbitrary, temperature-dependent zero
-  slow wander                    cosines below a quarter of the lowest excited frequency (thermal drift that is
-                                 not a straight line), as many as the data support
+  slow wander                    cosines below a quarter of the lowest excited frequency (0.05-0.5 Hz: thermal
+                                 drift that is not a straight line), as many as the data support (BIC)
   line pickup                    sinusoids at lines the position shows and the accelerometer does not
 Accelerometer channel: its offset, its gain against the position's second derivative (a calibration check), and
 lines it shows that the position does not (pickup on that channel).
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAINS_HZ = (50.0, 60.0)
-MAINS_TOL = 0.01                # a line within 1 % of a mains harmonic counts as "at the mains frequency"
+MAINS_TOL = 0.005               # within 0.5 % of a mains harmonic: "at the mains frequency" (grids hold 0.2 %)
 
 
 # ---- typed results -----------------------------------------------------------------------------------
@@ -104,7 +104,7 @@ class SensorTerms:
 
 
 def mains_harmonic(f_hz: float) -> tuple[float, int] | None:
-    """(mains frequency, harmonic number) when f is within 1 % of a harmonic of 50 or 60 Hz (up to the 20th)."""
+    """(mains frequency, harmonic number) when f is within 0.5 % of a harmonic of 50 or 60 Hz (up to the 20th)."""
     for base in MAINS_HZ:
         k = round(f_hz / base)
         if 1 <= k <= 20 and abs(f_hz - k * base) <= MAINS_TOL * k * base:
@@ -161,8 +161,10 @@ class SensorBasis:
 
 
 def max_wander_terms(duration_s: float, f_lo_hz: float, cap: int = 24) -> int:
-    """Cosines up to a quarter of the lowest excited frequency: term k has frequency k / (2 T)."""
-    return int(max(0, min(cap, math.floor(0.5 * duration_s * f_lo_hz) - 1)))
+    """Cosines up to a quarter of the lowest excited frequency, kept within 0.05-0.5 Hz (a transducer's zero
+    moves with its temperature: minutes, not seconds); term k has frequency k / (2 T)."""
+    f_max = min(max(0.25 * f_lo_hz, 0.05), 0.5)
+    return int(max(0, min(cap, math.floor(2.0 * duration_s * f_max) - 1)))
 
 
 # ---- lines and the two sensors ---------------------------------------------------------------------------
