@@ -37,6 +37,23 @@ class Excitation:
     def t_s(self) -> np.ndarray:
         return np.arange(len(self.cmd_V)) / self.fs_hz
 
+    @property
+    def peak_V(self) -> float:
+        return float(np.max(np.abs(self.cmd_V))) if len(self.cmd_V) else 0.0
+
+    @property
+    def slew_V_per_s(self) -> float:
+        """The largest step between samples, per second (what the safety slew limit sees)."""
+        return float(np.max(np.abs(np.diff(self.cmd_V)))) * self.fs_hz if len(self.cmd_V) > 1 else 0.0
+
+    def attrs(self) -> dict:
+        """Flat attributes for a recording file (HDF5 attrs take scalars and flat lists)."""
+        out = {"excitation": self.kind}
+        for k, v in self.info.items():
+            if isinstance(v, (int, float, str)) or (isinstance(v, list) and len(v) <= 16):
+                out[k] = v
+        return out
+
 
 def _n(fs: float, duration_s: float) -> int:
     return int(round(duration_s * fs))
@@ -148,6 +165,41 @@ def steps(fs: float, duration_s: float, amplitude_V: float = 2.0, hold_s: tuple[
 
 
 KINDS = ("linear_chirp", "log_sweep", "multilevel_chirp", "odd_multisine", "band_noise", "steps")
+
+
+def parse_levels(text: str) -> list[float]:
+    """`--levels 0.5,1.5,3.0` (argparse type): at least two positive volts."""
+    import argparse
+    try:
+        levels = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated volts like 0.5,1.5,3.0, got {text!r}") from None
+    if len(levels) < 2 or any(not (v > 0) for v in levels):
+        raise argparse.ArgumentTypeError(f"expected at least two positive levels like 0.5,1.5,3.0, got {text!r}")
+    return levels
+
+
+def for_chirp_run(fs: float, duration_s: float, f0_hz: float, f1_hz: float, amplitude_V: float, *,
+                  levels_V=None, multisine: bool = False, period_s: float = 10.0, seed: int = 0) -> Excitation | None:
+    """The signal `rig chirp --levels / --multisine` plays back, or None for the plain chirp (which the loop
+    computes itself). Bad settings raise RigError naming the option."""
+    from rig.errors import RigError
+    if not levels_V and not multisine:
+        return None
+    if levels_V and multisine:
+        raise RigError("--levels/--multisine: choose one")
+    if not 0 <= f0_hz < f1_hz < fs / 2:
+        raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {fs / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
+    if duration_s <= 0:
+        raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
+    if levels_V:
+        return multilevel_chirp(fs, duration_s, f0_hz, f1_hz, levels_V)
+    if not 0 < period_s <= duration_s:
+        raise RigError(f"--period: expected 0 < S <= --duration ({duration_s:g} s), got {period_s:g}")
+    if f1_hz - max(f0_hz, 1.0 / period_s) < 3.0 / period_s:
+        raise RigError(f"--period: {period_s:g} s gives lines {1 / period_s:g} Hz apart, too few between "
+                       f"{f0_hz:g} and {f1_hz:g} Hz")
+    return odd_multisine(fs, duration_s, f0_hz, f1_hz, amplitude_V, period_s, seed=seed)
 
 
 class Playback:

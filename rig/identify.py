@@ -29,9 +29,10 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from rig import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
-from rig.recording import Recording
+from rig.recording import Recording, check_plausible
 from sim_backend.linear import IDENTIFIED, ActuatorParams, g_eha_frf, zoh_delay
 
 # Bounds as ratios to the design value (p0). K_L +-50 % (issue 6); the valve's by realistic ranges for a
@@ -307,6 +308,7 @@ def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 
     progress: optional callable(stage: str, fraction: float) for a progress bar.
     """
     p0 = p0 or ActuatorParams()
+    check_plausible(rec)
     tick = progress or (lambda stage, frac: None)
     timing = {}
     t0 = time.perf_counter()
@@ -386,6 +388,12 @@ def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 
     if nrmse > 0.2 or fit["coherence_min"] < 0.95:
         fit["warning"] = (f"poor fit (NRMSE {nrmse:.2f}, lowest coherence used {fit['coherence_min']:.2f}): the "
                           f"recording is not a clean chirp response of this linear model")
+    loop = closedloop.check(rec.valve_cmd_V, rec.position_m, rec.fs_hz, getattr(rec, "meta", None))
+    fit["closed_loop"] = loop.as_dict()
+    if loop.closed:
+        fit["warning"] = (f"closed-loop data ({loop.reason}): the command is not independent of the noise, so "
+                          f"these open-loop parameters are biased; identify from an open-loop run (rig chirp)"
+                          + (f"; also {fit['warning']}" if "warning" in fit else ""))
     for k in fit["at_bounds"]:
         weak.setdefault(k, "")
         weak[k] = (weak[k] + "; " if weak[k] else "") + (

@@ -39,6 +39,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="REC", type=Path, required=True,
                    help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
     p.add_argument("--csv", action="store_true", help="write the shared CSV format instead of HDF5")
+    from rig.excitation import parse_levels
+    p.add_argument("--levels", type=parse_levels, default=None, metavar="V,V,...",
+                   help="the same sweep at several amplitudes back to back, e.g. 0.5,1.5,3.0 (each --duration "
+                        "long; rig diagnose then shows gain by level: saturation, deadband, linear)")
+    p.add_argument("--multisine", action="store_true",
+                   help="an odd random-phase multisine over f0..f1 instead of the chirp (--period per period, "
+                        "--duration rounded to whole periods); its empty lines detect nonlinearity")
+    p.add_argument("--period", type=float, default=10.0, metavar="S",
+                   help="multisine period, s (default 10: 0.1 Hz line spacing)")
 
 
 class ChirpController:
@@ -143,8 +152,11 @@ def make_chirp_port(cfg, backend: str, dt: float, clock, *, seed: int | None = N
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
               duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
-              stand_params=None, stand_effects=None, progress=None) -> dict:
+              stand_params=None, stand_effects=None, progress=None, levels_V=None, multisine: bool = False,
+              period_s: float = 10.0) -> dict:
     """Run the chirp through rig.loop and write the recording. Returns a summary dict.
+    levels_V: the same chirp at each level back to back; multisine: an odd random-phase multisine instead
+    (both from rig.excitation, played back sample by sample).
     progress: optional callable(t_s, total_s) polled from a helper thread."""
     from rig.clock import MonotonicClock, SimClock
     from rig.config import MOUNTS
@@ -158,6 +170,11 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
         # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
         from rig.config import hil_run_config
         cfg = hil_run_config(cfg, rate)
+    from rig import excitation
+    signal = excitation.for_chirp_run(rate, duration_s, f0_hz, f1_hz, amplitude_V, levels_V=levels_V,
+                                      multisine=multisine, period_s=period_s, seed=seed or 0)
+    if signal is not None:
+        amplitude_V, duration_s = signal.peak_V, signal.duration_s
     if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
         raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
                        f"got {amplitude_V:g}")
@@ -165,7 +182,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
         raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
     if duration_s <= 0:
         raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
-    slew = 2 * math.pi * f1_hz * amplitude_V
+    slew = 2 * math.pi * f1_hz * amplitude_V if signal is None else signal.slew_V_per_s
     if slew > cfg.safety.slew_V_per_s:
         raise RigError(f"--amplitude/--f1: the chirp slews {slew:.0f} V/s, above safety.slew_V_per_s = "
                        f"{cfg.safety.slew_V_per_s:g}")
@@ -186,7 +203,8 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
         if mount not in MOUNTS[:n]:
             raise RigError(f"--mount: expected one of {', '.join(MOUNTS[:n])}, got {mount!r}")
         m_idx, names = MOUNTS.index(mount), None
-    ctrls = [ChirpController(amplitude_V, f0_hz, f1_hz, duration_s, active=(i == m_idx)) for i in range(n)]
+    ctrls = [ChirpController(amplitude_V, f0_hz, f1_hz, duration_s, active=(i == m_idx)) if signal is None
+             else excitation.Playback(signal.cmd_V, active=(i == m_idx)) for i in range(n)]
     loop = Loop(cfg, port, ctrls, clock=clock, rate_hz=rate, names=names, isolation=True)
     h5_path = out if not csv else out.with_name(out.name + ".part.h5")
     rec = Recorder(h5_path, [Channel("time_s", "s", description="loop time since start"),
@@ -197,8 +215,9 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                    chunk_rows=cfg.recording.chunk_rows,
                    attrs={"command": "rig chirp", "backend": backend, "config_source": cfg.source,
                           "mount": names[0] if n == 1 else mount, "amplitude_V": amplitude_V, "f0_hz": f0_hz,
-                          "f1_hz": f1_hz, "duration_s": duration_s, "chirp": "linear", "fs_hz": loop.rate_hz,
-                          "settle_s": settle_s}).start()
+                          "f1_hz": f1_hz, "duration_s": duration_s, "fs_hz": loop.rate_hz, "settle_s": settle_s,
+                          "chirp": "linear" if signal is None else signal.kind,
+                          **({} if signal is None else signal.attrs())}).start()
     loop.recorder = _ChirpRows(rec, loop_channels(loop.n, loop.state_len, loop.names), m_idx)
     total = settle_s + duration_s + 0.05        # a short null tail after the chirp
     done = threading.Event()
@@ -267,11 +286,13 @@ def run(args) -> int:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
                       duration_s=args.duration, rate_hz=args.rate, out=args.out, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
-                      progress=progress)
+                      progress=progress, levels_V=args.levels, multisine=args.multisine, period_s=args.period)
     finally:
         if bar is not None:
             bar.stop()
-    print(f"chirp {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
+    what = ("chirp at levels " + ",".join(f"{v:g}" for v in args.levels) + " V" if args.levels
+            else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
+    print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
           f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
           f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}", file=sys.stderr)
     if s["skipped_periods"]:

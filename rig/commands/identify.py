@@ -148,6 +148,8 @@ def run(args) -> int:
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)
+    if res.fit.get("closed_loop", {}).get("closed_loop"):
+        print(f"WARNING: {res.fit['warning']}", file=sys.stderr)
     if args.repeat > 1:
         import numpy as np
         runs = [res.timing_s]

@@ -39,6 +39,7 @@ class Command:
     band_hz: tuple[float, float]
     peak_V: float
     rms_V: float
+    wide_band_hz: tuple[float, float] = (0.0, 0.0)   # within 60 dB of the peak: where a response is still seen
     segments: list[Segment] = field(default_factory=list)
     repeat_samples: int = 0                 # lag of the repetition (0: not repeated)
     phase: np.ndarray | None = None         # sweeps: instantaneous phase, rad
@@ -203,12 +204,13 @@ def analyse(cmd_V: np.ndarray, fs: float) -> Command:
     peak = float(np.max(np.abs(cmd))) if n else 0.0
     rms = float(np.sqrt(np.mean((cmd - cmd.mean()) ** 2))) if n else 0.0
     if n < 16 or np.ptp(cmd) <= 0:
-        return Command("flat", fs, n, (0.0, 0.0), peak, rms, [Segment(0, n, 1.0, peak)],
+        return Command("flat", fs, n, (0.0, 0.0), peak, rms, (0.0, 0.0), [Segment(0, n, 1.0, peak)],
                        start_V=float(cmd[0]) if n else 0.0)
     band = _band(cmd, fs)
     lag = _repetition(cmd, fs)
     segs = _segments(cmd, lag)
-    out = Command("noise", fs, n, band, peak, rms, segs, repeat_samples=lag, start_V=float(cmd[0]))
+    out = Command("noise", fs, n, band, peak, rms, _band(cmd, fs, 60.0), segs, repeat_samples=lag,
+                  start_V=float(cmd[0]))
     flat_steps = float(np.mean(np.diff(cmd) == 0.0))
     if flat_steps > 0.9:
         out.kind = "steps"

@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from rig import closedloop
 from rig.diagnose import command as command_mod
 from rig.diagnose import locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.effects import NONLINEAR, SPECS, bounds, simulate
@@ -62,7 +63,7 @@ EXPLAINED = 1.01                   # held-out residual rms / noise below which n
 EXPLAINED_SLOW = 1.02              # the same once a reduced (deadband/friction) model is in
 MIN_GAIN = 0.003                   # an effect must cut the held-out residual variance by at least 0.3 %
 MIN_CLAIM_S = 5.0                  # shorter recordings get no claim
-MIN_SNR = 10.0                     # response rms / noise below which the recording is too poorly excited
+MIN_SNR = 3.0                      # motion rms / noise below which the recording is too poorly excited
 VERDICT_AT_NOISE = 1.3             # augmented residual / noise: "explains the recording"
 VERDICT_NOT_DESCRIBED = 3.0        # above: the model does not describe the recording, nothing is named
 START_TRANSIENT_S = 1.0            # left out when the recording starts mid-run (the plant forgets in ~0.1 s, a
@@ -353,7 +354,7 @@ def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, ban
         best = None
         for lin in lins:
             fx = {n: dict(v) for n, v in fx_base.items()}
-            fx[name] = _base_init(pb, lin, fx_base, *band, y_clean)
+            fx[name] = _base_init(pb, lin, fx_base, min(band[0], pb.base_band[0]), pb.base_band[1] * 1.03, y_clean)
             r, _, _ = pb.residual(lin, fx)
             s = float(np.sum(r[pb.mfit] ** 2))
             if best is None or s < best[2]:
@@ -407,6 +408,16 @@ def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band,
     finally:
         pb.proxy = None
     return pb.evaluate(f.lin, f.fx, k=n_params(f.fx))
+
+
+def _active(pb: Problem, f: Fit, name: str) -> bool:
+    """Does the fitted effect change the model at all? (a deadband of width 0 passing a test would be the
+    linear parameters' gain, not the effect's)"""
+    if name == "periodic_disturbance":
+        return True
+    without = {k: v for k, v in f.fx.items() if k != name}
+    d = pb.model(f.lin, f.fx) - pb.model(f.lin, without)
+    return float(np.sqrt(np.mean(d[pb.use] ** 2))) > 0.3 * pb.noise
 
 
 def _polish(pb: Problem, f: Fit) -> Fit:
@@ -605,43 +616,6 @@ def _multisine_lines(cmd: command_mod.Command, y: np.ndarray, use: np.ndarray, n
             "line_spacing_hz": fs / P}
 
 
-def _feedback(cmd: np.ndarray, resid: np.ndarray, fs: float, use: np.ndarray) -> dict:
-    """Does the command react to the measured position? Cross-correlation of the prewhitened command with the
-    equally filtered residual at lags where the command comes after the residual (feedback), against its spread
-    at far lags. Open loop: the residual (noise, disturbance) never reaches the command."""
-    from scipy.signal import lfilter
-    n = len(cmd)
-    p = 20
-    x = cmd - cmd.mean()
-    if n < 50 * p or np.ptp(x) <= 0 or np.ptp(resid) <= 0:
-        return {}
-    m2 = 1 << int(math.ceil(math.log2(2 * n)))
-    ac = np.fft.irfft(np.abs(np.fft.rfft(x, m2)) ** 2, m2)[: p + 1]
-    from scipy.linalg import solve_toeplitz
-    try:
-        a = solve_toeplitz(ac[:p], ac[1:p + 1])
-    except (np.linalg.LinAlgError, ValueError):
-        return {}
-    A = np.r_[1.0, -a]
-    u_w = lfilter(A, [1.0], x)[p:]
-    e_w = lfilter(A, [1.0], (resid - np.mean(resid)) * use)[p:]
-    su, se = np.std(u_w), np.std(e_w)
-    if su <= 0 or se <= 0:
-        return {}
-    m = len(u_w)
-    L = int(max(5, 0.02 * fs))
-    far = int(max(4 * L, 0.2 * fs))
-    def c(k):        # corr(e(t), u(t + k))
-        if k >= 0:
-            return float(np.dot(e_w[: m - k], u_w[k:]) / (m * su * se))
-        return float(np.dot(e_w[-k:], u_w[: m + k]) / (m * su * se))
-    near = [abs(c(k)) for k in range(0, L + 1)]
-    null = [c(k) for k in list(range(far, far + 4 * L)) + list(range(-far - 4 * L, -far))]
-    sd = float(np.std(null)) or 1.0 / math.sqrt(m)
-    stat = max(near) / sd
-    return {"feedback_stat": float(stat), "feedback": bool(stat > 8.0)}
-
-
 def _summary_effects(effects: list[dict]) -> str:
     return ", ".join(f"{e['name']} ({', '.join(f'{k}={_fmt(v)}' for k, v in e['parameters'].items())})"
                      for e in effects)
@@ -755,7 +729,10 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     say("refit of the linear parameters")
     refit = pb.fit(nominal_lin, {}, max_iter=10)
     band = cmd_info.band_hz if cmd_info.band_hz[1] > 0 else (1.0, 0.45 * fs)
-    pb.base_band = (max(5.0, 1.1 * band[0]), max(min(0.97 * band[1], 0.45 * fs), 6.0))
+    # a stand mode is looked for where the command excites the plant: a sweep's or multisine's band; for a
+    # broadband command (noise, steps) wherever its spectrum is within 60 dB of its peak
+    b_hi = band[1] if cmd_info.kind in ("sweep", "multisine") else max(band[1], cmd_info.wide_band_hz[1])
+    pb.base_band = (max(5.0, 1.1 * band[0]), max(min(0.97 * b_hi, 0.45 * fs), 6.0))
     if pb.base_band[1] <= pb.base_band[0]:
         pb.base_band = (5.0, max(6.0, 0.45 * fs))
 
@@ -771,7 +748,8 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     pb.noise = _floor(pb, r_ref0, cmd_info).rms_m or pb.noise
     acc_clip, _, _ = sensor_mod.flat_tops(acc) if np.ptp(acc) > 0 else (np.zeros(n, bool), None, None)
     acc_use = use & ~acc_clip
-    check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), acc, fs, band, acc_use)
+    check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), acc, fs,
+                                   (band[0], max(band[1], cmd_info.wide_band_hz[1])), acc_use)
     acc_model = sim_linear(pb.params(refit.lin), cmd, fs, output="accel") if check.usable else None
     pickup, force_lines, acc_pickup = _lines(pb, r_ref0, acc, acc_model, check, fs, cmd_info, acc_use)
     if pickup:
@@ -812,10 +790,12 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     tried: list[dict] = []
     groups: list[list[str]] = []
     stats_of: dict[str, dict] = {}
-    snr = float(np.std(pb.physics(refit)[use]) / pb.noise) if pb.noise > 0 else 0.0
+    moved = (pb.y - pb.basis.zero(refit.coef) - pb.basis.B[:, 2 + pb.basis.wander_terms:] @
+             refit.coef[2 + pb.basis.wander_terms:])[use]
+    snr = float(np.std(moved) / pb.noise) if pb.noise > 0 else 0.0
     if not no_claim and snr < MIN_SNR:
-        no_claim = (f"the position moves only {snr:.1f}x its noise in response to the command: too poorly excited "
-                    "for a claim")
+        no_claim = (f"the position moves only {snr:.1f}x its noise (beyond the sensor's zero and lines): too "
+                    "poorly excited for a claim")
     if no_claim:
         say(f"no claim: {no_claim}")
     else:
@@ -833,6 +813,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
             explained = EXPLAINED_SLOW if any(n in current.fx for n in SLOW) else EXPLAINED
             say(f"round {step + 1}: held-out residual {over:.3f} x noise")
             y_clean = pb.y - pb.basis.B @ current.coef
+            base, null = current, None
             for name in screen:
                 if name in chosen:
                     continue
@@ -858,7 +839,15 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                 if f is None:
                     continue
                 f = _refine_disturbance(pb, f)
-                st = compare(pb, current, f)
+                if chosen and any(n in current.fx for n in SLOW) and null is None:
+                    # a slow model's polish may stop short: a candidate must beat the current model given the
+                    # same extra iterations, not the extra iterations themselves
+                    null = pb.fit(current.lin, current.fx, max_iter=6)
+                    if null.rss_fit < base.rss_fit:
+                        base = null
+                st = compare(pb, base, f)
+                if st["passed"] and not _active(pb, f, name):
+                    st = {**st, "passed": False, "inactive": True}
                 tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
                 results.append((name, f, st))
             ok = [r for r in results if r[2]["passed"]]
@@ -978,7 +967,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                f"band(s), after refit in {len(mm['after_refit']['bands_hz'])}.")
     if groups and effects:
         summary += " Confounded: " + "; ".join(" ~ ".join(g) for g in groups) + "."
-    sens_txt = _sensor_summary(sensor)
+    sens_txt = _sensor_summary(sensor) if verdict.status != "not_described" else ""
     if sens_txt:
         summary += f" Sensor terms (not physics): {sens_txt}."
     for s in verdict.suggestions:
@@ -1027,14 +1016,10 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
         return Verdict("explained", f"The refit of the linear parameters explains the recording (residual "
                                     f"{over:.2f}x noise).")
     sugg = []
-    fb = _feedback(pb.cmd, r_ref, pb.fs, use)
-    meta = getattr(rec, "meta", {}) or {}
-    if str(meta.get("command", "")) == "rig run":
-        sugg.append("The recording was made by `rig run` (the isolation loop): closed-loop data, where the command "
-                    "reacts to the sensors, so an open-loop plant fit does not apply.")
-    elif fb.get("feedback"):
-        sugg.append(f"The command reacts to the measured position (its correlation with the earlier residual is "
-                    f"{fb['feedback_stat']:.0f}x its spread): closed-loop data, where an open-loop fit is biased.")
+    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
+    if loop.closed:
+        sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
+                    "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")
     at_bounds = [k for k in LIN_KEYS
                  if min(abs(math.log(refit.lin[k] / getattr(pb.p0, k)) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
     if at_bounds:

@@ -162,9 +162,10 @@ class SensorBasis:
 
 def max_wander_terms(duration_s: float, f_lo_hz: float, cap: int = 24) -> int:
     """Cosines up to a quarter of the lowest excited frequency, kept within 0.05-0.5 Hz (a transducer's zero
-    moves with its temperature: minutes, not seconds); term k has frequency k / (2 T)."""
+    moves with its temperature: minutes, not seconds), and at least four of them (a short recording still sees
+    a curved zero); term k has frequency k / (2 T)."""
     f_max = min(max(0.25 * f_lo_hz, 0.05), 0.5)
-    return int(max(0, min(cap, math.floor(2.0 * duration_s * f_max) - 1)))
+    return int(max(0, min(cap, max(4, math.floor(2.0 * duration_s * f_max) - 1))))
 
 
 # ---- lines and the two sensors ---------------------------------------------------------------------------
