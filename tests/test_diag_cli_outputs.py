@@ -76,9 +76,10 @@ def test_fit_csv_every_instant(delayed):
     rec = load_recording(delayed["path"])
     with open(delayed["out"] / "fit.csv", newline="") as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == ["time_s", "measured_m", "nominal_m", "refit_m", "augmented_m"]
+    assert rows[0] == ["time_s", "measured_m", "nominal_m", "refit_m", "augmented_m", "augmented_sensor_m", "used"]
     data = np.array(rows[1:], dtype=float)
-    assert data.shape == (rec.n, 5)
+    assert data.shape == (rec.n, 7)
+    assert set(np.unique(data[:, 6])) <= {0.0, 1.0} and data[:, 6].mean() > 0.99
     np.testing.assert_allclose(data[:, 0], rec.t_s, atol=1e-9)
     np.testing.assert_allclose(data[:, 1], rec.position_m, rtol=1e-8, atol=1e-15)
     # the augmented column explains the measurement to the noise (2e-8 m rms), the nominal one does not

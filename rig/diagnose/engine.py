@@ -318,14 +318,17 @@ def _base_init(pb: Problem, lin: dict, fx_base: dict, f_lo: float, f_hi: float, 
     R = Y[sel] / Ym[sel]; w = np.abs(Ym[sel]) ** 2
     s = 2j * math.pi * f[sel]
     best = (np.inf, (0.5 * sum(pb.base_band), 0.03, 0.2))
-    for fb in np.geomspace(*pb.base_band, 160):
-        wb = 2 * math.pi * fb
-        for zb in (0.01, 0.03, 0.08):
-            for mu in (0.05, 0.1, 0.2, 0.4):
-                B = (s * s + 2 * zb * wb * s + wb * wb) / ((1 + mu) * s * s + 2 * zb * wb * s + wb * wb)
-                c = float(np.sum(w * np.abs(R - B) ** 2))
-                if c < best[0]:
-                    best = (c, (fb, zb, mu))
+    fbs = np.geomspace(*pb.base_band, 160)
+    wb = 2 * math.pi * fbs[:, None]
+    ss_ = (s * s)[None, :]
+    for zb in (0.01, 0.03, 0.08):
+        num = ss_ + 2 * zb * wb * s[None, :] + wb * wb
+        for mu in (0.05, 0.1, 0.2, 0.4):
+            B = num / (num + mu * ss_)
+            c = np.abs(R[None, :] - B) ** 2 @ w
+            i = int(np.argmin(c))
+            if c[i] < best[0]:
+                best = (float(c[i]), (float(fbs[i]), zb, mu))
     fb, zb, mu = best[1]
     return {"frequency_hz": fb, "damping_ratio": zb, "mass_kg": pb.p0.M / mu}
 

@@ -375,7 +375,7 @@ def score(rows: list[dict]) -> dict:
     ron = [_resid(r) for r in rows if _resid(r) is not None]
     times = [r["elapsed_s"] for r in rows]
     per100 = [r["elapsed_s"] * 100.0 / r["duration_s"] * (2000.0 / r["fs_hz"])
-              for r in rows if r.get("duration_s") and r.get("fs_hz")]
+              for r in rows if (r.get("duration_s") or 0) >= 50.0 and r.get("fs_hz")]   # short ones: overheads
     with_habits = [r for r in rows if r.get("habits")]
     lines = [r.get("pickup_lines") or {"n": 0, "within": 0, "errors": []} for r in rows]
     line_errs = [e for g in lines for e in g["errors"] if e is not None]
@@ -391,7 +391,8 @@ def score(rows: list[dict]) -> dict:
                              "max": float(np.max(times)) if times else None},
         "seconds_per_100s_at_2khz": {"median": float(np.median(per100)) if per100 else None,
                                      "max": float(np.max(per100)) if per100 else None,
-                                     "note": "elapsed scaled to 100 s of recording at 2 kHz (samples)"},
+                                     "n": len(per100),
+                                     "note": "cases of 50 s or more, elapsed scaled to 100 s at 2 kHz (samples)"},
     }
     if with_habits:
         out["habit_cases"] = len(with_habits)

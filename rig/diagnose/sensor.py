@@ -179,11 +179,15 @@ def line_amplitude(x: np.ndarray, fs: float, f_hz: float, mask: np.ndarray | Non
     xm, tm = x[m] - np.mean(x[m]), t[m]
     T = n / fs
 
-    def amp(f):
+    def amp(f):                 # 2 x 2 normal equations of [cos, sin]
         w = 2 * math.pi * f * tm
-        A = np.c_[np.cos(w), np.sin(w)]
-        c, *_ = np.linalg.lstsq(A, xm, rcond=None)
-        return complex(c[0], -c[1])
+        co, si = np.cos(w), np.sin(w)
+        a11, a22, a12 = co @ co, si @ si, co @ si
+        b1, b2 = co @ xm, si @ xm
+        det = a11 * a22 - a12 * a12
+        if det <= 0:
+            return 0j
+        return complex((a22 * b1 - a12 * b2) / det, -(a11 * b2 - a12 * b1) / det)
 
     a = amp(f_hz)
     offs = [f_hz + s * k / T for k in (3.5, 5.5, 7.5, 9.5, 11.5) for s in (-1, 1)]
