@@ -132,7 +132,7 @@ def write_outputs(res, out: Path) -> dict[str, Path]:
 def run(args) -> int:
     from rig.config import load_config
     from rig.identify import identify
-    from rig.recording import load_recording
+    from rig.recording import check_plausible, load_recording
     from sim_backend.linear import ActuatorParams
 
     if args.starts < 1:
@@ -141,6 +141,7 @@ def run(args) -> int:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
     rec = load_recording(args.recording)                 # RecordingError: one line, exit 2
+    check_plausible(rec)
 
     def progress(stage: str, frac: float) -> None:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)

@@ -121,19 +121,70 @@ def _repetition(cmd: np.ndarray, fs: float) -> int:
     return 0
 
 
-def _segments(cmd: np.ndarray, lag: int) -> list[Segment]:
+def _offset(cmd: np.ndarray, lag: int, fs: float) -> int:
+    """Where the repetitions start (a recording may begin mid-way through one). cmd(t + lag) = r cmd(t) with r
+    constant within a repetition, so a boundary is where the windowed ratio r jumps; failing that (too little
+    overlap), where a sweep restarts (its instantaneous frequency falls back); 0 when neither shows (a periodic
+    command at one level)."""
+    n = len(cmd)
+    w = int(max(0.5 * fs, lag / 50))
+    starts = np.arange(0, max(0, n - lag - w), w)
+    if len(starts) >= 3:
+        a = np.array([np.dot(cmd[i:i + w], cmd[i:i + w]) for i in starts])
+        b = np.array([np.dot(cmd[i + lag:i + lag + w], cmd[i:i + w]) for i in starts])
+        r = np.where(a > 1e-6 * np.max(a), b / np.maximum(a, 1e-300), np.nan)
+        fin = np.flatnonzero(np.isfinite(r))
+        if len(fin) >= 3:
+            jumps = np.abs(np.diff(r[fin])) / np.maximum(np.abs(r[fin][:-1]), 1e-12)
+            j = int(np.argmax(jumps))
+            if jumps[j] >= 0.1:
+                return int(starts[fin[j + 1]] % lag)
+    from scipy.ndimage import median_filter
+    z = hilbert(cmd - cmd.mean())
+    env = np.abs(z)
+    on = env > 0.2 * np.max(env)
+    if on.sum() < 10:
+        return 0
+    idx = np.flatnonzero(on)
+    fi = np.gradient(np.unwrap(np.angle(z))) * fs / (2 * math.pi)
+    fi = median_filter(fi[idx], size=max(3, int(0.2 * fs) | 1), mode="nearest")     # over the samples that are on
+    sp = max(1, int(0.25 * fs))                           # the analytic signal smears a reset over ~0.1 s
+    if len(fi) <= 2 * sp + 2:
+        return 0
+    drop = fi[:-sp] - fi[sp:]
+    rng_ = np.percentile(fi, 95) - np.percentile(fi, 5)
+    edge = int(0.5 * fs)                                  # it is unreliable at the ends
+    drop[:edge] = 0.0
+    drop[max(0, len(drop) - edge):] = 0.0
+    big = np.flatnonzero(drop > 0.5 * rng_)
+    if not big.size:
+        return 0
+    first = big[big < big[0] + 2 * sp]                    # the first reset: where its drop is largest
+    j = int(first[np.argmax(drop[first])]) + sp // 2
+    return int(idx[min(j, len(idx) - 1)] % lag)
+
+
+def _segments(cmd: np.ndarray, lag: int, fs: float) -> list[Segment]:
     n = len(cmd)
     if lag <= 0:
         return [Segment(0, n, 1.0, float(np.max(np.abs(cmd))))]
-    starts = list(range(0, n - lag // 2, lag))
-    ref = cmd[starts[0]: starts[0] + lag]
+    o = _offset(cmd, lag, fs)
+    if o < 0.05 * lag or o > 0.95 * lag:
+        o = 0
+    cuts = sorted(set([0] + list(range(o, n, lag))))
+    cuts = [c for c in cuts if c < n - 0.05 * lag] + [n]
+    bounds = list(zip(cuts[:-1], cuts[1:]))
+    full = [(a, b) for a, b in bounds if b - a >= 0.95 * lag]
+    r0 = full[0][0] if full else bounds[0][0]
+    ref = cmd[r0: r0 + lag]
     segs = []
-    for s in starts:
-        e = min(n, s + lag)
-        part = cmd[s:e]
-        r = ref[: e - s]
-        scale = float(np.dot(part, r) / max(np.dot(r, r), 1e-300))
-        segs.append(Segment(s, e, abs(scale), float(np.max(np.abs(part)))))
+    for a, b in bounds:
+        part = cmd[a:b]
+        k0 = lag - len(part) if (a == 0 and o > 0) else 0            # a partial first one ends like a full one
+        m = max(0, min(len(part), len(ref) - k0))
+        r = ref[k0:k0 + m]
+        scale = float(np.dot(part[:m], r) / max(np.dot(r, r), 1e-300)) if m else 0.0
+        segs.append(Segment(a, b, abs(scale), float(np.max(np.abs(cmd[a:b])))))
     top = max(s.level for s in segs) or 1.0
     for s in segs:
         s.level /= top
@@ -173,7 +224,7 @@ def _sweep_phase(cmd: np.ndarray, fs: float, segments: list[Segment]) -> tuple[n
         lin = np.corrcoef(fs_med, tt)[0, 1]
         lg = np.corrcoef(np.log(np.maximum(fs_med, 1e-3)), tt)[0, 1]
         laws.append("linear" if abs(lin) >= abs(lg) else "logarithmic")
-    sweep = bool(ok) and sum(ok) >= max(1, len(ok) - 1) and all(ok[:1])
+    sweep = bool(ok) and sum(ok) >= max(1, len(ok) - 1)
     law = max(set(laws), key=laws.count) if laws else ""
     return phase, finst, sweep, law
 
@@ -181,7 +232,7 @@ def _sweep_phase(cmd: np.ndarray, fs: float, segments: list[Segment]) -> tuple[n
 def _multisine(cmd: np.ndarray, period: int) -> np.ndarray | None:
     """Excited lines of a periodic command when its spectrum over whole periods is a line spectrum."""
     P = len(cmd) // period
-    if P < 1 or period < 16:
+    if P < 2 or period < 16:            # one period cannot show that it repeats
         return None
     x = cmd[: P * period].reshape(P, period)
     X = np.fft.rfft(x.mean(axis=0))
@@ -208,7 +259,7 @@ def analyse(cmd_V: np.ndarray, fs: float) -> Command:
                        start_V=float(cmd[0]) if n else 0.0)
     band = _band(cmd, fs)
     lag = _repetition(cmd, fs)
-    segs = _segments(cmd, lag)
+    segs = _segments(cmd, lag, fs)
     out = Command("noise", fs, n, band, peak, rms, _band(cmd, fs, 60.0), segs, repeat_samples=lag,
                   start_V=float(cmd[0]))
     flat_steps = float(np.mean(np.diff(cmd) == 0.0))

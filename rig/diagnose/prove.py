@@ -62,11 +62,16 @@ class Case:
 
 
 # ---- case generation ---------------------------------------------------------------------------------
-def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float) -> float:
-    """Force giving a position line of amplitude_m at f_hz: scale a short simulated 1 N response."""
+def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float, base: dict | None = None) -> float:
+    """Force giving a position line of amplitude_m at f_hz: scale a short simulated 1 N response (with the stand
+    mode when the case has one: a soft stand lets the force move piston and housing together)."""
     fs = 2000.0
     n = int(fs * max(1.0, 40.0 / f_hz))
-    y = simulate_stand(p, np.zeros(n), fs, Effects(disturbance_frequency_hz=f_hz, disturbance_force_n=1.0))
+    if base:
+        n = max(n, int(fs * 8.0 / (base["damping_ratio"] * base["frequency_hz"])))    # past its ring-down
+    fx = Effects.from_catalogue({"base_resonance": base} if base else {},
+                                disturbance_frequency_hz=f_hz, disturbance_force_n=1.0)
+    y = simulate_stand(p, np.zeros(n), fs, fx)
     tail = y["position_m"][n // 2:]                    # past the start transient
     t = np.arange(n)[n // 2:] / fs
     X = np.c_[np.sin(2 * np.pi * f_hz * t), np.cos(2 * np.pi * f_hz * t), np.ones_like(t)]
@@ -74,8 +79,8 @@ def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float) -> 
     return amplitude_m / max(float(np.hypot(c[0], c[1])), 1e-15)
 
 
-def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float
-                 ) -> tuple[dict, dict]:
+def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float,
+                 base: dict | None = None) -> tuple[dict, dict]:
     """Plausible parameters for one effect: (catalogue parameters, simulator-only extras)."""
     if name == "transport_delay":
         return {"delay_s": round(float(rng.uniform(0.5e-3, 3.0e-3)), 5)}, {}
@@ -93,7 +98,7 @@ def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitu
     if name == "periodic_disturbance":
         f = round(float(rng.uniform(10.0, 90.0)), 2)
         line_m = float(rng.uniform(3.0, 6.0)) * POSITION_NOISE_M     # clearly above the noise
-        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m), 1),
+        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m, base), 1),
                                      "phase_rad": round(float(rng.uniform(-math.pi, math.pi)), 3)}
     raise ValueError(f"unknown effect {name!r}")
 
@@ -212,8 +217,10 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorPara
                 tags.append("mid-run")
         effects, hidden = {}, {}
         for name in sorted(names):
+            base = {**effects["base_resonance"], **hidden.get("base_resonance", {})} \
+                if "base_resonance" in effects else None
             for _ in range(20):        # a force line apart from the pickup lines (mixed lines are out of scope)
-                effects[name], extra = _draw_effect(name, rng, p, amplitude)
+                effects[name], extra = _draw_effect(name, rng, p, amplitude, base)
                 f_d = effects[name].get("frequency_hz") if name == "periodic_disturbance" else None
                 if f_d is None or all(abs(f_d - l["frequency_hz"]) > 2.0 for l in sens.get("position_lines", [])):
                     break
