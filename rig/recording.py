@@ -236,6 +236,9 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                     v = v.decode(errors="replace")
                 if isinstance(v, (str, int, float, bool, np.integer, np.floating, np.bool_)):
                     meta[str(k)] = v.item() if hasattr(v, "item") else v
+                elif isinstance(v, np.ndarray) and v.ndim == 1 and v.size <= 64:
+                    meta[str(k)] = [x.decode(errors="replace") if isinstance(x, bytes) else
+                                    (x.item() if hasattr(x, "item") else x) for x in v]
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files

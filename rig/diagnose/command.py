@@ -230,7 +230,10 @@ def _sweep_phase(cmd: np.ndarray, fs: float, segments: list[Segment]) -> tuple[n
 
 
 def _multisine(cmd: np.ndarray, period: int) -> np.ndarray | None:
-    """Excited lines of a periodic command when its spectrum over whole periods is a line spectrum."""
+    """Excited lines of a periodic command when its spectrum over whole periods is a line spectrum (the null
+    command before and after the run, a rig's settle time and tail, is left aside)."""
+    act = np.flatnonzero(np.abs(cmd) > 1e-9 * np.max(np.abs(cmd)))
+    cmd = cmd[act[0]: act[-1] + 1] if act.size else cmd
     P = len(cmd) // period
     if P < 2 or period < 16:            # one period cannot show that it repeats
         return None
