@@ -1,8 +1,9 @@
-"""Speed of the diagnosis engine: `python -m rig.diagnose.bench [RECORDING ...]`.
+"""Speed of the diagnosis engine: `python -m rig.diagnose.bench [--habits N] [RECORDING ...]`.
 
-Without arguments: the shared recordings (../shared/recordings) plus the same seven cases re-simulated at 2 kHz
-(the issue's budget: 15 s per 100 s recording at 2 kHz on 2 cores). Prints wall and CPU time per recording and
-p50/p99/max of the wall time per 100 s of recording.
+Without recordings: the shared recordings (../shared/recordings) plus the same seven cases re-simulated at 2 kHz,
+and with --habits N also N blind cases with the habits of real recordings (rig prove --habits), each 100 s at
+2 kHz (the issue's budget: median 15 s, worst 30 s per 100 s recording at 2 kHz on 2 cores). Prints wall and CPU
+time per recording, the machine's load average before and after, and p50/p99/max of the wall time per 100 s.
 """
 from __future__ import annotations
 
@@ -33,16 +34,32 @@ def _cases(args: list[str]):
         a = ans[name]
         p = ActuatorParams().with_(**a["true_linear_parameters"])
         t, cmd = linear_chirp(2000.0, 100.0, 0.1, 100.0, a["amplitude_V"])
-        fx = Effects.from_catalogue(a["effects"], position_noise_m=2e-8, seed=1)
+        fx = Effects.from_catalogue(a["effects"], position_noise_m=2e-8, accel_noise_mps2=2e-4, seed=1)
         y = simulate_stand(p, cmd, 2000.0, fx)
-        yield name.split(".")[0] + "@2kHz", Recording.from_signals(cmd, y["position_m"], fs_hz=2000.0, source=name)
+        yield name.split(".")[0] + "@2kHz", Recording.from_signals(cmd, y["position_m"], y["accel_mps2"],
+                                                                   fs_hz=2000.0, source=name)
+
+
+def _habit_cases(n: int, seed: int = 5):
+    from dataclasses import replace
+    from rig.diagnose import prove
+    for c in prove.draw_cases(n, seed, duration_s=200.0, habits=True):
+        c = replace(c, fs_hz=2000.0, duration_s=100.0)
+        yield f"{c.name}@2kHz ({c.excitation['kind']})", prove.simulate_case(c)
 
 
 def main(argv: list[str]) -> int:
+    import os
+    n_habits = 0
+    if argv[:1] == ["--habits"]:
+        n_habits, argv = int(argv[1]), argv[2:]
+    print(f"load average before: {os.getloadavg()[0]:.2f} (2 cores; other work on the machine slows this down)")
     per100 = []
     diagnose(Recording.from_signals(*linear_chirp(1000.0, 5.0)[1:], np.zeros(5000) + np.linspace(0, 1e-6, 5000),
                                     fs_hz=1000.0), ActuatorParams())       # JIT warm-up
-    for name, rec in _cases(argv):
+    from itertools import chain
+    cases = _cases(argv) if argv or not n_habits else chain(_cases(argv), _habit_cases(n_habits))
+    for name, rec in cases:
         w0, c0 = time.perf_counter(), time.process_time()
         d = diagnose(rec, ActuatorParams())
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
@@ -51,7 +68,7 @@ def main(argv: list[str]) -> int:
               flush=True)
     v = np.array(per100)
     print(f"wall per 100 s of recording: p50 {np.percentile(v, 50):.2f} s  p99 {np.percentile(v, 99):.2f} s  "
-          f"max {v.max():.2f} s  (n = {len(v)})")
+          f"max {v.max():.2f} s  (n = {len(v)}); load average after: {os.getloadavg()[0]:.2f}")
     return 0
 
 

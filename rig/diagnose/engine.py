@@ -141,7 +141,6 @@ class Problem:
     def set_basis(self, basis: sensor_mod.SensorBasis) -> None:
         self.basis = basis
         self._Bf = np.ascontiguousarray(basis.B[self.mfit])
-        self._Bh = np.ascontiguousarray(basis.B[self.mhold])
         self._G = self._Bf.T @ self._Bf
         self._cho = cho_factor(self._G)
 
@@ -448,18 +447,22 @@ def _refine_disturbance(pb: Problem, f: Fit) -> Fit:
 
 def _choose_wander(pb: Problem, fit: Fit, max_terms: int) -> int:
     """Number of slow-wander cosines by BIC on the fit blocks, the physics held at `fit` (nested bases: one QR
-    of the largest gives every smaller one's residual)."""
+    of the largest gives every smaller one's residual; at most 200 k fit rows, evenly spread, for the choice)."""
     if max_terms < 1:
         return 0
-    rf = (pb.y - pb.physics(fit))[pb.mfit]
-    big = pb.basis.with_(wander_terms=max_terms)
-    Bf = big.B[pb.mfit]
-    order = [0, 1] + [j for j in range(2 + big.wander_terms, big.m)] + list(range(2, 2 + big.wander_terms))
-    Q, _ = np.linalg.qr(Bf[:, order])
+    rows = np.flatnonzero(pb.mfit)
+    rows = rows[:: max(1, int(math.ceil(len(rows) / 200_000)))]
+    rf = (pb.y - pb.physics(fit))[rows]
+    n = pb.n
+    cols = [np.ones(len(rows)), 2.0 * rows / max(n - 1, 1) - 1.0]
+    cols += [np.cos(math.pi * k * (rows + 0.5) / n) for k in range(2, 2 + max_terms)]
+    cols += [pb.basis.B[rows, j] for j in range(2 + pb.basis.wander_terms, pb.basis.m)]     # lines, if any
+    order = [0, 1] + list(range(2 + max_terms, len(cols))) + list(range(2, 2 + max_terms))
+    Q, _ = np.linalg.qr(np.column_stack([cols[j] for j in order]))
     proj = Q.T @ rf
     total = float(rf @ rf)
     nf = len(rf)
-    base_m = big.m - big.wander_terms
+    base_m = len(cols) - max_terms
     best = (np.inf, 0)
     for k in sorted({0, 1, 2, 4, 8, 16, max_terms}):
         if k > max_terms:
@@ -754,7 +757,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     k_w = _choose_wander(pb, refit, wander_max)
     if k_w:
         pb.set_basis(pb.basis.with_(wander_terms=k_w))
-        refit = pb.fit(refit.lin, {}, max_iter=4)
+        refit = pb.evaluate(refit.lin, {}, refit.k)       # polished once, below, with the lines
     r_ref0 = pb.y - pb.series(refit)
     pb.noise = _floor(pb, r_ref0, cmd_info).rms_m or pb.noise
     acc_clip, _, _ = sensor_mod.flat_tops(acc) if np.ptp(acc) > 0 else (np.zeros(n, bool), None, None)
@@ -765,6 +768,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     pickup, force_lines, acc_pickup = _lines(pb, r_ref0, acc, acc_model, check, fs, cmd_info, acc_use)
     if pickup:
         pb.set_basis(pb.basis.with_(lines_hz=tuple(l.frequency_hz for l in pickup)))
+    if pickup or k_w:
         refit = pb.fit(refit.lin, {}, max_iter=4)
     nom = pb.evaluate(nominal_lin, {}, k=0)
     y_nom, y_ref = pb.series(nom), pb.series(refit)

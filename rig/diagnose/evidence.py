@@ -223,11 +223,21 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             "finding": (f"the position takes values on a grid of {q:.3g} m: its floor q/sqrt(12) = "
                         f"{q / math.sqrt(12):.3g} m rms is part of the noise ({pb.noise:.3g} m rms)")}
     if check is not None and np.ptp(acc) > 0:
-        ev["sensor"]["accelerometer"] = {"kind": "accel", "gain": abs(check.gain), "usable": check.usable,
-                                         "offset_mps2": sensor.accel_offset_mps2,
-                                         "finding": (f"accelerometer offset {sensor.accel_offset_mps2:.3g} m/s^2; "
-                                                     + check.note) if sensor.accel_offset_mps2 is not None
-                                         else check.note}
+        from scipy.signal import csd, welch
+        x = pb.y - B @ augmented.coef
+        nper = int(min(pb.n // 4, 2 ** int(math.log2(max(64, 2 * pb.fs)))))
+        f, Sxx = welch(x - x.mean(), fs=pb.fs, nperseg=nper)
+        _, Sxa = csd(x - x.mean(), acc - acc.mean(), fs=pb.fs, nperseg=nper)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.abs(Sxa / Sxx) / (2 * np.pi * f) ** 2
+        sel = (f >= max(1.0, band[0])) & (f <= min(0.4 * pb.fs, max(band[1], 5.0)))
+        model_acc = check.gain.real * acc_model if (check.usable and acc_model is not None) else 0.0
+        ts, a_off = _decimate_for_plot(t[acc_use], (acc - model_acc)[acc_use], pb.fs)
+        ev["sensor"]["accelerometer"] = {
+            "kind": "accel", "gain": abs(check.gain), "usable": check.usable, "offset_mps2": sensor.accel_offset_mps2,
+            "t_s": ts, "accel_minus_model_mps2": a_off, "freqs_hz": f[sel], "ratio": ratio[sel],
+            "finding": ((f"accelerometer offset {sensor.accel_offset_mps2:.3g} m/s^2; " + check.note)
+                        if sensor.accel_offset_mps2 is not None else check.note)}
     for c in sensor.clipped:
         if c.channel != "position_m":
             continue

@@ -442,6 +442,9 @@ def _plot_levels(ax, d: dict) -> None:
     ax.plot(lv, [r["gain_measured"] for r in rows], "ko-", label="measured")
     ax.plot(lv, [r["gain_augmented"] for r in rows], "s--", color=COLORS["augmented"], label="augmented model")
     ax.axhline(1.0, color=COLORS["refit"], lw=1, label="linear refit (same at every level)")
+    g = [r["gain_measured"] for r in rows] + [r["gain_augmented"] for r in rows]
+    ax.set_ylim(min(0.98, min(g) - 0.005), max(1.02, max(g) + 0.005))        # a 2 % window at least
+    ax.ticklabel_format(axis="y", useOffset=False)
     ax.set_xlabel("command level (peak V)")
     ax.set_ylabel("gain relative to the linear refit")
     ax.legend(fontsize=8)
@@ -522,6 +525,24 @@ def _plot_quantisation(ax, d: dict) -> None:
     ax.legend(fontsize=8)
 
 
+def _plot_accel(fig, d: dict) -> None:
+    ax1, ax2 = fig.subplots(2, 1)
+    ax1.plot(d["t_s"], np.asarray(d["accel_minus_model_mps2"]) * 1e3, ".", color="0.3", ms=2,
+             label="accelerometer - model acceleration (0.5 s means)")
+    if d.get("offset_mps2") is not None:
+        ax1.axhline(d["offset_mps2"] * 1e3, color="tab:green", label="fitted offset")
+    ax1.set_xlabel("time (s)")
+    ax1.set_ylabel("mm/s^2")
+    ax1.legend(fontsize=8)
+    ax2.semilogx(d["freqs_hz"], d["ratio"], "k.", ms=3, label="|accel / position| / (2 pi f)^2")
+    ax2.axhline(1.0, color="tab:red", lw=1, label="a true second derivative")
+    ax2.set_xlabel("frequency (Hz)")
+    ax2.set_ylabel("ratio")
+    ax2.legend(fontsize=8)
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+
+
 def _plot_clip(ax, d: dict) -> None:
     ax.plot(d["t_s"], np.asarray(d["measured_m"]) * 1e6, "k", lw=0.8, label="measured")
     ax.plot(d["t_s"], np.asarray(d["model_m"]) * 1e6, color=COLORS["augmented"], lw=1.0, label="model")
@@ -535,6 +556,7 @@ _EVIDENCE_TITLES = {
     "velocity": "residual by piston velocity", "frf": "frequency response over the model without the effect",
     "line": "the line in position and in acceleration", "zero": "the transducer's zero (offset, drift, wander)",
     "quantisation": "residual against the converter step", "clip": "clipped samples",
+    "accel": "the accelerometer against the position's second derivative",
 }
 
 
@@ -544,6 +566,8 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
     ev = getattr(diag, "evidence", None) or {}
     out = []
     items = [(f"effect {k}", k, v) for k, v in ev.get("effects", {}).items()]
+    if ev.get("levels") and not any(v.get("kind") == "levels" for v in ev.get("effects", {}).values()):
+        items.append(("command levels", "levels", {"kind": "levels", **ev["levels"]}))
     items += [(f"sensor {k}", k, v) for k, v in ev.get("sensor", {}).items()]
     for label, key, d in items:
         kind = d.get("kind") or key
@@ -552,11 +576,13 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
             if d.get("finding"):
                 out.append((label, "", d["finding"]))
             continue
-        fig = Figure(figsize=(7.5, 4.2 if kind not in ("frf", "line") else 5.2), layout="constrained")
+        fig = Figure(figsize=(7.5, 4.2 if kind not in ("frf", "line", "accel") else 5.2), layout="constrained")
         if kind == "frf":
             _plot_frf_ratio(fig, d)
         elif kind == "line":
             _plot_line(fig, d)
+        elif kind == "accel":
+            _plot_accel(fig, d)
         else:
             ax = fig.subplots()
             {"levels": _plot_levels, "command": _plot_command, "velocity": _plot_velocity, "zero": _plot_zero,
