@@ -62,6 +62,7 @@ LINE_RATIO = 40.0                  # spectral line / local median for a line can
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
 EXPLAINED_SLOW = 1.02              # the same once a reduced (deadband/friction) model is in
 MIN_GAIN = 0.003                   # an effect must cut the held-out residual variance by at least 0.3 %
+SLOW_RTOL = 1e-4                   # a slow (reduced) model's fit stops when an iteration gains < 0.01 % of the rss
 MIN_CLAIM_S = 5.0                  # shorter recordings get no claim
 MIN_SNR = 3.0                      # motion rms / noise below which the recording is too poorly excited
 VERDICT_AT_NOISE = 1.15            # augmented residual / noise: "explains the recording"
@@ -213,7 +214,8 @@ class Problem:
         base = (b["frequency_hz"], b["damping_ratio"], b.get("mass_kg", 280.0)) if b else None
         return force_response(self.params(lin), self.fs, fx["periodic_disturbance"]["frequency_hz"], self.n, base)
 
-    def fit(self, lin0: dict, fx0: dict, free_lin=LIN_KEYS, free_fx: dict | None = None, max_iter=20) -> Fit:
+    def fit(self, lin0: dict, fx0: dict, free_lin=LIN_KEYS, free_fx: dict | None = None, max_iter=20,
+            rtol: float = 1e-5) -> Fit:
         """Least squares on the fit blocks over free linear keys (log scale) and the free effect keys."""
         free_fx = {n: SPECS[n].keys for n in fx0 if n != "periodic_disturbance"} if free_fx is None else free_fx
         names, lo, hi, x0, scale = [], [], [], [], []
@@ -246,7 +248,7 @@ class Problem:
             return self.residual_fit(lin, fx) / self.noise
 
         if names:
-            x, _ = lm_fit(fun, x0, lo, hi, np.array(scale) * 1e-3, max_iter=max_iter)
+            x, _ = lm_fit(fun, x0, lo, hi, np.array(scale) * 1e-3, max_iter=max_iter, rtol=rtol)
             lin, fx = unpack(x)
         else:
             lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
@@ -344,12 +346,12 @@ def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, ban
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "limit_ma", pb.peak_ma * np.array([0.2, 0.35, 0.5, 0.6, 0.7, 0.8, 0.88, 0.94, 0.98]))
         return lin, fx
     if name == "valve_deadband":
-        grid = [0.15, 0.4, 1.0] if pb.quick else [0.01, 0.08, 0.15, 0.3, 0.5, 0.7, 1.0, 1.5]
+        grid = [0.15, 0.4, 1.0] if (pb.quick or slow) else [0.01, 0.08, 0.15, 0.3, 0.5, 0.7, 1.0, 1.5]
         grid = [g for g in grid if g < 0.6 * pb.peak_ma] or [0.1 * pb.peak_ma]
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "width_ma", grid)
         return lin, fx
     if name == "coulomb_friction":
-        grid = [60, 200, 600] if pb.quick else [3, 40, 100, 200, 400, 800, 1400]
+        grid = [60, 200, 600] if (pb.quick or slow) else [3, 40, 100, 200, 400, 800, 1400]
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", grid)
         return lin, fx
     if name == "base_resonance":
@@ -387,9 +389,9 @@ def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band
         if st.rss_fit > skip_above:
             return Fit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=n_params(fx0), coef=st.coef)
     if slow and second:   # on a slow model: the effects with the gain and lag; the polish frees all
-        return pb.fit(lin0, fx0, free_lin=("K_Q", "K_C"), max_iter=6)
+        return pb.fit(lin0, fx0, free_lin=("K_Q", "K_C"), max_iter=6, rtol=SLOW_RTOL)
     if slow:
-        return pb.fit(lin0, fx0, max_iter=6)
+        return pb.fit(lin0, fx0, max_iter=6, rtol=SLOW_RTOL)
     return pb.fit(lin0, fx0, max_iter=10)
 
 
@@ -428,7 +430,7 @@ def _active(pb: Problem, f: Fit, name: str) -> bool:
 def _polish(pb: Problem, f: Fit) -> Fit:
     """All linear and effect parameters together (the disturbance frequency refined after)."""
     slow = any(n in f.fx for n in SLOW)
-    pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=5 if slow else 15))
+    pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=5 if slow else 15, rtol=SLOW_RTOL if slow else 1e-5))
     return pol if pol.rss_fit < f.rss_fit else f
 
 
@@ -855,13 +857,14 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                 if f is None:
                     continue
                 f = _refine_disturbance(pb, f)
-                if chosen and any(n in current.fx for n in SLOW) and null is None:
+                st = compare(pb, base, f)
+                if st["passed"] and chosen and any(n in current.fx for n in SLOW) and null is None:
                     # a slow model's polish may stop short: a candidate must beat the current model given the
-                    # same extra iterations, not the extra iterations themselves
-                    null = pb.fit(current.lin, current.fx, max_iter=6)
+                    # same extra iterations, not the extra iterations themselves (fitted once, when needed)
+                    null = pb.fit(current.lin, current.fx, max_iter=6, rtol=SLOW_RTOL)
                     if null.rss_fit < base.rss_fit:
                         base = null
-                st = compare(pb, base, f)
+                        st = compare(pb, base, f)
                 if st["passed"] and not _active(pb, f, name):
                     st = {**st, "passed": False, "inactive": True}
                 tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
