@@ -66,7 +66,7 @@ def test_grade_and_score_the_sensor_side():
     assert s["sensor_named_as_physics"] == 1 and s["mains_lines"] == {"n": 3, "within_1pct": 2,
                                                                       "worst": pytest.approx(0.5, rel=1e-3)}
     assert s["by_habit"]["pickup"] == {"cases": 1, "right": 0, "invented": 1, "residual_ok": 1}
-    assert s["seconds_per_100s_at_2khz"]["median"] == pytest.approx(7.0)
+    assert s["seconds_per_100s_at_2khz"]["median"] == pytest.approx(7.0)       # a 100 s case at 2 kHz
     md = prove.habits_markdown(s)
     assert "| pickup | 1 | 0 | 1 | 1 |" in md and "| steps | 1 | 0 | 1 | 1 |" in md
     assert "| x | steps, pickup:50Hzx3 | none | periodic_disturbance | NO |" in prove.table_markdown([r])

@@ -373,11 +373,24 @@ def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, ban
     raise KeyError(name)
 
 
+def _with_prior(pb: Problem, name: str, init, fx_base: dict, prior: dict | None):
+    """The better start of two: the fresh one, or the effect's parameters from the first round (an effect found
+    alone is often easier to find again from where it was)."""
+    if prior is None or init is None:
+        return init
+    lin0, fx0 = init
+    alt = {n: dict(v) for n, v in fx_base.items()}
+    alt[name] = dict(prior)
+    r0, _, _ = pb.residual(lin0, fx0)
+    r1, _, _ = pb.residual(lin0, alt)
+    return (lin0, alt) if np.sum(r1[pb.mfit] ** 2) < np.sum(r0[pb.mfit] ** 2) else init
+
+
 def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, second=False,
-                   skip_above: float | None = None) -> Fit | None:
+                   skip_above: float | None = None, prior: dict | None = None) -> Fit | None:
     if second and name not in SLOW and any(n in fx_base for n in SLOW):
-        return _fit_by_proxy(pb, name, lins, fx_base, band, lines, y_clean)
-    init = _init_candidate(pb, name, lins, fx_base, band, lines, y_clean)
+        return _fit_by_proxy(pb, name, lins, fx_base, band, lines, y_clean, prior)
+    init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
     if init is None:
         return None
     lin0, fx0 = init
@@ -395,7 +408,8 @@ def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band
     return pb.fit(lin0, fx0, max_iter=10)
 
 
-def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean) -> Fit | None:
+def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean,
+                  prior: dict | None = None) -> Fit | None:
     """A fast effect added to a slow (deadband/friction) model: fit it on the superposition proxy (one slow
     simulation), then score the result with the exact slow model."""
     lin_c = lins[0]
@@ -403,7 +417,7 @@ def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band,
     base_c = simulate(pb.params(lin_c), pb.cmd, pb.fs, {k: v for k, v in fx_base.items() if k in LINEAR_SIM})
     pb.proxy = (y_cur, base_c)
     try:
-        init = _init_candidate(pb, name, lins, fx_base, band, lines, y_clean)
+        init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
         if init is None:
             return None
         lin0, fx0 = init
@@ -415,16 +429,16 @@ def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band,
 
 
 def _active(pb: Problem, f: Fit, name: str) -> bool:
-    """Does the fitted effect change the model at all? (a deadband of width 0 passing a test would be the
-    linear parameters' gain, not the effect's)"""
+    """Does the fitted effect itself carry the gain? The candidate with the effect taken out (everything else as
+    fitted) must be worse on the held-out blocks by the same likelihood-ratio margin; a deadband of width 0 that
+    passed a test would be the linear parameters' extra iterations, not the effect."""
     if name == "periodic_disturbance":
         return True
     without = {k: v for k, v in f.fx.items() if k != name}
-    d = pb.model(f.lin, f.fx) - pb.model(f.lin, without)
-    # the scale: the candidate's own held-out residual (the noise estimate of a broadband command still holds
-    # the distortion the candidate explains)
-    scale = min(pb.noise, math.sqrt(f.rss_hold / max(pb.mhold.sum(), 1)))
-    return float(np.sqrt(np.mean(d[pb.use] ** 2))) > 0.3 * scale
+    r, _, _ = pb.residual(f.lin, without)
+    nh = int(pb.mhold.sum())
+    rss_wo = float(np.sum(r[pb.mhold] ** 2))
+    return nh * math.log(max(rss_wo, 1e-300) / max(f.rss_hold, 1e-300)) > len(SPECS[name].keys) * math.log(nh)
 
 
 def _polish(pb: Problem, f: Fit) -> Fit:
@@ -824,6 +838,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
         # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor:
         # there, no round is skipped for having reached "the noise"
         stop_at_noise = cmd_info.kind not in ("noise", "steps")
+        round1: dict[str, dict] = {}
         for step in range(MAX_EFFECTS):
             results = []
             over = math.sqrt(current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
@@ -835,7 +850,8 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
             for name in screen:
                 if name in chosen:
                     continue
-                if name != "periodic_disturbance" and over < explained and stop_at_noise:
+                if name != "periodic_disturbance" and over < explained and stop_at_noise and \
+                        not (harmonic_now and name in NONLINEAR):
                     continue        # the held-out residual is already at the noise: nothing left to explain
                 say(f"candidate {'+'.join(chosen + [name])}")
                 lins = [current.lin] if chosen else [refit.lin, nominal_lin]
@@ -852,8 +868,9 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                     skip = 2.0 * min(floor_)
                 if not harmonic_now:       # without distortion a nonlinearity must at least show in its start
                     skip = min(skip or np.inf, (0.95 if slow_name else 0.999) * current.rss_fit)
+                prior = round1.get(name) if chosen else None
                 f = _fit_candidate(pb, name, lins, current.fx, band, lines, y_clean, second=bool(chosen),
-                                   skip_above=skip)
+                                   skip_above=skip, prior=prior if name != "periodic_disturbance" else None)
                 if f is None:
                     continue
                 f = _refine_disturbance(pb, f)
@@ -869,6 +886,8 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                     st = {**st, "passed": False, "inactive": True}
                 tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
                 results.append((name, f, st))
+            if not chosen:
+                round1 = {n_: dict(g.fx[n_]) for n_, g, _ in results if n_ in g.fx}
             ok = [r for r in results if r[2]["passed"]]
             if not ok:
                 break
@@ -885,6 +904,10 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
             if command_mod.harmonic_window_ok(cmd_info):
                 h2 = locate.harmonics(r_cur * use, cmd_info.phase, fs, pb.noise)
                 harmonic_now = h2["odd_over_noise"] > HARMONIC_SCREEN
+            elif cmd_info.kind == "multisine":      # distortion the current model leaves on the empty lines
+                ms2 = _multisine_lines(cmd_info, r_cur, use, floor_ref, [l["frequency_hz"] for l in lines])
+                vals = [v for v in (ms2.get("odd_z"), ms2.get("even_z")) if v is not None]
+                harmonic_now = bool(vals) and max(vals) > 2 * HARMONIC_SCREEN
             if "periodic_disturbance" in chosen and "periodic_disturbance" in screen:
                 screen.remove("periodic_disturbance")
 

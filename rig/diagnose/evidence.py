@@ -123,7 +123,8 @@ def frf_ratio(pb, y_clean: np.ndarray, y_without: np.ndarray, y_aug: np.ndarray,
     with np.errstate(divide="ignore", invalid="ignore"):
         meas = fr["measured"] / fr["without"]
         aug = fr["augmented"] / fr["without"]
-    return {"freqs_hz": fr["freqs_hz"], "measured": meas, "augmented": aug, "sigma": fr["sigma"] / np.abs(fr["without"])}
+    return {"freqs_hz": fr["freqs_hz"], "measured": meas, "augmented": aug,
+            "sigma": fr["sigma"] / np.abs(fr["without"])}
 
 
 def line_spectra(pb, r_pos: np.ndarray, acc_res: np.ndarray | None, f_hz: float, gain: complex,
@@ -194,7 +195,8 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
     t = pb.t
     zero = pb.basis.zero(augmented.coef)
     ts, xs = _decimate_for_plot(t[pb.use], (pb.y - y_aug - (B @ augmented.coef - zero))[pb.use], pb.fs)
-    ev["sensor"]["zero"] = {"t_s": ts, "measured_minus_physics_m": xs, "t_fit_s": t[::max(1, pb.n // 2000)],
+    ev["sensor"]["offset and drift"] = {"kind": "zero", "t_s": ts, "measured_minus_physics_m": xs,
+                                        "t_fit_s": t[::max(1, pb.n // 2000)],
                             "zero_m": zero[::max(1, pb.n // 2000)],
                             "finding": (f"the measured position minus the physics follows a zero line: offset "
                                         f"{sensor.offset_m * 1e6:.3g} um at t = 0, drift "
@@ -204,16 +206,14 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
     a_res = None
     if check is not None and check.usable and acc_model is not None:
         a_res = acc - check.gain.real * acc_model - np.mean(acc)
-    for i, l in enumerate(sensor.lines):
-        if l.channel == "position_m":
-            r_pos = r_aug + B[:, 2 + pb.basis.wander_terms + 2 * i: 4 + pb.basis.wander_terms + 2 * i] @ \
-                augmented.coef[2 + pb.basis.wander_terms + 2 * i: 4 + pb.basis.wander_terms + 2 * i] \
-                if i < len(pb.basis.lines_hz) else r_aug
-        else:
-            r_pos = r_aug
+    for l in sensor.lines:
+        r_pos = r_aug
+        if l.channel == "position_m" and l.frequency_hz in pb.basis.lines_hz:     # put the fitted line back
+            j = 2 + pb.basis.wander_terms + 2 * pb.basis.lines_hz.index(l.frequency_hz)
+            r_pos = r_aug + B[:, j:j + 2] @ augmented.coef[j:j + 2]
         ls = line_spectra(pb, r_pos, a_res, l.frequency_hz, check.gain if check is not None else 1.0, acc_use)
         ls["finding"] = l.evidence
-        ev["sensor"][f"line_{l.channel}_{l.frequency_hz:.2f}Hz"] = {"kind": "line", **ls}
+        ev["sensor"][f"{l.source} line at {l.frequency_hz:.2f} Hz on {l.channel}"] = {"kind": "line", **ls}
     if sensor.quantisation_step_m:
         q = sensor.quantisation_step_m
         h, edges = np.histogram(r_aug[pb.use], bins=60)
@@ -243,8 +243,9 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             continue
         i0 = int(c.first_s * pb.fs)
         sl = slice(max(0, i0 - int(0.1 * pb.fs)), min(pb.n, i0 + int(0.1 * pb.fs)))
-        ev["sensor"]["clipped"] = {"kind": "clip", "t_s": t[sl], "measured_m": pb.y[sl],
+        ev["sensor"]["clipped position"] = {"kind": "clip", "t_s": t[sl], "measured_m": pb.y[sl],
                                    "model_m": pb.series(augmented)[sl],
-                                   "finding": f"the position sits flat at {c.high if c.high is not None else c.low:.4g} m "
+                                   "finding": f"the position sits flat at "
+                                              f"{c.high if c.high is not None else c.low:.4g} m "
                                               f"while the model goes beyond: {c.samples} samples clipped, left out"}
     return ev

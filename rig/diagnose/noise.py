@@ -58,19 +58,23 @@ def _spectra(x: np.ndarray, nw: int, starts: np.ndarray, fs: float) -> tuple[np.
     return np.fft.rfftfreq(nw, 1.0 / fs), X
 
 
-def deperiodize(resid: np.ndarray, period: int, mask: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def deperiodize(resid: np.ndarray, period: int, mask: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, np.ndarray | None]:
     """The residual minus its average over whole periods (a periodic command's response, linear or not, is the
-    same in every period; the noise is not), and the variance factor P / (P - 1) that restores the noise."""
+    same in every period; the noise is not), the variance factor P / (P - 1) that restores the noise, and the
+    mask of the samples that were deperiodized (the rest of the record still holds the response)."""
     r = np.asarray(resid, float).copy()
     n = len(r)
     i0 = int(np.argmax(mask)) if mask is not None and np.any(mask) else 0
     k = (n - i0) // period
     if period <= 0 or k < 2:
-        return r, 1.0
+        return r, 1.0, mask
     blk = r[i0:i0 + k * period].reshape(k, period)
     blk -= blk.mean(axis=0, keepdims=True)
     r[i0:i0 + k * period] = blk.ravel()
-    return r, k / (k - 1.0)
+    done = np.zeros(n, bool)
+    done[i0:i0 + k * period] = True
+    return r, k / (k - 1.0), done if mask is None else (done & np.asarray(mask, bool))
 
 
 def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, *, win_s: float = 1.0, period: int = 0,
@@ -85,7 +89,7 @@ def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, *, win_s
     n = len(r)
     factor = 1.0
     if period:
-        r, factor = deperiodize(r, period, mask)
+        r, factor, mask = deperiodize(r, period, mask)
     nw, starts = _windows(r, fs, mask, win_s)
     f, X = _spectra(r, nw, starts, fs)
     P = np.abs(X) ** 2

@@ -282,7 +282,8 @@ def sensor_lines(sensor) -> list[str]:
         out.append(sensor.accel.note)
     for c in sensor.clipped:
         lvl = c.high if c.high is not None else c.low
-        out.append(f"{c.channel} clipped at {lvl:.4g} ({c.samples} samples from {c.first_s:.3f} s): left out of the fit")
+        out.append(f"{c.channel} clipped at {lvl:.4g} ({c.samples} samples from {c.first_s:.3f} s): left out of "
+                   "the fit")
     if sensor.start_transient_s:
         out.append(f"mid-run start: the first {sensor.start_transient_s:g} s are left out (start transient)")
     return out
@@ -484,8 +485,6 @@ def _plot_frf_ratio(fig, d: dict) -> None:
     ax2.set_ylabel("phase (deg)")
     ax2.set_xlabel("frequency (Hz)")
     ax1.legend(fontsize=8)
-    for ax in (ax1, ax2):
-        ax.grid(True, alpha=0.3)
 
 
 def _plot_line(fig, d: dict) -> None:
@@ -502,7 +501,6 @@ def _plot_line(fig, d: dict) -> None:
         axes[1].legend(fontsize=8)
     for ax in axes:
         ax.axvline(d["line_hz"], color="0.6", lw=0.8)
-        ax.grid(True, alpha=0.3)
     axes[-1].set_xlabel("frequency (Hz)")
 
 
@@ -539,8 +537,6 @@ def _plot_accel(fig, d: dict) -> None:
     ax2.set_xlabel("frequency (Hz)")
     ax2.set_ylabel("ratio")
     ax2.legend(fontsize=8)
-    for ax in (ax1, ax2):
-        ax.grid(True, alpha=0.3)
 
 
 def _plot_clip(ax, d: dict) -> None:
@@ -565,10 +561,10 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
     from matplotlib.figure import Figure
     ev = getattr(diag, "evidence", None) or {}
     out = []
-    items = [(f"effect {k}", k, v) for k, v in ev.get("effects", {}).items()]
+    items = [(f"effect: {k}", k, v) for k, v in ev.get("effects", {}).items()]
     if ev.get("levels") and not any(v.get("kind") == "levels" for v in ev.get("effects", {}).values()):
         items.append(("command levels", "levels", {"kind": "levels", **ev["levels"]}))
-    items += [(f"sensor {k}", k, v) for k, v in ev.get("sensor", {}).items()]
+    items += [(f"sensor: {k}", k, v) for k, v in ev.get("sensor", {}).items()]
     for label, key, d in items:
         kind = d.get("kind") or key
         if kind not in _EVIDENCE_TITLES or (kind == "levels" and not d.get("rows")) or \
@@ -587,9 +583,10 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
             ax = fig.subplots()
             {"levels": _plot_levels, "command": _plot_command, "velocity": _plot_velocity, "zero": _plot_zero,
              "quantisation": _plot_quantisation, "clip": _plot_clip}[kind](ax, d)
+        for ax in fig.axes:
             ax.grid(True, alpha=0.3)
         fig.suptitle(f"{label}: {_EVIDENCE_TITLES[kind]}", fontsize=10)
-        name = "evidence_" + "".join(c if c.isalnum() else "_" for c in f"{label}") + ".png"
+        name = "evidence_" + "_".join("".join(c if c.isalnum() or c == "." else " " for c in label).split()) + ".png"
         fig.savefig(Path(out_dir) / name, dpi=100)
         out.append((label, name, d.get("finding", "")))
     return out
