@@ -602,8 +602,9 @@ def score_text(s: dict) -> str:
         f"frequencies within 5 %: {f['within']}/{f['n']} (worst {_fmt(f['worst'] and 100 * f['worst'], '.1f')} %)",
         f"augmented residual <= 1.3 x noise: {r['within']}/{r['n']} (worst {_fmt(r['worst'], '.2f')}); "
         f"diagnosis time per case: median {_fmt(sp.get('median'), '.1f')} s, mean {_fmt(sp['mean'], '.1f')} s, "
-        f"max {_fmt(sp['max'], '.1f')} s; per 100 s at 2 kHz: median {_fmt(sp100.get('median'), '.1f')} s, "
-        f"max {_fmt(sp100.get('max'), '.1f')} s",
+        f"max {_fmt(sp['max'], '.1f')} s" + (f"; per 100 s at 2 kHz ({sp100['n']} cases): median "
+                                            f"{_fmt(sp100.get('median'), '.1f')} s, max {_fmt(sp100.get('max'), '.1f')} s"
+                                            if sp100.get("n") else ""),
     ]
     if "habit_cases" in s:
         ml = s["mains_lines"]
