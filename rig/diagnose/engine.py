@@ -609,43 +609,6 @@ def _evidence(name: str, st: dict, mm: dict, extra: str = "") -> str:
             f"{100 * st['holdout_gain']:.1f} % (needs > {100 * MIN_GAIN:.1f} %)")
 
 
-def _multisine_lines(cmd: command_mod.Command, y: np.ndarray, use: np.ndarray, noise_psd: noise_mod.NoiseFloor,
-                     skip_hz: list[float]) -> dict:
-    """Nonlinear distortion detector of an odd multisine: the measured position averaged over whole periods at
-    the unexcited odd and the even lines of the band, rms over the noise expected there."""
-    P = cmd.period
-    start = int(np.argmax(use)) if use.any() else 0
-    first = int(math.ceil(start / P)) * P
-    k = (len(y) - first) // P
-    if k < 1 or cmd.excited_lines is None:
-        return {}
-    seg = (y[first:first + k * P] - np.mean(y[first:first + k * P])).reshape(k, P)
-    Y = np.fft.rfft(seg.mean(axis=0)) * 2.0 / P                  # line amplitudes, m
-    fs = cmd.fs_hz
-    freqs = np.arange(len(Y)) * fs / P
-    exc = set(int(i) for i in cmd.excited_lines)
-    kmin, kmax = int(min(exc)), int(max(exc))
-    span = np.arange(max(1, kmin), min(len(Y) - 1, 3 * kmax) + 1)
-    span = np.array([i for i in span if all(abs(freqs[i] - f) > 1.5 * fs / P for f in skip_hz)], int)
-    odd = np.array([i for i in span if i % 2 == 1 and i not in exc], int)
-    even = np.array([i for i in span if i % 2 == 0], int)
-    # noise of PSD S (variance S fs/2 per sample) gives E|Y|^2 = 4 (S fs/2) / (P k) on a line averaged over k periods
-    S = np.interp(freqs, noise_psd.freqs_hz, noise_psd.psd)
-    sig = np.sqrt(2.0 * S * fs / (P * k))
-
-    def ratio(idx):
-        return np.abs(Y[idx]) ** 2 / np.maximum(sig[idx] ** 2, 1e-300)
-
-    def over(idx):          # rms line amplitude over the noise's (1 for noise alone)
-        return float(np.sqrt(np.mean(ratio(idx)))) if len(idx) else None
-
-    def z(idx):             # how many standard errors the mean power ratio stands above 1 (noise alone: ~N(0,1))
-        return float((np.mean(ratio(idx)) - 1.0) * math.sqrt(len(idx))) if len(idx) else None
-    return {"odd_over_noise": over(odd), "even_over_noise": over(even), "odd_z": z(odd), "even_z": z(even),
-            "periods": int(k), "odd_lines": int(len(odd)), "even_lines": int(len(even)),
-            "line_spacing_hz": fs / P}
-
-
 def _summary_effects(effects: list[dict]) -> str:
     return ", ".join(f"{e['name']} ({', '.join(f'{k}={_fmt(v)}' for k, v in e['parameters'].items())})"
                      for e in effects)
@@ -810,7 +773,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
         nonlinear_hint = harm["odd_over_noise"] > HARMONIC_SCREEN
     elif cmd_info.kind == "multisine":
         y_clean = pb.y - pb.basis.B @ refit.coef
-        ms = _multisine_lines(cmd_info, y_clean, use, floor_ref, [l["frequency_hz"] for l in lines])
+        ms = locate.multisine_lines(cmd_info, y_clean, use, floor_ref, [l["frequency_hz"] for l in lines])
         if ms:
             mm["multisine_lines"] = ms
             vals = [v for v in (ms.get("odd_z"), ms.get("even_z")) if v is not None]
@@ -905,7 +868,7 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
                 h2 = locate.harmonics(r_cur * use, cmd_info.phase, fs, pb.noise)
                 harmonic_now = h2["odd_over_noise"] > HARMONIC_SCREEN
             elif cmd_info.kind == "multisine":      # distortion the current model leaves on the empty lines
-                ms2 = _multisine_lines(cmd_info, r_cur, use, floor_ref, [l["frequency_hz"] for l in lines])
+                ms2 = locate.multisine_lines(cmd_info, r_cur, use, floor_ref, [l["frequency_hz"] for l in lines])
                 vals = [v for v in (ms2.get("odd_z"), ms2.get("even_z")) if v is not None]
                 harmonic_now = bool(vals) and max(vals) > 2 * HARMONIC_SCREEN
             if "periodic_disturbance" in chosen and "periodic_disturbance" in screen:

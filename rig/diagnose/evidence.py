@@ -93,6 +93,34 @@ def residual_by_command(pb, r_ref: np.ndarray, r_aug: np.ndarray) -> dict:
             "finding": finding}
 
 
+def distortion(pb, cmd_info, r_ref: np.ndarray, r_aug: np.ndarray, noise_floor) -> dict:
+    """Nonlinear distortion before and after the augmented model: harmonics of a sweep's phase (orders 2-5), or
+    a multisine's unexcited odd and even lines, over the noise."""
+    from rig.diagnose import locate
+    if cmd_info.kind == "sweep" and cmd_info.phase is not None:
+        h = [locate.harmonics(r * pb.use, cmd_info.phase, pb.fs, pb.noise) for r in (r_ref, r_aug)]
+        orders = ["2", "3", "4", "5"]
+        ref = [h[0][o]["over_noise"] for o in orders]
+        aug = [h[1][o]["over_noise"] for o in orders]
+        odd, even = max(ref[1], ref[3]), max(ref[0], ref[2])
+        return {"kind": "harmonics", "labels": [f"order {o}" for o in orders], "refit": ref, "augmented": aug,
+                "finding": f"harmonics of the sweep in the refit residual: odd orders up to {odd:.1f}x noise, even "
+                           f"up to {even:.1f}x ({'odd' if odd > even else 'even'} distortion); after the augmented "
+                           f"model up to {max(aug):.1f}x"}
+    if cmd_info.kind == "multisine":
+        m = [locate.multisine_lines(cmd_info, r, pb.use, noise_floor, []) for r in (r_ref, r_aug)]
+        if not m[0]:
+            return {}
+        ref = [m[0]["odd_over_noise"] or 0.0, m[0]["even_over_noise"] or 0.0]
+        aug = [m[1]["odd_over_noise"] or 0.0, m[1]["even_over_noise"] or 0.0]
+        return {"kind": "harmonics", "labels": ["unexcited odd lines", "even lines"], "refit": ref, "augmented": aug,
+                "finding": f"the multisine's unexcited odd lines hold {ref[0]:.2f}x the noise in the refit residual "
+                           f"({m[0]['odd_z']:.0f} standard errors above noise alone), its even lines {ref[1]:.2f}x: "
+                           f"{'odd' if (m[0]['odd_z'] or 0) > (m[0]['even_z'] or 0) else 'even'} distortion; after "
+                           f"the augmented model {aug[0]:.2f}x and {aug[1]:.2f}x"}
+    return {}
+
+
 def residual_by_velocity(pb, y_lin: np.ndarray, r_ref: np.ndarray, r_aug: np.ndarray) -> dict:
     v = np.gradient(y_lin) * pb.fs
     u = pb.use
@@ -102,11 +130,12 @@ def residual_by_velocity(pb, y_lin: np.ndarray, r_ref: np.ndarray, r_aug: np.nda
     _, m_aug = _binned(v[u], r_aug[u], edges, lambda z: float(np.mean(z)))
     if len(c) < 4:
         return {}
-    neg, pos = m_ref[c < 0], m_ref[c > 0]
+    slow_ = np.abs(c) < 0.3 * vmax                      # friction shows at low velocity
+    neg, pos = m_ref[(c < 0) & slow_], m_ref[(c > 0) & slow_]
     step = float(np.mean(neg) - np.mean(pos)) if len(neg) and len(pos) else 0.0
-    finding = (f"the refit residual averages {np.mean(neg) * 1e9:+.3g} nm while the piston moves down and "
-               f"{np.mean(pos) * 1e9:+.3g} nm while it moves up: a step of {abs(step) * 1e9:.3g} nm "
-               f"({abs(step) / pb.noise:.1f}x noise) at the velocity reversal"
+    finding = (f"at low velocity the refit residual averages {np.mean(neg) * 1e9:+.3g} nm while the piston moves "
+               f"down and {np.mean(pos) * 1e9:+.3g} nm while it moves up: a step of {abs(step) * 1e9:.3g} nm "
+               f"({abs(step) / pb.noise:.1f}x noise) at the velocity reversal, which the augmented model removes"
                if len(neg) and len(pos) else "no velocity range to compare")
     return {"velocity_mps": c, "refit_mean_m": m_ref, "augmented_mean_m": m_aug, "noise_m": pb.noise,
             "finding": finding}
@@ -163,8 +192,11 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
     for e in effects:
         name = e["name"]
         if name in ("valve_saturation", "valve_deadband"):
-            ev["effects"][name] = {"kind": "levels", **lv} if lv else {"kind": "command",
-                                                                       **residual_by_command(pb, r_ref, r_aug)}
+            # several levels: gain by level; one level: the distortion the sweep or multisine shows; else the
+            # residual by command magnitude
+            ev["effects"][name] = ({"kind": "levels", **lv} if lv else
+                                   distortion(pb, cmd_info, r_ref, r_aug, noise_floor)
+                                   or {"kind": "command", **residual_by_command(pb, r_ref, r_aug)})
         elif name == "coulomb_friction":
             ev["effects"][name] = {"kind": "velocity", **residual_by_velocity(pb, y_lin, r_ref, r_aug)}
         elif name in ("transport_delay", "base_resonance"):

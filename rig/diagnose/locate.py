@@ -1,39 +1,12 @@
 """Where and how the recording differs from a model: FRF bands beyond the coherence-based uncertainty, time
-windows, regimes (command magnitude, velocity sign), harmonics of the instantaneous chirp frequency, and
-spectral lines not correlated with the command.
+windows, regimes (command magnitude, velocity sign), harmonics of a sweep's instantaneous phase (read from the
+command by rig.diagnose.command), and spectral lines not correlated with the command.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.signal import hilbert
-
-
-def noise_rms(resid: np.ndarray, fs: float) -> float:
-    """White position noise from the residual periodogram's median in the top of the band (robust to lines)."""
-    n = len(resid)
-    w = np.hanning(n)                                  # no leakage from strong low-frequency lines
-    P = np.abs(np.fft.rfft((resid - resid.mean()) * w)) ** 2 / np.sum(w ** 2)
-    f = np.fft.rfftfreq(n, 1.0 / fs)
-    sel = (f > 0.6 * fs / 2) & (f < 0.95 * fs / 2)
-    return float(math.sqrt(np.median(P[sel]) / math.log(2)))
-
-
-def chirp_phase(cmd_V: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """Instantaneous phase [rad] and frequency [Hz] of the command (analytic signal)."""
-    ph = np.unwrap(np.angle(hilbert(cmd_V - np.mean(cmd_V))))
-    f = np.gradient(ph) * fs / (2 * math.pi)
-    return ph, f
-
-
-def chirp_band(f_inst: np.ndarray, fs: float) -> tuple[float, float]:
-    from scipy.ndimage import median_filter
-    n = len(f_inst)
-    m = n // 200                                       # the analytic signal is unreliable at the very ends
-    core = np.clip(median_filter(f_inst, size=max(3, int(fs) | 1), mode="nearest")[m: n - m], 0.0, fs / 2)
-    lo, hi = np.percentile(core, [0.5, 99.5])
-    return max(float(lo), 3.0 * fs / n), min(float(hi), 0.45 * fs)
 
 
 def _merge(mask: np.ndarray, edges_lo: np.ndarray, edges_hi: np.ndarray) -> list[list[float]]:
@@ -217,3 +190,39 @@ def refine_line(resid: np.ndarray, fs: float, f0: float) -> float:
             break
         h = max(0.05 * d, min(h, 2 * abs(step)))
     return float(min(max(f, f0 - 1.5 * d), f0 + 1.5 * d))
+
+
+def multisine_lines(cmd, y: np.ndarray, use: np.ndarray, noise_psd, skip_hz: list[float]) -> dict:
+    """Nonlinear distortion detector of an odd multisine: the measured position averaged over whole periods at
+    the unexcited odd and the even lines of the band, rms over the noise expected there."""
+    P = cmd.period
+    start = int(np.argmax(use)) if use.any() else 0
+    first = int(math.ceil(start / P)) * P
+    k = (len(y) - first) // P
+    if k < 1 or cmd.excited_lines is None:
+        return {}
+    seg = (y[first:first + k * P] - np.mean(y[first:first + k * P])).reshape(k, P)
+    Y = np.fft.rfft(seg.mean(axis=0)) * 2.0 / P                  # line amplitudes, m
+    fs = cmd.fs_hz
+    freqs = np.arange(len(Y)) * fs / P
+    exc = set(int(i) for i in cmd.excited_lines)
+    kmin, kmax = int(min(exc)), int(max(exc))
+    span = np.arange(max(1, kmin), min(len(Y) - 1, 3 * kmax) + 1)
+    span = np.array([i for i in span if all(abs(freqs[i] - f) > 1.5 * fs / P for f in skip_hz)], int)
+    odd = np.array([i for i in span if i % 2 == 1 and i not in exc], int)
+    even = np.array([i for i in span if i % 2 == 0], int)
+    # noise of PSD S (variance S fs/2 per sample) gives E|Y|^2 = 4 (S fs/2) / (P k) on a line averaged over k periods
+    S = np.interp(freqs, noise_psd.freqs_hz, noise_psd.psd)
+    sig = np.sqrt(2.0 * S * fs / (P * k))
+
+    def ratio(idx):
+        return np.abs(Y[idx]) ** 2 / np.maximum(sig[idx] ** 2, 1e-300)
+
+    def over(idx):          # rms line amplitude over the noise's (1 for noise alone)
+        return float(np.sqrt(np.mean(ratio(idx)))) if len(idx) else None
+
+    def z(idx):             # how many standard errors the mean power ratio stands above 1 (noise alone: ~N(0,1))
+        return float((np.mean(ratio(idx)) - 1.0) * math.sqrt(len(idx))) if len(idx) else None
+    return {"odd_over_noise": over(odd), "even_over_noise": over(even), "odd_z": z(odd), "even_z": z(even),
+            "periods": int(k), "odd_lines": int(len(odd)), "even_lines": int(len(even)),
+            "line_spacing_hz": fs / P}

@@ -461,6 +461,16 @@ def _plot_command(ax, d: dict) -> None:
     ax.legend(fontsize=8)
 
 
+def _plot_harmonics(ax, d: dict) -> None:
+    x = np.arange(len(d["labels"]))
+    ax.bar(x - 0.2, d["refit"], width=0.4, color=COLORS["refit"], label="refit residual")
+    ax.bar(x + 0.2, d["augmented"], width=0.4, color=COLORS["augmented"], label="augmented residual")
+    ax.axhline(1.0, color="0.4", ls="--", lw=1, label="noise")
+    ax.set_xticks(x, d["labels"])
+    ax.set_ylabel("rms over the noise")
+    ax.legend(fontsize=8)
+
+
 def _plot_velocity(ax, d: dict) -> None:
     v = np.asarray(d["velocity_mps"]) * 1e3
     ax.plot(v, np.asarray(d["refit_mean_m"]) * 1e9, "o-", color=COLORS["refit"], label="refit residual (mean)")
@@ -553,6 +563,7 @@ _EVIDENCE_TITLES = {
     "line": "the line in position and in acceleration", "zero": "the transducer's zero (offset, drift, wander)",
     "quantisation": "residual against the converter step", "clip": "clipped samples",
     "accel": "the accelerometer against the position's second derivative",
+    "harmonics": "nonlinear distortion the command's own structure shows",
 }
 
 
@@ -568,7 +579,7 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
     for label, key, d in items:
         kind = d.get("kind") or key
         if kind not in _EVIDENCE_TITLES or (kind == "levels" and not d.get("rows")) or \
-                (kind in ("command", "velocity", "frf") and len(d) <= 2):
+                (kind in ("command", "velocity", "frf", "harmonics") and len(d) <= 2):
             if d.get("finding"):
                 out.append((label, "", d["finding"]))
             continue
@@ -582,7 +593,7 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
         else:
             ax = fig.subplots()
             {"levels": _plot_levels, "command": _plot_command, "velocity": _plot_velocity, "zero": _plot_zero,
-             "quantisation": _plot_quantisation, "clip": _plot_clip}[kind](ax, d)
+             "quantisation": _plot_quantisation, "clip": _plot_clip, "harmonics": _plot_harmonics}[kind](ax, d)
         for ax in fig.axes:
             ax.grid(True, alpha=0.3)
         fig.suptitle(f"{label}: {_EVIDENCE_TITLES[kind]}", fontsize=10)
