@@ -1023,21 +1023,23 @@ def _sensor_summary(s: sensor_mod.SensorTerms) -> str:
 
 def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, refit: Fit, cmd_info, check,
              use: np.ndarray, r_ref: np.ndarray) -> Verdict:
-    """Say whether the models describe the recording, and if not, what the evidence suggests."""
-    if no_claim:
-        return Verdict("no_claim", f"No claim: {no_claim}.")
-    over = fit["augmented"]["residual_over_noise_holdout"]
-    over_ref = fit["refit"]["residual_over_noise_holdout"]
-    if over <= VERDICT_AT_NOISE:
-        if effects:
-            return Verdict("explained", f"The augmented model explains the recording (residual {over:.2f}x noise).")
-        return Verdict("explained", f"The refit of the linear parameters explains the recording (residual "
-                                    f"{over:.2f}x noise).")
+    """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
+    is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
     loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
     if loop.closed:
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")
+    if no_claim:
+        return Verdict("no_claim", f"No claim: {no_claim}.", sugg)
+    over = fit["augmented"]["residual_over_noise_holdout"]
+    over_ref = fit["refit"]["residual_over_noise_holdout"]
+    if over <= VERDICT_AT_NOISE:
+        if effects:
+            return Verdict("explained", f"The augmented model explains the recording (residual {over:.2f}x noise).",
+                           sugg)
+        return Verdict("explained", f"The refit of the linear parameters explains the recording (residual "
+                                    f"{over:.2f}x noise).", sugg)
     at_bounds = [k for k in LIN_KEYS
                  if min(abs(math.log(refit.lin[k] / getattr(pb.p0, k)) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
     if at_bounds:
