@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: install
-	$(BIN)/rig demo --out demo_out
+	$(BIN)/rig demo --out demo_out --overwrite
 
 test: install
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q tests

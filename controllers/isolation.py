@@ -20,70 +20,97 @@ Why this compensator: the plant u -> x_p (valve, Eq. 1; flow integrator with the
 the machine's mass on the actuators' stiffness at 230-290 Hz, damping ~0.2) has lost ~210 deg of phase at
 100 Hz and ~300 deg at 200 Hz, ZOH and one period of computation delay included. Lead1 cancels the 7 Hz lag
 (so the loop gain stays up to the valve's 83 Hz), lead2 buys the phase at crossover, the notch takes the
-machine-on-actuator resonances down so they are gain-stabilised, and the roll-off keeps accelerometer noise and
-high-frequency modes out of the valve. The PI gives the low-frequency gain (>= 20 dB at 1 Hz).
+machine-on-actuator resonances down so they are gain-stabilised, the second notch (a peak when its zero is
+damped more than its pole) lifts the loop gain at the top of the 1-100 Hz band just below crossover, and the
+roll-off keeps accelerometer noise and high-frequency modes out of the valve. The PI gives the low-frequency
+gain (>= 25 dB at 1 Hz).
 
 Why Tustin, prewarped at prewarp_hz (200 Hz, the phase-crossover / resonance region where the gain margin is
 decided) for the compensator, plain for the slow blend: it maps a stable continuous factor to a stable discrete
 one without aliasing, and is exact at the prewarp frequency. The design is checked (and
 was tuned, controllers/tune.py) on the *discrete* loop with the ZOH and one period of computation delay
-(controllers/analysis.py), which evaluates exactly the coefficients the step function runs.
+(controllers/analysis.py), which evaluates exactly the coefficients the compiled law runs.
+
+One implementation: `isolation_step` (numba) is the law; the runtime's period (rig/kernel.py) calls it for
+every isolation mount, and IsolationController.step calls it for design tools and tests. The controller
+object is the builder: coefficients (`coefficients()`), the named state layout (`state_names`), bumpless
+switching (`set_enabled`) and the transfer functions for analysis.
 
 Bumpless isolation on/off (`set_enabled`): the filters always run (so they are warm); switching seeds a
 fading offset b so that the command does not jump, then b decays with time constant fade_s. Centring stays on
 (the blend when isolating, the slow integrator when not). The loop is closed at full gain at once.
 
 Saturation recovery (sat_reset_s, sat_resume_s): isolating with the output held at the clamp for sat_reset_s
-(0.1 s: longer than the clamp bursts of shocks the loop rides out, well below safety.saturation_s) suspends
+(longer than the clamp bursts of shocks the loop rides out, well below safety.saturation_s) suspends
 isolation bumplessly (centring alone, filters running) and resumes it by itself once the estimate has
-settled; see step. Measured cause of the latch: a scheduling gap leaves a velocity error in the double
-integration, which the 0.1 Hz blend forgets only in ~10 s (tests/test_runtime_saturation.py).
+settled; see isolation_step. The usual cause of the latch: a scheduling gap leaves a velocity error in the double
+integration, which a 0.1 Hz blend forgets only over many seconds (tests/rig/test_saturation.py).
 
-Tuned defaults (rig/config.py [controller], 5 kHz, ZOH + 1 period delay): gain crossover 114-121 Hz, phase
-crossover 207-239 Hz, GM 4.6-4.9 dB, PM 60-70 deg, ground -> table/tool 20.3 dB at 1 Hz, >= 2.97 dB 1-100 Hz.
-The blend at 0.1 Hz keeps the accelerometer-noise wander (RigPlant: 2e-4 m/s^2 per sample) to ~1 V rms of valve.
+The defaults are rig/config.py's [controller] section; `rig design` prints the margins and isolation they
+give (README).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
+import numba
 import numpy as np
 
-from controllers.discrete import sos_frf, sos_ss, sos_step, sos_tf
+from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
+from controllers.limits import clamp, slew
+from controllers.state import step_law
+from rig.config import MOUNTS, ControllerConfig, SafetyConfig
+from sim_backend.linear import ActuatorParams
 
-# scalar states after the filter sections: last v, PI integral, centring integral, last stroke, fade offset,
-# isolation on (as requested), last command, saturation-recovery counter (periods), isolation suspended,
-# mean of v while suspended
+KIND = 1                      # rig/kernel.py dispatches on it
+
+# Named state: two states per filter section (transposed direct form II, in section order), then these scalars
+SCALAR_STATES = ("v", "pi_integral", "centring_integral", "stroke_prev_m", "fade_offset_V", "isolation_on",
+                 "cmd_prev_V", "sat_count", "suspended", "v_mean")
 _V, _I, _C, _S, _B, _ON, _U, _K, _SUS, _A = range(10)
-_N = 10
+_N = len(SCALAR_STATES)
+
+# Named coefficients: these scalars, then the sections (b0, b1, b2, a1, a2) in state order
+COEFFICIENTS = ("n_sections", "n_h_acc", "n_f_str", "half_dt", "kp", "ki", "kc", "fade", "limit_V", "slew_V",
+                "sat_n", "resume_n", "resume_m", "resume_a")
+(_CF_NSEC, _CF_NH, _CF_NF, _CF_H, _CF_KP, _CF_KI, _CF_KC, _CF_FADE, _CF_LIM, _CF_SLEW, _CF_SATN, _CF_RESN,
+ _CF_RESM, _CF_RESA) = range(14)
+_CF_SECTIONS = len(COEFFICIENTS)
+
+
+_CC, _SC = ControllerConfig(), SafetyConfig()      # the one source of defaults: rig/config.py
 
 
 @dataclass(frozen=True)
 class IsolationParams:
-    """Continuous design parameters of one mount's loop (SI units; frequencies in Hz)."""
-    blend_hz: float = 0.1             # complementary blend accelerometer / stroke (centring bandwidth)
-    kp_V_per_m: float = 1.0e6         # PI proportional gain on the compensated position
-    pi_corner_hz: float = 5.0         # PI integral corner w_i / 2 pi
-    lead1_zero_hz: float = 60.0
-    lead1_pole_hz: float = 600.0
-    lead2_zero_hz: float = 120.0
-    lead2_pole_hz: float = 900.0
-    rolloff_hz: float = 1200.0        # second-order low-pass (0 = none)
-    rolloff_zeta: float = 0.7
-    notch_hz: float = 0.0             # optional notch (0 = none)
-    notch_zeta_zero: float = 0.1
-    notch_zeta_pole: float = 0.5
-    centring_hz: float = 0.02         # crossover of the slow centring loop while isolation is off
-    dc_gain_m_per_V: float = 2.68e-6  # actuator static gain (sets the centring gain k_c)
-    prewarp_hz: float = 200.0         # Tustin prewarp frequency of the compensator (phase-crossover region)
-    fade_s: float = 0.1               # bumpless switching offset decay time
-    sat_reset_s: float = 0.1          # isolating at the output clamp this long: suspend isolation (0 = never)
-    sat_resume_s: float = 0.5         # suspended: resume once the estimate's mean stayed small this long
-    limit_V: float = 10.0             # output clamp
-    slew_V_per_s: float = 1.0e4       # output slew limit
-    gain_trim: float = 1.0            # per-mount multiplier on kp
+    """Continuous design parameters of one mount's loop (SI units; frequencies in Hz). Defaults: rig/config.py
+    [controller] and [safety]; dc_gain_m_per_V is the actuator model's (sim_backend/linear.py)."""
+    blend_hz: float = _CC.blend_hz                # complementary blend accelerometer / stroke (centring bandwidth)
+    kp_V_per_m: float = _CC.kp_V_per_m            # PI proportional gain on the compensated position
+    pi_corner_hz: float = _CC.pi_corner_hz        # PI integral corner w_i / 2 pi
+    lead1_zero_hz: float = _CC.lead1_zero_hz
+    lead1_pole_hz: float = _CC.lead1_pole_hz
+    lead2_zero_hz: float = _CC.lead2_zero_hz
+    lead2_pole_hz: float = _CC.lead2_pole_hz
+    rolloff_hz: float = _CC.rolloff_hz            # second-order low-pass (0 = none)
+    rolloff_zeta: float = _CC.rolloff_zeta
+    notch_hz: float = _CC.notch_hz                # optional notch (0 = none)
+    notch_zeta_zero: float = _CC.notch_zeta_zero
+    notch_zeta_pole: float = _CC.notch_zeta_pole
+    notch2_hz: float = _CC.notch2_hz              # optional second notch, or peak (zeta_zero > zeta_pole); 0 = none
+    notch2_zeta_zero: float = _CC.notch2_zeta_zero
+    notch2_zeta_pole: float = _CC.notch2_zeta_pole
+    centring_hz: float = _CC.centring_hz          # crossover of the slow centring loop while isolation is off
+    dc_gain_m_per_V: float = ActuatorParams().dc_gain_m_per_V   # actuator static gain (sets the centring gain)
+    prewarp_hz: float = _CC.prewarp_hz            # Tustin prewarp frequency of the compensator
+    fade_s: float = _CC.fade_s                    # bumpless switching offset decay time
+    sat_reset_s: float = _CC.sat_reset_s          # isolating at the output clamp this long: suspend (0 = never)
+    sat_resume_s: float = _CC.sat_resume_s        # suspended: resume once the estimate's mean stayed small
+    limit_V: float = _SC.valve_limit_V            # output clamp
+    slew_V_per_s: float = _SC.slew_V_per_s        # output slew limit
+    gain_trim: float = 1.0                        # per-mount multiplier on kp
 
     def with_(self, **kw) -> "IsolationParams":
         if "accel_hp_hz" in kw:          # the first version's name of the low-frequency corner (now the blend)
@@ -92,23 +119,14 @@ class IsolationParams:
 
 
 def params_from_config(cfg, mount: int = 0) -> IsolationParams:
-    """IsolationParams of one mount from cfg.controller (rig/config.py), cfg.safety and the actuator."""
-    from sim_backend.linear import ActuatorParams
-    c = getattr(cfg, "controller", None)
-    dc = ActuatorParams.from_config(cfg).dc_gain_m_per_V
-    base = IsolationParams(dc_gain_m_per_V=dc, limit_V=cfg.safety.valve_limit_V,
-                           slew_V_per_s=cfg.safety.slew_V_per_s)
-    if c is None:
-        return base
+    """IsolationParams of one mount from cfg.controller (rig/config.py), cfg.safety and the actuator's DC gain
+    (the physics model's figure for the configured Table 1 values)."""
+    c = cfg.controller
+    names = {f.name for f in fields(IsolationParams)}
+    design = {f.name: getattr(c, f.name) for f in fields(c) if f.name in names and f.name != "gain_trim"}
     trim = c.gain_trim[mount] if len(c.gain_trim) > mount else 1.0
-    return base.with_(blend_hz=c.blend_hz, kp_V_per_m=c.kp_V_per_m, pi_corner_hz=c.pi_corner_hz,
-                      lead1_zero_hz=c.lead1_zero_hz, lead1_pole_hz=c.lead1_pole_hz,
-                      lead2_zero_hz=c.lead2_zero_hz, lead2_pole_hz=c.lead2_pole_hz,
-                      rolloff_hz=c.rolloff_hz, rolloff_zeta=c.rolloff_zeta, notch_hz=c.notch_hz,
-                      notch_zeta_zero=c.notch_zeta_zero, notch_zeta_pole=c.notch_zeta_pole,
-                      centring_hz=c.centring_hz, prewarp_hz=c.prewarp_hz, fade_s=c.fade_s, gain_trim=trim,
-                      sat_reset_s=getattr(c, "sat_reset_s", base.sat_reset_s),
-                      sat_resume_s=getattr(c, "sat_resume_s", base.sat_resume_s))
+    return IsolationParams(**design, gain_trim=trim, dc_gain_m_per_V=ActuatorParams.from_config(cfg).dc_gain_m_per_V,
+                           limit_V=cfg.safety.valve_limit_V, slew_V_per_s=cfg.safety.slew_V_per_s)
 
 
 class IsolationController:
@@ -148,10 +166,11 @@ class IsolationController:
                 if fz > 0 and fp > 0:
                     wz, wp = 2 * math.pi * fz, 2 * math.pi * fp
                     comp.append(tustin_section([1 / wz, 1.0], [1 / wp, 1.0], dt, pw))   # (1+s/wz)/(1+s/wp)
-            if p.notch_hz > 0:
-                wn = 2 * math.pi * p.notch_hz
-                comp.append(tustin_section([1.0, 2 * p.notch_zeta_zero * wn, wn * wn],
-                                           [1.0, 2 * p.notch_zeta_pole * wn, wn * wn], dt, p.notch_hz))
+            for fn, zz, zp in ((p.notch_hz, p.notch_zeta_zero, p.notch_zeta_pole),
+                               (p.notch2_hz, p.notch2_zeta_zero, p.notch2_zeta_pole)):
+                if fn > 0:                             # (s^2 + 2 zz wn s + wn^2) / (s^2 + 2 zp wn s + wn^2)
+                    wn = 2 * math.pi * fn
+                    comp.append(tustin_section([1.0, 2 * zz * wn, wn * wn], [1.0, 2 * zp * wn, wn * wn], dt, fn))
             if p.rolloff_hz > 0:
                 wr = 2 * math.pi * p.rolloff_hz
                 comp.append(tustin_section([wr * wr], [1.0, 2 * p.rolloff_zeta * wr, wr * wr], dt, pw))
@@ -162,10 +181,7 @@ class IsolationController:
         self.fade = math.exp(-dt / p.fade_s)
         self.limit = p.limit_V
         self.slew = p.slew_V_per_s * dt
-        self._ia = 0                                                # state offsets
-        self._is = 2 * len(self.h_acc)
-        self._ic = self._is + 2 * len(self.f_str)
-        self._o = self._ic + 2 * len(self.comp)
+        self._o = 2 * (len(self.h_acc) + len(self.f_str) + len(self.comp))   # the scalar states start here
         self.sections = tuple(self.h_acc + self.f_str + self.comp)
         # saturation recovery (see step): clamp periods before suspending, in-range periods before resuming
         self.sat_n = max(1, int(round(p.sat_reset_s / dt))) if p.sat_reset_s > 0 else 0
@@ -174,8 +190,20 @@ class IsolationController:
         # what is left of the estimate's error then fits the actuator's range
         self.resume_m = 0.5 * p.limit_V * p.dc_gain_m_per_V
         self.resume_a = dt / p.sat_resume_s          # mean over ~sat_resume_s (first-order)
+        self.state_names = tuple(f"{g}{k}_z{j}" for g, secs in (("h_acc", self.h_acc), ("f_str", self.f_str),
+                                                                ("comp", self.comp))
+                                 for k in range(len(secs)) for j in (1, 2)) + SCALAR_STATES
+        self._coef = self.coefficients()
+
+    def coefficients(self) -> np.ndarray:
+        """The law's coefficients (COEFFICIENTS, then the sections): what rig/kernel.py copies into its block."""
+        head = (len(self.sections), len(self.h_acc), len(self.f_str), 0.5 * self.dt, self.kp, self.ki, self.kc,
+                self.fade, self.limit, self.slew, self.sat_n, self.resume_n, self.resume_m, self.resume_a)
+        return np.concatenate([np.array(head, dtype=np.float64), np.ravel(self.sections)])
 
     # ---- the runtime interface ---------------------------------------------------------------------
+    kind = KIND
+
     def initial_state(self) -> list[float]:
         s = [0.0] * (self._o + _N)
         s[self._o + _ON] = 1.0
@@ -209,84 +237,12 @@ class IsolationController:
     def enabled(self, state: list) -> bool:
         return state[self._o + _ON] > 0.5
 
-    def step(self, state: list, meas, dt: float):
+    def step(self, state, meas, dt: float):
+        """One period through the compiled law (design tools and tests; the runtime's period calls the law
+        itself). state: a float64 array or a list, updated in place and returned."""
         if abs(dt - self.dt) > 1e-6 * self.dt:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
-        a, s = meas
-        o = self._o
-        # y = H/s^2 a + F stroke, then v = Comp y (the compiled bank runs the same operations in the same order)
-        y = sos_step(self.h_acc, state, 0, a)
-        x = sos_step(self.f_str, state, self._is, s)
-        v = sos_step(self.comp, state, self._ic, x + y)
-        h = 0.5 * dt
-        on = state[o + _ON] > 0.5 and state[o + _SUS] < 0.5
-        if on:
-            d_i = self.ki * h * (v + state[o + _V])                 # Tustin PI integral
-            d_c = 0.0                                              # centring: the blend does it
-        else:
-            d_i = 0.0
-            d_c = self.kc * h * (s + state[o + _S])                # slow centring integrator
-        integ = state[o + _I] + d_i
-        cent = state[o + _C] + d_c
-        b = state[o + _B] * self.fade
-        u = (-(self.kp * v + integ) if on else 0.0) + b - cent
-        up = state[o + _U]
-        sat = 0.0
-        if u - up > self.slew:
-            u, sat = up + self.slew, 1.0
-        elif up - u > self.slew:
-            u, sat = up - self.slew, -1.0
-        lim = self.limit
-        if u > lim:
-            u, sat = lim, 1.0
-        elif u < -lim:
-            u, sat = -lim, -1.0
-        if sat != 0.0:
-            # anti-windup (conditional integration): drop increments that push further into the limit
-            if d_i * sat < 0.0:
-                integ -= d_i
-            if d_c * sat < 0.0:
-                cent -= d_c
-        state[o + _V] = v
-        state[o + _I] = integ
-        state[o + _C] = cent
-        state[o + _S] = s
-        state[o + _B] = b
-        state[o + _U] = u
-        if self.sat_n:
-            # Saturation recovery. Isolating at the clamp for sat_reset_s: the loop is not following its
-            # estimate of the absolute motion (typically a velocity error in the double integration after a
-            # scheduling gap: with the 0.1 Hz blend a few um/s already drive the piston to its full stroke,
-            # and the estimate forgets it only at the blend's pace, seconds). Re-seeding the filters cannot fix
-            # that (the true velocity is unknown), so isolation is suspended the bumpless way (b takes over,
-            # centring alone), the filters keep running, and isolation resumes bumplessly once the mean of v
-            # (over ~sat_resume_s: the estimate's error, not the 1-50 Hz floor motion the loop is there to
-            # isolate) has stayed within resume_m for sat_resume_s. Inert in the linear range (brief clamping
-            # under shocks, tens of ms, recovers by itself and does not trigger it).
-            if on:
-                if u >= lim or u <= -lim:
-                    k = state[o + _K] + 1.0
-                    if k >= self.sat_n:
-                        state[o + _B] = u + cent                      # hold the output (at the clamp)
-                        state[o + _I] = 0.0
-                        state[o + _SUS] = 1.0
-                        state[o + _A] = v
-                        k = 0.0
-                    state[o + _K] = k
-                else:
-                    state[o + _K] = 0.0
-            elif state[o + _SUS] > 0.5:
-                m = state[o + _A]
-                m += self.resume_a * (v - m)
-                state[o + _A] = m
-                k = state[o + _K] + 1.0 if -self.resume_m < m < self.resume_m else 0.0
-                if k >= self.resume_n:
-                    state[o + _B] = b + self.kp * v                   # the PI restarts from zero, no jump
-                    state[o + _I] = 0.0
-                    state[o + _SUS] = 0.0
-                    k = 0.0
-                state[o + _K] = k
-        return u, state
+        return step_law(isolation_step, state, self._coef, float(meas[0]), float(meas[1])), state
 
     def suspended(self, state: list) -> bool:
         """True while the saturation recovery holds isolation off (the request stays on)."""
@@ -364,8 +320,108 @@ class IsolationController:
         return front * sos_tf(self.h_acc, self.dt), front * sos_tf(self.f_str, self.dt)
 
 
+# ---- the law (compiled; the one implementation) ---------------------------------------------------------
+@numba.njit(cache=True, inline="always")
+def _sections(st, cf, i, c, count, x):
+    """count biquads in series (transposed direct form II): states from st[i], coefficients from cf[c]."""
+    for _ in range(count):
+        yk = cf[c] * x + st[i]
+        st[i] = cf[c + 1] * x - cf[c + 3] * yk + st[i + 1]
+        st[i + 1] = cf[c + 2] * x - cf[c + 4] * yk
+        x = yk
+        i += 2
+        c += 5
+    return x, i, c
+
+
+@numba.njit(cache=True)
+def isolation_step(st, cf, a, s):
+    """One mount, one period: acceleration a [m/s^2] and stroke s [m] -> valve command [V]. st: the named
+    state (state_names), updated in place; cf: coefficients() (COEFFICIENTS, then the sections)."""
+    nsec = int(cf[_CF_NSEC])
+    na = int(cf[_CF_NH])
+    ns = int(cf[_CF_NF])
+    h = cf[_CF_H]
+    o = 2 * nsec
+    # y = H/s^2 a + F stroke, then v = Comp y
+    y, i, c = _sections(st, cf, 0, _CF_SECTIONS, na, a)
+    x, i, c = _sections(st, cf, i, c, ns, s)
+    x, i, c = _sections(st, cf, i, c, nsec - na - ns, x + y)
+    v = x
+    kp = cf[_CF_KP]
+    on = st[o + _ON] > 0.5 and st[o + _SUS] < 0.5
+    if on:
+        d_i = cf[_CF_KI] * h * (v + st[o + _V])         # Tustin PI integral
+        d_c = 0.0                                      # centring: the blend does it
+    else:
+        d_i = 0.0
+        d_c = cf[_CF_KC] * h * (s + st[o + _S])         # slow centring integrator
+    integ = st[o + _I] + d_i
+    cent = st[o + _C] + d_c
+    b = st[o + _B] * cf[_CF_FADE]
+    if on:
+        u = -(kp * v + integ) + b - cent
+    else:
+        u = 0.0 + b - cent
+    u, sat = slew(u, st[o + _U], cf[_CF_SLEW], 0.0)
+    lim = cf[_CF_LIM]
+    u, sat = clamp(u, lim, sat)
+    if sat != 0.0:
+        # anti-windup (conditional integration): drop increments that push further into the limit
+        if d_i * sat < 0.0:
+            integ -= d_i
+        if d_c * sat < 0.0:
+            cent -= d_c
+    st[o + _V] = v
+    st[o + _I] = integ
+    st[o + _C] = cent
+    st[o + _S] = s
+    st[o + _B] = b
+    st[o + _U] = u
+    if cf[_CF_SATN] > 0.0:
+        _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp)
+    return u
+
+
+@numba.njit(cache=True, inline="always")
+def _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp):
+    """Isolating at the clamp for sat_reset_s: the loop is not following its estimate of the absolute motion
+    (typically a velocity error in the double integration after a scheduling gap: with a slow blend a few
+    um/s already drive the piston to its full stroke, and the estimate forgets it only at the blend's pace).
+    Re-seeding the filters cannot fix that (the true velocity is unknown), so isolation is suspended the
+    bumpless way (b takes over, centring alone), the filters keep running, and isolation resumes bumplessly
+    once the mean of v (over ~sat_resume_s: the estimate's error, not the floor motion the loop is there to
+    isolate) has stayed within resume_m for sat_resume_s. Inert in the linear range."""
+    if on:
+        if u >= lim or u <= -lim:
+            k = st[o + _K] + 1.0
+            if k >= cf[_CF_SATN]:
+                st[o + _B] = u + cent                     # hold the output (at the clamp)
+                st[o + _I] = 0.0
+                st[o + _SUS] = 1.0
+                st[o + _A] = v
+                k = 0.0
+            st[o + _K] = k
+        else:
+            st[o + _K] = 0.0
+    elif st[o + _SUS] > 0.5:
+        mv = st[o + _A]
+        mv += cf[_CF_RESA] * (v - mv)
+        st[o + _A] = mv
+        rv = cf[_CF_RESM]
+        if -rv < mv < rv:
+            k = st[o + _K] + 1.0
+        else:
+            k = 0.0
+        if k >= cf[_CF_RESN]:
+            st[o + _B] = b + kp * v                       # the PI restarts from zero, no jump
+            st[o + _I] = 0.0
+            st[o + _SUS] = 0.0
+            k = 0.0
+        st[o + _K] = k
+
+
 def make_isolation_controllers(cfg, dt: float, *, compensator: bool = True) -> list[IsolationController]:
     """One controller per mount, rig.config.MOUNTS order, from cfg.controller (the runtime's entry point)."""
-    from rig.config import MOUNTS
     return [IsolationController(params_from_config(cfg, i), dt, compensator=compensator, name=m)
             for i, m in enumerate(MOUNTS)]

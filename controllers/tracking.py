@@ -6,34 +6,56 @@ The plant is G_EHA (Eq. 10, sim_backend/linear.py g_eha) on its test stand. The 
 the actuator's low-frequency lag K_C K_L / A_p^2 (~7.4 Hz), which turns the loop into ~k/s * G_valve: the
 bandwidth is then set by Kp against the valve's 83 Hz mode. Explicit state, no clock, I/O or globals;
 conditional-integration anti-windup against the output clamp and slew limit.
+
+`pid_step` (numba) is the law, the one implementation: rig/kernel.py runs it for a mount of this kind with the
+reference held in the state's `reference_m` slot (0: the piston held at mid-stroke); TrackingPID builds the
+coefficients and the named state and calls the same law for design tools and tests.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import control
+import numba
 import numpy as np
 
-# state: integral, e_prev, derivative filter output, u_prev
-_I, _E, _D, _U = range(4)
+from controllers.limits import clamp, slew
+from controllers.state import step_law
+from rig.config import ControllerConfig, SafetyConfig
+from sim_backend.linear import g_eha
+
+KIND = 3                      # rig/kernel.py dispatches on it
+
+STATE_NAMES = ("integral_V", "error_prev_m", "deriv_V", "cmd_prev_V", "reference_m")
+_I, _E, _D, _U, _R = range(5)
+COEFFICIENTS = ("kp", "half_dt_ki", "ad", "bd", "limit_V", "slew_V")
+_KP, _HI, _AD, _BD, _LIM, _SLEW = range(6)
+
+
+_CC, _SC = ControllerConfig(), SafetyConfig()      # the one source of defaults: rig/config.py
 
 
 @dataclass(frozen=True)
 class PIDParams:
-    kp_V_per_m: float = 3.0e5
-    ki_V_per_ms: float = 1.0e7
-    kd_Vs_per_m: float = 0.0
-    deriv_hz: float = 1000.0
-    limit_V: float = 10.0
-    slew_V_per_s: float = 1.0e4
+    kp_V_per_m: float = _CC.track_kp_V_per_m
+    ki_V_per_ms: float = _CC.track_ki_V_per_ms
+    kd_Vs_per_m: float = _CC.track_kd_Vs_per_m
+    deriv_hz: float = _CC.track_deriv_hz
+    limit_V: float = _SC.valve_limit_V
+    slew_V_per_s: float = _SC.slew_V_per_s
 
 
 class TrackingPID:
     """step(state, (reference_m, position_m), dt) -> (valve_cmd_V, state); state updated in place."""
 
-    def __init__(self, p: PIDParams, dt: float):
+    kind = KIND
+    state_names = STATE_NAMES
+
+    def __init__(self, p: PIDParams, dt: float, name: str = ""):
         self.p = p
         self.dt = float(dt)
+        self.name = name
         wd = 2 * math.pi * p.deriv_hz
         # Tustin of Kd s/(1 + s/wd): y_k = ad y_{k-1} + bd (e_k - e_{k-1})
         c = 2.0 / dt
@@ -41,34 +63,22 @@ class TrackingPID:
         self.bd = p.kd_Vs_per_m * wd * c / (c + wd)
         self.hi = 0.5 * dt * p.ki_V_per_ms
         self.slew = p.slew_V_per_s * dt
+        self._coef = self.coefficients()
+
+    def coefficients(self) -> np.ndarray:
+        return np.array((self.p.kp_V_per_m, self.hi, self.ad, self.bd, self.p.limit_V, self.slew))
 
     def initial_state(self) -> list[float]:
-        return [0.0, 0.0, 0.0, 0.0]
+        return [0.0] * len(STATE_NAMES)
 
-    def step(self, state: list, meas, dt: float):
+    def set_enabled(self, state, on: bool):
+        """No isolation to switch: the PID holds its reference either way."""
+        return state
+
+    def step(self, state, meas, dt: float):
         if abs(dt - self.dt) > 1e-6 * self.dt:
             raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
-        r, x = meas
-        e = r - x
-        d_i = self.hi * (e + state[_E])
-        integ = state[_I] + d_i
-        d = self.ad * state[_D] + self.bd * (e - state[_E])
-        u = self.p.kp_V_per_m * e + integ + d
-        lim = self.p.limit_V
-        sat = 0.0
-        if u > lim:
-            u, sat = lim, 1.0
-        elif u < -lim:
-            u, sat = -lim, -1.0
-        up = state[_U]
-        if u - up > self.slew:
-            u, sat = up + self.slew, 1.0
-        elif up - u > self.slew:
-            u, sat = up - self.slew, -1.0
-        if sat * d_i > 0.0:
-            integ -= d_i                     # anti-windup: no increment pushing further into the limit
-        state[_I], state[_E], state[_D], state[_U] = integ, e, d, u
-        return u, state
+        return step_law(pid_step, state, self._coef, float(meas[0]), float(meas[1])), state
 
     def frf(self, w: np.ndarray) -> np.ndarray:
         """C(z) at z = exp(j w dt), linear range."""
@@ -78,10 +88,27 @@ class TrackingPID:
         return self.p.kp_V_per_m + integ + deriv
 
 
+@numba.njit(cache=True)
+def pid_step(st, cf, r, x):
+    """One period: reference r and position x [m] -> valve command [V]; st (STATE_NAMES) updated in place."""
+    e = r - x
+    d_i = cf[_HI] * (e + st[_E])
+    integ = st[_I] + d_i
+    d = cf[_AD] * st[_D] + cf[_BD] * (e - st[_E])
+    u = cf[_KP] * e + integ + d
+    u, sat = clamp(u, cf[_LIM], 0.0)
+    u, sat = slew(u, st[_U], cf[_SLEW], sat)
+    if sat * d_i > 0.0:
+        integ -= d_i                     # anti-windup: no increment pushing further into the limit
+    st[_I] = integ
+    st[_E] = e
+    st[_D] = d
+    st[_U] = u
+    return u
+
+
 def tracking_response(act, ctrl: TrackingPID, f_hz: np.ndarray, delay: int = 1) -> np.ndarray:
     """Closed-loop r -> x_p of the actuator alone: ZOH-discretised G_EHA, the PID, `delay` periods."""
-    import control
-    from sim_backend.linear import g_eha
     Gd = control.sample_system(g_eha(act), ctrl.dt, method="zoh")
     w = 2 * np.pi * np.asarray(f_hz, dtype=float)
     z = np.exp(1j * w * ctrl.dt)

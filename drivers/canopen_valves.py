@@ -12,8 +12,8 @@ from __future__ import annotations
 import struct
 import time
 
-from drivers import valve408 as v4
-from drivers.rt import raise_priority
+from drivers.protocol import valve408 as v4
+from rig.rt import raise_priority
 from rig.errors import DeviceError
 
 SYNC_COB = 0x80

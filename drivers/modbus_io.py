@@ -13,28 +13,18 @@ import logging
 import threading
 import time
 
+from drivers.protocol.modbus_map import (FIFO_DEPTH, FIFO_WIDTH, REG_AI, REG_COUNT, REG_FIFO, REG_STATUS,
+                                        REG_WDOG, raw_to_volts, volts_to_raw)  # noqa: F401 (volts_to_raw: API)
 from drivers.rt import TriggeredPoller
 from rig.errors import DeviceError
 
-REG_AI, N_AI, REG_COUNT, REG_STATUS, REG_AO, REG_WDOG = 0, 6, 8, 9, 10, 20
 N_READ = 10                     # 40001-40010 in one request
-# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): the module's last FIFO_DEPTH
-# conversions, newest first, each [counter, AI ch0-3] at 40025 + 5 * entry. Each poll reads 40001-40010 and the
+# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): each poll reads 40001-40010 and the
 # newest FIFO_FIRST entries in one request (104 registers; FC 3 allows 125); after a stall it reads further
 # entries, FIFO_CHUNK at a time, until nothing is missing (or the FIFO ends)
-REG_FIFO, FIFO_DEPTH, FIFO_FIRST, FIFO_CHUNK, FIFO_WIDTH = 24, 64, 16, 24, 5
+FIFO_FIRST, FIFO_CHUNK = 16, 24
 N_READ_FIFO = REG_FIFO + FIFO_FIRST * FIFO_WIDTH
 KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
-
-
-def raw_to_volts(raw: int) -> float:
-    """0..65535 -> -10..+10 V."""
-    return raw * 20.0 / 65535.0 - 10.0
-
-
-def volts_to_raw(v: float) -> int:
-    raw = round((v + 10.0) * 65535.0 / 20.0)
-    return 0 if raw < 0 else 65535 if raw > 65535 else int(raw)
 
 
 class ModbusAnalogIO(TriggeredPoller):
@@ -213,9 +203,9 @@ class ModbusAnalogIO(TriggeredPoller):
 
     def check(self, now_ns: int) -> str | None:
         acc, t_ns, raw = self.sample
-        asked = self.asked_ns
-        # the module was asked and has not delivered a new sample for longer than the limit
-        if asked and now_ns - asked > self.stale_ns:
+        # the module was asked and its newest sample is older than the limit: measured from the sample, as
+        # the loop's sensor check measures it, so a silent module is named here first (not as a stale mount)
+        if self.asked_ns and now_ns - t_ns > self.stale_ns:
             why = f"; last error: {self.last_error}" if self.last_error else "; values not updating"
             return (f"{self.where}: no new sample for {(now_ns - t_ns) / 1e6:.1f} ms "
                     f"(limit {self.stale_ns / 1e6:g} ms){why}")

@@ -8,9 +8,9 @@ one line naming the device.
 
 Sample-driven (accelerometer module converting on SYNC into a conversion FIFO, `[drivers] accel_sync_fifo`):
 the isolation controller double-integrates acceleration, so a sample that arrives a period late and is then
-skipped, or a period without a new sample, is a velocity error that the integration keeps (measured on the
-emulated rig at 500 Hz: 5-15 % of periods without a fresh Modbus sample, 1-2 % of conversions never fetched;
-one such slip per second already turned 7 dB of isolation into -8 dB in simulation). read() therefore reports
+skipped, or a period without a new sample, is a velocity error that the integration keeps (on a loaded
+machine Modbus replies come late in a few per cent of the periods, and a slip a second is enough to undo the
+isolation; tests/rig/test_sample_driven.py). read() therefore reports
 how many conversions the module made since the last read (Measurements.new_samples; 0 = none yet) and hands
 over the ones before the newest (accel_older), so the loop steps the controllers once per conversion, in order.
 """
@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import time
 
-from rig.port import Commands, Measurements
+from rig.port import Commands, Measurements, PortContext
 
 
-class DriverPort:
+class DriverPort(PortContext):
     transports = ("canopen", "modbus_tcp", "serial")
 
     def __init__(self, name: str, valves, accel, stroke, *, n_mounts: int = 4, on_close=None,

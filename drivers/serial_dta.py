@@ -1,6 +1,6 @@
 """Serial displacement-transducer amplifier (DTA-4, RS-232/485, ASCII), four channels, on pyserial.
 
-A driver-owned thread sends `RD` every poll period and parses the replies with drivers/dta_protocol.py
+A driver-owned thread sends `RD` every poll period and parses the replies with drivers/protocol/dta.py
 (garbage and partial frames are skipped or completed, never raised). The loop picks up the latest sample.
 Faults: a channel reporting UR/OR/NP, an `$E` error reply, or no new sample (sequence number) for stale_s.
 Device map and protocol: drivers/devicemaps/dta4_serial.md.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 
-from drivers import dta_protocol as proto
+from drivers.protocol import dta as proto
 from drivers.rt import TriggeredPoller
 from rig.errors import DeviceError
 

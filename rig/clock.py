@@ -36,9 +36,9 @@ def _load_nanosleep():
 class MonotonicClock:
     """The real clock: time.monotonic_ns and an absolute clock_nanosleep (relative sleep as fallback).
 
-    Hybrid wait (spin_ns > 0): sleep until spin_ns before the deadline, then spin on the clock to it. The
-    timer wake-up of this VM is late by 20-40 us typically (p50) and its tail is long; spinning the last part
-    trades that CPU time for an on-time start. spin_ns None: not chosen yet, the Loop sets it from
+    Hybrid wait (spin_ns > 0): sleep until spin_ns before the deadline, then spin on the clock to it. A
+    virtual machine's timer wake-up is late by tens of microseconds and has a long tail; spinning the last
+    part trades that CPU time for an on-time start (`rig bench loop --spin-us` shows the effect). spin_ns None: not chosen yet, the Loop sets it from
     [loop] spin_us."""
 
     is_real = True

@@ -1,4 +1,4 @@
-"""Valve-command signals for identification and diagnosis runs, and a controller that plays one back.
+"""Valve-command signals for identification and diagnosis runs (controllers/playback.py plays one back).
 
 Each generator returns an `Excitation`: the command samples (V, held by the DAC between samples) and a short
 description of what they are. What the diagnosis concludes never depends on that description: it reads the
@@ -20,6 +20,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from rig.errors import RigError
 
 
 @dataclass
@@ -167,23 +169,10 @@ def steps(fs: float, duration_s: float, amplitude_V: float = 2.0, hold_s: tuple[
 KINDS = ("linear_chirp", "log_sweep", "multilevel_chirp", "odd_multisine", "band_noise", "steps")
 
 
-def parse_levels(text: str) -> list[float]:
-    """`--levels 0.5,1.5,3.0` (argparse type): at least two positive volts."""
-    import argparse
-    try:
-        levels = [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated volts like 0.5,1.5,3.0, got {text!r}") from None
-    if len(levels) < 2 or any(not (v > 0) for v in levels):
-        raise argparse.ArgumentTypeError(f"expected at least two positive levels like 0.5,1.5,3.0, got {text!r}")
-    return levels
-
-
 def for_chirp_run(fs: float, duration_s: float, f0_hz: float, f1_hz: float, amplitude_V: float, *,
                   levels_V=None, multisine: bool = False, period_s: float = 10.0, seed: int = 0) -> Excitation | None:
     """The signal `rig chirp --levels / --multisine` plays back, or None for the plain chirp (which the loop
     computes itself). Bad settings raise RigError naming the option."""
-    from rig.errors import RigError
     if not levels_V and not multisine:
         return None
     if levels_V and multisine:
@@ -201,30 +190,3 @@ def for_chirp_run(fs: float, duration_s: float, f0_hz: float, f1_hz: float, ampl
                        f"{f0_hz:g} and {f1_hz:g} Hz")
     return odd_multisine(fs, duration_s, f0_hz, f1_hz, amplitude_V, period_s, seed=seed)
 
-
-class Playback:
-    """Open-loop controller for rig.loop that plays a precomputed command. State = [k, running].
-
-    Starts (k = 0) when the loop enables it at activation; while disabled it outputs null and does not
-    advance; after the last sample it holds null. `active=False` outputs null throughout (the other mounts)."""
-
-    def __init__(self, cmd_V: np.ndarray, active: bool = True):
-        self.cmd = np.asarray(cmd_V, dtype=float)
-        self.active = active
-
-    def initial_state(self) -> list[float]:
-        return [0.0, 0.0]
-
-    def set_enabled(self, state, on):
-        if on and not state[1]:
-            return [0.0, 1.0]
-        return [state[0], 1.0 if on else 0.0]
-
-    def step(self, state, meas, dt):
-        k, running = state
-        if not running:
-            return 0.0, state
-        i = int(k)
-        if not self.active or i >= len(self.cmd):
-            return 0.0, [k + 1.0, 1.0]
-        return float(self.cmd[i]), [k + 1.0, 1.0]

@@ -30,6 +30,18 @@ class Commands:
     valve_cmd_V: list[float]           # valve amplifier command per mount, volts (0 = null)
 
 
+class PortContext:
+    """Ports are context managers: opened on entry, closed on exit (for ports used on their own; the loop
+    opens its port at configure and the Session closes it)."""
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 @runtime_checkable
 class Port(Protocol):
     """What the loop needs from a backend. `open` may do slow configuration (SDO, register set-up);

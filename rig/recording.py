@@ -1,7 +1,7 @@
 """Chirp/run recordings: one dataclass, a loader for CSV, CSV.gz, HDF5 and MATLAB .mat, and writers.
 
 Formats (all carry the same four signals, sampled uniformly at fs_hz):
-- CSV / CSV.gz (../shared/recordings/README.md): header `time_s,valve_cmd_V,position_m,accel_mps2`
+- CSV / CSV.gz (the shared recordings' format): header `time_s,valve_cmd_V,position_m,accel_mps2`
   (column order free, extra columns ignored), one row per sample.
 - HDF5 (`save_recording_h5`, and what rig.recorder writes for a chirp run): 1-D float64 datasets /time_s,
   /valve_cmd_V, /position_m, /accel_mps2 at the root; root attributes fs_hz (rig.recorder: rate_hz) and source.

@@ -43,6 +43,26 @@ class RtState:
         return " ".join(parts)
 
 
+_fifo_noted = False
+
+
+def raise_priority(priority: int) -> bool:
+    """SCHED_FIFO(priority) for the calling thread (driver, emulator and helper threads each raise
+    themselves when they start: on Linux it applies to the calling thread only); False and one log note where
+    it is not allowed, and the thread carries on at normal priority."""
+    global _fifo_noted
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (OSError, ValueError) as e:
+        if not _fifo_noted:
+            _fifo_noted = True
+            log.info("threads: SCHED_FIFO %d not allowed (%s); normal priority", priority, e)
+        return False
+
+
 def _note(state: RtState, text: str) -> None:
     state.notes.append(text)
     log.warning("real-time: %s; carrying on without it", text)

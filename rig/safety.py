@@ -1,158 +1,186 @@
-"""Safety checks run inside the period: sensor plausibility (check) and command limits (limit), plus a
-watchdog thread that sends the valve to null if the loop itself stops.
+"""Safety rules run inside the period: sensor plausibility (`check_sensors`) and command limits
+(`limit_commands`), compiled (numba) and called by the period kernel (rig/kernel.py); plus a watchdog thread
+that sends the valve to null if the loop itself stops.
 
-Plain floats and lists only: this runs every period for every mount.
+SensorCheck and CommandLimiter are the rules' builders: their limits from the config, their named state
+(initial values; the kernel owns the memory), and the one-line fault texts (off the hot path). A rule returns
+0 or a code that names the rule and the mount (CHECK_* + mount, LIMIT_NAN + mount, LIMIT_LATCHED).
 """
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 
-from rig.config import MOUNTS, Config
+import numba
+import numpy as np
+
+from rig.config import Config, mount_names
 
 log = logging.getLogger("rig.safety")
 
+CHECK_IMPLAUSIBLE, CHECK_STUCK_ACCEL, CHECK_STUCK_STROKE = 100, 200, 300
+LIMIT_NAN, LIMIT_LATCHED = 400, 500
+
+# Named limits (one float64 array, the kernel's): the check's, then the limiter's
+LIMITS = ("accel_range_mps2", "stroke_bound_m", "stale_ns", "stuck_n", "max_V", "step_V", "sat_n")
+_L_AR, _L_XB, _L_STALE, _L_STUCK, _L_MAX, _L_STEP, _L_SAT = range(7)
+# Named state of the check (rows of a (5, n) array) and of the limiter (last command per mount, then flags)
+CHECK_STATE = ("last_sample_t_ns", "last_accel_mps2", "last_stroke_m", "same_accel_count", "same_stroke_count")
+_C_TS, _C_A, _C_X, _C_SA, _C_SX = range(5)
+LIMITER_FLAGS = ("sat_run", "clamped", "limited")
+_F_SATRUN, _F_CLAMPED, _F_LIMITED = range(3)
+
+
+@numba.njit(cache=True)
+def check_sensors(cs, lim, acc, xs, ts, t_ns):
+    """Plausibility of one period's measurement, mount by mount: NaN/inf, out of sensor range, beyond the
+    stroke limit, stale (time stamp older than stale_s at the loop time), stuck (the same value over stuck_n
+    NEW samples: the time stamp moved on but the value did not; a held sample is caught as stale instead).
+    0 or a code. Time stamps are float64: exact below 2**53 ns (104 days of monotonic time)."""
+    ar = lim[_L_AR]
+    xb = lim[_L_XB]
+    oldest = t_ns - lim[_L_STALE]
+    stuck_n = lim[_L_STUCK]
+    for i in range(acc.shape[0]):
+        a = acc[i]
+        x = xs[i]
+        tsi = ts[i]
+        if not (-ar <= a <= ar and -xb <= x <= xb and tsi >= oldest):      # also false for NaN
+            return CHECK_IMPLAUSIBLE + i
+        if tsi != cs[_C_TS, i]:                                           # a new sample: stuck check
+            cs[_C_TS, i] = tsi
+            if _stuck(cs, _C_A, _C_SA, i, a, stuck_n):
+                return CHECK_STUCK_ACCEL + i
+            if _stuck(cs, _C_X, _C_SX, i, x, stuck_n):
+                return CHECK_STUCK_STROKE + i
+    return 0
+
+
+@numba.njit(cache=True, inline="always")
+def _stuck(cs, last, count, i, v, stuck_n):
+    """Count a new sample equal to the last one; True once stuck_n of them came in a row."""
+    if v == cs[last, i]:
+        cs[count, i] += 1.0
+        return cs[count, i] >= stuck_n
+    cs[count, i] = 0.0
+    cs[last, i] = v
+    return False
+
+
+@numba.njit(cache=True)
+def limit_commands(last, flags, lim, raw, out):
+    """Clamp (+-max_V) and slew limit (step_V per period, from the last written command) raw -> out. 0, or a
+    code: a NaN command, or a command held at the clamp for sat_n periods (the loop is no longer in control)."""
+    max_v = lim[_L_MAX]
+    step_v = lim[_L_STEP]
+    hit = False
+    at_clamp = False
+    for i in range(raw.shape[0]):
+        u = raw[i]
+        if u != u:
+            return LIMIT_NAN + i
+        if u >= max_v:
+            u = max_v
+            hit = at_clamp = True
+        elif u <= -max_v:
+            u = -max_v
+            hit = at_clamp = True
+        p = last[i]
+        if u - p > step_v:
+            u = p + step_v
+            hit = True
+        elif p - u > step_v:
+            u = p - step_v
+            hit = True
+        out[i] = u
+        last[i] = u
+    flags[_F_LIMITED] = 1.0 if hit else 0.0
+    if hit:
+        flags[_F_CLAMPED] += 1.0
+    if at_clamp:
+        flags[_F_SATRUN] += 1.0
+        if flags[_F_SATRUN] >= lim[_L_SAT]:
+            return LIMIT_LATCHED
+    else:
+        flags[_F_SATRUN] = 0.0
+    return 0
+
 
 class SensorCheck:
-    """Plausibility of one Measurements per period. `check` returns None or a one-line fault reason.
-
-    NaN/inf, out of sensor range, stroke beyond the stroke limit, stale (sample time stamp older than
-    stale_s at the loop time), stuck (the same value over stuck_samples NEW samples, i.e. the time stamp
-    moved on but the value did not; a held sample is caught as stale instead), device fault.
-    """
+    """Builder of the sensor check: limits from [safety], the named state's initial values, the fault texts."""
 
     def __init__(self, cfg: Config, n_mounts: int, names: tuple[str, ...] | None = None) -> None:
         s = cfg.safety
         self.n = n_mounts
-        self.names = names or (MOUNTS[:n_mounts] if n_mounts <= len(MOUNTS) else
-                               tuple(f"mount{i}" for i in range(n_mounts)))
+        self.names = names or mount_names(n_mounts)
         self.accel_range = s.accel_range_mps2
         self.stroke_range = s.stroke_range_m
         self.stroke_limit = s.stroke_limit_m
         self.stale_ns = int(round(s.stale_s * 1e9))
         self.stuck_n = s.stuck_samples
-        self._x_bound = min(self.stroke_range, self.stroke_limit)
-        self.reset()
+        self.x_bound = min(self.stroke_range, self.stroke_limit)   # one test in the common case
 
-    def reset(self) -> None:
-        n = self.n
-        self._last_ts = [None] * n
-        self._last_a = [float("nan")] * n
-        self._last_x = [float("nan")] * n
-        self._same_a = [0] * n
-        self._same_x = [0] * n
+    def limits(self) -> tuple:
+        return (self.accel_range, self.x_bound, float(self.stale_ns), float(self.stuck_n))
 
-    def check(self, m, t_ns: int) -> str | None:
-        if m.device_fault:
-            return f"device fault: {m.device_fault}"
-        acc, xs, ts = m.accel_mps2, m.stroke_m, m.sample_t_ns
-        ar = self.accel_range
-        xb = self._x_bound                      # min(stroke range, stroke limit): one test in the common case
-        oldest = t_ns - self.stale_ns
-        last_ts = self._last_ts
-        for i in range(self.n):
-            a = acc[i]
-            x = xs[i]
-            tsi = ts[i]
-            if not (-ar <= a <= ar and -xb <= x <= xb and tsi >= oldest):   # also false for NaN
-                return self._reason(i, a, x, tsi, t_ns)
-            if tsi != last_ts[i]:               # a new sample: stuck check
-                last_ts[i] = tsi
-                if a == self._last_a[i]:
-                    self._same_a[i] += 1
-                    if self._same_a[i] >= self.stuck_n:
-                        return (f"{self.names[i]}: accelerometer stuck at {a!r} m/s^2 "
-                                f"for {self._same_a[i]} samples")
-                else:
-                    self._same_a[i] = 0
-                    self._last_a[i] = a
-                if x == self._last_x[i]:
-                    self._same_x[i] += 1
-                    if self._same_x[i] >= self.stuck_n:
-                        return (f"{self.names[i]}: displacement transducer stuck at {x!r} m "
-                                f"for {self._same_x[i]} samples")
-                else:
-                    self._same_x[i] = 0
-                    self._last_x[i] = x
-        return None
+    def initial_state(self) -> np.ndarray:
+        st = np.zeros((len(CHECK_STATE), self.n))
+        st[_C_TS:_C_X + 1] = math.nan            # no sample seen yet
+        return st
 
-    def _reason(self, i: int, a: float, x: float, tsi: int, t_ns: int) -> str:
-        """The fault text of mount i, in the order of the checks (off the hot path)."""
+    def reason(self, code: int, state, acc, xs, ts, t_ns: int) -> str:
+        """The one-line fault text of a check code (state: the check's state after the check)."""
+        i = code % 100
+        if code - i == CHECK_STUCK_ACCEL:
+            return f"{self.names[i]}: accelerometer stuck at {acc[i]!r} m/s^2 for {int(state[_C_SA, i])} samples"
+        if code - i == CHECK_STUCK_STROKE:
+            return (f"{self.names[i]}: displacement transducer stuck at {xs[i]!r} m "
+                    f"for {int(state[_C_SX, i])} samples")
+        a, x = acc[i], xs[i]
         ar, xr, xl = self.accel_range, self.stroke_range, self.stroke_limit
         if not (-ar <= a <= ar):
-            return (f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 "
-                    f"(NaN or outside +-{ar:g} m/s^2)")
+            return f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 (NaN or outside +-{ar:g} m/s^2)"
         if not (-xr <= x <= xr):
             return (f"{self.names[i]}: displacement transducer implausible: {x!r} m "
                     f"(NaN or outside +-{xr:g} m)")
         if not (-xl <= x <= xl):
             return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
-        age = t_ns - tsi
-        return (f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old "
-                f"(limit {self.stale_ns / 1e6:g} ms)")
+        age = t_ns - ts[i]
+        return f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old (limit {self.stale_ns / 1e6:g} ms)"
 
 
 class CommandLimiter:
-    """Valve command clamp (+-valve_limit_V) and slew limit (slew_V_per_s), from the last written command.
-
-    Starting (and re-activating) from the null written while inactive means activation ramps, never jumps.
-    `limit` writes the limited commands into `out` and returns None, or a fault reason: a NaN command, or a
-    command held at the clamp for saturation_s (the loop is no longer in control: a latched saturation).
-    """
+    """Builder of the command limits: clamp +-valve_limit_V, slew slew_V_per_s, latched saturation after
+    saturation_s. Starting (and re-activating) from the null written while inactive means activation ramps,
+    never jumps. The state (last command per mount, LIMITER_FLAGS) is the kernel's; `view` reads it."""
 
     def __init__(self, cfg: Config, n_mounts: int, dt: float) -> None:
         self.n = n_mounts
         self.max_V = cfg.safety.valve_limit_V
         self.step_V = cfg.safety.slew_V_per_s * dt
         self.sat_limit = max(1, int(round(cfg.safety.saturation_s / dt)))
-        self.sat_run = 0          # consecutive periods with some command at the clamp
-        self.last = [0.0] * n_mounts
-        self.clamped = 0          # periods in which some command was clamped or slew-limited
-        self.limited = False
+        self._last = self._flags = None
 
-    def reset(self) -> None:
-        """The valve is at null (written while inactive, or safe state)."""
-        for i in range(self.n):
-            self.last[i] = 0.0
-        self.sat_run = 0
+    def limits(self) -> tuple:
+        return (self.max_V, self.step_V, float(self.sat_limit))
 
-    def limit(self, raw: list, out: list) -> str | None:
-        mx = self.max_V
-        st = self.step_V
-        last = self.last
-        hit = False
-        at_clamp = False
-        for i in range(self.n):
-            u = raw[i]
-            if u != u:
-                return f"controller {i}: valve command is NaN"
-            if u >= mx:
-                u = mx
-                hit = at_clamp = True
-            elif u <= -mx:
-                u = -mx
-                hit = at_clamp = True
-            p = last[i]
-            if u - p > st:
-                u = p + st
-                hit = True
-            elif p - u > st:
-                u = p - st
-                hit = True
-            out[i] = u
-            last[i] = u
-        self.limited = hit
-        if hit:
-            self.clamped += 1
-        if at_clamp:
-            self.sat_run += 1
-            if self.sat_run >= self.sat_limit:
-                return (f"valve command at the +-{mx:g} V clamp for {self.sat_run} periods: "
-                        f"the loop is not in control")
-        else:
-            self.sat_run = 0
-        return None
+    def view(self, last: np.ndarray, flags: np.ndarray) -> "CommandLimiter":
+        """Read the state at these arrays (the kernel's) from now on."""
+        self._last, self._flags = last, flags
+        return self
+
+    last = property(lambda self: self._last.tolist())
+    sat_run = property(lambda self: int(self._flags[_F_SATRUN]))
+    clamped = property(lambda self: int(self._flags[_F_CLAMPED]))
+    limited = property(lambda self: bool(self._flags[_F_LIMITED]))
+
+    def reason(self, code: int) -> str:
+        if code == LIMIT_LATCHED:
+            return (f"valve command at the +-{self.max_V:g} V clamp for {self.sat_run} periods: "
+                    f"the loop is not in control")
+        return f"controller {code - LIMIT_NAN}: valve command is NaN"
 
 
 class Watchdog:

@@ -9,7 +9,7 @@ Measured outputs at each sample instant t_k (before the command u_k takes effect
                              the relative x_p - x_b left a 3e-7 m residual at any stand mass)
   accel_mps2  = d2x_p/dt2   (accelerometer on the moving part, absolute)
 
-Effects (all off by default; names and keys as in ../shared/recordings/README.md):
+Effects (all off by default; names and keys as in docs/MODEL.md):
   transport_delay   delay_s      dead time between the recorded command and the valve driver
   valve_saturation  limit_ma     driver current clipped to +-limit before the spool dynamics
   valve_deadband    width_ma     spool overlap: no flow while |x_v| < width (flow from |x_v| - width)

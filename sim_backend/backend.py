@@ -28,8 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rig.port import Commands, Measurements
 from rig.errors import RigError
+from rig.port import Commands, Measurements, PortContext
+from sim_backend.actuator import Effects, StandPlant
+from sim_backend.linear import ActuatorParams
+from sim_backend.rig_plant import FloorMotion, RigPlant
 
 KINDS = ("drop", "stale", "nan", "stuck", "range", "device", "overrun")
 _NO_SPOOL = ()                 # Measurements.spool_actual of the simulated backend: no spool feedback
@@ -64,7 +67,7 @@ class StandAdapter:
         self.stroke_m = [float(pos)]
 
 
-class SimBackend:
+class SimBackend(PortContext):
     """Port over a stepped plant. dt is the loop period (one plant step); noise is added here (seeded,
     Gaussian, rms accel_noise_mps2 / stroke_noise_m) unless set to 0: real sensors are never bit-exact
     constant, and the stuck check relies on that."""
@@ -258,23 +261,13 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
     kw.setdefault("accel_noise_mps2", 0.0)
     kw.setdefault("stroke_noise_m", 0.0)
     if mode == "rig":
-        try:
-            from sim_backend.rig_plant import FloorMotion, RigPlant
-        except ImportError as e:
-            raise RigError(f"sim backend: sim_backend/rig_plant.py (RigPlant) is not available ({e})") from None
         if floor is True:
-            v = cfg.vibration
             floor = FloorMotion.from_config(cfg, dt)
         plant = RigPlant(cfg, dt, floor=floor or None, seed=seed)
         kw.setdefault("cmd_delay_periods", 1)
         kw.setdefault("sample_driven", True)
         return SimBackend(plant, dt, n_mounts=4, clock=clock, seed=seed, **kw)
     if mode == "stand":
-        try:
-            from sim_backend.actuator import StandPlant, Effects
-        except ImportError as e:
-            raise RigError(f"sim backend: sim_backend/actuator.py has no StandPlant yet ({e})") from None
-        from sim_backend.linear import ActuatorParams
         p = stand_params or ActuatorParams.from_config(cfg)
         fx = stand_effects or Effects()
         if not fx.position_noise_m:

@@ -7,6 +7,9 @@ import time
 import numpy as np
 
 from rig.config import Config
+from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+from sim_backend.linear import ActuatorParams
+from sim_backend.rig_plant import FloorMotion, RigPlant, simulate_rig
 
 
 def _pct(xs) -> dict:
@@ -16,10 +19,6 @@ def _pct(xs) -> dict:
 
 def bench_sim(cfg: Config, seconds: float = 100.0, rate_hz: float = 5000.0, repeats: int = 3,
               progress=None) -> dict:
-    from sim_backend.actuator import Effects, linear_chirp, simulate_stand
-    from sim_backend.linear import ActuatorParams
-    from sim_backend.rig_plant import FloorMotion, RigPlant, simulate_rig
-
     say = progress or (lambda msg: None)
     dt = 1.0 / rate_hz
     n = int(round(seconds * rate_hz))

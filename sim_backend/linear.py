@@ -10,24 +10,27 @@ from dataclasses import dataclass, asdict, replace
 
 import numpy as np
 
-from rig.config import Config
+from rig.config import ActuatorConfig, Config, FluidConfig, ValveConfig
 
 IDENTIFIED = ("K_L", "C", "w_nv", "zeta", "K_Q", "K_C")   # x_d of Eq. 11
 
 
+_A, _V, _F = ActuatorConfig(), ValveConfig(), FluidConfig()     # Table 1: rig/config.py is the one source
+
+
 @dataclass(frozen=True)
 class ActuatorParams:
-    M: float = 56.0          # kg, moving mass
-    A_p: float = 3.10e-2     # m^2
-    C: float = 1951.0        # N s/m
-    V_t: float = 5.39e-4     # m^3
-    K_L: float = 6.8e8       # N/m
-    K_v: float = 2.0         # mA/V
-    K_Q: float = 1.94e-6     # m^3/s/mA
-    K_C: float = 6.6e-11     # m^3/s/Pa
-    w_nv: float = 524.0      # rad/s
-    zeta: float = 0.65
-    beta: float = 1.4e9      # Pa
+    M: float = _A.M              # kg, moving mass
+    A_p: float = _A.A_p          # m^2
+    C: float = _A.C              # N s/m
+    V_t: float = _A.V_t          # m^3
+    K_L: float = _A.K_L          # N/m
+    K_v: float = _V.K_v          # mA/V
+    K_Q: float = _V.K_Q          # m^3/s/mA
+    K_C: float = _V.K_C          # m^3/s/Pa
+    w_nv: float = _V.w_nv        # rad/s
+    zeta: float = _V.zeta
+    beta: float = _F.beta        # Pa
 
     @classmethod
     def from_config(cls, cfg: Config, *, loaded_mass_kg: float | None = None) -> "ActuatorParams":

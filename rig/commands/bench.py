@@ -5,6 +5,8 @@
   rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
                                                   what the machine itself allows (same JSON)
   rig bench sim ...                               simulation speed of the plant
+  rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
+                                                  hour, gzip against none (rig/commands/bench_recorder.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -21,7 +23,15 @@ import os
 import sys
 import tempfile
 
+import numpy as np
+
+from rig import cliargs
+from rig.clock import MonotonicClock
+from rig.config import load_config
 from rig.errors import RigError
+from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
+from rig.session import Session
+from sim_backend.bench import bench_sim as run_bench
 
 log = logging.getLogger("rig.bench")
 
@@ -30,14 +40,16 @@ def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="bench_what", metavar="WHAT")
     lp = sub.add_parser("loop", help="control loop timing: four mounts on the simulated backend")
     _config_arg(lp)
-    lp.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [loop] rate_hz)")
-    lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
+    lp.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
+                    help="loop rate (default [loop] rate_hz)")
+    lp.add_argument("--seconds", type=cliargs.seconds(le=3600), default=10.0, metavar="N",
+                    help="duration (default 10)")
     lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
     lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
-    lp.add_argument("--spin-us", type=float, default=None, metavar="US",
+    lp.add_argument("--spin-us", type=cliargs.Number(ge=0, le=1000, unit="us"), default=None, metavar="US",
                     help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
-    lp.add_argument("--record", metavar="FILE", default=None,
-                    help="keep the recording here (default: a temporary file, deleted)")
+    cliargs.output_arg(lp, "--record", metavar="FILE", default=None,
+                       help="keep the recording here (default: a temporary file, deleted)")
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
@@ -45,6 +57,13 @@ def add_arguments(p) -> None:
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
+    rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
+    _config_arg(rp)
+    rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
+                    help="seconds of `rig run` (sim backend, simulated time) recorded, then replayed (default 10)")
+    rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
+                    help="replays of each mode, alternating (default 3; medians are printed)")
+    rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -58,24 +77,27 @@ def run(args) -> int:
         return bench_loop(args)
     if what == "sim":
         return bench_sim(args)
+    if what == "recorder":
+        return bench_recorder(args)
     raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
 def add_sim_arguments(p) -> None:
     """Arguments of `rig bench sim`."""
-    p.add_argument("--seconds", type=float, default=100.0, metavar="N", help="simulated time (default 100)")
-    p.add_argument("--rate", type=float, default=5000.0, metavar="HZ", help="loop rate (default 5000)")
-    p.add_argument("--repeats", type=int, default=3, help="batch runs to time (default 3)")
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=100.0, metavar="N",
+                   help="simulated time (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=5000.0, metavar="HZ", help="loop rate (default 5000)")
+    p.add_argument("--repeats", type=cliargs.count(1, 1000), default=3, help="batch runs to time (default 3)")
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def bench_sim(args) -> int:
-    from rig.config import load_config
-    from sim_backend.bench import bench_sim as run_bench
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
+    cliargs.check_rate(cfg, args.rate, "--rate", sections=("vibration",))   # timing only: any controller
+    cliargs.check_periods(args.seconds, args.rate)
     res = run_bench(cfg, args.seconds, args.rate, args.repeats,
                     progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
     if args.json:
@@ -92,89 +114,68 @@ def bench_sim(args) -> int:
     return 0
 
 
+# ---- rig bench recorder ----------------------------------------------------------------------------------
+def bench_recorder(args) -> int:
+    from rig.commands.bench_recorder import bench_recorder as measure
+    cfg = load_config(getattr(args, "config", None))
+    res = measure(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
+                    progress=lambda m: print(f"bench recorder: {m}", file=sys.stderr, flush=True))
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(f"recording of `rig run` at {res['rate_hz']:g} Hz: {res['columns']} columns a row "
+          f"({res['controller_state_columns']} of them controller states); medians of {res['rounds']} rounds")
+    for m, r in res["modes"].items():
+        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = "
+              f"{r['writer_cpu_percent_at_rate']:5.1f} % of a core at {res['rate_hz']:g} Hz; "
+              f"{r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s = {r['GB_per_hour_at_rate']:.2f} GB/h; "
+              f"rows lost {r['rows_lost']}")
+    print(f"  gzip/none: size x{res['gzip_size_ratio']}, writer CPU x{res['gzip_cpu_ratio']}")
+    return 0
+
+
 # ---- rig bench loop --------------------------------------------------------------------------------------
-class _CentringOnly:
-    """Stand-in when controllers/isolation.py is missing: proportional stroke centring (same interface and
-    similar cost as one isolation controller), so the loop can still be timed."""
-
-    def __init__(self, kp_V_per_m: float = 1e5) -> None:
-        self.kp = kp_V_per_m
-
-    def initial_state(self):
-        return [1.0, 0.0]
-
-    def step(self, s, meas, dt):
-        v = 0.999 * s[1] + meas[0] * dt
-        return -self.kp * meas[1] - 0.0 * s[0] * v, [s[0], v]
-
-    def set_enabled(self, s, on):
-        return [1.0 if on else 0.0, s[1]]
-
-
 def bench_loop(args) -> int:
-    from rig.clock import MonotonicClock
-    from rig.config import load_config
-    from rig.loop import Loop, loop_channels
-    from rig.recorder import Recorder
-    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
-    from sim_backend.backend import make_sim_port
-
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
+    cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller
+    cliargs.check_periods(args.seconds, rate)
     if not (0 < rate <= 100000):
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {args.seconds}")
     if args.spin_us is not None and not (0 <= args.spin_us <= 1000):
         raise RigError(f"--spin-us: expected 0 <= US <= 1000, got {args.spin_us}")
-    dt = 1.0 / rate
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
-    port = make_sim_port(cfg, dt, mode="rig", clock=clock)
-    try:
-        from controllers.isolation import make_isolation_controllers
-        ctrls = list(make_isolation_controllers(cfg, dt))
-        which = "controllers.isolation (compiled bank)"
-    except ImportError:
-        ctrls = [_CentringOnly() for _ in range(port.n_mounts)]
-        which = "stand-in centring law (controllers/isolation.py missing)"
-    n_it = int(math.ceil(args.seconds * rate)) + 16
-    loop = Loop(cfg, port, ctrls, clock=clock, rate_hz=rate, overrun_policy=args.policy, keep_timing=n_it,
-                stop_on_fault=False)
-    path = args.record
-    tmp = None
+    path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
         os.close(fd)
         path = tmp
-    rec = Recorder(path, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=rate,
-                   flush_s=cfg.recording.flush_s, ring_s=cfg.recording.ring_s,
-                   chunk_rows=cfg.recording.chunk_rows, attrs={"command": "rig bench loop"}).start()
-    loop.recorder = rec
-    loop.configure()
-    loop.activate()
-    rt = None
-    if cfg.loop.realtime and not args.no_realtime:
-        rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
-                            cpu_latency_us=cfg.loop.cpu_latency_us)
-    print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, {which}, policy "
-          f"{loop.policy}, spin {clock.spin_ns / 1e3:g} us, {rt.summary() if rt else 'no real-time hygiene'}",
-          file=sys.stderr)
-    steal0 = cpu_steal_ms(rt.cpu if rt else None)
+    realtime = cfg.loop.realtime and not args.no_realtime
+    session = Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy,
+                      keep_timing=int(math.ceil(args.seconds * rate)) + 16, stop_on_fault=False, record=path,
+                      record_attrs={"command": "rig bench loop"}, realtime=realtime)
     try:
-        loop.run(seconds=args.seconds)
+        with session:
+            loop = session.loop
+            loop.activate()
+            print(f"rig bench loop: {loop.n} mounts at {rate:g} Hz for {args.seconds:g} s, compiled period "
+                  f"kernel, policy {loop.policy}, spin {clock.spin_ns / 1e3:g} us, "
+                  f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}", file=sys.stderr)
+            cpu = _loop_cpu(cfg) if realtime else None
+            steal0 = cpu_steal_ms(cpu)
+            session.run(seconds=args.seconds)
+            steal1 = cpu_steal_ms(cpu)
     finally:
-        if rt is not None:
-            leave_realtime(rt)
-        port.close()
-        try:
-            rec.close()
-        finally:
-            if tmp:
-                os.unlink(tmp)
+        if tmp:
+            os.unlink(tmp)
+    if realtime:
+        print(f"rig bench loop: {session.rt_summary}", file=sys.stderr)
     tm = loop.timing_us()
     out = {"rate_hz": rate, "iterations": loop.iterations,
            "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
@@ -183,18 +184,21 @@ def bench_loop(args) -> int:
     if loop.lc.fault_reason:
         print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
               file=sys.stderr)
-    import numpy as np
     n = min(loop.iterations, loop.keep)
-    _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0,
-                       cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
+    _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0, steal1, cpu)
     _print_loop_figures(out, args.json, loop.skipped)
     return 0
+
+
+def _loop_cpu(cfg) -> int | None:
+    """The CPU the loop thread is pinned to ([loop] cpu, -1 = the last one)."""
+    n = os.cpu_count() or 1
+    return n - 1 if cfg.loop.cpu < 0 else cfg.loop.cpu
 
 
 def _print_host_stalls(wake_ns, period_ns: int, steal0, steal1, cpu) -> None:
     """stderr: the wake-ups that came more than a period late (the machine, not the loop's work: the same
     shows in --empty) and the hypervisor's steal time on the loop's CPU over the run."""
-    import numpy as np
     late = wake_ns > period_ns
     edges = np.flatnonzero(np.diff(np.concatenate(([False], late)).astype(np.int8)) == 1)
     text = (f"rig bench loop: wake-ups more than one period late: {int(late.sum())} in {len(edges)} stalls, "
@@ -219,8 +223,6 @@ def _print_loop_figures(out: dict, as_json: bool, skipped: int) -> None:
 def _empty_loop(cfg, args, rate: float, clock) -> int:
     """Absolute deadlines, the same wait and real-time set-up as the loop, nothing in the period: a period
     counts as missed when the wake-up came after the next deadline (catch-up, like the loop's default)."""
-    import numpy as np
-    from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
     period = int(round(1e9 / rate))
     n = int(math.ceil(args.seconds * rate))
     if clock.spin_ns is None:                           # as the Loop does: [loop] spin_us unless --spin-us

@@ -4,6 +4,8 @@ The actuator alone on its test stand, open loop: the valve command follows a lin
 duration, paper: 0.1 -> 100 Hz in 100 s). Each loop period reads the sensors, writes the chirp sample (through
 the safety limiter) and records time_s, valve_cmd_V, position_m, accel_mps2 of the chirped mount. Position is
 sampled at t_k before the command of period k acts (ZOH), as the shared recordings and rig.identify assume.
+`--levels` plays the same sweep at several amplitudes back to back, `--multisine` an odd random-phase multisine
+(rig/excitation.py); both are recorded the same way, with the signal's description in the file's attributes.
 
 Backends: sim (one StandPlant with the configured Table 1 parameters and sensor noise; simulated time by
 default; effects and sensor noise from the config's [stand] section), hil (the real drivers against the emulated devices, each mount an actuator alone on its stand; real
@@ -16,90 +18,92 @@ import math
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+from controllers.playback import SignalPlayback
+from rig import cliargs, excitation
+from rig.backends import BACKENDS
+from rig.clock import MonotonicClock, SimClock
+from rig.config import MOUNTS, hil_run_config, load_config
 from rig.errors import RigError
+from rig.lifecycle import State
+from rig.recorder import Channel
+from rig.recording import load_recording, save_recording_csv
+from rig.session import Session
+from rig.tap import Columns
+from sim_backend.actuator import Effects, StandPlant
+from sim_backend.linear import ActuatorParams
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--backend", choices=("sim", "hil", "hardware"), default=None,
+    p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
-    p.add_argument("--amplitude", type=float, default=2.0, metavar="V", help="chirp amplitude, V (default 2)")
-    p.add_argument("--f0", type=float, default=0.1, metavar="HZ", help="start frequency, Hz (default 0.1)")
-    p.add_argument("--f1", type=float, default=100.0, metavar="HZ", help="end frequency, Hz (default 100)")
-    p.add_argument("--duration", type=float, default=100.0, metavar="S", help="chirp length, s (default 100)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+    p.add_argument("--amplitude", type=cliargs.Number(gt=0, le=50, unit="V"), default=2.0, metavar="V",
+                   help="chirp amplitude, V (default 2)")
+    p.add_argument("--f0", type=cliargs.Number(ge=0, unit="Hz"), default=0.1, metavar="HZ",
+                   help="start frequency, Hz (default 0.1)")
+    p.add_argument("--f1", type=cliargs.Number(gt=0, unit="Hz"), default=100.0, metavar="HZ",
+                   help="end frequency, Hz (default 100)")
+    p.add_argument("--duration", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S), default=100.0, metavar="S",
+                   help="chirp length, s (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
                    help="loop (and recording) rate, Hz (default: [loop] rate_hz; hil: [hil] rate_hz)")
-    p.add_argument("--mount", default="front_left", help="mount whose valve is chirped (hil/hardware)")
-    p.add_argument("--settle", type=float, default=0.05, metavar="S",
+    p.add_argument("--mount", default="front_left", choices=MOUNTS,
+                   help="mount whose valve is chirped (hil/hardware)")
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=0.05, metavar="S",
                    help="seconds INACTIVE (valve at null, sensors checked) before the chirp (default 0.05)")
     p.add_argument("--realtime", action="store_true", help="sim backend: pace on the wall clock (default: "
                    "simulated time, as fast as possible)")
-    p.add_argument("--seed", type=int, default=None, help="sim backend: sensor noise seed (default: [stand] seed)")
-    p.add_argument("--out", metavar="REC", type=Path, required=True,
+    p.add_argument("--seed", type=cliargs.seed(), default=None,
+                   help="sim backend: sensor noise seed (default: [stand] seed)")
+    cliargs.output_arg(p, "--out", metavar="REC", required=True,
                    help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
     p.add_argument("--csv", action="store_true", help="write the shared CSV format instead of HDF5")
-    from rig.excitation import parse_levels
-    p.add_argument("--levels", type=parse_levels, default=None, metavar="V,V,...",
+    p.add_argument("--levels", type=level_list, default=None, metavar="V,V,...",
                    help="the same sweep at several amplitudes back to back, e.g. 0.5,1.5,3.0 (each --duration "
                         "long; rig diagnose then shows gain by level: saturation, deadband, linear)")
     p.add_argument("--multisine", action="store_true",
                    help="an odd random-phase multisine over f0..f1 instead of the chirp (--period per period, "
                         "--duration rounded to whole periods); its empty lines detect nonlinearity")
-    p.add_argument("--period", type=float, default=10.0, metavar="S",
+    p.add_argument("--period", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S), default=10.0, metavar="S",
                    help="multisine period, s (default 10: 0.1 Hz line spacing)")
 
 
-class ChirpController:
-    """Open-loop controller for rig.loop: ignores the sensors, outputs the chirp. State = [k, running].
+_LEVEL = cliargs.Number(gt=0, le=50, unit="V")
 
-    The chirp starts (k = 0) when the loop enables the controller at activation (set_enabled(state, True));
-    while disabled (INACTIVE, where the loop still steps controllers to keep them warm) it outputs null and
-    does not advance. u_k = A sin(2 pi (f0 t + (f1 - f0) t^2 / (2 T))), t = k dt, for k dt < T; null after."""
 
-    def __init__(self, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float, active: bool = True):
-        self.A, self.f0, self.f1, self.T = amplitude_V, f0_hz, f1_hz, duration_s
-        self.active = active
-        self._c = (f1_hz - f0_hz) / (2 * duration_s)
+def level_list(text: str) -> list[float]:
+    """`--levels 0.5,1.5,3.0` (argparse type): at least two amplitudes, each > 0 and <= 50 V."""
+    levels = [_LEVEL(x.strip()) for x in text.split(",") if x.strip()]
+    if len(levels) < 2:
+        raise argparse.ArgumentTypeError(f"expected at least two levels like 0.5,1.5,3.0, got {text!r}")
+    return levels
 
-    def initial_state(self) -> list[float]:
-        return [0.0, 0.0]
 
-    def set_enabled(self, state, on):
-        if on and not state[1]:
-            return [0.0, 1.0]              # (re)start the chirp from its first sample
-        return [state[0], 1.0 if on else 0.0]
-
-    def step(self, state, meas, dt):
-        k, running = state
-        if not running:
-            return 0.0, state
+def chirp_samples(amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float, dt: float) -> list[float]:
+    """The linear sine chirp, one sample per period: u_k = A sin(2 pi (f0 t + (f1 - f0) t^2 / (2 T))), t = k dt,
+    for k dt < T (controllers/playback.py plays it from activation on, null after)."""
+    c = (f1_hz - f0_hz) / (2 * duration_s)
+    out = []
+    k = 0
+    while k * dt < duration_s:
         t = k * dt
-        if not self.active or t >= self.T:
-            return 0.0, [k + 1.0, 1.0]
-        return self.A * math.sin(2 * math.pi * (self.f0 * t + self._c * t * t)), [k + 1.0, 1.0]
+        out.append(amplitude_V * math.sin(2 * math.pi * (f0_hz * t + c * t * t)))
+        k += 1
+    return out
 
 
-class _ChirpRows:
-    """Recorder adapter for the loop: keeps time, command, position and acceleration of one mount from the
-    loop's row (column offsets from rig.loop.loop_channels, the layout the loop pushes). Never blocks."""
-
-    def __init__(self, recorder, channels, mount: int) -> None:
-        off, col = {}, 0
-        for c in channels:
-            off[c.name] = col
-            col += c.width
-        self.rec = recorder
-        self.i_t = off["time_s"]
-        self.i_u = off["valve_cmd_V"] + mount
-        self.i_x = off["stroke_m"] + mount
-        self.i_a = off["accel_mps2"] + mount
-
-    def push(self, *row) -> bool:
-        return self.rec.push(row[self.i_t], row[self.i_u], row[self.i_x], row[self.i_a])
-
-    def event(self, t_s: float, text: str) -> None:
-        self.rec.event(t_s, text)
+def chirp_columns(mount: int) -> Columns:
+    """The recording of a chirp run: time, command, position and acceleration of the chirped mount."""
+    return Columns([(Channel("time_s", "s", description="loop time since start"), "time_s", 0),
+                    (Channel("valve_cmd_V", "V", description="valve command written (after limits)"),
+                     "valve_cmd_V", mount),
+                    (Channel("position_m", "m", description="displacement transducer at t_k"), "stroke_m", mount),
+                    (Channel("accel_mps2", "m/s^2", description="accelerometer at t_k"), "accel_mps2", mount)])
 
 
 class _StandBank:
@@ -120,33 +124,23 @@ class _StandBank:
 
 
 def _sim_effects(cfg, seed: int | None):
-    """The [stand] section: effect switches and sensor noise (default 2e-8 m, 2e-4 m/s^2 rms as the shared
-    recordings; real sensors are never bit-exact constant, and the loop's stuck check relies on that)."""
-    from dataclasses import replace
-    from sim_backend.actuator import Effects
+    """The [stand] section: effect switches and sensor noise (real sensors are never bit-exact constant, and
+    the loop's stuck check relies on that)."""
     fx = Effects.from_config(cfg)
     return fx if seed is None else replace(fx, seed=seed)
 
 
-def make_chirp_port(cfg, backend: str, dt: float, clock, *, seed: int | None = None, stand_params=None,
-                    stand_effects=None):
+def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None, stand_params=None,
+                       stand_effects=None) -> dict:
+    """The backend's options for a chirp: sim, one actuator on its stand; hil, each mount an actuator alone on
+    its stand behind the emulated devices; hardware, the rig as it is."""
+    fx = stand_effects or _sim_effects(cfg, seed)
+    p = stand_params or ActuatorParams.from_config(cfg)
     if backend == "sim":
-        from sim_backend.backend import make_sim_port
-        return make_sim_port(cfg, dt, mode="stand", clock=clock, seed=seed or 0, stand_params=stand_params,
-                             stand_effects=stand_effects or _sim_effects(cfg, seed))
-    try:
-        import drivers
-    except ImportError as e:
-        raise RigError(f"--backend {backend}: the drivers package is not available ({e})") from None
+        return dict(mode="stand", seed=seed or 0, stand_params=p, stand_effects=fx)
     if backend == "hil":
-        from sim_backend.actuator import StandPlant
-        from sim_backend.linear import ActuatorParams
-        p = stand_params or ActuatorParams.from_config(cfg)
-        from dataclasses import replace
-        fx = stand_effects or _sim_effects(cfg, seed)
-        bank = _StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt) for i in range(4)])
-        return drivers.make_hil_port(cfg, plant=bank, dt=dt)
-    return drivers.make_port(cfg, backend)
+        return dict(plant=_StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt) for i in range(4)]))
+    return {}
 
 
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
@@ -158,19 +152,11 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     levels_V: the same chirp at each level back to back; multisine: an odd random-phase multisine instead
     (both from rig.excitation, played back sample by sample).
     progress: optional callable(t_s, total_s) polled from a helper thread."""
-    from rig.clock import MonotonicClock, SimClock
-    from rig.config import MOUNTS
-    from rig.lifecycle import State
-    from rig.loop import Loop, loop_channels
-    from rig.recorder import Channel, Recorder
-    from rig.recording import load_recording, save_recording_csv
-
     rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+    cliargs.check_rate(cfg, rate, sections=("stand",))
     if backend == "hil":
         # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
-        from rig.config import hil_run_config
         cfg = hil_run_config(cfg, rate)
-    from rig import excitation
     signal = excitation.for_chirp_run(rate, duration_s, f0_hz, f1_hz, amplitude_V, levels_V=levels_V,
                                       multisine=multisine, period_s=period_s, seed=seed or 0)
     if signal is not None:
@@ -189,57 +175,47 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     sim_time = (backend == "sim") if sim_time is None else sim_time
     if sim_time and backend != "sim":
         raise RigError("simulated time only with --backend sim")
-    clock = SimClock() if sim_time else MonotonicClock()
     dt = 1.0 / rate
     out = Path(out)
     if out.is_dir():
         raise RigError(f"--out {out}: is a folder, expected a recording file name")
-    port = make_chirp_port(cfg, backend, dt, clock, seed=seed, stand_params=stand_params,
-                           stand_effects=stand_effects)
-    n = int(port.n_mounts)
+    n = 1 if backend == "sim" else len(MOUNTS)
     if n == 1:
         m_idx, names = 0, ("stand",)
     else:
-        if mount not in MOUNTS[:n]:
-            raise RigError(f"--mount: expected one of {', '.join(MOUNTS[:n])}, got {mount!r}")
+        if mount not in MOUNTS:
+            raise RigError(f"--mount: expected one of {', '.join(MOUNTS)}, got {mount!r}")
         m_idx, names = MOUNTS.index(mount), None
-    ctrls = [ChirpController(amplitude_V, f0_hz, f1_hz, duration_s, active=(i == m_idx)) if signal is None
-             else excitation.Playback(signal.cmd_V, active=(i == m_idx)) for i in range(n)]
-    loop = Loop(cfg, port, ctrls, clock=clock, rate_hz=rate, names=names, isolation=True)
+    samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt) if signal is None else signal.cmd_V
+    ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(n)]
     h5_path = out if not csv else out.with_name(out.name + ".part.h5")
-    rec = Recorder(h5_path, [Channel("time_s", "s", description="loop time since start"),
-                             Channel("valve_cmd_V", "V", description="valve command written (after limits)"),
-                             Channel("position_m", "m", description="displacement transducer at t_k"),
-                             Channel("accel_mps2", "m/s^2", description="accelerometer at t_k")],
-                   rate_hz=loop.rate_hz, flush_s=cfg.recording.flush_s, ring_s=max(cfg.recording.ring_s, 2.0),
-                   chunk_rows=cfg.recording.chunk_rows,
-                   attrs={"command": "rig chirp", "backend": backend, "config_source": cfg.source,
-                          "mount": names[0] if n == 1 else mount, "amplitude_V": amplitude_V, "f0_hz": f0_hz,
-                          "f1_hz": f1_hz, "duration_s": duration_s, "fs_hz": loop.rate_hz, "settle_s": settle_s,
-                          "chirp": "linear" if signal is None else signal.kind,
-                          **({} if signal is None else signal.attrs())}).start()
-    loop.recorder = _ChirpRows(rec, loop_channels(loop.n, loop.state_len, loop.names), m_idx)
     total = settle_s + duration_s + 0.05        # a short null tail after the chirp
+    session = Session(cfg, backend, controllers=ctrls, clock=SimClock() if sim_time else MonotonicClock(),
+                      rate_hz=rate, names=names, isolation=True,
+                      port_options=chirp_port_options(cfg, backend, dt, seed=seed, stand_params=stand_params,
+                                                      stand_effects=stand_effects),
+                      record=h5_path, columns=chirp_columns(m_idx),
+                      record_attrs={"command": "rig chirp", "mount": names[0] if n == 1 else mount,
+                                    "amplitude_V": amplitude_V, "f0_hz": f0_hz, "f1_hz": f1_hz,
+                                    "duration_s": duration_s, "fs_hz": rate, "settle_s": settle_s,
+                                    "chirp": "linear" if signal is None else signal.kind,
+                                    **({} if signal is None else signal.attrs())})
     done = threading.Event()
-
-    def poll():
-        while not done.wait(0.1):
-            if progress and loop.t0_ns is not None:
-                progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9), total)
-
-    poller = threading.Thread(target=poll, name="rig-chirp-progress", daemon=True)
     wall0 = time.perf_counter()
-    try:
-        loop.configure()
-        poller.start()
-        reason = loop.run(seconds=total, activate_after_s=settle_s)
-    finally:
-        done.set()
+    with session:
+        loop = session.loop
+
+        def poll():
+            while not done.wait(0.1):
+                if progress and loop.t0_ns is not None:
+                    progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9), total)
+
+        threading.Thread(target=poll, name="rig-chirp-progress", daemon=True).start()
         try:
-            port.close()
+            reason = session.run(seconds=total, activate_after_s=settle_s)
         finally:
-            rec.close(stop_reason=loop.stop_reason or "", fault_reason=loop.lc.fault_reason or "",
-                      iterations=loop.iterations, overruns=loop.overruns, skipped_periods=loop.skipped)
+            done.set()
+    rec = session.recorder
     if progress and loop.t0_ns is not None:
         progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9 + loop.dt), total)
     wall = time.perf_counter() - wall0
@@ -257,39 +233,28 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
 
 
 def run(args) -> int:
-    from rig.config import load_config
-
     cfg = load_config(args.config)
     backend = args.backend or cfg.backend.name
     if args.realtime and backend != "sim":
         raise RigError("--realtime: only for --backend sim (hil and hardware always run in real time)")
-    try:
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-        bar = Progress(TextColumn("chirp"), BarColumn(), TextColumn("{task.completed:6.1f}/{task.total:.1f} s"),
-                       TimeRemainingColumn(), console=Console(stderr=True), redirect_stdout=False)
-    except ImportError:  # pragma: no cover - rich is a dependency
-        bar = None
+    bar = Progress(TextColumn("chirp"), BarColumn(), TextColumn("{task.completed:6.1f}/{task.total:.1f} s"),
+                   TimeRemainingColumn(), console=Console(stderr=True), redirect_stdout=False)
     task = None
 
     def progress(t_s, total_s):
         nonlocal task
-        if bar is None:
-            return
         if task is None:
             task = bar.add_task("chirp", total=total_s)
         bar.update(task, completed=t_s)
 
-    if bar is not None:
-        bar.start()
+    bar.start()
     try:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
                       duration_s=args.duration, rate_hz=args.rate, out=args.out, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
                       progress=progress, levels_V=args.levels, multisine=args.multisine, period_s=args.period)
     finally:
-        if bar is not None:
-            bar.stop()
+        bar.stop()
     what = ("chirp at levels " + ",".join(f"{v:g}" for v in args.levels) + " V" if args.levels
             else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
     print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "

@@ -8,26 +8,32 @@ table and tool-point motion (Y) of each half and the reduction in dB.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+import scipy.signal
 
+from rig import cliargs
+from rig.clock import SimClock
+from rig.config import load_config
 from rig.errors import RigError
+from rig.lifecycle import State
+from rig.session import Session
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=10.0, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
                    help="simulated seconds per phase (isolation off, then on; default 10)")
-    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=600), default=1.0, metavar="S",
                    help="seconds discarded at the start of each phase (default 1)")
-    p.add_argument("--rms-um", type=float, default=None, metavar="UM",
+    p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",
                    help="floor displacement rms in um (default: [vibration] rms_m of the config)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write demo.png (time traces and spectra, off vs on) and demo.json to DIR")
 
 
 def _rms(x):
@@ -36,13 +42,41 @@ def _rms(x):
 
 
 def _band(x, fs, lo=1.0, hi=100.0):
-    import scipy.signal
     sos = scipy.signal.butter(4, (lo, hi), btype="bandpass", fs=fs, output="sos")
     return scipy.signal.sosfiltfilt(sos, np.asarray(x, dtype=float))
 
 
 def run(args) -> int:
-    from rig.config import load_config, VibrationConfig
+    cfg = _demo_config(args)
+    rate = cfg.loop.rate_hz
+    dt = 1.0 / rate
+    v = cfg.vibration
+    _log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms (seed {v.seed}); "
+         f"loop {rate:g} Hz in simulated time; {args.seconds:g} s isolation off, then {args.seconds:g} s on")
+    n = int(round(args.seconds * rate))
+    tr, wall = _simulate(cfg, n)
+    _log(f"{2 * n} periods in {wall:.1f} s wall ({wall / (2 * n) * 1e6:.1f} us per period)")
+    s = int(round(args.settle * rate))
+    off, on = slice(s, n), slice(n + s, 2 * n)
+    res = _figures(tr, off, on, rate)
+    res["loop"] = {"periods": 2 * n, "wall_s": wall, "path": "rig.loop.Loop.cycle over SimBackend(RigPlant)"}
+    _print(res, v)
+    if args.out is not None:
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
+        _plot(args.out / "demo.png", dt, n, tr["table"], tr["tool"], tr["floor"], off, on, res)
+        (args.out / "demo.json").write_text(json.dumps(res, indent=2))
+        _log(f"wrote {args.out / 'demo.png'} and {args.out / 'demo.json'}")
+    return 0
+
+
+def _log(text: str) -> None:
+    print(f"rig demo: {text}", file=sys.stderr, flush=True)
+
+
+def _demo_config(args):
     cfg = load_config(args.config)
     if not 0.5 <= args.seconds <= 600:
         raise RigError(f"--seconds: expected 0.5 to 600 s per phase, got {args.seconds}")
@@ -52,72 +86,56 @@ def run(args) -> int:
         if not 0 < args.rms_um <= 1000:
             raise RigError(f"--rms-um: expected 0 < rms <= 1000 um, got {args.rms_um}")
         v = cfg.vibration
-        cfg = cfg.replace(vibration=VibrationConfig(v.band_lo_hz, v.band_hi_hz, args.rms_um * 1e-6, v.seed))
-    rate = cfg.loop.rate_hz
-    dt = 1.0 / rate
-    from controllers.isolation import make_isolation_controllers
-    from rig.clock import SimClock
-    from rig.lifecycle import State
-    from rig.loop import Loop
-    from sim_backend.backend import make_sim_port
+        cfg = cfg.replace(vibration=dataclasses.replace(v, rms_m=args.rms_um * 1e-6))
+    return cfg
 
-    v = cfg.vibration
-    log = (lambda s: print(f"rig demo: {s}", file=sys.stderr, flush=True))
-    log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms (seed {v.seed}); "
-        f"loop {rate:g} Hz in simulated time; {args.seconds:g} s isolation off, then {args.seconds:g} s on")
-    port = make_sim_port(cfg, dt, cmd_delay_periods=1)
-    plant = port.plant
-    ctrls = make_isolation_controllers(cfg, dt)
-    loop = Loop(cfg, port, ctrls, clock=SimClock(), isolation=False, stop_on_fault=True)
-    loop.configure()
-    loop.activate()
-    n = int(round(args.seconds * rate))
+
+def _simulate(cfg, n: int):
+    """n periods isolation off, then n on (bumpless switch), in simulated time: the plant's traces."""
     N = 2 * n
-    table = np.empty(N)
-    tool = np.empty(N)
-    floor = np.empty(N)
-    cmd = np.empty((N, 4))
-    stroke = np.empty((N, 4))
-    limited = np.zeros(N, dtype=bool)
-    period = loop.period_ns
-    t0 = time.perf_counter()
-    for k in range(N):
-        if k == n:
-            loop.request_isolation(True)
-            log(f"t = {k * dt:.1f} s: isolation on")
-        loop.cycle(k * period)
-        if loop.state is State.FAULT:
-            raise RigError(f"demo: the loop faulted at t = {k * dt:.3f} s: {loop.lc.fault_reason}")
-        table[k] = plant.table_m
-        tool[k] = plant.tool_m
-        floor[k] = sum(plant.floor_m) * 0.25
-        cmd[k] = loop.cmd
-        stroke[k] = plant.stroke_m
-        limited[k] = loop.limiter.limited
-    wall = time.perf_counter() - t0
-    log(f"{N} periods in {wall:.1f} s wall ({wall / N * 1e6:.1f} us per period)")
-    loop.deactivate()
+    tr = {"table": np.empty(N), "tool": np.empty(N), "floor": np.empty(N), "cmd": np.empty((N, 4)),
+          "stroke": np.empty((N, 4)), "limited": np.zeros(N, dtype=bool)}
+    dt = 1.0 / cfg.loop.rate_hz
+    with Session(cfg, "sim", clock=SimClock(), isolation=False, port_options={"cmd_delay_periods": 1}) as session:
+        loop, plant = session.loop, session.port.plant
+        loop.activate()
+        t0 = time.perf_counter()
+        for k in range(N):
+            if k == n:
+                loop.request_isolation(True)
+                _log(f"t = {k * dt:.1f} s: isolation on")
+            loop.cycle(k * loop.period_ns)
+            if loop.state is State.FAULT:
+                raise RigError(f"demo: the loop faulted at t = {k * dt:.3f} s: {loop.lc.fault_reason}")
+            tr["table"][k] = plant.table_m
+            tr["tool"][k] = plant.tool_m
+            tr["floor"][k] = sum(plant.floor_m) * 0.25
+            tr["cmd"][k] = loop.cmd
+            tr["stroke"][k] = plant.stroke_m
+            tr["limited"][k] = loop.limiter.limited
+        return tr, time.perf_counter() - t0
 
-    s = int(round(args.settle * rate))
-    off, on = slice(s, n), slice(n + s, N)
+
+def _figures(tr, off, on, fs) -> dict:
     res = {"floor_rms_um": {}, "table_rms_um": {}, "tool_rms_um": {}, "reduction_db": {},
            "valve_limited_fraction": {}, "valve_rms_V": {}, "max_abs_stroke_um": {}}
-    fs = rate
     for tag, sl in (("off", off), ("on", on)):
-        res["floor_rms_um"][tag] = _rms(floor[sl]) * 1e6
-        res["table_rms_um"][tag] = _rms(table[sl]) * 1e6
-        res["tool_rms_um"][tag] = _rms(tool[sl]) * 1e6
-        res["table_rms_um"][tag + "_1_100hz"] = _rms(_band(table[sl], fs)) * 1e6
-        res["tool_rms_um"][tag + "_1_100hz"] = _rms(_band(tool[sl], fs)) * 1e6
-        res["valve_limited_fraction"][tag] = float(limited[sl].mean())
-        res["valve_rms_V"][tag] = float(np.sqrt(np.mean(cmd[sl] ** 2)))
-        res["max_abs_stroke_um"][tag] = float(np.max(np.abs(stroke[sl]))) * 1e6
+        res["floor_rms_um"][tag] = _rms(tr["floor"][sl]) * 1e6
+        res["table_rms_um"][tag] = _rms(tr["table"][sl]) * 1e6
+        res["tool_rms_um"][tag] = _rms(tr["tool"][sl]) * 1e6
+        res["table_rms_um"][tag + "_1_100hz"] = _rms(_band(tr["table"][sl], fs)) * 1e6
+        res["tool_rms_um"][tag + "_1_100hz"] = _rms(_band(tr["tool"][sl], fs)) * 1e6
+        res["valve_limited_fraction"][tag] = float(tr["limited"][sl].mean())
+        res["valve_rms_V"][tag] = float(np.sqrt(np.mean(tr["cmd"][sl] ** 2)))
+        res["max_abs_stroke_um"][tag] = float(np.max(np.abs(tr["stroke"][sl]))) * 1e6
     for key in ("table", "tool"):
         r = res[f"{key}_rms_um"]
         res["reduction_db"][key] = 20 * math.log10(r["off"] / r["on"])
         res["reduction_db"][key + "_1_100hz"] = 20 * math.log10(r["off_1_100hz"] / r["on_1_100hz"])
-    res["loop"] = {"periods": N, "wall_s": wall, "path": "rig.loop.Loop.cycle over SimBackend(RigPlant)"}
+    return res
 
+
+def _print(res: dict, v) -> None:
     print(f"rig demo: floor {res['floor_rms_um']['off']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz)")
     print(f"{'':24s}{'isolation off':>15s}{'isolation on':>15s}{'reduction':>12s}")
     for key, lab in (("table", "table Y rms"), ("tool", "tool point Y rms")):
@@ -132,15 +150,6 @@ def run(args) -> int:
     if res["valve_limited_fraction"]["on"] > 0.01:
         print(f"note: the valve was at its limit in {100 * res['valve_limited_fraction']['on']:.1f} % of the "
               f"isolated periods (the loop is then not linear; see --rms-um)")
-    if args.out is not None:
-        try:
-            args.out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
-        _plot(args.out / "demo.png", dt, n, table, tool, floor, off, on, res)
-        (args.out / "demo.json").write_text(json.dumps(res, indent=2))
-        log(f"wrote {args.out / 'demo.png'} and {args.out / 'demo.json'}")
-    return 0
 
 
 def _plot(path, dt, n, table, tool, floor, off, on, res):

@@ -6,7 +6,7 @@ displacement transducers) against the emulated rig under broadband floor vibrati
                                                 (null commands, no controller), then each transport alone
 
 Without --config the run uses drivers/devicemaps/hil.toml (the HIL rate and the isolation controller re-tuned
-for it, see sim_backend/emulators/tune_hil.py); a config of your own should carry a [controller] section
+for it, see controllers/tune_hil.py); a config of your own should carry a [controller] section
 tuned for [hil] rate_hz. The run uses [hil] rate_hz (Modbus request/response limits the rate) and [hil]
 stale_s as the staleness limit of the drivers and of the loop's sensor check. The first half is isolation off, the second on; [hil] settle_s
 at the start of each half is not metered. isolation_reduction_db = 20 log10(rms table motion off / on), the
@@ -19,26 +19,35 @@ from __future__ import annotations
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 import time
-
 from pathlib import Path
 
+import numpy as np
+
+import drivers
+from drivers.protocol import dta as proto
+from rig import cliargs
+from rig.backends import make_port
+from rig.config import hil_run_config, load_config
 from rig.errors import RigError
+from rig.port import Commands
+from rig.rt import raise_priority
+from rig.session import Session
 
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
-HIL_DEFAULT_CONFIG = Path(__import__("drivers").__file__).resolve().parent / "devicemaps" / "hil.toml"
+HIL_DEFAULT_CONFIG = Path(drivers.__file__).resolve().parent / "devicemaps" / "hil.toml"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=None, metavar="N",
                    help="run length, isolation off then on, half each (default [hil] seconds)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [hil] rate_hz)")
-    p.add_argument("--record", metavar="FILE", default=None,
-                   help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
+    p.add_argument("--rate", type=cliargs.rate_hz(le=5000), default=None, metavar="HZ",
+                   help="loop rate (default [hil] rate_hz)")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None,
+                       help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
     p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
@@ -47,7 +56,6 @@ def add_arguments(p) -> None:
 def hil_config(cfg, rate_hz: float | None = None):
     """The config of a HIL run: [hil] rate, staleness limit and watchdog applied to the loop and the safety
     checks (rig.config.hil_run_config), with the rate checked."""
-    from rig.config import hil_run_config
     rate = cfg.hil.rate_hz if rate_hz is None else rate_hz
     if not 0 < rate <= 5000:
         raise RigError(f"--rate: expected 0 < HZ <= 5000 for HIL, got {rate}")
@@ -55,7 +63,6 @@ def hil_config(cfg, rate_hz: float | None = None):
 
 
 def _pct(xs: list[float]) -> dict:
-    import numpy as np
     if not xs:
         return {"p50": math.nan, "p99": math.nan, "max": math.nan, "n": 0}
     a = np.asarray(xs)
@@ -77,7 +84,6 @@ class _Phases(threading.Thread):
         return (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None and lp.t_ns else 0.0
 
     def run(self) -> None:
-        from drivers.rt import raise_priority
         # every thread of this process runs SCHED_FIFO where allowed: a normal thread preempted while it
         # holds the GIL would stall the loop and the drivers behind it
         raise_priority(self.priority)
@@ -107,7 +113,6 @@ class _Phases(threading.Thread):
 
 
 def run(args) -> int:
-    from rig.config import load_config
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig hil: %(message)s", stream=sys.stderr)
     logging.getLogger("canopen").setLevel(logging.WARNING)
@@ -117,12 +122,11 @@ def run(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
     if args.bench:
         return bench(cfg, seconds, args.json)
+    cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json)
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "recording")}
-    if res["fault_reason"]:
-        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)
@@ -141,76 +145,33 @@ def run(args) -> int:
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
-            port=None) -> dict:
+            port_options: dict | None = None) -> dict:
     """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more)."""
-    import drivers
-    from rig.loop import Loop, loop_channels
-    from rig.recorder import Recorder
-    from rig.rt import enter_realtime, leave_realtime
-    try:
-        from controllers.isolation import make_isolation_controllers
-    except ImportError as e:
-        raise RigError(f"hil: needs make_isolation_controllers(cfg, dt) in controllers/isolation.py ({e})") from None
     rate = cfg.loop.rate_hz
-    dt = 1.0 / rate
     if record is None:
         record = time.strftime("hil-%Y%m%d-%H%M%S.h5")
     if not quiet:
         print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
               f"at {rate:g} Hz", file=sys.stderr)
-    running = {}
-
-    def on_term(signum, frame):               # SIGTERM: a safe stop while running, an interrupt during set-up
-        if "loop" in running:
-            running["loop"].stop("SIGTERM")
-        else:
-            raise KeyboardInterrupt
-
-    try:
-        old_term = signal.signal(signal.SIGTERM, on_term)
-    except ValueError:                        # not the main thread
-        old_term = None
-    try:
-        port = port or drivers.make_port(cfg, "hil")
-    except BaseException:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
-        raise
-    rig = port.rig
-    rec = None
-    rt = None
+    session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
+                      keep_timing=int(seconds * rate) + 16, record=record,
+                      record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial"},
+                      realtime=realtime, signals=True)
     phases = None
-    try:
-        ctrls = list(make_isolation_controllers(cfg, dt))
-        loop = Loop(cfg, port, ctrls, rate_hz=rate, isolation=False, keep_timing=int(seconds * rate) + 16)
-        rec = Recorder(record, loop_channels(loop.n, loop.state_len, loop.names), rate_hz=rate,
-                       flush_s=cfg.recording.flush_s, ring_s=cfg.recording.ring_s,
-                       chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"command": "rig hil", "config_source": cfg.source, "backend": "hil",
-                              "transports": ",".join(port.transports)}).start()
-        loop.recorder = rec
-        loop.configure()
-        if realtime:
-            rt = enter_realtime(priority=cfg.loop.rt_priority, cpu=cfg.loop.cpu,
-                                cpu_latency_us=cfg.loop.cpu_latency_us)
-        time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
-        phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
-        phases.start()
-        running["loop"] = loop
-        loop.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
-    finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
-        if phases is not None:
-            phases.stop()
-        if rt is not None:
-            leave_realtime(rt)
-        rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
-        lost = getattr(port.accel, "lost_conversions", 0)
-        port.close()
-        if rec is not None:
-            rec.close(stop_reason=loop.stop_reason or "", fault_reason=loop.lc.fault_reason or "",
-                      iterations=loop.iterations, overruns=loop.overruns, skipped_periods=loop.skipped)
+    with session:
+        port, loop = session.port, session.loop
+        rig = port.rig
+        try:
+            time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
+            phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
+            phases.start()
+            session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+        finally:
+            if phases is not None:
+                phases.stop()
+            rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
+            lost = getattr(port.accel, "lost_conversions", 0)
+    rec = session.recorder
     off = rig.table_rms_m("off") if "off" in rig.meter else math.nan
     on = rig.table_rms_m("on") if "on" in rig.meter else math.nan
     red = 20 * math.log10(off / on) if off > 0 and on > 0 else math.nan
@@ -227,8 +188,7 @@ def _raw_round_trips(port, n: int) -> dict:
     """Each transport alone (poller threads stopped, no loop): SYNC -> first valve's TPDO through canopen and the
     emulated node, one Modbus read of 10 registers, one RD -> data frame over the pty; plus a bare python-can
     virtual send -> recv for reference."""
-    import can
-    from drivers import dta_protocol as proto
+    import can                                   # a hardware library: loaded for the benchmark only
     for dev in (port.accel, port.stroke):
         dev._stop.set()
         dev._trigger.set()
@@ -280,9 +240,7 @@ def _raw_round_trips(port, n: int) -> dict:
 
 def bench(cfg, seconds: float, as_json: bool) -> int:
     """Driver round trips with the loop's read/write pattern (null commands), no controller."""
-    import drivers
-    from rig.port import Commands
-    port = drivers.make_port(cfg, "hil")
+    port = make_port(cfg, "hil")
     period = int(1e9 / cfg.loop.rate_hz)
     null = Commands([0.0] * port.n_mounts)
     faults = []

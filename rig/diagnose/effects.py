@@ -1,4 +1,4 @@
-"""The catalogue of candidate effects (names and keys as in ../shared/recordings/README.md).
+"""The catalogue of candidate effects (names and keys as in docs/MODEL.md).
 
 Each effect is a physical model with bounded parameters. `simulate(p, cmd, fs, fx)` runs the fastest exact model
 that holds all the named effects (sim_linear when everything is linear or a pre-valve clip, else sim_reduced).

@@ -1,7 +1,7 @@
 """Blind proof of the diagnosis (issue 7): make recordings that hide known effects, diagnose them, grade.
 
 Cases are drawn from a seed: the paper's Table 1 model with its six identified parameters moved +-15 %, zero,
-one or two effects from the catalogue of ../shared/recordings/README.md with physically plausible parameters,
+one or two effects from the catalogue (rig/diagnose/effects.py) with physically plausible parameters,
 and the recordings' sensor noise. They are simulated with sim_backend.actuator.simulate_stand (the physics that
 reproduces the shared recordings), diagnosed without the truth, and graded:
   right  = the named set of effects is exactly the true set ("none" when both are empty)

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 import random
 
-from drivers import valve408 as v4
-from drivers.rt import raise_priority
+from drivers.protocol import valve408 as v4
+from rig.rt import raise_priority
 
 # per-node fault knobs
 VALVE_MODES = ("ok", "silence", "garbage", "stale", "fault", "hold")

@@ -10,6 +10,8 @@ import logging
 import sys
 import threading
 
+from sim_backend.emulators.shared import SharedFile
+
 
 class _Announce:
     """The pipe-like object the serve() functions report on; poll() becomes true when stdin closes."""
@@ -36,15 +38,14 @@ class _Announce:
 
 
 def main(argv: list[str]) -> int:
-    from sim_backend.emulators.shared import SharedFile
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     kind, path = argv[0], argv[1]
     state = SharedFile(path)
     if kind == "modbus":
-        from sim_backend.emulators import modbus_server
+        from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only (pymodbus)
         modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]))
     elif kind == "serial":
-        from sim_backend.emulators import serial_device
+        from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
         serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))
     else:
         print(f"unknown device kind {kind!r}", file=sys.stderr)

@@ -20,22 +20,10 @@ import time
 
 from pymodbus.constants import ExcCodes
 
-from drivers.rt import raise_priority
+from drivers.protocol.modbus_map import (N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT, REG_FIFO,
+                                        REG_STATUS, REG_WDOG, volts_to_raw)
+from rig.rt import raise_priority
 from sim_backend.emulators import shared as sh
-
-N_REGS = 344
-REG_AI, REG_COUNT, REG_STATUS, REG_AO, REG_AO_SAFE, REG_WDOG, REG_FIFO = 0, 8, 9, 10, 12, 20, 24
-
-
-def volts_to_raw(v: float) -> int:
-    """+-10 V -> 0..65535 (ADAM two's offset style), clamped like the module's ADC."""
-    raw = round((v + 10.0) * 65535.0 / 20.0)
-    return 0 if raw < 0 else 65535 if raw > 65535 else int(raw)
-
-
-def raw_to_volts(raw: int) -> float:
-    return raw * 20.0 / 65535.0 - 10.0
-
 
 class Module:
     """The module's behaviour behind the registers (sensitivity: accelerometer V per m/s^2)."""

@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 
-from drivers.rt import raise_priority
+from rig.rt import raise_priority
 from rig.errors import DeviceError
 from sim_backend.emulators import shared as sh
 
@@ -57,7 +57,7 @@ class EmulatedRig:
 
     # ---- lifetime --------------------------------------------------------------------------------------
     def start(self) -> "EmulatedRig":
-        from sim_backend.emulators.canopen_valve import ValveBus
+        from sim_backend.emulators.canopen_valve import ValveBus   # lazy: loads canopen and python-can
         self._publish()
         self._stop.clear()
         self._keeper = threading.Thread(target=self._keep_pace, name="hil-plant-keeper", daemon=True)
@@ -198,7 +198,7 @@ class EmulatedRig:
         self.arr[sh.SERIAL_CH + ch] = code
 
     def set_valve(self, mount: int, mode: str) -> None:
-        from sim_backend.emulators.canopen_valve import VALVE_MODES
+        from sim_backend.emulators.canopen_valve import VALVE_MODES   # lazy: loads canopen and python-can
         if mode not in VALVE_MODES:
             raise ValueError(f"valve knob {mode!r} (expected one of {', '.join(VALVE_MODES)})")
         self.valves.nodes[mount].mode = mode

@@ -1,6 +1,6 @@
 """The 4-channel displacement-transducer amplifier (DTA-4) on a pty pair, run in its own process.
 
-Speaks drivers/dta_protocol.py (documented in drivers/devicemaps/dta4_serial.md). The child owns the pty:
+Speaks drivers/protocol/dta.py (documented in drivers/devicemaps/dta4_serial.md). The child owns the pty:
 it opens the pair, puts the slave side in raw mode, reports the slave's path to the parent, and answers on the
 master side. Displacements come from the shared plant state; fault knobs from SERIAL_MODE and SERIAL_CH.
 """
@@ -12,8 +12,8 @@ import select
 import time
 import tty
 
-from drivers import dta_protocol as proto
-from drivers.rt import raise_priority
+from drivers.protocol import dta as proto
+from rig.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 

@@ -1,0 +1,80 @@
+"""Backends by name, python-can style: one registry of name -> lazily imported factory.
+
+  "sim"       the simulated plant (sim_backend/backend.py): no hardware library is imported
+  "hil"       the real drivers (drivers/) against the emulated rig (sim_backend/emulators/), on loopback
+  "hardware"  the real drivers against the devices of the [drivers] section
+
+Every factory is factory(cfg, *, dt, clock, **options) -> a rig.port.Port; construction touches no device,
+open() does the slow set-up. Adding a backend: write its factory and add one line to BACKENDS.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+
+from rig.config import MOUNTS
+from rig.errors import ConfigError
+
+BACKENDS = {
+    "sim": "rig.backends:_sim",
+    "hil": "rig.backends:make_hil_port",
+    "hardware": "rig.backends:_hardware",
+}
+
+
+def make_port(cfg, name: str, *, dt: float | None = None, clock=None, **options):
+    """The port of backend `name` (ConfigError naming the choices for an unknown one); dt: the loop period
+    (default [loop] rate_hz), clock: the loop's (the simulated plant keeps pace with it)."""
+    target = BACKENDS.get(name)
+    if target is None:
+        raise ConfigError(f"{cfg.source}: backend.name: expected one of {', '.join(BACKENDS)}, got {name!r}")
+    module, attr = target.split(":")
+    factory = getattr(importlib.import_module(module), attr)
+    return factory(cfg, dt=dt, clock=clock, **options)
+
+
+def _sim(cfg, *, dt: float | None = None, clock=None, **options):
+    from sim_backend.backend import make_sim_port
+    return make_sim_port(cfg, dt if dt is not None else 1.0 / cfg.loop.rate_hz, clock=clock, **options)
+
+
+def _hardware(cfg, *, dt: float | None = None, clock=None):
+    from drivers import build_driver_port
+    d = cfg.drivers
+    return build_driver_port(cfg, "hardware", can_interface=d.can_interface, can_channel=d.can_channel,
+                             modbus_host=d.modbus_host, modbus_port=d.modbus_port, serial_port=d.serial_port,
+                             stale_s=d.stale_s, serial_stale_s=d.serial_stale_s)
+
+
+def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale_s: float | None = None,
+                  serial_stale_s: float | None = None, poll_s: float | None = None, priority: int | None = None):
+    """The drivers against a freshly started emulated rig (the port's `.rig`; stopped by port.close()).
+    plant: default the four-mount RigPlant under the configured floor vibration, stepped at the loop period.
+    The emulated module converts at each plant step (each SYNC), so the port is sample-driven."""
+    from drivers import build_driver_port
+    from sim_backend.emulators.rig import EmulatedRig
+    from sim_backend.rig_plant import FloorMotion, RigPlant
+    if dt is None and cfg.loop.rate_hz > cfg.hil.rate_hz:
+        logging.getLogger("rig.backends").warning(
+            "hil: loop.rate_hz %g Hz is above hil.rate_hz %g Hz: expect overruns and late samples (the HIL "
+            "configuration is drivers/devicemaps/hil.toml)", cfg.loop.rate_hz, cfg.hil.rate_hz)
+    dt = dt if dt is not None else 1.0 / cfg.loop.rate_hz
+    if plant is None:
+        plant = RigPlant(cfg, dt, floor=FloorMotion.from_config(cfg, dt), seed=cfg.vibration.seed)
+    d = cfg.drivers
+    emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
+                      node_ids=[d.valve_node_id_base + i for i in range(len(MOUNTS))],
+                      priority=cfg.hil.device_priority if priority is None else priority).start()
+    try:
+        port = build_driver_port(cfg, "hil", can_interface="virtual", can_channel=emu.channel,
+                                 modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,
+                                 stale_s=stale_s if stale_s is not None else cfg.hil.stale_s,
+                                 serial_stale_s=serial_stale_s if serial_stale_s is not None else
+                                 (stale_s if stale_s is not None else cfg.hil.serial_stale_s), poll_s=poll_s,
+                                 on_close=emu.stop, priority=priority, sample_driven=True)
+    except BaseException:
+        emu.stop()
+        raise
+    port.rig = emu
+    return port
+

@@ -1,0 +1,153 @@
+"""The lifecycle gate: which commands reach the valve, and the requests that change it.
+
+INACTIVE writes null (the controllers still run, output discarded, so their filters are warm: activating
+with cold filters under floor motion can kick the loop into a latched saturation); ACTIVE writes the limited
+commands; FAULT writes nothing after port.safe_state(). Requests (activation, isolation on/off, stop) are
+thread- and signal-safe: they are single assignments, applied at the next period boundary. On activation
+the controllers switch isolation on their own bumpless way and the limiter ramps from the null the valve
+held, so (re-)activation never jumps.
+"""
+from __future__ import annotations
+
+import logging
+
+from rig.lifecycle import Lifecycle, State
+from rig.port import Commands
+
+log = logging.getLogger("rig.loop")
+
+
+class LifecycleGate:
+    def __init__(self, kernel, port, event, *, isolation: bool, stop_on_fault: bool) -> None:
+        self.kernel = kernel
+        self.port = port
+        self._event = event                  # event(text): the recording's event list
+        self.lc = Lifecycle()
+        self.isolation = bool(isolation)
+        self.stop_on_fault = stop_on_fault
+        self.stop_reason: str | None = None
+        self.fault_t_ns: int | None = None
+        self.t_ns = 0                        # the period being run (fault times, events)
+        self._active_request: bool | None = None
+        self._iso_request: bool | None = None
+        self._reset_request = False
+        self.pending = False                 # any request below is waiting (a plain flag: one load per period)
+        self._recorder_request = None        # (recorder,) to record into from the next period
+        self.bind_recorder = None            # set by the loop: where a recorder request goes
+        self._null = Commands([0.0] * kernel.n)
+
+    @property
+    def state(self) -> State:
+        return self.lc.state
+
+    # ---- requests (any thread, signal handlers) -----------------------------------------------------------
+    def request_active(self, on: bool) -> None:
+        self._active_request = bool(on)
+        self.pending = True
+
+    def request_isolation(self, on: bool) -> None:
+        self._iso_request = bool(on)
+        self.pending = True
+
+    def toggle_isolation(self) -> None:
+        self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
+        self.pending = True
+
+    def request_reset_fault(self) -> None:
+        """FAULT -> INACTIVE at the next period boundary (the operator acknowledges the fault)."""
+        self._reset_request = True
+        self.pending = True
+
+    def request_recorder(self, recorder) -> None:
+        """Record into `recorder` (None: stop recording) from the next period boundary on."""
+        self._recorder_request = (recorder,)
+        self.pending = True
+
+    def stop(self, reason: str) -> None:
+        """Leave the loop at the next period boundary, then stop safely."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+
+    def apply_requests(self) -> None:
+        """Pending requests, at the period boundary (one arriving meanwhile waits for the next)."""
+        self.pending = False
+        lc = self.lc
+        if self._recorder_request is not None:
+            (rec,), self._recorder_request = self._recorder_request, None
+            self.bind_recorder(rec)
+        if self._reset_request:
+            self._reset_request = False
+            if lc.state is State.FAULT:
+                self.reset_fault()
+        if self._active_request is not None:
+            req, self._active_request = self._active_request, None
+            if req and lc.state is State.INACTIVE:
+                self.activate()
+            elif not req and lc.state is State.ACTIVE:
+                self.deactivate()
+        if self._iso_request is not None:
+            on, self._iso_request = self._iso_request, None
+            if on != self.isolation:
+                self.isolation = on
+                if lc.state is State.ACTIVE:
+                    self.kernel.set_enabled(on)
+                self._event(f"isolation {'on' if on else 'off'}")
+
+    # ---- transitions (the loop's thread) ----------------------------------------------------------------
+    def configure(self) -> None:
+        self.port.open()
+        self.lc.configure()
+        self._event("configured: INACTIVE")
+
+    def activate(self) -> None:
+        """INACTIVE -> ACTIVE: warm states, isolation switched on bumplessly, the limiter from null."""
+        self.lc.activate()
+        self.kernel.set_enabled(self.isolation)
+        self.kernel.reset_limiter()
+        self._event("ACTIVE")
+
+    def deactivate(self) -> None:
+        """ACTIVE -> INACTIVE: the valve goes to null (written every period while inactive)."""
+        if self.lc.state is State.ACTIVE:
+            self.lc.deactivate()
+            self.kernel.set_enabled(False)
+            self.kernel.reset_limiter()
+            self.kernel.null_commands()
+            self.write_null()
+            self._event("INACTIVE")
+
+    def reset_fault(self) -> None:
+        """FAULT -> INACTIVE after the cause is cleared (explicit acknowledgement); fresh controller states."""
+        self.lc.reset()
+        self.kernel.reset_check()
+        self.kernel.fresh_states()
+        self._event("fault reset: INACTIVE")
+
+    def fault(self, reason: str) -> None:
+        """FAULT: valve to null via port.safe_state(), reason logged and recorded once."""
+        if self.lc.fault(reason):
+            self.fault_t_ns = self.t_ns
+            try:
+                self.port.safe_state()
+            except Exception as e:          # noqa: BLE001 - report, the state is FAULT regardless
+                log.error("safe_state failed after fault: %s", e)
+            self.kernel.reset_limiter()
+            self.kernel.null_commands()
+            self._event(f"FAULT: {reason}")
+            if self.stop_on_fault:
+                self.stop("fault")
+
+    def write_null(self) -> None:
+        try:
+            self.port.write(self.t_ns, self._null)
+        except Exception as e:              # noqa: BLE001
+            self.fault(f"port write failed: {e.__class__.__name__}: {e}")
+
+    def safe_stop(self) -> None:
+        """After the loop: valve to null (deactivate), safe state. The port stays open."""
+        if self.lc.state is State.ACTIVE:
+            self.deactivate()
+        try:
+            self.port.safe_state()
+        except Exception as e:              # noqa: BLE001
+            log.error("safe_state at stop failed: %s", e)

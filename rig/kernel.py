@@ -1,0 +1,301 @@
+"""The period kernel: sensor check -> controllers -> command limit -> recording row, one compiled call per
+period for any number of mounts (1..8), over one float64 memory block it owns.
+
+The rules are the compiled functions of their own modules (rig/safety.py: check_sensors, limit_commands;
+controllers/*.py: one law per controller kind); this module only arranges them and the memory. Per mount the
+kernel dispatches on the controller's kind (off, isolation, playback, PID) with that mount's own named state
+and coefficients, so mounts can run different kinds. Skipped periods are replayed here (the measurement
+interpolated from the last period's to this one's: holding it would leave the double integration of
+acceleration a velocity error), and a sample-driven port's older conversions are stepped here, in order.
+
+The block (`mem`), its parts named by the header below: the inputs of the period (packed by
+PeriodKernel.period in one struct call), the older conversions, the previous measurement, the safety limits
+and states, the mount table (kind, coefficients, state per mount), the coefficients, the controller states
+and the recording row (rig/layout.py RowLayout offsets). Passing one block instead of many scalars or arrays
+keeps numba's argument unboxing small: it is most of the cost of a call this size.
+"""
+from __future__ import annotations
+
+import struct
+
+import numba
+import numpy as np
+
+from controllers import isolation, playback, tracking
+from controllers.isolation import isolation_step
+from controllers.playback import playback_step
+from controllers.tracking import pid_step
+from rig.config import Config
+from rig.errors import ConfigError
+from rig.layout import RowLayout, loop_channels
+from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, SensorCheck, _F_LIMITED,
+                        _F_SATRUN, check_sensors, limit_commands)
+
+KIND_OFF = 0
+KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid"}
+_ISO, _PLAY, _PID = isolation.KIND, playback.KIND, tracking.KIND
+_PID_REF = tracking.STATE_NAMES.index("reference_m")
+MAX_MOUNTS = 8
+OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
+
+MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
+INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step")   # then accel, stroke, t
+(_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP) = range(len(INPUTS))
+MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
+HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
+          "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
+          "r_limited", "r_wake", "r_comp")
+(_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
+ _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP) = range(len(HEADER))
+
+
+@numba.njit(cache=True, inline="always")
+def _step_mount(mem, m, a, x):
+    """Mount m's controller, one period, by its kind; the command [V]."""
+    b = int(mem[_H_MOUNTS]) + m * 5
+    kind = int(mem[b])
+    co = int(mem[b + 1])
+    so = int(mem[b + 3])
+    cf = mem[co:co + int(mem[b + 2])]
+    st = mem[so:so + int(mem[b + 4])]
+    if kind == _ISO:
+        return isolation_step(st, cf, a, x)
+    if kind == _PID:
+        return pid_step(st, cf, st[_PID_REF], x)
+    if kind == _PLAY:
+        return playback_step(st, cf)
+    return 0.0
+
+
+@numba.njit(cache=True)
+def _catch_up(mem, n, acc, xs, miss, n_older):
+    """The periods the controllers did not see: `miss` skipped ones replayed (at most max_held, the latest),
+    inputs interpolated from the previous period's measurement to this one's; or a sample-driven port's
+    n_older conversions before the newest, with this period's stroke. Outputs are not written."""
+    prev = int(mem[_H_PREV])
+    for j in range(max(0, miss - int(mem[_H_MAXHELD])), miss):
+        f = (j + 1) / (miss + 1)
+        for m in range(n):
+            pa = mem[prev + m]
+            px = mem[prev + n + m]
+            _step_mount(mem, m, pa + f * (acc[m] - pa), px + f * (xs[m] - px))
+    older = int(mem[_H_OLDER])
+    for k in range(n_older):
+        for m in range(n):
+            _step_mount(mem, m, mem[older + k * n + m], xs[m])
+
+
+@numba.njit(cache=True)
+def run_period(mem, ring, slot):
+    """One period on the block: check the measurement; step the controllers (unless the port has no new
+    conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; with
+    slot >= 0 copy the row into ring[slot] (the recorder's; the caller commits). FAULT: the row only.
+    0, or a rule's code (rig/safety.py): then nothing is copied, the caller records the period itself."""
+    n = int(mem[_H_N])
+    i = int(mem[_H_IN])
+    mode = int(mem[i + _IN_MODE])
+    m0 = i + len(INPUTS)
+    acc = mem[m0:m0 + n]
+    xs = mem[m0 + n:m0 + 2 * n]
+    row = mem[int(mem[_H_ROW]):int(mem[_H_ROW]) + int(mem[_H_NROW])]
+    ra, rx, rc, rr = int(mem[_H_RA]), int(mem[_H_RX]), int(mem[_H_RC]), int(mem[_H_RR])
+    row[ra:ra + n] = acc
+    row[rx:rx + n] = xs
+    flags = mem[int(mem[_H_FLAGS]):int(mem[_H_FLAGS]) + 3]
+    code = 0
+    if mode == MODE_FAULT:
+        row[rc:rc + n] = 0.0
+    else:
+        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + 7]
+        chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
+        code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
+        if code == 0:
+            if mem[i + _IN_STEP] > 0.5:
+                _catch_up(mem, n, acc, xs, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
+                for m in range(n):
+                    row[rr + m] = _step_mount(mem, m, acc[m], xs[m])
+            prev = int(mem[_H_PREV])
+            mem[prev:prev + n] = acc
+            mem[prev + n:prev + 2 * n] = xs
+            if mode == MODE_ACTIVE:
+                last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
+                code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
+            else:
+                row[rc:rc + n] = 0.0
+    o_st = int(mem[_H_ST])
+    nst = int(mem[_H_NST])
+    rs = int(mem[_H_RS])
+    row[rs:rs + nst] = mem[o_st:o_st + nst]
+    row[int(mem[_H_RL])] = flags[_F_LIMITED]
+    row[int(mem[_H_RT])] = mem[i + _IN_T_S]
+    row[int(mem[_H_RW])] = mem[i + _IN_WAKE]
+    row[int(mem[_H_RP])] = mem[i + _IN_COMP]
+    if code == 0 and slot >= 0:
+        ring[slot, :] = row
+    return code
+
+
+_ENTRIES: dict = {}
+
+
+def period_entry(n: int):
+    """The period's entry for n mounts: the inputs (INPUTS, then accelerations, strokes and sample times) as
+    float64 scalars, stored into the block, then run_period. Scalars are the cheapest arguments to hand over
+    (about as cheap as packing them into the block in Python, without the second call), so the entry is
+    generated per mount count, once per process, with exactly that signature."""
+    if n not in _ENTRIES:
+        meas = [f"a{i}" for i in range(n)] + [f"x{i}" for i in range(n)] + [f"ts{i}" for i in range(n)]
+        args = list(INPUTS) + meas
+        src = (f"def period_{n}(mem, ring, slot, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
+               + "".join(f"    mem[i + {k}] = {a}\n" for k, a in enumerate(args))
+               + "    return run_period(mem, ring, slot)\n")
+        scope = {"run_period": run_period}
+        exec(src, scope)
+        sig = f"int64(float64[::1], float64[:, ::1], int64, {', '.join(['float64'] * len(args))})"
+        _ENTRIES[n] = native_entry(numba.njit(sig)(scope[f"period_{n}"]))
+    return _ENTRIES[n]
+
+
+def native_entry(dispatcher):
+    """The compiled function's own entry point (argument unboxing only) for its one compiled signature,
+    skipping the dispatcher's type resolution. The caller must pass exactly those types (a C-contiguous
+    float64 block, a 2-D C-contiguous float64 ring: ring_ok, an int). Falls back to the dispatcher where
+    numba does not offer this."""
+    try:
+        (sig,) = dispatcher.signatures
+        return dispatcher.overloads[sig].entry_point
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return dispatcher
+
+
+def ring_ok(ring) -> bool:
+    """A recorder ring the kernel may write: 2-D C-contiguous float64 (native_entry checks nothing)."""
+    return (isinstance(ring, np.ndarray) and ring.ndim == 2 and ring.dtype == np.float64
+            and ring.flags.c_contiguous and ring.flags.writeable)
+
+
+class PeriodKernel:
+    """Owns the block: builds it from the controllers (one per mount; their builders give kind, coefficients,
+    named state and dt) and the safety builders, and runs one period per `period` call."""
+
+    def __init__(self, cfg: Config, controllers: list, names: tuple[str, ...], dt: float,
+                 max_held_steps: int) -> None:
+        n = len(controllers)
+        if not 1 <= n <= MAX_MOUNTS:
+            raise ConfigError(f"loop: {n} mounts; the period kernel takes 1 to {MAX_MOUNTS}")
+        for name, c in zip(names, controllers):
+            _check_controller(name, c, dt)
+        self.n, self.ctrls, self.names = n, list(controllers), tuple(names)
+        self.state_labels = tuple(f"{m}.{s}" for m, c in zip(names, controllers) for s in c.state_names)
+        self.layout = RowLayout(loop_channels(self.names, self.state_labels))
+        self.check = SensorCheck(cfg, n, self.names)
+        self.limiter = CommandLimiter(cfg, n, dt)
+        coefs = [np.ascontiguousarray(c.coefficients(), dtype=np.float64) for c in controllers]
+        nst = [len(c.state_names) for c in controllers]
+        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n, "older": OLDER_CAP * n, "prev": 2 * n,
+                 "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
+                 "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
+                 "coefs": sum(len(c) for c in coefs), "row": self.layout.ncols}
+        at, off = 0, {}
+        for part, size in parts.items():
+            off[part] = at
+            at += size
+        self.mem = mem = np.zeros(at)
+        lay = self.layout
+        mem[:len(HEADER)] = (n, off["inputs"], off["older"], off["prev"], off["limits"], off["check"],
+                             off["last_cmd"], off["flags"], off["mounts"], off["states"], sum(nst), off["row"],
+                             lay.ncols, max_held_steps, lay["time_s"], lay["accel_mps2"], lay["stroke_m"],
+                             lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
+                             lay["controller_state"] if "controller_state" in lay else lay.ncols,
+                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"])
+        mem[off["limits"]:off["limits"] + len(LIMITS)] = self.check.limits() + self.limiter.limits()
+        self.states = []
+        so, co = off["states"], off["coefs"]
+        for m, (c, cf) in enumerate(zip(controllers, coefs)):
+            mem[off["mounts"] + 5 * m:off["mounts"] + 5 * m + 5] = (c.kind, co, len(cf), so, nst[m])
+            mem[co:co + len(cf)] = cf
+            self.states.append(mem[so:so + nst[m]])
+            co += len(cf)
+            so += nst[m]
+        self.check_state = mem[off["check"]:off["check"] + len(CHECK_STATE) * n].reshape(len(CHECK_STATE), n)
+        self.last_cmd = mem[off["last_cmd"]:off["last_cmd"] + n]
+        self.flags = mem[off["flags"]:off["flags"] + len(LIMITER_FLAGS)]
+        self.limiter.view(self.last_cmd, self.flags)
+        self.row = mem[off["row"]:]
+        self.no_ring = np.zeros((1, lay.ncols))       # stands in for the ring without a recorder (slot -1)
+        self._older_bytes = 8 * off["older"]
+        self._pack_older = struct.Struct(f"<{n}d").pack_into
+        self._cmd = struct.Struct(f"<{n}d").unpack_from
+        self._cmd_bytes = 8 * (off["row"] + lay["valve_cmd_V"])
+        self._raw_bytes = 8 * (off["row"] + lay["valve_cmd_raw_V"])
+        self.reset_check()
+        self.fresh_states()
+        self.call = period_entry(n)          # compiled (or loaded) now, not in the first period
+
+    # ---- the period -----------------------------------------------------------------------------------
+    def pack_older(self, older) -> int:
+        """A sample-driven port's conversions before the newest into the block (rare); how many."""
+        if len(older) > OLDER_CAP:
+            raise ValueError(f"{len(older)} older conversions in one read (at most {OLDER_CAP})")
+        for k, a in enumerate(older):
+            self._pack_older(self.mem, self._older_bytes + 8 * self.n * k, *a)
+        return len(older)
+
+    def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
+               ring, slot: int) -> int:
+        """One period for the measurement `m` (rig.port.Measurements): 0 or a rule's code. (The loop makes
+        this call itself, inlined, on its hot path.)"""
+        ns = m.new_samples
+        return self.call(self.mem, ring, slot, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
+                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
+                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns)
+
+    def commands(self) -> tuple:
+        """The limited commands of the last period (the row's valve_cmd_V)."""
+        return self._cmd(self.mem, self._cmd_bytes)
+
+    def raw_commands(self) -> list:
+        return list(self._cmd(self.mem, self._raw_bytes))
+
+    def null_commands(self) -> None:
+        """The row's commands to null (a fault in this period: nothing was written)."""
+        c = self.layout["valve_cmd_V"]
+        self.row[c:c + self.n] = 0.0
+
+    # ---- state changes, between periods ---------------------------------------------------------------
+    def fresh_states(self) -> None:
+        """Every controller from its initial state, isolation disabled (the loop enables it on activation)."""
+        for c, st in zip(self.ctrls, self.states):
+            st[:] = c.set_enabled(c.initial_state(), False)
+
+    def set_enabled(self, on: bool) -> None:
+        """Isolation on/off, each controller's own bumpless way."""
+        for c, st in zip(self.ctrls, self.states):
+            st[:] = c.set_enabled(st.tolist(), on)
+
+    def suspended(self) -> list[bool]:
+        """Per mount: isolation held off by the controller's saturation recovery."""
+        return [bool(getattr(c, "suspended", lambda s: False)(st)) for c, st in zip(self.ctrls, self.states)]
+
+    def reset_check(self) -> None:
+        self.check_state[:] = self.check.initial_state()
+
+    def reset_limiter(self) -> None:
+        """The valve is at null (written while inactive, or safe state): the slew limit ramps from there."""
+        self.last_cmd[:] = 0.0
+        self.flags[_F_SATRUN] = 0.0
+
+
+def _check_controller(name: str, c, dt: float) -> None:
+    """A controller the kernel can run, or ConfigError naming the mount and what is missing."""
+    kind = getattr(c, "kind", None)
+    if kind not in KINDS:
+        raise ConfigError(f"loop: {name}: {type(c).__name__} is not a controller kind the period kernel runs "
+                          f"(kinds: {', '.join(f'{k} {v}' for k, v in KINDS.items())})")
+    for attr in ("coefficients", "initial_state", "set_enabled", "state_names"):
+        if not hasattr(c, attr):
+            raise ConfigError(f"loop: {name}: {type(c).__name__} has no {attr}")
+    cdt = getattr(c, "dt", dt)
+    if abs(cdt - dt) > 1e-6 * dt:
+        raise ConfigError(f"loop: {name}: controller built for dt = {cdt:g} s, loop period {dt:g} s "
+                          f"(build the controllers at the loop rate)")

@@ -1,0 +1,198 @@
+"""Floor feedforward (controllers/feedforward.py): it is the inverse of the actuator model within its band,
+the discrete filter is the continuous design, the step function runs the frf (in Python and compiled by numba),
+it switches without a jump, and in the simulated rig (RigPlant stepping, one period of delay) it cancels floor
+motion as the frequency-domain analysis predicts."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controllers.analysis import DiscreteRig, attenuation_db, siso
+from controllers.discrete import sos_step_array, tustin_section
+from controllers.feedforward import (FeedforwardFilter, feedforward_params_from_config, feedforward_step,
+                                     make_feedforward_filters)
+from controllers.isolation import make_isolation_controllers
+from rig.config import Config
+from sim_backend.linear import ActuatorParams, g_eha_frf
+from sim_backend.rig_plant import I_TABLE, RigPlant
+
+CFG = Config()
+DT = 1.0 / CFG.loop.rate_hz
+
+
+@pytest.fixture(scope="module")
+def ff():
+    return FeedforwardFilter(feedforward_params_from_config(CFG), DT)
+
+
+def test_tustin_closed_form_equals_python_control():
+    """controllers/discrete.tustin_section writes out the map python-control's sample_system applies."""
+    import control
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        w = 2 * math.pi * 10 ** rng.uniform(-1, 3)
+        for num, den in (([1 / w, 1.0], [1 / (4 * w), 1.0]), ([w * w], [1.0, 1.4 * w, w * w]),
+                         ([1.0, 0.2 * w, w * w], [1.0, w, w * w]), ([1.0, 0.0], [1.0, 1.8 * w, w * w])):
+            for pw in (None, 200.0):
+                kw = {"prewarp_frequency": 2 * math.pi * pw} if pw else {}
+                d = control.sample_system(control.tf(num, den), DT, method="tustin", **kw)
+                b = np.asarray(d.num[0][0], float)
+                a = np.asarray(d.den[0][0], float)
+                b = np.concatenate([np.zeros(len(a) - len(b)), b]) / a[0]
+                a = a / a[0]
+                ref = np.concatenate([b, np.zeros(3 - len(b)), a[1:], np.zeros(3 - len(a))])
+                assert np.allclose(tustin_section(num, den, DT, pw), ref, rtol=1e-9, atol=1e-12)
+
+
+def test_it_inverts_the_actuator_model_in_band(ff):
+    """u_ff / a_g times the model's x_p / u (Eq. 10), times the floor's acceleration per metre (-w^2) and the
+    1.5 periods of delay, is -1 within 2-100 Hz: the stroke cancels the floor to 20 dB or better."""
+    f = np.geomspace(2.0, 100.0, 200)
+    w = 2 * np.pi * f
+    loop = ff.frf(w) * g_eha_frf(ActuatorParams.from_config(CFG), w) * (-(w ** 2)) * np.exp(-1.5j * w * DT)
+    assert np.max(np.abs(1 + loop)) < 0.1
+
+
+def test_discrete_filter_is_the_continuous_design(ff):
+    f = np.geomspace(0.5, 100.0, 120)
+    w = 2 * np.pi * f
+    g = ff.tf()
+    cont = np.array([complex(g(1j * x)) for x in w])
+    assert np.max(np.abs(ff.frf(w) / cont - 1)) < 0.01
+
+
+def test_step_runs_the_frf_in_python_and_compiled(ff):
+    """A sine of floor acceleration through step(): steady-state amplitude and phase as frf(); numba's
+    compilation of the same function gives the same samples."""
+    import numba
+    f0 = 23.0
+    n = int(3.0 / DT)
+    t = np.arange(n) * DT
+    a = np.sin(2 * np.pi * f0 * t) * 0.5 * (1 - np.cos(np.pi * np.minimum(t, 1.0)))   # fades in over 1 s
+    s = ff.initial_state(on=True)
+    y = np.array([ff.step(s, x, DT)[0] for x in a])
+    s2 = ff.initial_state(on=True)
+    jit = numba.njit(feedforward_step)
+    y2 = np.array([jit(ff.coef, ff.fade, s2, x) for x in a])
+    assert np.allclose(y, y2, rtol=1e-12, atol=1e-15)
+    k = t > 2.0
+    A = np.column_stack([np.sin(2 * np.pi * f0 * t[k]), np.cos(2 * np.pi * f0 * t[k]), np.ones(k.sum()), t[k]])
+    c = np.linalg.lstsq(A, y[k], rcond=None)[0]
+    H = ff.frf(np.array([2 * np.pi * f0]))[0]
+    assert complex(c[0], c[1]) == pytest.approx(H, rel=2e-3)
+
+
+def test_array_step_is_scipys_sosfilt():
+    """The compiled cascade step (controllers/discrete.sos_step_array) is transposed direct form II, as
+    scipy.signal.sosfilt runs it."""
+    import scipy.signal
+    secs = [tustin_section([1.0, 30.0], [1.0, 300.0], DT, 100.0), tustin_section([1e4], [1.0, 140.0, 1e4], DT)]
+    coef = np.array(secs)
+    x = np.sin(np.arange(400) * 0.1) + 0.3 * np.cos(np.arange(400) * 0.77)
+    st = np.zeros(4)
+    y = np.array([sos_step_array(coef, st, 0, v) for v in x])
+    sos = np.array([[b0, b1, b2, 1.0, a1, a2] for b0, b1, b2, a1, a2 in secs])
+    assert np.allclose(y, scipy.signal.sosfilt(sos, x), rtol=1e-12, atol=1e-14)
+
+
+def test_switching_fades_without_a_jump(ff):
+    """Off: nothing out while the filters run warm; on: the output is the warm filter's times a gain that
+    rises monotonically, by at most dt / fade_s per period (no jump), towards 1."""
+    a = np.sin(2 * np.pi * 10.0 * np.arange(int(1.0 / DT)) * DT)
+    ref, sw = ff.initial_state(on=True), ff.initial_state(on=False)
+    y_ref = np.array([ff.step(ref, x, DT)[0] for x in a])
+    y_sw = []
+    for k, x in enumerate(a):
+        if k == 2000:
+            ff.set_enabled(sw, True)
+        y_sw.append(ff.step(sw, x, DT)[0])
+    y_sw = np.array(y_sw)
+    assert np.all(y_sw[:2000] == 0.0) and ff.enabled(sw)
+    live = np.abs(y_ref[2000:]) > 1e-3 * np.abs(y_ref).max()
+    g = y_sw[2000:][live] / y_ref[2000:][live]
+    assert np.all(np.diff(g) >= -1e-12) and np.all(np.diff(g) <= DT / ff.p.fade_s * 1.01)
+    assert g[0] < 0.01 and g[-1] > 0.99
+    with pytest.raises(ValueError):
+        ff.step(sw, 0.0, 2 * DT)
+
+
+def test_bad_roll_off_order():
+    with pytest.raises(ValueError, match="lowpass_order"):
+        FeedforwardFilter(feedforward_params_from_config(CFG).with_(lowpass_order=4), DT)
+
+
+class SineFloor:
+    """x_g = env(t) amp sin(w t) at the masked mounts (FloorMotion's next_block API), fading in over ramp_s
+    (env = (1 - cos(pi t / ramp_s)) / 2) so that the floor starts from rest, and its exact acceleration (what an
+    ideal floor accelerometer reads)."""
+
+    def __init__(self, f_hz, amp_m, mask, ramp_s=1.0):
+        self.w, self.amp, self.mask, self.T = 2 * math.pi * f_hz, amp_m, np.asarray(mask, dtype=float), ramp_s
+        self.k = 0
+
+    def _env(self, t):
+        c = np.pi / self.T
+        on = t < self.T
+        e = np.where(on, 0.5 * (1 - np.cos(c * t)), 1.0)
+        de = np.where(on, 0.5 * c * np.sin(c * t), 0.0)
+        dde = np.where(on, 0.5 * c * c * np.cos(c * t), 0.0)
+        return e, de, dde
+
+    def next_block(self, n):
+        t = (self.k + np.arange(n)) * DT
+        self.k += n
+        e, de, _ = self._env(t)
+        s, c = np.sin(self.w * t), np.cos(self.w * t)
+        x = self.amp * (e * s)[:, None] * self.mask
+        v = self.amp * (de * s + e * self.w * c)[:, None] * self.mask
+        return np.ascontiguousarray(np.hstack([x, v]))
+
+    def accel(self, k):
+        t = np.array([k * DT])
+        e, de, dde = self._env(t)
+        s, c = math.sin(self.w * t[0]), math.cos(self.w * t[0])
+        return self.amp * float(dde[0] * s + 2 * de[0] * self.w * c - e[0] * self.w ** 2 * s) * self.mask
+
+
+def _table_amplitude(f_hz, fb, ff, settle_s=2.5, measure_s=1.0):
+    floor = SineFloor(f_hz, 1e-6, [1, 0, 0, 0])
+    plant = RigPlant(CFG, DT, floor=floor, accel_noise_mps2=0.0, stroke_noise_m=0.0)
+    st = fb.initial_state() if fb is not None else None
+    fs = ff.initial_state(on=True) if ff is not None else None
+    n0, n1 = int(settle_s / DT), int(round(round(measure_s * f_hz) / f_hz / DT))
+    table = np.empty(n1)
+    u_apply = 0.0
+    for k in range(n0 + n1):
+        u = 0.0
+        if fb is not None:
+            u, st = fb.step(st, (plant.accel_mps2[0], plant.stroke_m[0]), DT)
+        if ff is not None:
+            u += ff.step(fs, floor.accel(k)[0], DT)[0]
+        plant.step([u_apply, 0.0, 0.0, 0.0])              # computed at t_k, acts from t_k+1
+        u_apply = u
+        j = k - n0 + 1
+        if 0 <= j < n1:
+            table[j] = plant.table_m
+    t = np.arange(n1) * DT
+    A = np.column_stack([np.cos(2 * np.pi * f_hz * t), np.sin(2 * np.pi * f_hz * t), np.ones_like(t), t])
+    c = np.linalg.lstsq(A, table, rcond=None)[0]
+    return math.hypot(c[0], c[1])
+
+
+@pytest.mark.parametrize("f_hz", [7.0, 41.0])
+def test_time_domain_feedforward_matches_analysis(f_hz):
+    """Front-left: feedback + feedforward in lockstep with the plant attenuates as siso(..., ff) predicts,
+    and the feedforward adds more than 10 dB to the feedback alone."""
+    fb = make_isolation_controllers(CFG, DT)[0]
+    ff = make_feedforward_filters(CFG, DT)[0]
+    passive = _table_amplitude(f_hz, None, None)
+    both = _table_amplitude(f_hz, fb, ff)
+    rig = DiscreteRig(CFG, DT, np.array([f_hz]))
+    o = I_TABLE + 1
+    r_fb, r_both = siso(rig, fb, 0), siso(rig, fb, 0, ff=ff)
+    pred_both = float(attenuation_db(r_both["tr_passive"][:, o], r_both["tr_controlled"][:, o])[0])
+    pred_fb = float(attenuation_db(r_fb["tr_passive"][:, o], r_fb["tr_controlled"][:, o])[0])
+    assert 20 * math.log10(passive / both) == pytest.approx(pred_both, abs=1.0)
+    assert pred_both > pred_fb + 10.0

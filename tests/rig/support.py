@@ -1,0 +1,43 @@
+"""Shared pieces for the runtime tests: a small real plant and a small real controller (not mocks).
+
+TinyPlant: per mount a valve-driven first-order actuator (stroke lag to the valve command, gain 2.68 um/V
+like Table 1's DC gain, 7.43 Hz corner) with a load offset (stroke off-centre at null) under a sinusoidal
+floor; accel = machine acceleration.
+CentringP: proportional stroke centring (a compiled controller kind of the loop's kernel).
+"""
+from __future__ import annotations
+
+import math
+
+from controllers.tracking import PIDParams, TrackingPID
+
+
+class TinyPlant:
+    def __init__(self, n: int, dt: float, *, floor_amp_m: float = 10e-6, floor_hz: float = 5.0,
+                 offset_m: float = 5e-6) -> None:
+        self.n, self.dt = n, dt
+        self.k = 0
+        self.gain = 2.68e-6            # m/V, DC gain of Table 1's actuator (PHYSICS_NOTES)
+        self.w_c = 46.7                # rad/s, the K_C K_L / A_p^2 lag corner
+        self.offset = [offset_m * (i + 1) for i in range(n)]   # a load that pushes each piston off-centre
+        self.x = list(self.offset)
+        self.floor_amp, self.w_f = floor_amp_m, 2 * math.pi * floor_hz
+        self.stroke_m = list(self.x)
+        self.accel_mps2 = [0.0] * n
+        self.t_s = 0.0
+
+    def step(self, valve_cmd_V) -> None:
+        a = math.exp(-self.w_c * self.dt)
+        self.k += 1
+        self.t_s = self.k * self.dt
+        fl_acc = -self.floor_amp * self.w_f ** 2 * math.sin(self.w_f * self.t_s)
+        for i in range(self.n):
+            self.x[i] = a * self.x[i] + (1 - a) * (self.offset[i] + self.gain * valve_cmd_V[i])
+            self.stroke_m[i] = self.x[i]
+            self.accel_mps2[i] = fl_acc * (1.0 + 0.1 * i)
+
+
+def CentringP(kp_V_per_m: float = 2e4, dt: float = 2e-4) -> TrackingPID:
+    """Proportional stroke centring, valve = -kp * stroke: the tracking PID (a kernel controller kind) with
+    reference 0, no integral, no derivative and no limits of its own (the loop's limiter does the limiting)."""
+    return TrackingPID(PIDParams(kp_V_per_m, 0.0, 0.0, 1000.0, math.inf, math.inf), dt)

@@ -1,0 +1,73 @@
+"""Session: builds a run from a config and a backend name and tears it all down; a configuration the kernel
+cannot run is refused at construction; the requests and the published state work from another thread."""
+from __future__ import annotations
+
+import threading
+import time
+
+import h5py
+import pytest
+
+from rig.clock import SimClock
+from rig.config import Config
+from rig.errors import ConfigError
+from rig.lifecycle import State
+from rig.recorder import read_recording
+from rig.session import Session
+
+
+def test_session_builds_runs_records_and_tears_down(tmp_path):
+    path = tmp_path / "run.h5"
+    with Session(Config(), "sim", clock=SimClock(), record=path, record_attrs={"command": "test"}) as s:
+        port, loop = s.port, s.loop
+        assert port.opened and loop.state is State.INACTIVE
+        reason = s.run(iterations=500, activate_after_s=0.01)
+        snap = s.snapshot()
+    assert reason == "iterations" and not port.opened                   # the port was closed on exit
+    assert snap["state"] == "INACTIVE" and snap["iterations"] == 500 and len(snap["valve_cmd_V"]) == 4
+    r = read_recording(path)
+    assert len(r["time_s"]) == 500 and r["attrs"]["complete"] and r["attrs"]["stop_reason"] == "iterations"
+    assert r["attrs"]["backend"] == "sim" and r["attrs"]["command"] == "test"
+    with h5py.File(path) as f:                                          # state columns named by the controllers
+        labels = [str(x) for x in f["controller_state"].attrs["labels"]]
+    assert labels[0] == "front_left.h_acc0_z1" and "rear_right.suspended" in labels
+
+
+def test_a_controller_the_kernel_cannot_run_is_refused_and_nothing_is_left_open():
+    built = {}
+
+    class NotAKind:
+        def __init__(self):
+            built["n"] = built.get("n", 0) + 1
+
+    with pytest.raises(ConfigError, match="not a controller kind"):
+        with Session(Config(), "sim", clock=SimClock(), controllers=lambda cfg, dt: [NotAKind()] * 4):
+            pass
+    assert built["n"] == 1
+
+
+def test_requests_and_recording_from_another_thread(tmp_path):
+    """A console's view: the loop runs in its thread; requests and a recording started and stopped meanwhile."""
+    with Session(Config(), "sim", clock=SimClock()) as s:
+        done = threading.Event()
+        th = threading.Thread(target=lambda: (s.run(activate_after_s=0.01), done.set()))
+        th.start()
+        try:
+            deadline = time.monotonic() + 60
+            while s.snapshot()["state"] != "ACTIVE" and time.monotonic() < deadline:
+                time.sleep(0.01)
+            s.request_isolation(False)
+            rec = s.start_recording(tmp_path / "part.h5", command="console")
+            time.sleep(0.3)
+            s.stop_recording(rec)
+            while s.snapshot()["isolation"] and time.monotonic() < deadline:
+                time.sleep(0.01)
+            snap = s.snapshot()
+        finally:
+            s.safe_stop("console: stop")
+            th.join(60)
+    assert done.is_set() and s.loop.stop_reason == "console: stop"
+    assert snap["state"] == "ACTIVE" and snap["isolation"] is False and snap["fault_reason"] is None
+    r = read_recording(tmp_path / "part.h5")
+    assert len(r["time_s"]) > 10 and r["attrs"]["command"] == "console"
+    assert (r["time_s"][1:] - r["time_s"][:-1]).max() < 2.1 / s.rate_hz          # consecutive periods
