@@ -42,7 +42,7 @@ from scipy.linalg import cho_factor, cho_solve
 
 from rig import closedloop
 from rig.diagnose import command as command_mod
-from rig.diagnose import locate, noise as noise_mod, sensor as sensor_mod
+from rig.diagnose import evidence as evidence_mod, locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.effects import NONLINEAR, SPECS, bounds, simulate
 from rig.diagnose.lm import _POOL, lm_fit
 from rig.diagnose.models import force_response, sim_linear
@@ -993,7 +993,6 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     frf_out = {k: (v.tolist() if not np.iscomplexobj(v) else {"re": v.real.tolist(), "im": v.imag.tolist()})
                for k, v in frf.items()}
     frf_out["residual_spectra"] = _residual_spectra(pb, {"nominal": y_nom, "refit": y_ref, "augmented": y_aug})
-    from rig.diagnose import evidence as evidence_mod
     ev = evidence_mod.collect(pb, cmd_info, refit, augmented, effects, sensor, acc, acc_use, check, acc_model,
                               floor_aug)
     series = {"nominal_m": y_nom, "refit_m": y_ref, "augmented_m": y_aug,

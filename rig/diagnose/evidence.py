@@ -18,6 +18,9 @@ import math
 
 import numpy as np
 
+from rig.diagnose import locate
+from rig.diagnose.effects import simulate
+
 
 def _decimate_for_plot(t: np.ndarray, x: np.ndarray, fs: float, win_s: float = 0.5, max_pts: int = 2000):
     k = max(1, int(win_s * fs))
@@ -96,7 +99,6 @@ def residual_by_command(pb, r_ref: np.ndarray, r_aug: np.ndarray) -> dict:
 def distortion(pb, cmd_info, r_ref: np.ndarray, r_aug: np.ndarray, noise_floor) -> dict:
     """Nonlinear distortion before and after the augmented model: harmonics of a sweep's phase (orders 2-5), or
     a multisine's unexcited odd and even lines, over the noise."""
-    from rig.diagnose import locate
     if cmd_info.kind == "sweep" and cmd_info.phase is not None:
         h = [locate.harmonics(r * pb.use, cmd_info.phase, pb.fs, pb.noise) for r in (r_ref, r_aug)]
         orders = ["2", "3", "4", "5"]
@@ -143,9 +145,8 @@ def residual_by_velocity(pb, y_lin: np.ndarray, r_ref: np.ndarray, r_aug: np.nda
 
 def frf_ratio(pb, y_clean: np.ndarray, y_without: np.ndarray, y_aug: np.ndarray, band) -> dict:
     """Measured / model-without-the-effect and augmented / model-without-the-effect, band-averaged."""
-    from rig.diagnose.locate import frf_bands
     u = pb.use
-    fr = frf_bands(pb.cmd * u, y_clean * u, {"without": y_without * u, "augmented": y_aug * u}, pb.fs, *band,
+    fr = locate.frf_bands(pb.cmd * u, y_clean * u, {"without": y_without * u, "augmented": y_aug * u}, pb.fs, *band,
                    n_bands=60)
     if len(fr["freqs_hz"]) < 3:
         return {}
@@ -177,7 +178,6 @@ def line_spectra(pb, r_pos: np.ndarray, acc_res: np.ndarray | None, f_hz: float,
 def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np.ndarray, acc_use: np.ndarray,
             check, acc_model: np.ndarray | None, noise_floor) -> dict:
     """Plot data and a one-line finding for each named effect and each sensor term."""
-    from rig.diagnose.effects import simulate
     ev: dict = {"effects": {}, "sensor": {}}
     B = pb.basis.B
     y_clean = pb.y - B @ augmented.coef                       # the measurement without its sensor terms

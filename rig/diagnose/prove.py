@@ -3,7 +3,7 @@
 Cases are drawn from a seed: the paper's Table 1 model with its six identified parameters moved +-15 %, zero,
 one or two effects from the catalogue (rig/diagnose/effects.py) with physically plausible parameters,
 and the recordings' sensor noise. They are simulated with sim_backend.actuator.simulate_stand (the physics that
-reproduces the shared recordings), diagnosed without the truth, and graded:
+matches the reference recordings), diagnosed without the truth, and graded:
   right  = the named set of effects is exactly the true set ("none" when both are empty)
   errors = relative parameter error of each true effect that was named (targets: delay 20 %, frequency 5 %).
 """
@@ -21,9 +21,13 @@ from typing import Callable
 
 import numpy as np
 
+from rig import excitation as ex
+from rig.diagnose.engine import diagnose
 from rig.errors import RigError
+from rig.recording import Recording, load_recording
 from sim_backend.actuator import Effects, linear_chirp, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
+from sim_backend.sensors import Line, SensorHabits
 
 CATALOGUE = ("transport_delay", "base_resonance", "valve_saturation", "valve_deadband", "coulomb_friction",
              "periodic_disturbance")
@@ -237,7 +241,6 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorPara
 
 def excitation_of(case: Case):
     """The command of a case (rig.excitation), pre_s longer than the recording for a mid-run start."""
-    from rig import excitation as ex
     if not case.excitation:
         return ex.linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
     kw = dict(case.excitation)
@@ -251,7 +254,6 @@ def excitation_of(case: Case):
 
 def simulate_case(case: Case, p0: ActuatorParams | None = None):
     """The recording of a case (zero-order hold, the plant on its stand, the sensors) as a Recording."""
-    from rig.recording import Recording
     p = (p0 or ActuatorParams()).with_(**case.linear)
     full = {name: {**prm, **case.hidden.get(name, {})} for name, prm in case.effects.items()}
     if not case.excitation and not case.sensor and not case.pre_s:
@@ -260,7 +262,6 @@ def simulate_case(case: Case, p0: ActuatorParams | None = None):
                                     seed=case.seed)
         y = simulate_stand(p, cmd, case.fs_hz, fx)
         return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=case.fs_hz, source=case.name)
-    from sim_backend.sensors import Line, SensorHabits
     cmd = excitation_of(case).cmd_V
     y = simulate_stand(p, cmd, case.fs_hz, Effects.from_catalogue(full))
     kw = dict(case.sensor)
@@ -437,7 +438,6 @@ def _p0_from(p0_dict: dict) -> ActuatorParams:
 
 
 def _run_generated(case: Case, p0_dict: dict, seed: int) -> dict:
-    from rig.diagnose.engine import diagnose
     p0 = _p0_from(p0_dict)
     rec = simulate_case(case, p0)
     t0 = time.perf_counter()
@@ -449,8 +449,6 @@ def _run_generated(case: Case, p0_dict: dict, seed: int) -> dict:
 
 def _run_file(path: str, truth: dict, true_linear: dict | None, p0_dict: dict, seed: int,
               noise_m: float | None = None) -> dict:
-    from rig.diagnose.engine import diagnose
-    from rig.recording import load_recording
     rec = load_recording(path)
     t0 = time.perf_counter()
     diag = diagnose(rec, _p0_from(p0_dict), seed=seed)
@@ -465,8 +463,8 @@ def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None, float |
     if not cases_dir.is_dir():
         raise RigError(f"--cases {cases_dir}: not a folder")
     if not ans_path.is_file():
-        raise RigError(f"--cases {cases_dir}: no answers.json in the folder (expected one like "
-                       "../shared/recordings/answers.json)")
+        raise RigError(f"--cases {cases_dir}: no answers.json in the folder (expected "
+                       "{\"recording file\": {\"effects\": {...}, \"true_linear_parameters\": {...}}})")
     try:
         answers = json.loads(ans_path.read_text())
     except (OSError, ValueError) as e:
