@@ -143,6 +143,21 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
     return {}
 
 
+def _check_signal(cfg, rate: float, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float,
+                  slew_V_per_s: float) -> None:
+    """The signal within the safety limits and below Nyquist (one line naming the option otherwise)."""
+    if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
+        raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
+                       f"got {amplitude_V:g}")
+    if not 0 <= f0_hz < f1_hz < rate / 2:
+        raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
+    if duration_s <= 0:
+        raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
+    if slew_V_per_s > cfg.safety.slew_V_per_s:
+        raise RigError(f"--amplitude/--f1: the chirp slews {slew_V_per_s:.0f} V/s, above safety.slew_V_per_s = "
+                       f"{cfg.safety.slew_V_per_s:g}")
+
+
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
               duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
@@ -161,17 +176,8 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                                       multisine=multisine, period_s=period_s, seed=seed or 0)
     if signal is not None:
         amplitude_V, duration_s = signal.peak_V, signal.duration_s
-    if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
-        raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
-                       f"got {amplitude_V:g}")
-    if not 0 <= f0_hz < f1_hz < rate / 2:
-        raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
-    if duration_s <= 0:
-        raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
-    slew = 2 * math.pi * f1_hz * amplitude_V if signal is None else signal.slew_V_per_s
-    if slew > cfg.safety.slew_V_per_s:
-        raise RigError(f"--amplitude/--f1: the chirp slews {slew:.0f} V/s, above safety.slew_V_per_s = "
-                       f"{cfg.safety.slew_V_per_s:g}")
+    _check_signal(cfg, rate, amplitude_V, f0_hz, f1_hz, duration_s,
+                  2 * math.pi * f1_hz * amplitude_V if signal is None else signal.slew_V_per_s)
     sim_time = (backend == "sim") if sim_time is None else sim_time
     if sim_time and backend != "sim":
         raise RigError("simulated time only with --backend sim")

@@ -679,12 +679,68 @@ def diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None 
         return _diagnose(rec, p0, progress=progress, seed=seed)
 
 
+@dataclass
+class _Run:
+    """The working state of one diagnosis, handed from stage to stage."""
+    rec: object
+    p0: ActuatorParams
+    say: Callable[[str], None]
+    cmd: np.ndarray
+    pos: np.ndarray
+    acc: np.ndarray
+    fs: float
+    cmd_info: command_mod.Command
+    notes: list[str]
+    use: np.ndarray                     # samples every fit uses
+    clip: tuple                         # position flat tops: (candidate mask, low level, high level)
+    transient_s: float
+    pb: Problem
+    no_claim: str
+    nominal_lin: dict
+    band: tuple = (0.0, 0.0)
+    nom: Fit | None = None
+    refit: Fit | None = None
+    current: Fit | None = None          # the model so far; the augmented model at the end
+    y_nom: np.ndarray | None = None
+    y_ref: np.ndarray | None = None
+    y_aug: np.ndarray | None = None
+    r_ref: np.ndarray | None = None
+    check: sensor_mod.AccelCheck | None = None
+    acc_clip: np.ndarray | None = None
+    acc_use: np.ndarray | None = None
+    acc_model: np.ndarray | None = None
+    pickup: list = field(default_factory=list)          # SensorLine on the position
+    acc_pickup: list = field(default_factory=list)      # SensorLine on the accelerometer
+    lines: list = field(default_factory=list)           # force lines (dicts), disturbance candidates
+    q: float = 0.0
+    q_acc: float = 0.0
+    floor_ref: noise_mod.NoiseFloor | None = None
+    floor_aug: noise_mod.NoiseFloor | None = None
+    mm: dict = field(default_factory=dict)
+    nonlinear_hint: bool | None = None
+    chosen: list = field(default_factory=list)
+    tried: list = field(default_factory=list)
+    groups: list = field(default_factory=list)
+    stats_of: dict = field(default_factory=dict)
+    frf: dict = field(default_factory=dict)
+    fit: dict = field(default_factory=dict)
+
+
 def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None = None, seed: int = 0) -> Diagnosis:
     t_start = time.perf_counter()
-    say = progress or (lambda msg: None)
+    R = _prepare(rec, p0, progress or (lambda msg: None))
+    _refit(R)
+    _screen(R)
+    _search(R)
+    _final_lines(R)
+    _locate_mismatch(R)
+    return _conclude(R, _sensor_terms(R), t_start)
+
+
+def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
+    """Read the command and choose the samples every fit leaves out (clipped, the start transient)."""
     cmd, pos, acc = _validate(rec)
     fs = float(rec.fs_hz)
-    n = len(cmd)
     notes: list[str] = []
     say("reading the command")
     cmd_info = command_mod.analyse(cmd, fs)
@@ -692,46 +748,49 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
     if fs < 500.0:
         notes.append(f"sampled at {fs:g} Hz, below the 500 Hz the valve's dynamics (~{p0.w_nv / 2 / math.pi:.0f} Hz)"
                      " need to be seen")
-
-    # samples left out of every fit
-    use = np.ones(n, bool)
+    use = np.ones(len(cmd), bool)
     clip_cand, clip_lo, clip_hi = sensor_mod.flat_tops(pos)
     if clip_cand.any():
         use &= ~np.convolve(clip_cand, np.ones(3), "same").astype(bool)
-    transient_s = 0.0
+    transient_s = 0.05                          # start-up instants carry no information
     if cmd_info.starts_mid_run:
         transient_s = START_TRANSIENT_S
         notes.append(f"the command is {cmd_info.start_V:.3g} V at the first sample, so the plant was not at rest "
                      f"when the recording began (a mid-run start): the first {transient_s:g} s are left out of the "
                      f"fit (the start transient)")
-    else:
-        transient_s = 0.05                      # start-up instants carry no information
     use[: int(transient_s * fs)] = False
     if use.sum() < 50:
         raise RecordingError(f"{rec.source}: fewer than 50 usable samples after the start transient and the "
                              "clipped samples")
+    return _Run(rec=rec, p0=p0, say=say, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=notes, use=use,
+                clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, pb=Problem(cmd, pos, fs, p0, use),
+                no_claim=_no_claim_reason(rec, cmd_info), nominal_lin={k: getattr(p0, k) for k in LIN_KEYS})
 
-    pb = Problem(cmd, pos, fs, p0, use)
-    nominal_lin = {k: getattr(p0, k) for k in LIN_KEYS}
-    no_claim = _no_claim_reason(rec, cmd_info)
 
-    say("nominal model")
-    nom = pb.evaluate(nominal_lin, {}, k=0)
-    pb.noise = _floor(pb, pb.y - pb.series(nom), cmd_info).rms_m or 1e-12
-
-    say("refit of the linear parameters")
-    refit = pb.fit(nominal_lin, {}, max_iter=10)
-    band = cmd_info.band_hz if cmd_info.band_hz[1] > 0 else (1.0, 0.45 * fs)
-    # a stand mode is looked for where the command excites the plant: a sweep's or multisine's band; for a
-    # broadband command (noise, steps) wherever its spectrum is within 60 dB of its peak
+def _excited_band(R: _Run) -> tuple[float, float]:
+    """The band the command excites; the stand mode is looked for where the command excites the plant: a sweep's
+    or multisine's band; for a broadband command (noise, steps) wherever its spectrum is within 60 dB of its peak."""
+    cmd_info, pb = R.cmd_info, R.pb
+    band = cmd_info.band_hz if cmd_info.band_hz[1] > 0 else (1.0, 0.45 * R.fs)
     b_hi = band[1] if cmd_info.kind in ("sweep", "multisine") else max(band[1], cmd_info.wide_band_hz[1])
-    pb.base_band = (max(5.0, 1.1 * band[0]), max(min(0.97 * b_hi, 0.45 * fs), 6.0))
+    pb.base_band = (max(5.0, 1.1 * band[0]), max(min(0.97 * b_hi, 0.45 * R.fs), 6.0))
     if pb.base_band[1] <= pb.base_band[0]:
-        pb.base_band = (5.0, max(6.0, 0.45 * fs))
+        pb.base_band = (5.0, max(6.0, 0.45 * R.fs))
+    return band
 
-    # sensor terms: slow wander, the converter step, clipping, lines by the two sensors
-    say("sensor terms")
-    wander_max = min(sensor_mod.max_wander_terms(rec.duration_s, max(band[0], 1.0 / max(rec.duration_s, 1e-3))),
+
+def _refit(R: _Run) -> None:
+    """Nominal model, refit of the linear parameters, and the sensor terms found on the way: slow wander, the
+    accelerometer's check, pickup told from force lines by the two sensors, the converter step."""
+    pb, cmd_info, fs = R.pb, R.cmd_info, R.fs
+    R.say("nominal model")
+    nom = pb.evaluate(R.nominal_lin, {}, k=0)
+    pb.noise = _floor(pb, pb.y - pb.series(nom), cmd_info).rms_m or 1e-12
+    R.say("refit of the linear parameters")
+    refit = pb.fit(R.nominal_lin, {}, max_iter=10)
+    R.band = band = _excited_band(R)
+    R.say("sensor terms")
+    wander_max = min(sensor_mod.max_wander_terms(R.rec.duration_s, max(band[0], 1.0 / max(R.rec.duration_s, 1e-3))),
                      N_BLOCKS // 4)     # a cosine spans at least four blocks: it interpolates over a held-out one
     k_w = _choose_wander(pb, refit, wander_max)
     if k_w:
@@ -739,270 +798,289 @@ def _diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None
         refit = pb.evaluate(refit.lin, {}, refit.k)       # polished once, below, with the lines
     r_ref0 = pb.y - pb.series(refit)
     pb.noise = _floor(pb, r_ref0, cmd_info).rms_m or pb.noise
-    acc_clip, _, _ = sensor_mod.flat_tops(acc) if np.ptp(acc) > 0 else (np.zeros(n, bool), None, None)
-    acc_use = use & ~acc_clip
-    check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), acc, fs,
-                                   (band[0], max(band[1], cmd_info.wide_band_hz[1])), acc_use)
-    acc_model = sim_linear(pb.params(refit.lin), cmd, fs, output="accel") if check.usable else None
-    pickup, force_lines, acc_pickup = _lines(pb, r_ref0, acc, acc_model, check, fs, cmd_info, acc_use)
-    if pickup:
-        pb.set_basis(pb.basis.with_(lines_hz=tuple(l.frequency_hz for l in pickup)))
-    if pickup or k_w:
+    R.acc_clip = sensor_mod.flat_tops(R.acc)[0] if np.ptp(R.acc) > 0 else np.zeros(pb.n, bool)
+    R.acc_use = R.use & ~R.acc_clip
+    R.check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), R.acc, fs,
+                                     (band[0], max(band[1], cmd_info.wide_band_hz[1])), R.acc_use)
+    R.acc_model = sim_linear(pb.params(refit.lin), R.cmd, fs, output="accel") if R.check.usable else None
+    R.pickup, force_lines, R.acc_pickup = _lines(pb, r_ref0, R.acc, R.acc_model, R.check, fs, cmd_info, R.acc_use)
+    if R.pickup:
+        pb.set_basis(pb.basis.with_(lines_hz=tuple(l.frequency_hz for l in R.pickup)))
+    if R.pickup or k_w:
         refit = pb.fit(refit.lin, {}, max_iter=4)
-    nom = pb.evaluate(nominal_lin, {}, k=0)
-    y_nom, y_ref = pb.series(nom), pb.series(refit)
-    r_ref = pb.y - y_ref
-    floor_ref = _floor(pb, r_ref, cmd_info)
-    pb.noise = floor_ref.rms_m or pb.noise
-    q = noise_mod.quantisation_step(pos)
-    q_acc = noise_mod.quantisation_step(acc) if np.ptp(acc) > 0 else 0.0
-    if q > 0:
-        pb.noise = max(pb.noise, q / math.sqrt(12.0))
-    lines = [{"frequency_hz": l.frequency_hz, "amplitude_m": l.amplitude, "accel_ratio": l.accel_ratio,
-              "evidence": l.evidence} for l in sorted(force_lines, key=lambda l: -l.amplitude)]
+    R.nom, R.refit = pb.evaluate(R.nominal_lin, {}, k=0), refit
+    R.y_nom, R.y_ref = pb.series(R.nom), pb.series(refit)
+    R.r_ref = pb.y - R.y_ref
+    R.floor_ref = _floor(pb, R.r_ref, cmd_info)
+    pb.noise = R.floor_ref.rms_m or pb.noise
+    R.q = noise_mod.quantisation_step(R.pos)
+    R.q_acc = noise_mod.quantisation_step(R.acc) if np.ptp(R.acc) > 0 else 0.0
+    if R.q > 0:
+        pb.noise = max(pb.noise, R.q / math.sqrt(12.0))
+    R.lines = [{"frequency_hz": l.frequency_hz, "amplitude_m": l.amplitude, "accel_ratio": l.accel_ratio,
+                "evidence": l.evidence} for l in sorted(force_lines, key=lambda l: -l.amplitude)]
 
-    say("locating the mismatch")
-    mm: dict = {"uncorrelated": {"lines": lines,
-                                 "pickup": [l.as_dict() for l in pickup + acc_pickup]},
-                "command": {"kind": cmd_info.kind, "description": cmd_info.describe(),
-                            "band_hz": [float(band[0]), float(band[1])]}}
-    nonlinear_hint = None
-    if command_mod.harmonic_window_ok(cmd_info):
-        harm = locate.harmonics(r_ref * use, cmd_info.phase, fs, pb.noise)
-        mm["harmonics"] = harm
-        nonlinear_hint = harm["odd_over_noise"] > HARMONIC_SCREEN
-    elif cmd_info.kind == "multisine":
-        y_clean = pb.y - pb.basis.B @ refit.coef
-        ms = locate.multisine_lines(cmd_info, y_clean, use, floor_ref, [l["frequency_hz"] for l in lines])
-        if ms:
-            mm["multisine_lines"] = ms
-            vals = [v for v in (ms.get("odd_z"), ms.get("even_z")) if v is not None]
-            nonlinear_hint = bool(vals) and max(vals) > 2 * HARMONIC_SCREEN
 
-    chosen: list[str] = []
-    current = refit
-    tried: list[dict] = []
-    groups: list[list[str]] = []
-    stats_of: dict[str, dict] = {}
-    moved = (pb.y - pb.basis.zero(refit.coef) - pb.basis.B[:, 2 + pb.basis.wander_terms:] @
-             refit.coef[2 + pb.basis.wander_terms:])[use]
+def _distortion(R: _Run, r_harm: np.ndarray, x_multi: np.ndarray) -> tuple[str | None, dict | None, bool | None]:
+    """Nonlinear distortion the command's own structure shows: a sweep's harmonics in r_harm, or a multisine's
+    unexcited lines in x_multi. (mismatch key, measurement, distortion above the screen); None when the command
+    has neither (or the multisine's lines could not be read)."""
+    if command_mod.harmonic_window_ok(R.cmd_info):
+        h = locate.harmonics(r_harm * R.use, R.cmd_info.phase, R.fs, R.pb.noise)
+        return "harmonics", h, h["odd_over_noise"] > HARMONIC_SCREEN
+    if R.cmd_info.kind == "multisine":
+        ms = locate.multisine_lines(R.cmd_info, x_multi, R.use, R.floor_ref, [l["frequency_hz"] for l in R.lines])
+        vals = [v for v in (ms.get("odd_z"), ms.get("even_z")) if v is not None]
+        return "multisine_lines", ms, (bool(vals) and max(vals) > 2 * HARMONIC_SCREEN) if ms else None
+    return None, None, None
+
+
+def _screen(R: _Run) -> None:
+    """What the refit leaves: lines, distortion; and whether the recording is excited enough for a claim."""
+    pb = R.pb
+    R.say("locating the mismatch")
+    R.mm = {"uncorrelated": {"lines": R.lines, "pickup": [l.as_dict() for l in R.pickup + R.acc_pickup]},
+            "command": {"kind": R.cmd_info.kind, "description": R.cmd_info.describe(),
+                        "band_hz": [float(R.band[0]), float(R.band[1])]}}
+    key, d, R.nonlinear_hint = _distortion(R, R.r_ref, pb.y - pb.basis.B @ R.refit.coef)
+    if d:
+        R.mm[key] = d
+    moved = (pb.y - pb.basis.zero(R.refit.coef) - pb.basis.B[:, 2 + pb.basis.wander_terms:] @
+             R.refit.coef[2 + pb.basis.wander_terms:])[R.use]
     snr = float(np.std(moved) / pb.noise) if pb.noise > 0 else 0.0
-    if not no_claim and snr < MIN_SNR:
-        no_claim = (f"the position moves only {snr:.1f}x its noise (beyond the sensor's zero and lines): too "
-                    "poorly excited for a claim")
-    if no_claim:
-        say(f"no claim: {no_claim}")
-    else:
-        screen = ["transport_delay", "base_resonance"]
-        if lines:
-            screen.append("periodic_disturbance")
-        screen += ["valve_saturation", "valve_deadband", "coulomb_friction"]
-        harmonic_now = True if nonlinear_hint is None else nonlinear_hint
-        # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor:
-        # there, no round is skipped for having reached "the noise"
-        stop_at_noise = cmd_info.kind not in ("noise", "steps")
-        round1: dict[str, dict] = {}
-        for step in range(MAX_EFFECTS):
-            results = []
-            over = math.sqrt(current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
-            explained = EXPLAINED_SLOW if any(n in current.fx for n in SLOW) else EXPLAINED
-            say(f"round {step + 1}: held-out residual {over:.3f} x noise")
-            # the measurement without its sensor terms and without the fitted disturbance's response
-            y_clean = pb.y - pb.basis.B @ current.coef - (pb.physics(current) - pb.model(current.lin, current.fx))
-            base, null = current, None
-            for name in screen:
-                if name in chosen:
-                    continue
-                if name != "periodic_disturbance" and over < explained and stop_at_noise and \
-                        not (harmonic_now and name in NONLINEAR):
-                    continue        # the held-out residual is already at the noise: nothing left to explain
-                say(f"candidate {'+'.join(chosen + [name])}")
-                lins = [current.lin] if chosen else [refit.lin, nominal_lin]
-                floor_ = [g.rss_fit for _, g, _ in results
-                          if math.sqrt(g.rss_hold / pb.mhold.sum()) / pb.noise < explained]
-                slow_name = name in SLOW
-                if floor_ and slow_name and not harmonic_now:
-                    continue        # a cheap candidate already reached the noise and nothing calls for these
-                pb.quick = not harmonic_now
-                skip = None
-                if slow_name and results:  # a slow model is refined only when its best start rivals the best
-                    skip = 2.0 * min(g.rss_fit for _, g, _ in results)
-                if floor_:
-                    skip = 2.0 * min(floor_)
-                if not harmonic_now:       # without distortion a nonlinearity must at least show in its start
-                    skip = min(skip or np.inf, (0.95 if slow_name else 0.999) * current.rss_fit)
-                prior = round1.get(name) if chosen else None
-                f = _fit_candidate(pb, name, lins, current.fx, band, lines, y_clean, second=bool(chosen),
-                                   skip_above=skip, prior=prior if name != "periodic_disturbance" else None)
-                if f is None:
-                    continue
-                f = _refine_disturbance(pb, f)
+    if not R.no_claim and snr < MIN_SNR:
+        R.no_claim = (f"the position moves only {snr:.1f}x its noise (beyond the sensor's zero and lines): too "
+                      "poorly excited for a claim")
+
+
+def _search(R: _Run) -> None:
+    """Forward selection of at most MAX_EFFECTS catalogue effects (the protocol above)."""
+    pb = R.pb
+    R.current = R.refit
+    if R.no_claim:
+        R.say(f"no claim: {R.no_claim}")
+        return
+    screen = ["transport_delay", "base_resonance"] + (["periodic_disturbance"] if R.lines else []) + \
+        ["valve_saturation", "valve_deadband", "coulomb_friction"]
+    harmonic_now = True if R.nonlinear_hint is None else R.nonlinear_hint
+    # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor: there,
+    # no round is skipped for having reached "the noise"
+    stop_at_noise = R.cmd_info.kind not in ("noise", "steps")
+    round1: dict[str, dict] = {}
+    for step in range(MAX_EFFECTS):
+        over = math.sqrt(R.current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
+        explained = EXPLAINED_SLOW if any(n in R.current.fx for n in SLOW) else EXPLAINED
+        R.say(f"round {step + 1}: held-out residual {over:.3f} x noise")
+        results = _round(R, screen, harmonic_now, stop_at_noise and over < explained, explained, round1)
+        if not R.chosen:
+            round1 = {n_: dict(g.fx[n_]) for n_, g, _ in results if n_ in g.fx}
+        ok = sorted((r for r in results if r[2]["passed"]), key=lambda r: r[1].rss_hold)
+        if not ok:
+            break
+        name, f, st = ok[0]
+        nh = int(pb.mhold.sum())
+        conf = [n_ for n_, g, s in ok[1:] if nh * math.log(g.rss_hold / f.rss_hold) < math.log(nh)]
+        if conf:
+            R.groups.append([name] + conf)
+        R.chosen.append(name)
+        R.stats_of[name] = st
+        R.say(f"polishing {'+'.join(R.chosen)}")
+        R.current = _polish(pb, f)
+        r_cur = pb.y - pb.series(R.current)
+        key, _, now = _distortion(R, r_cur, r_cur)       # distortion the current model leaves
+        if key:
+            harmonic_now = bool(now)
+        if "periodic_disturbance" in R.chosen and "periodic_disturbance" in screen:
+            screen.remove("periodic_disturbance")
+
+
+def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, explained: float,
+           round1: dict) -> list[tuple[str, Fit, dict]]:
+    """One round of the forward selection: each screened candidate on top of the current model, tested."""
+    pb, current, chosen = R.pb, R.current, R.chosen
+    results: list[tuple[str, Fit, dict]] = []
+    # the measurement without its sensor terms and without the fitted disturbance's response
+    y_clean = pb.y - pb.basis.B @ current.coef - (pb.physics(current) - pb.model(current.lin, current.fx))
+    base, null = current, None
+    for name in screen:
+        if name in chosen:
+            continue
+        if name != "periodic_disturbance" and at_noise and not (harmonic_now and name in NONLINEAR):
+            continue        # the held-out residual is already at the noise: nothing left to explain
+        R.say(f"candidate {'+'.join(chosen + [name])}")
+        lins = [current.lin] if chosen else [R.refit.lin, R.nominal_lin]
+        floor_ = [g.rss_fit for _, g, _ in results if math.sqrt(g.rss_hold / pb.mhold.sum()) / pb.noise < explained]
+        slow_name = name in SLOW
+        if floor_ and slow_name and not harmonic_now:
+            continue        # a cheap candidate already reached the noise and nothing calls for these
+        pb.quick = not harmonic_now
+        skip = None
+        if slow_name and results:  # a slow model is refined only when its best start rivals the best
+            skip = 2.0 * min(g.rss_fit for _, g, _ in results)
+        if floor_:
+            skip = 2.0 * min(floor_)
+        if not harmonic_now:       # without distortion a nonlinearity must at least show in its start
+            skip = min(skip or np.inf, (0.95 if slow_name else 0.999) * current.rss_fit)
+        prior = round1.get(name) if chosen else None
+        f = _fit_candidate(pb, name, lins, current.fx, R.band, R.lines, y_clean, second=bool(chosen),
+                           skip_above=skip, prior=prior if name != "periodic_disturbance" else None)
+        if f is None:
+            continue
+        f = _refine_disturbance(pb, f)
+        st = compare(pb, base, f)
+        if st["passed"] and chosen and any(n in current.fx for n in SLOW) and null is None:
+            # a slow model's polish may stop short: a candidate must beat the current model given the same
+            # extra iterations, not the extra iterations themselves (fitted once, when needed)
+            null = pb.fit(current.lin, current.fx, max_iter=6, rtol=SLOW_RTOL)
+            if null.rss_fit < base.rss_fit:
+                base = null
                 st = compare(pb, base, f)
-                if st["passed"] and chosen and any(n in current.fx for n in SLOW) and null is None:
-                    # a slow model's polish may stop short: a candidate must beat the current model given the
-                    # same extra iterations, not the extra iterations themselves (fitted once, when needed)
-                    null = pb.fit(current.lin, current.fx, max_iter=6, rtol=SLOW_RTOL)
-                    if null.rss_fit < base.rss_fit:
-                        base = null
-                        st = compare(pb, base, f)
-                if st["passed"] and not _active(pb, f, name):
-                    st = {**st, "passed": False, "inactive": True}
-                tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
-                results.append((name, f, st))
-            if not chosen:
-                round1 = {n_: dict(g.fx[n_]) for n_, g, _ in results if n_ in g.fx}
-            ok = [r for r in results if r[2]["passed"]]
-            if not ok:
-                break
-            ok.sort(key=lambda r: r[1].rss_hold)
-            name, f, st = ok[0]
-            nh = int(pb.mhold.sum())
-            conf = [n_ for n_, g, s in ok[1:] if nh * math.log(g.rss_hold / f.rss_hold) < math.log(nh)]
-            if conf:
-                groups.append([name] + conf)
-            chosen.append(name); stats_of[name] = st
-            say(f"polishing {'+'.join(chosen)}")
-            current = _polish(pb, f)
-            r_cur = pb.y - pb.series(current)
-            if command_mod.harmonic_window_ok(cmd_info):
-                h2 = locate.harmonics(r_cur * use, cmd_info.phase, fs, pb.noise)
-                harmonic_now = h2["odd_over_noise"] > HARMONIC_SCREEN
-            elif cmd_info.kind == "multisine":      # distortion the current model leaves on the empty lines
-                ms2 = locate.multisine_lines(cmd_info, r_cur, use, floor_ref, [l["frequency_hz"] for l in lines])
-                vals = [v for v in (ms2.get("odd_z"), ms2.get("even_z")) if v is not None]
-                harmonic_now = bool(vals) and max(vals) > 2 * HARMONIC_SCREEN
-            if "periodic_disturbance" in chosen and "periodic_disturbance" in screen:
-                screen.remove("periodic_disturbance")
+        if st["passed"] and not _active(pb, f, name):
+            st = {**st, "passed": False, "inactive": True}
+        R.tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
+        results.append((name, f, st))
+    return results
 
-    augmented = current
-    # lines the distortion of the refit residual hid: pickup found now joins the sensor terms (every model is
-    # re-evaluated with it; the physics parameters stay)
-    pb.noise = min(pb.noise, _floor(pb, pb.y - pb.series(augmented), cmd_info).rms_m or pb.noise)
-    more, _, _ = _lines(pb, pb.y - pb.series(augmented), acc, acc_model, check, fs, cmd_info, acc_use)
-    more = [l for l in more if all(abs(l.frequency_hz - x) > 2.0 / rec.duration_s for x in pb.basis.lines_hz)]
+
+def _final_lines(R: _Run) -> None:
+    """Lines the distortion of the refit residual hid: pickup found now joins the sensor terms (every model is
+    re-evaluated with it; the physics parameters stay). Then the noise floor of the augmented residual."""
+    pb, aug = R.pb, R.current
+    pb.noise = min(pb.noise, _floor(pb, pb.y - pb.series(aug), R.cmd_info).rms_m or pb.noise)
+    more, _, _ = _lines(pb, pb.y - pb.series(aug), R.acc, R.acc_model, R.check, R.fs, R.cmd_info, R.acc_use)
+    more = [l for l in more if all(abs(l.frequency_hz - x) > 2.0 / R.rec.duration_s for x in pb.basis.lines_hz)]
     if more:
-        pickup += more
+        R.pickup += more
         pb.set_basis(pb.basis.with_(lines_hz=pb.basis.lines_hz + tuple(l.frequency_hz for l in more)))
-        nom = pb.evaluate(nom.lin, nom.fx, nom.k)
-        refit = pb.evaluate(refit.lin, refit.fx, refit.k)
-        augmented = pb.evaluate(augmented.lin, augmented.fx, augmented.k)
-        y_nom, y_ref = pb.series(nom), pb.series(refit)
-        r_ref = pb.y - y_ref
-    y_aug = pb.series(augmented)
-    r_aug = pb.y - y_aug
-    floor_aug = _floor(pb, r_aug, cmd_info)
-    noise_final = min(pb.noise, max(floor_aug.rms_m, q / math.sqrt(12.0) if q else 0.0)) or pb.noise
-    pb.noise = noise_final
+        R.nom = pb.evaluate(R.nom.lin, R.nom.fx, R.nom.k)
+        R.refit = pb.evaluate(R.refit.lin, R.refit.fx, R.refit.k)
+        R.current = pb.evaluate(aug.lin, aug.fx, aug.k)
+        R.y_nom, R.y_ref = pb.series(R.nom), pb.series(R.refit)
+        R.r_ref = pb.y - R.y_ref
+    R.y_aug = pb.series(R.current)
+    R.floor_aug = _floor(pb, pb.y - R.y_aug, R.cmd_info)
+    pb.noise = min(pb.noise, max(R.floor_aug.rms_m, R.q / math.sqrt(12.0) if R.q else 0.0)) or pb.noise
 
-    # where the mismatch lives (nominal, and what remains after the refit)
-    frf = locate.frf_bands(pb.cmd * use, (pb.y - pb.basis.B @ augmented.coef) * use,
-                           {"nominal": (y_nom - pb.basis.B @ nom.coef) * use,
-                            "refit": (y_ref - pb.basis.B @ refit.coef) * use,
-                            "augmented": (y_aug - pb.basis.B @ augmented.coef) * use}, fs, *band)
-    wins, worst, _ = locate.mismatch_windows((pb.y - y_nom) * use, fs, pb.noise)
-    wins_r, worst_r, _ = locate.mismatch_windows(r_ref * use, fs, pb.noise)
-    _, worst_a, _ = locate.mismatch_windows(r_aug * use, fs, pb.noise)
-    mm.update({
-        "bands_hz": locate.mismatch_bands(frf, "nominal"),
+
+def _locate_mismatch(R: _Run) -> None:
+    """Where the mismatch lives (bands, windows, regimes) for each model, and the fit figures."""
+    pb, use, aug = R.pb, R.use, R.current
+    B = pb.basis.B
+    y_nom, y_ref, y_aug, r_ref = R.y_nom, R.y_ref, R.y_aug, R.r_ref
+    R.frf = locate.frf_bands(pb.cmd * use, (pb.y - B @ aug.coef) * use,
+                             {"nominal": (y_nom - B @ R.nom.coef) * use, "refit": (y_ref - B @ R.refit.coef) * use,
+                              "augmented": (y_aug - B @ aug.coef) * use}, R.fs, *R.band)
+    wins, worst, _ = locate.mismatch_windows((pb.y - y_nom) * use, R.fs, pb.noise)
+    wins_r, worst_r, _ = locate.mismatch_windows(r_ref * use, R.fs, pb.noise)
+    _, worst_a, _ = locate.mismatch_windows((pb.y - y_aug) * use, R.fs, pb.noise)
+    R.mm.update({
+        "bands_hz": locate.mismatch_bands(R.frf, "nominal"),
         "windows_s": wins,
-        "after_refit": {"bands_hz": locate.mismatch_bands(frf, "refit"), "windows_s": wins_r},
-        "after_augmented": {"bands_hz": locate.mismatch_bands(frf, "augmented")},
-        "regimes": locate.regimes(pb.cmd, pb.y - pb.basis.B @ refit.coef, r_ref, fs, pb.noise, use),
+        "after_refit": {"bands_hz": locate.mismatch_bands(R.frf, "refit"), "windows_s": wins_r},
+        "after_augmented": {"bands_hz": locate.mismatch_bands(R.frf, "augmented")},
+        "regimes": locate.regimes(pb.cmd, pb.y - B @ R.refit.coef, r_ref, R.fs, pb.noise, use),
         "worst_windows": {"nominal": worst, "refit": worst_r, "augmented": worst_a},
-        "chirp_band_hz": [float(band[0]), float(band[1])],
+        "chirp_band_hz": [float(R.band[0]), float(R.band[1])],
     })
-    if lines:
-        mm["uncorrelated"]["fraction_of_refit_residual_in_lines"] = float(
-            sum(l["amplitude_m"] ** 2 / 2 for l in lines) / max(np.mean(r_ref[use] ** 2), 1e-300))
-    else:
-        mm["uncorrelated"]["fraction_of_refit_residual_in_lines"] = 0.0
-
-    fit = {"nominal": _metrics(pb, y_nom), "refit": _metrics(pb, y_ref), "augmented": _metrics(pb, y_aug)}
+    R.mm["uncorrelated"]["fraction_of_refit_residual_in_lines"] = float(
+        sum(l["amplitude_m"] ** 2 / 2 for l in R.lines) / max(np.mean(r_ref[use] ** 2), 1e-300)) if R.lines else 0.0
+    R.fit = {"nominal": _metrics(pb, y_nom), "refit": _metrics(pb, y_ref), "augmented": _metrics(pb, y_aug)}
     m_sensor = pb.basis.m
-    fit["nominal"]["n_parameters"] = m_sensor
-    fit["refit"]["n_parameters"] = refit.k + m_sensor
-    fit["augmented"]["n_parameters"] = augmented.k + m_sensor
-    for m in fit:
-        fit[m]["n_sensor_parameters"] = m_sensor
+    for m, k in (("nominal", 0), ("refit", R.refit.k), ("augmented", aug.k)):
+        R.fit[m]["n_parameters"] = k + m_sensor
+        R.fit[m]["n_sensor_parameters"] = m_sensor
 
-    # sensor terms of the augmented model
-    terms = pb.basis.terms(augmented.coef)
-    for l, (f_, a_, ph_) in zip(pickup, terms["lines"]):
-        l.amplitude, l.phase_rad = a_, ph_
-    acc_off = None
-    if np.ptp(acc) > 0:
-        am = acc_model if acc_model is not None else 0.0
-        acc_off = float(np.mean((acc - (check.gain.real * am if check.usable else 0.0))[acc_use]))
+
+def _clips(R: _Run) -> list[sensor_mod.Clip]:
+    """Flat tops of the position that the refit goes beyond (a converter's range), and of the accelerometer."""
+    pb, pos, fs = R.pb, R.pos, R.fs
+    clip_cand, clip_lo, clip_hi = R.clip
     clips = []
     if clip_cand.any():
-        pred = pb.series(refit)
+        pred = pb.series(R.refit)
         for lvl, side in ((clip_hi, 1), (clip_lo, -1)):
             if lvl is None:
                 continue
             at = clip_cand & ((pos >= lvl - 1e-9 * abs(lvl)) if side > 0 else (pos <= lvl + 1e-9 * abs(lvl)))
             beyond = float(np.mean((pred[at] - lvl) * side)) if at.any() else 0.0
-            if beyond > max(3 * pb.noise, q):
+            if beyond > max(3 * pb.noise, R.q):
                 clips.append(sensor_mod.Clip("position_m", lvl if side < 0 else None, lvl if side > 0 else None,
                                              int(at.sum()), float(np.argmax(at) / fs)))
         if clips:
-            notes.append("position clipped at " + ", ".join(
+            R.notes.append("position clipped at " + ", ".join(
                 f"{(c.high if c.high is not None else c.low):.4g} m ({c.samples} samples, first at {c.first_s:.3f} s)"
                 for c in clips) + ": the clipped samples are left out of the fit")
-    if acc_clip.any():
-        clips.append(sensor_mod.Clip("accel_mps2", float(np.min(acc)), float(np.max(acc)), int(acc_clip.sum()),
-                                     float(np.argmax(acc_clip) / fs)))
-        notes.append(f"accelerometer flat at its range in {int(acc_clip.sum())} samples: left out of the line tests")
+    if R.acc_clip.any():
+        clips.append(sensor_mod.Clip("accel_mps2", float(np.min(R.acc)), float(np.max(R.acc)),
+                                     int(R.acc_clip.sum()), float(np.argmax(R.acc_clip) / fs)))
+        R.notes.append(f"accelerometer flat at its range in {int(R.acc_clip.sum())} samples: left out of the line "
+                       "tests")
+    return clips
+
+
+def _sensor_terms(R: _Run) -> sensor_mod.SensorTerms:
+    """The sensor terms of the augmented model, the accelerometer's offset and the odd samples."""
+    pb, acc, check, q = R.pb, R.acc, R.check, R.q
+    terms = pb.basis.terms(R.current.coef)
+    for l, (f_, a_, ph_) in zip(R.pickup, terms["lines"]):
+        l.amplitude, l.phase_rad = a_, ph_
+    acc_off = None
+    if np.ptp(acc) > 0:
+        am = R.acc_model if R.acc_model is not None else 0.0
+        acc_off = float(np.mean((acc - (check.gain.real * am if check.usable else 0.0))[R.acc_use]))
     sensor = sensor_mod.SensorTerms(
         offset_m=terms["offset_m"], drift_m_per_s=terms["drift_m_per_s"], wander_terms=pb.basis.wander_terms,
-        wander_rms_m=terms["wander_rms_m"], lines=pickup + acc_pickup, accel_offset_mps2=acc_off, accel=check,
-        quantisation_step_m=q, accel_quantisation_step_mps2=q_acc, clipped=clips,
-        start_transient_s=transient_s if cmd_info.starts_mid_run else 0.0, notes=[])
+        wander_rms_m=terms["wander_rms_m"], lines=R.pickup + R.acc_pickup, accel_offset_mps2=acc_off, accel=check,
+        quantisation_step_m=q, accel_quantisation_step_mps2=R.q_acc, clipped=_clips(R),
+        start_transient_s=R.transient_s if R.cmd_info.starts_mid_run else 0.0, notes=[])
     if q > 0:
         sensor.notes.append(f"position quantised in steps of {q:.3g} m: a noise floor of {q / math.sqrt(12):.3g} m rms "
                             f"(step/sqrt(12)); residual structure below it means nothing")
     if check.note:
         sensor.notes.append(check.note)
+    return sensor
 
-    # effects and the verdict
+
+def _conclude(R: _Run, sensor: sensor_mod.SensorTerms, t_start: float) -> Diagnosis:
+    """The named effects with their evidence, the verdict and the summary."""
+    pb, mm, fit, augmented = R.pb, R.mm, R.fit, R.current
     effects = []
-    for name in chosen:
-        st = stats_of[name]
-        extra = ""
-        if name == "periodic_disturbance" and lines:
-            extra = lines[0]["evidence"]
+    for name in R.chosen:
+        st = R.stats_of[name]
+        extra = R.lines[0]["evidence"] if name == "periodic_disturbance" and R.lines else ""
         effects.append({"name": name, "parameters": _public_params(pb, name, augmented),
                         "evidence": _evidence(name, st, mm, extra), "score": float(st["lr_holdout"])})
-    over_aug = fit["augmented"]["residual_over_noise_holdout"]
-    verdict = _verdict(pb, rec, no_claim, effects, fit, refit, cmd_info, check, use, r_ref)
+    verdict = _verdict(pb, R.rec, R.no_claim, effects, fit, R.refit, R.cmd_info, R.check, R.use, R.r_ref)
     if verdict.status == "not_described" and effects:
         mm["not_claimed"] = [{"name": e["name"], "parameters": e["parameters"]} for e in effects]
         effects = []
-    noise = pb.noise
     what = _summary_effects(effects) if effects else "none"
     summary = (f"{verdict.text} Missing physics: {what}. Residual/noise nominal "
                f"{fit['nominal']['residual_over_noise']:.1f}, refit {fit['refit']['residual_over_noise']:.1f}, "
-               f"augmented {over_aug:.2f} (noise {noise:.2g} m). Mismatch vs nominal in {len(mm['bands_hz'])} "
-               f"band(s), after refit in {len(mm['after_refit']['bands_hz'])}.")
-    if groups and effects:
-        summary += " Confounded: " + "; ".join(" ~ ".join(g) for g in groups) + "."
+               f"augmented {fit['augmented']['residual_over_noise_holdout']:.2f} (noise {pb.noise:.2g} m). "
+               f"Mismatch vs nominal in {len(mm['bands_hz'])} band(s), after refit in "
+               f"{len(mm['after_refit']['bands_hz'])}.")
+    if R.groups and effects:
+        summary += " Confounded: " + "; ".join(" ~ ".join(g) for g in R.groups) + "."
     sens_txt = _sensor_summary(sensor) if verdict.status != "not_described" else ""
     if sens_txt:
         summary += f" Sensor terms (not physics): {sens_txt}."
     for s in verdict.suggestions:
         summary += f" {s}"
     frf_out = {k: (v.tolist() if not np.iscomplexobj(v) else {"re": v.real.tolist(), "im": v.imag.tolist()})
-               for k, v in frf.items()}
-    frf_out["residual_spectra"] = _residual_spectra(pb, {"nominal": y_nom, "refit": y_ref, "augmented": y_aug})
-    ev = evidence_mod.collect(pb, cmd_info, refit, augmented, effects, sensor, acc, acc_use, check, acc_model,
-                              floor_aug)
-    series = {"nominal_m": y_nom, "refit_m": y_ref, "augmented_m": y_aug,
+               for k, v in R.frf.items()}
+    frf_out["residual_spectra"] = _residual_spectra(pb, {"nominal": R.y_nom, "refit": R.y_ref,
+                                                         "augmented": R.y_aug})
+    ev = evidence_mod.collect(pb, R.cmd_info, R.refit, augmented, effects, sensor, R.acc, R.acc_use, R.check,
+                              R.acc_model, R.floor_aug)
+    series = {"nominal_m": R.y_nom, "refit_m": R.y_ref, "augmented_m": R.y_aug,
               "augmented_sensor_m": pb.basis.B @ augmented.coef}
-    mm["notes"] = notes
-    return Diagnosis(effects=effects, group=groups if effects else [], mismatch=mm, fit=fit,
-                     params_refit={k: float(v) for k, v in refit.lin.items()} | {"C": float(p0.C)},
-                     noise_m=float(noise), summary=summary, series=series, frf=frf_out, candidates=tried,
-                     timing_s=time.perf_counter() - t_start, sensor=sensor, command=cmd_info, verdict=verdict,
-                     evidence=ev, used=use, noise_floor=floor_aug)
+    mm["notes"] = R.notes
+    return Diagnosis(effects=effects, group=R.groups if effects else [], mismatch=mm, fit=fit,
+                     params_refit={k: float(v) for k, v in R.refit.lin.items()} | {"C": float(R.p0.C)},
+                     noise_m=float(pb.noise), summary=summary, series=series, frf=frf_out, candidates=R.tried,
+                     timing_s=time.perf_counter() - t_start, sensor=sensor, command=R.cmd_info, verdict=verdict,
+                     evidence=ev, used=R.use, noise_floor=R.floor_aug)
 
 
 def _sensor_summary(s: sensor_mod.SensorTerms) -> str:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.signal import csd, welch
 
 from rig.diagnose import locate
 from rig.diagnose.effects import simulate
@@ -223,11 +224,20 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             ls = line_spectra(pb, r_pos, a_res, f, check.gain if check is not None else 1.0, acc_use)
             ls["finding"] = e.get("evidence", "").split("; fit-block")[0]
             ev["effects"][name] = {"kind": "line", **ls}
-    # sensor terms
+    ev["sensor"] = sensor_evidence(pb, augmented, sensor, acc, acc_use, check, acc_model, y_aug, r_aug, band)
+    return ev
+
+
+def sensor_evidence(pb, augmented, sensor, acc: np.ndarray, acc_use: np.ndarray, check,
+                    acc_model: np.ndarray | None, y_aug: np.ndarray, r_aug: np.ndarray, band) -> dict:
+    """Plot data and a one-line finding for each sensor term: the zero line, each pickup line in both sensors,
+    the converter step, the accelerometer against the position, clipped samples."""
+    out: dict = {}
+    B = pb.basis.B
     t = pb.t
     zero = pb.basis.zero(augmented.coef)
     ts, xs = _decimate_for_plot(t[pb.use], (pb.y - y_aug - (B @ augmented.coef - zero))[pb.use], pb.fs)
-    ev["sensor"]["offset and drift"] = {"kind": "zero", "t_s": ts, "measured_minus_physics_m": xs,
+    out["offset and drift"] = {"kind": "zero", "t_s": ts, "measured_minus_physics_m": xs,
                                         "t_fit_s": t[::max(1, pb.n // 2000)],
                             "zero_m": zero[::max(1, pb.n // 2000)],
                             "finding": (f"the measured position minus the physics follows a zero line: offset "
@@ -245,17 +255,16 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             r_pos = r_aug + B[:, j:j + 2] @ augmented.coef[j:j + 2]
         ls = line_spectra(pb, r_pos, a_res, l.frequency_hz, check.gain if check is not None else 1.0, acc_use)
         ls["finding"] = l.evidence
-        ev["sensor"][f"{l.source} line at {l.frequency_hz:.2f} Hz on {l.channel}"] = {"kind": "line", **ls}
+        out[f"{l.source} line at {l.frequency_hz:.2f} Hz on {l.channel}"] = {"kind": "line", **ls}
     if sensor.quantisation_step_m:
         q = sensor.quantisation_step_m
         h, edges = np.histogram(r_aug[pb.use], bins=60)
-        ev["sensor"]["quantisation"] = {
+        out["quantisation"] = {
             "kind": "quantisation", "counts": h, "edges_m": edges, "step_m": q,
             "position_sample": pb.y[: int(min(pb.n, 0.05 * pb.fs) + 1)],
             "finding": (f"the position takes values on a grid of {q:.3g} m: its floor q/sqrt(12) = "
                         f"{q / math.sqrt(12):.3g} m rms is part of the noise ({pb.noise:.3g} m rms)")}
     if check is not None and np.ptp(acc) > 0:
-        from scipy.signal import csd, welch
         x = pb.y - B @ augmented.coef
         nper = int(min(pb.n // 4, 2 ** int(math.log2(max(64, 2 * pb.fs)))))
         f, Sxx = welch(x - x.mean(), fs=pb.fs, nperseg=nper)
@@ -265,7 +274,7 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
         sel = (f >= max(1.0, band[0])) & (f <= min(0.4 * pb.fs, max(band[1], 5.0)))
         model_acc = check.gain.real * acc_model if (check.usable and acc_model is not None) else 0.0
         ts, a_off = _decimate_for_plot(t[acc_use], (acc - model_acc)[acc_use], pb.fs)
-        ev["sensor"]["accelerometer"] = {
+        out["accelerometer"] = {
             "kind": "accel", "gain": abs(check.gain), "usable": check.usable, "offset_mps2": sensor.accel_offset_mps2,
             "t_s": ts, "accel_minus_model_mps2": a_off, "freqs_hz": f[sel], "ratio": ratio[sel],
             "finding": ((f"accelerometer offset {sensor.accel_offset_mps2:.3g} m/s^2; " + check.note)
@@ -275,9 +284,9 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             continue
         i0 = int(c.first_s * pb.fs)
         sl = slice(max(0, i0 - int(0.1 * pb.fs)), min(pb.n, i0 + int(0.1 * pb.fs)))
-        ev["sensor"]["clipped position"] = {"kind": "clip", "t_s": t[sl], "measured_m": pb.y[sl],
+        out["clipped position"] = {"kind": "clip", "t_s": t[sl], "measured_m": pb.y[sl],
                                    "model_m": pb.series(augmented)[sl],
                                    "finding": f"the position sits flat at "
                                               f"{c.high if c.high is not None else c.low:.4g} m "
                                               f"while the model goes beyond: {c.samples} samples clipped, left out"}
-    return ev
+    return out

@@ -86,7 +86,6 @@ def floor(resid: np.ndarray, fs: float, mask: np.ndarray | None = None, *, win_s
     the part coherent with the command is removed, S_rr (1 - coherence^2). Otherwise (a sweep) the median over
     time of the short-time spectra."""
     r = np.asarray(resid, float)
-    n = len(r)
     factor = 1.0
     if period:
         r, factor, mask = deperiodize(r, period, mask)
