@@ -15,9 +15,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="grade the recordings of DIR against its answers.json (default: simulate blind cases)")
     p.add_argument("--seed", type=cliargs.seed(), default=1, help="seed of the blind cases (default 1)")
     p.add_argument("--n", type=cliargs.count(1, 10000), default=30, help="number of blind cases (default 30)")
-    p.add_argument("--duration", type=cliargs.seconds(ge=1, le=1000), default=100.0, metavar="S",
+    p.add_argument("--duration", type=cliargs.seconds(ge=1, le=1000), default=None, metavar="S",
                    help="chirp length of the blind cases, 0.1 -> 100 Hz (default 100 s, as the paper); with "
-                        "--habits the longest a case may be (lengths are drawn from 20 s up)")
+                        "--habits the longest a case may be (lengths are drawn from 20 s up; default 200 s)")
     p.add_argument("--habits", action="store_true",
                    help="every blind case also carries the habits of real recordings, with random sizes: sensor "
                         "offset, drift and wander, mains pickup, quantisation, coloured noise, mid-run starts, "
@@ -37,6 +37,9 @@ def run(args) -> int:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     if args.workers < 1:
         raise RigError(f"--workers: expected at least 1, got {args.workers}")
+    given = args.duration is not None
+    if not given:
+        args.duration = 200.0 if args.habits else 100.0
     if not 1.0 <= args.duration <= 1000.0:
         raise RigError(f"--duration: expected 1 to 1000 s, got {args.duration}")
     if args.habits and args.duration < 20.0:
@@ -55,7 +58,7 @@ def run(args) -> int:
         rows = prove.prove_folder(args.cases, p0, seed=args.seed, workers=args.workers, progress=progress)
     else:
         title = f"rig prove --n {args.n} --seed {args.seed}"
-        if args.duration != 100.0:
+        if given:
             title += f" --duration {args.duration:g}"
         if args.habits:
             title += " --habits"

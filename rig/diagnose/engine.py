@@ -39,6 +39,7 @@ from typing import Callable
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from scipy.signal import csd, welch
 
 from rig import closedloop
 from rig.diagnose import command as command_mod
@@ -136,6 +137,7 @@ class Problem:
         self.base_band = (5.0, 0.45 * self.fs)     # set to the excited band once known
         self.quick = False
         self.proxy = None
+        self.broadband = False                      # noise or steps command (set once the command is read)
         self.set_basis(sensor_mod.SensorBasis(self.n, self.fs))
 
     # -- sensor terms
@@ -312,11 +314,21 @@ def _base_init(pb: Problem, lin: dict, fx_base: dict, f_lo: float, f_hi: float, 
     """Stand-mode start from the FRF ratio measured / model: B(s) = (s^2+2zws+w^2) / ((1+mu) s^2+2zws+w^2)."""
     yhat = pb.model(lin, {k: v for k, v in fx_base.items() if k != "base_resonance"})
     w_use = pb.use.astype(float)
-    Y = np.fft.rfft(y_clean * w_use); Ym = np.fft.rfft(yhat * w_use)
-    f = np.fft.rfftfreq(pb.n, 1.0 / pb.fs)
-    sel = np.flatnonzero((f > max(f_lo, 3.0)) & (f < f_hi) & (np.abs(Ym) > 0))
-    sel = sel[:: max(1, len(sel) // 4000)]
-    R = Y[sel] / Ym[sel]; w = np.abs(Ym[sel]) ** 2
+    if pb.broadband:
+        # noise or steps: the command's content falls off fast, and one transform of the whole record (or a hard
+        # mask) mixes in jumps at the ends, which the stand mode does not shape. Welch's averaged
+        # H1 = S_my / S_mm of the continuous signals instead, the left-out samples filled with the model's
+        nper = int(min(pb.n // 4, 4.0 * pb.fs))
+        f, Smy = csd(yhat, np.where(pb.use, y_clean, yhat), fs=pb.fs, nperseg=nper)
+        _, Smm = welch(yhat, fs=pb.fs, nperseg=nper)
+        sel = np.flatnonzero((f > max(f_lo, 3.0)) & (f < f_hi) & (Smm > 0))
+        R = Smy[sel] / Smm[sel]; w = Smm[sel]
+    else:
+        Y = np.fft.rfft(y_clean * w_use); Ym = np.fft.rfft(yhat * w_use)
+        f = np.fft.rfftfreq(pb.n, 1.0 / pb.fs)
+        sel = np.flatnonzero((f > max(f_lo, 3.0)) & (f < f_hi) & (np.abs(Ym) > 0))
+        sel = sel[:: max(1, len(sel) // 4000)]
+        R = Y[sel] / Ym[sel]; w = np.abs(Ym[sel]) ** 2
     s = 2j * math.pi * f[sel]
     best = (np.inf, (0.5 * sum(pb.base_band), 0.03, 0.2))
     fbs = np.geomspace(*pb.base_band, 160)
@@ -620,7 +632,6 @@ def _fmt(v: float) -> str:
 
 def _residual_spectra(pb: Problem, models: dict) -> dict:
     """Welch amplitude spectral densities of each residual (m/sqrt(Hz)) and the noise floor."""
-    from scipy.signal import welch
     out = {}
     nper = int(min(pb.n, 4 * pb.fs))
     f = np.array([])
@@ -762,8 +773,10 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
     if use.sum() < 50:
         raise RecordingError(f"{rec.source}: fewer than 50 usable samples after the start transient and the "
                              "clipped samples")
+    pb = Problem(cmd, pos, fs, p0, use)
+    pb.broadband = cmd_info.kind in ("noise", "steps")
     return _Run(rec=rec, p0=p0, say=say, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=notes, use=use,
-                clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, pb=Problem(cmd, pos, fs, p0, use),
+                clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, pb=pb,
                 no_claim=_no_claim_reason(rec, cmd_info), nominal_lin={k: getattr(p0, k) for k in LIN_KEYS})
 
 
