@@ -803,7 +803,9 @@ def _refit(R: _Run) -> None:
     refit = pb.fit(R.nominal_lin, {}, max_iter=10)
     R.band = band = _excited_band(R)
     R.say("sensor terms")
-    wander_max = min(sensor_mod.max_wander_terms(R.rec.duration_s, max(band[0], 1.0 / max(R.rec.duration_s, 1e-3))),
+    # a noise or steps command excites from DC on: no band edge to keep the wander below; the BIC decides
+    f_lo = 4.0 * sensor_mod.WANDER_MAX_HZ if pb.broadband else max(band[0], 1.0 / max(R.rec.duration_s, 1e-3))
+    wander_max = min(sensor_mod.max_wander_terms(R.rec.duration_s, f_lo),
                      N_BLOCKS // 4)     # a cosine spans at least four blocks: it interpolates over a held-out one
     k_w = _choose_wander(pb, refit, wander_max)
     if k_w:

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAINS_HZ = (50.0, 60.0)
+WANDER_MAX_HZ = 0.5             # the fastest a transducer's zero wanders (temperature: minutes, not seconds)
 MAINS_TOL = 0.005               # within 0.5 % of a mains harmonic: "at the mains frequency" (grids hold 0.2 %)
 
 
@@ -164,7 +165,7 @@ def max_wander_terms(duration_s: float, f_lo_hz: float, cap: int = 24) -> int:
     """Cosines up to a quarter of the lowest excited frequency, kept within 0.05-0.5 Hz (a transducer's zero
     moves with its temperature: minutes, not seconds), and at least four of them (a short recording still sees
     a curved zero); term k has frequency k / (2 T)."""
-    f_max = min(max(0.25 * f_lo_hz, 0.05), 0.5)
+    f_max = min(max(0.25 * f_lo_hz, 0.05), WANDER_MAX_HZ)
     return int(max(0, min(cap, max(4, math.floor(2.0 * duration_s * f_max) - 1))))
 
 
