@@ -207,6 +207,11 @@ class Recorder:
                                        offset=_HDR).reshape(self._cap, self.ncols)
         return self._ring
 
+    @property
+    def committed(self) -> int:
+        """Rows published to the ring so far (its head): another reader of the ring (a console) follows it."""
+        return self._head
+
     def commit(self) -> None:
         """Publish the row filled at next_row() to the writer."""
         self._head = h = self._head + 1

@@ -61,6 +61,7 @@ class Session:
         self.realtime = bool(realtime) and self.clock.is_real
         self._signals, self._status, self._control_file = signals, status, control_file
         self.port = self.loop = self.recorder = None
+        self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
         self._rt_loop = None
 
@@ -172,8 +173,8 @@ class Session:
         return rec
 
     def stop_recording(self, rec: Recorder, timeout_s: float = 1.0) -> None:
-        """Stop recording into `rec` at the next period boundary, then close it."""
-        self.loop.gate.request_recorder(None)
+        """Stop recording into `rec` at the next period boundary (back to idle_recorder), then close it."""
+        self.loop.gate.request_recorder(self.idle_recorder)
         end = time.monotonic() + timeout_s
         while self.loop.recorder is rec and time.monotonic() < end:
             time.sleep(0.002)

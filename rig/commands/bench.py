@@ -4,6 +4,8 @@
                                                   real clock, real-time hygiene where allowed, recording on
   rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
                                                   what the machine itself allows (same JSON)
+  rig bench loop --console ...                    blocks without and with the operator console and a browser
+                                                  on its page, alternating (rig/console/bench.py)
   rig bench sim ...                               simulation speed of the plant
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
                                                   hour, gzip against none (rig/commands/bench_recorder.py)
@@ -28,6 +30,7 @@ import numpy as np
 from rig import cliargs
 from rig.clock import MonotonicClock
 from rig.config import load_config
+from rig.console import bench as console_bench
 from rig.errors import RigError
 from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
 from rig.session import Session
@@ -54,6 +57,7 @@ def add_arguments(p) -> None:
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    console_bench.add_arguments(lp)
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
@@ -151,6 +155,8 @@ def bench_loop(args) -> int:
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
+    if args.console:
+        return console_bench.bench_console(args, cfg, rate, clock)
     path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")

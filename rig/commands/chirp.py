@@ -161,12 +161,13 @@ def _check_signal(cfg, rate: float, amplitude_V: float, f0_hz: float, f1_hz: flo
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
               duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
-              stand_params=None, stand_effects=None, progress=None, levels_V=None, multisine: bool = False,
-              period_s: float = 10.0) -> dict:
+              stand_params=None, stand_effects=None, progress=None, on_session=None, levels_V=None,
+              multisine: bool = False, period_s: float = 10.0) -> dict:
     """Run the chirp through rig.loop and write the recording. Returns a summary dict.
     levels_V: the same chirp at each level back to back; multisine: an odd random-phase multisine instead
     (both from rig.excitation, played back sample by sample).
-    progress: optional callable(t_s, total_s) polled from a helper thread."""
+    progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
+    callable(session) once the session is built (a console stops it safely from another thread)."""
     rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
     cliargs.check_rate(cfg, rate, sections=("stand",))
     if backend == "hil":
@@ -210,6 +211,8 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     wall0 = time.perf_counter()
     with session:
         loop = session.loop
+        if on_session is not None:
+            on_session(session)
 
         def poll():
             while not done.wait(0.1):
