@@ -63,8 +63,10 @@ def test_grade_and_score_the_sensor_side():
     assert r["pickup_lines"]["within"] == 2 and r["pickup_lines"]["n"] == 3          # 100 Hz not reported
     assert r["residual_over_true_noise"] == pytest.approx(1.2)
     s = prove.score([r])
-    assert s["sensor_named_as_physics"] == 1 and s["mains_lines"] == {"n": 3, "within_1pct": 2,
-                                                                      "worst": pytest.approx(0.5, rel=1e-3)}
+    # the 100 Hz line is missed (graded apart), the worst frequency error is over the lines found (150.2 Hz)
+    assert s["sensor_named_as_physics"] == 1 and s["mains_lines"] == {
+        "n": 3, "found": 2, "within_1pct": 2, "worst": pytest.approx(0.2 / 150.0, rel=1e-6),
+        "missed": [{"case": "x", "frequency_hz": 100.0, "amplitude_m": None}]}
     assert s["by_habit"]["pickup"] == {"cases": 1, "right": 0, "invented": 1, "residual_ok": 1}
     assert s["seconds_per_100s_at_2khz"]["median"] == pytest.approx(7.0)       # a 100 s case at 2 kHz
     md = prove.habits_markdown(s)
