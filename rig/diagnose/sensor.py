@@ -1,5 +1,5 @@
 """Sensor terms: what the transducers add to a recording, modelled apart from the physics and never named as
-effects (PHYSICS_NOTES, "Real recordings: what the sensors add").
+effects (docs/DIAGNOSIS.md, "Sensor terms").
 
 Position channel, as nuisance regressors of every model (nominal, refit, augmented), fitted by linear least
 squares inside each evaluation (variable projection):
