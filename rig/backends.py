@@ -6,11 +6,19 @@
 
 Every factory is factory(cfg, *, dt, clock, **options) -> a rig.port.Port; construction touches no device,
 open() does the slow set-up. Adding a backend: write its factory and add one line to BACKENDS.
+
+`devices(cfg, name)` names the physical devices a backend drives (one lock each, rig/lock.py: one process
+per rig); the sim and hil backends drive devices of their own, made for the run, and share none.
+`default_config(name)` is the configuration a backend runs without --config (hil: its own design, at the HIL
+rate).
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
+import os
+from pathlib import Path
 
 from rig.config import MOUNTS
 from rig.errors import ConfigError
@@ -20,6 +28,25 @@ BACKENDS = {
     "hil": "rig.backends:make_hil_port",
     "hardware": "rig.backends:_hardware",
 }
+
+
+def default_config(name: str) -> Path | None:
+    """The configuration file of backend `name` when none is given (None: the Table 1 defaults). hil: the
+    HIL rate and the isolation controller designed for it (drivers/devicemaps/hil.toml,
+    controllers/tune_hil.py)."""
+    if name != "hil":
+        return None
+    spec = importlib.util.find_spec("drivers")           # located, not imported (no hardware library loads)
+    return Path(spec.origin).resolve().parent / "devicemaps" / "hil.toml"
+
+
+def devices(cfg, name: str) -> tuple[str, ...]:
+    """The physical devices backend `name` drives under cfg, as lock names (none for sim and hil)."""
+    if name != "hardware":
+        return ()
+    d = cfg.drivers
+    return (f"can-{d.can_interface}-{d.can_channel}", f"modbus-{d.modbus_host}-{d.modbus_port}",
+            f"serial-{os.path.realpath(d.serial_port)}")
 
 
 def make_port(cfg, name: str, *, dt: float | None = None, clock=None, **options):

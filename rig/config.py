@@ -99,6 +99,18 @@ class SafetyConfig:
     stuck_samples: int = _f(250, "", gt=1, le=10000000)         # same value over this many new samples = stuck
     watchdog_s: float = _f(0.05, "s", gt=0, le=10)              # loop silent for longer = fault, valve to null
     saturation_s: float = _f(1.0, "s", gt=0, le=3600)           # command at the clamp this long = not in control
+    # the loop's timing (rig/scheduler.py): how far behind real time it may run, the share of deadlines it may
+    # miss over a window, and the share of its period one period's work may take (measured over the first
+    # periods at start-up: above it the rate is refused)
+    lag_limit_s: float = _f(0.05, "s", gt=0, le=10)      # period deadline this far behind real time = fault
+    missed_limit: float = _f(0.5, "", gt=0, le=1)        # missed deadlines over missed_window_s = fault
+    missed_window_s: float = _f(1.0, "s", gt=0, le=60)
+    period_budget: float = _f(0.5, "", gt=0, le=1)       # a period's work (p50) / the period, at start-up
+    # limit cycle in the valve command (rig/safety.py check_oscillation): the command swinging between
+    # +-oscillation_level * valve_limit_V at oscillation_hz or faster, over oscillation_window_s
+    oscillation_level: float = _f(0.5, "", gt=0, le=1)
+    oscillation_hz: float = _f(30.0, "Hz", gt=0)
+    oscillation_window_s: float = _f(0.1, "s", gt=0, le=1)
 
 
 @dataclass(frozen=True)
@@ -159,6 +171,7 @@ class HilConfig:
     # limit and the loop watchdog of HIL runs sit above such stalls (the hardware keeps [safety] watchdog_s = 50 ms)
     stale_s: float = _f(0.1, "s", gt=0, le=10)           # staleness limit of HIL runs (drivers and safety)
     watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
+    lag_limit_s: float = _f(0.1, "s", gt=0, le=10)       # lag limit of HIL runs (safety.lag_limit_s)
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
     device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
 
@@ -340,7 +353,7 @@ def _check_cross(cfg: Config) -> None:
             raise ConfigError(f"{cfg.source}: machine.modal_model: file not found: {p}")
 
 
-NYQUIST_SECTIONS = ("controller", "vibration", "stand")
+NYQUIST_SECTIONS = ("controller", "vibration", "stand", "safety")
 F_MIN_HZ = 1e-3          # a slower "frequency" (a period over 15 min) is a constant within any run
 
 
@@ -384,13 +397,13 @@ def load_config(path: str | Path | None) -> Config:
 
 def hil_run_config(cfg: Config, rate_hz: float | None = None) -> Config:
     """The config of a run against the emulated rig: the loop at rate_hz (default [hil] rate_hz), the safety
-    checks with the [hil] staleness limit and watchdog."""
+    checks with the [hil] staleness limit, watchdog and lag limit."""
     rate = float(rate_hz or cfg.hil.rate_hz)
     # the emulated floor runs at the HIL rate too
     check_nyquist(cfg, rate, sections=("vibration",), rate_source=f"the HIL loop at {rate:g} Hz")
     return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=rate),
                        safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s,
-                                                  watchdog_s=cfg.hil.watchdog_s))
+                                                  watchdog_s=cfg.hil.watchdog_s, lag_limit_s=cfg.hil.lag_limit_s))
 
 
 def modal_model_path(cfg: Config) -> Path | None:

@@ -91,6 +91,7 @@ class LifecycleGate:
                 self.isolation = on
                 if lc.state is State.ACTIVE:
                     self.kernel.set_enabled(on)
+                log.info("isolation %s", "on" if on else "off")
                 self._event(f"isolation {'on' if on else 'off'}")
 
     # ---- transitions (the loop's thread) ----------------------------------------------------------------

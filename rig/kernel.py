@@ -28,8 +28,9 @@ from controllers.tracking import pid_step
 from rig.config import Config
 from rig.errors import ConfigError
 from rig.layout import RowLayout, loop_channels
-from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, SensorCheck, _F_LIMITED,
-                        _F_SATRUN, check_sensors, limit_commands)
+from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
+                        _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_oscillation, check_sensors,
+                        limit_commands)
 
 KIND_OFF = 0
 KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid"}
@@ -44,9 +45,11 @@ INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step"
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
-          "r_limited", "r_wake", "r_comp")
+          "r_limited", "r_wake", "r_comp", "osc")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
- _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP) = range(len(HEADER))
+ _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP) = range(len(HEADER) - 1)
+_H_OSC = HEADER.index("osc")           # the oscillation rule's state (rig/safety.py OSC_STATE + swing ring)
+_OSC_KINDS = (isolation.KIND, tracking.KIND)      # feedback kinds the oscillation rule checks
 
 
 @numba.njit(cache=True, inline="always")
@@ -106,7 +109,7 @@ def run_period(mem, ring, slot):
     if mode == MODE_FAULT:
         row[rc:rc + n] = 0.0
     else:
-        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + 7]
+        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
         chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
         code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
         if code == 0:
@@ -120,6 +123,11 @@ def run_period(mem, ring, slot):
             if mode == MODE_ACTIVE:
                 last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
                 code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
+                if code == 0:
+                    w = len(OSC_STATE) + int(lim[_L_OSC_N])
+                    o = int(mem[_H_OSC])
+                    code = check_oscillation(mem[o:o + n * w].reshape((n, w)), lim, row[rc:rc + n],
+                                             mem[i + _IN_T_NS])
             else:
                 row[rc:rc + n] = 0.0
     o_st = int(mem[_H_ST])
@@ -190,12 +198,13 @@ class PeriodKernel:
         self.layout = RowLayout(loop_channels(self.names, self.state_labels))
         self.check = SensorCheck(cfg, n, self.names)
         self.limiter = CommandLimiter(cfg, n, dt)
+        self.osc = OscillationRule(cfg, n, self.names)
         coefs = [np.ascontiguousarray(c.coefficients(), dtype=np.float64) for c in controllers]
         nst = [len(c.state_names) for c in controllers]
         parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n, "older": OLDER_CAP * n, "prev": 2 * n,
                  "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
-                 "coefs": sum(len(c) for c in coefs), "row": self.layout.ncols}
+                 "coefs": sum(len(c) for c in coefs), "osc": n * self.osc.width, "row": self.layout.ncols}
         at, off = 0, {}
         for part, size in parts.items():
             off[part] = at
@@ -207,8 +216,12 @@ class PeriodKernel:
                              lay.ncols, max_held_steps, lay["time_s"], lay["accel_mps2"], lay["stroke_m"],
                              lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
                              lay["controller_state"] if "controller_state" in lay else lay.ncols,
-                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"])
-        mem[off["limits"]:off["limits"] + len(LIMITS)] = self.check.limits() + self.limiter.limits()
+                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], off["osc"])
+        mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
+                                                          + self.osc.limits())
+        self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
+        self._osc_initial = self.osc.initial_state([c.kind in _OSC_KINDS for c in controllers])
+        self.osc_state[:] = self._osc_initial
         self.states = []
         so, co = off["states"], off["coefs"]
         for m, (c, cf) in enumerate(zip(controllers, coefs)):
@@ -281,9 +294,11 @@ class PeriodKernel:
         self.check_state[:] = self.check.initial_state()
 
     def reset_limiter(self) -> None:
-        """The valve is at null (written while inactive, or safe state): the slew limit ramps from there."""
+        """The valve is at null (written while inactive, or safe state): the slew limit ramps from there, and
+        the oscillation rule starts with no swing seen."""
         self.last_cmd[:] = 0.0
         self.flags[_F_SATRUN] = 0.0
+        self.osc_state[:] = self._osc_initial
 
 
 def _check_controller(name: str, c, dt: float) -> None:

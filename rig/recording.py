@@ -8,6 +8,8 @@ Formats (all carry the same four signals, sampled uniformly at fs_hz):
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
   A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
+  A `rig run` / `rig hil` recording (isolation_on and lifecycle_state beside the signals) is closed loop: its
+  valve command was computed from the measured signals; `closed_loop` says so (identification refuses it).
 - MATLAB .mat: variables of the same names (row or column vectors); v5/v7 with scipy.io.loadmat, v7.3 (HDF5
   with a 512-byte MATLAB header) with h5py.
 
@@ -43,6 +45,7 @@ class Recording:
     fs_hz: float
     source: str = "<memory>"
     meta: dict = field(default_factory=dict)     # the file's attributes (HDF5: e.g. command = "rig run")
+    closed_loop: str = ""      # why the valve command depends on the measurement (feedback), "" if open loop
 
     @property
     def n(self) -> int:
@@ -239,13 +242,27 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 elif isinstance(v, np.ndarray) and v.ndim == 1 and v.size <= 64:
                     meta[str(k)] = [x.decode(errors="replace") if isinstance(x, bytes) else
                                     (x.item() if hasattr(x, "item") else x) for x in v]
+            closed = _feedback_rows(g, f.attrs.get("command", "the loop"))
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
     rec = _validated(cols, source)
     rec.meta = meta
+    rec.closed_loop = closed
     return rec
+
+
+def _feedback_rows(g, command) -> str:
+    """Why the valve command of a loop recording is closed loop: rows ACTIVE under a feedback controller (the
+    isolation law or the stroke centring: the valve follows the measured accel and stroke). '' otherwise."""
+    if "lifecycle_state" not in g or "isolation_on" not in g:
+        return ""                                   # a chirp (playback) or a foreign file: open loop
+    active = np.asarray(g["lifecycle_state"][()]).ravel() == 2      # rig.lifecycle.State.ACTIVE
+    if not active.any():
+        return ""
+    return (f"recorded by {command} with the feedback controller driving the valves in {int(active.sum())} of "
+            f"{active.size} rows")
 
 
 def _mount_index(ds, mount, source) -> int:

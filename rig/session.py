@@ -19,14 +19,17 @@ import sys
 import threading
 import time
 
+from controllers.analysis import unstable_loops
 from controllers.isolation import make_isolation_controllers
-from rig.backends import make_port
+from rig.backends import devices, make_port
 from rig.clock import MonotonicClock
 from rig.config import Config
 from rig.errors import ConfigError
+from rig.lock import RigLock
 from rig.loop import Loop
-from rig.recorder import Recorder
+from rig.recorder import WRITER_PRIORITY, Recorder
 from rig.rt import enter_realtime, leave_realtime
+from rig.signals import take_held
 from rig.tap import Columns
 
 log = logging.getLogger("rig.session")
@@ -36,14 +39,19 @@ class Session:
     """A run from a config and a backend name. controllers: a list (one per mount), a callable
     (cfg, dt) -> list, or None for the isolation controllers of cfg.controller. record: an HDF5 path (the
     loop's layout, or `columns`: a Columns selection of it); realtime: the loop thread's real-time set-up
-    (real clock only); signals: SIGINT/SIGTERM stop the run safely, SIGUSR1 toggles isolation;
-    status / control_file: the status line on stderr, a control file polled for on/off/stop."""
+    (real clock only); signals: SIGINT/SIGTERM stop the run safely, SIGUSR1 toggles isolation (also one
+    held since start-up, rig/signals.py); status / control_file: the status line on stderr, a control file
+    polled for on/off/stop (its folder must exist; only changes after the start count);
+    stability_check: refuse isolation controllers `rig design` calls unstable; rate_check: refuse a rate the
+    loop cannot hold (measured over its first periods, rig/scheduler.py). The devices the backend drives are
+    locked for the session (rig/lock.py): a second process driving them is refused, naming the holder."""
 
     def __init__(self, cfg: Config, backend: str = "sim", *, controllers=None, clock=None,
                  rate_hz: float | None = None, port_options: dict | None = None, isolation: bool = True,
                  overrun_policy: str | None = None, names: tuple[str, ...] | None = None,
                  keep_timing: int = 1 << 15, stop_on_fault: bool = True, watchdog_thread: bool | None = None,
-                 record=None, record_attrs: dict | None = None, columns: "Columns | None" = None,
+                 rate_check: bool = True, stability_check: bool = False, record=None,
+                 record_attrs: dict | None = None, columns: "Columns | None" = None,
                  realtime: bool = False, signals: bool = False, status: bool = False,
                  control_file: str | None = None) -> None:
         self.cfg = cfg
@@ -52,14 +60,22 @@ class Session:
         self.rate_hz = float(rate_hz or cfg.loop.rate_hz)
         self.dt = 1.0 / self.rate_hz
         self._controllers = controllers
+        self._stability_check = stability_check
         self._port_options = dict(port_options or {})
         self._loop_kw = dict(isolation=isolation, overrun_policy=overrun_policy, names=names,
-                             keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread)
+                             keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread,
+                             rate_check=rate_check)
         self.record = record
         self._record_attrs = dict(record_attrs or {})
         self.columns = columns
         self.realtime = bool(realtime) and self.clock.is_real
         self._signals, self._status, self._control_file = signals, status, control_file
+        if control_file is not None:
+            folder = os.path.dirname(os.path.abspath(control_file))
+            if not os.path.isdir(folder):
+                raise ConfigError(f"control file {control_file}: folder {folder} does not exist (the file is "
+                                  f"polled there for on/off/stop)")
+        self._held_toggles = 0               # SIGUSR1 before the loop existed: applied at its first period
         self.port = self.loop = self.recorder = None
         self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
@@ -71,15 +87,24 @@ class Session:
         try:
             if self._signals:
                 self._install_signals(stack)
+            stack.enter_context(RigLock(devices(self.cfg, self.backend)))
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             ctrls = self._controllers
             if ctrls is None:
                 ctrls = make_isolation_controllers(self.cfg, self.dt)
+                if self._stability_check:
+                    check_stable(self.cfg, ctrls, self.dt)
             elif callable(ctrls):
                 ctrls = ctrls(self.cfg, self.dt)
             self.loop = Loop(self.cfg, self.port, list(ctrls), clock=self.clock, rate_hz=self.rate_hz,
                              **self._loop_kw)
+            if self.realtime:     # the safety net preempts the loop it watches (a hung loop, a busy machine)
+                self.loop.sched.watchdog_priority = min(99, self.cfg.loop.rt_priority + 10)
+            if self._held_toggles % 2:
+                log.info("isolation toggle (SIGUSR1) received during start-up: applied at the first period")
+                self.loop.toggle_isolation()
+            self._held_toggles = 0
             if self.record is not None:
                 self.recorder = self._start_recorder(stack)
             stack.callback(self.loop.safe_stop)
@@ -104,7 +129,8 @@ class Session:
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
                        attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
-                       wait_when_full=not self.clock.is_real)
+                       wait_when_full=not self.clock.is_real,
+                       priority=WRITER_PRIORITY if self.realtime else 0)
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
@@ -126,12 +152,18 @@ class Session:
                 self.loop.stop(signal.Signals(signum).name)
             else:
                 raise KeyboardInterrupt
+
+        def on_usr1(signum, frame):          # isolation toggle; held until the loop exists
+            if self.loop is not None:
+                self.loop.toggle_isolation()
+            else:
+                self._held_toggles += 1
         try:
             old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
-            old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, lambda s, f: self.loop and
-                                                self.loop.toggle_isolation())
+            old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_usr1)
         except ValueError:                   # not the main thread: the caller handles signals
             return
+        self._held_toggles += take_held()
         stack.callback(lambda: [signal.signal(s, h) for s, h in old.items()])
 
     # ---- the run -------------------------------------------------------------------------------------
@@ -168,7 +200,8 @@ class Session:
         """Record the loop's rows to `path` from the next period on (a running session)."""
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
-                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs}).start()
+                       attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs},
+                       priority=WRITER_PRIORITY if self.realtime else 0).start()
         self.loop.gate.request_recorder(rec)
         return rec
 
@@ -189,6 +222,16 @@ class Session:
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,
                 "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us()}
+
+
+def check_stable(cfg: Config, ctrls, dt: float) -> None:
+    """ConfigError (one line) when `rig design`'s analysis calls the isolation loop unstable on the configured
+    plant at this period (controllers/analysis.py unstable_loops: closed-loop poles only, about 0.1 s)."""
+    bad = unstable_loops(cfg, ctrls, dt)
+    if bad:
+        raise ConfigError(f"{cfg.source}: [controller]: `rig design` calls this loop unstable on the configured "
+                          f"plant at {1 / dt:g} Hz ({'; '.join(bad)}): refused; `rig design` shows the margins, "
+                          f"--force runs it anyway")
 
 
 class _Helper(threading.Thread):
@@ -227,7 +270,9 @@ class _StatusLine(_Helper):
         m = lp.last_meas
         xs = " ".join(f"{x * 1e6:+7.2f}" for x in m.stroke_m) if m is not None else "-"
         us = " ".join(f"{u:+5.2f}" for u in lp.cmd)
-        return (f"t={t:7.2f}s {lp.state.name:8s} iso={'on ' if lp.isolation else 'off'} "
+        susp = lp.suspended_mounts if lp.isolation else []
+        iso = ("on " if not susp else f"SUSPENDED({','.join(susp)})") if lp.isolation else "off"
+        return (f"t={t:7.2f}s {lp.state.name:8s} iso={iso} "
                 f"wake p99={tm['wake_latency_us']['p99']:6.1f}us compute p99={tm['compute_us']['p99']:5.1f}us "
                 f"overruns={lp.overruns} stroke_um=[{xs}] cmd_V=[{us}]")
 
@@ -246,6 +291,15 @@ class _ControlFile(_Helper):
         super().__init__("rig-control")
         self.path, self.session = path, session
         self._last = None
+        try:                                 # a word left from before the start does not count
+            st = os.stat(path)
+            self._last = (st.st_mtime_ns, st.st_size)
+            with open(path) as f:
+                word = f.read().strip()
+            if word:
+                log.info("%s says %r from before the start: ignored (only changes count)", path, word)
+        except OSError:
+            pass
 
     def run(self) -> None:
         while not self._halt.wait(0.1):

@@ -12,7 +12,10 @@ stale_s as the staleness limit of the drivers and of the loop's sensor check. Th
 at the start of each half is not metered. isolation_reduction_db = 20 log10(rms table motion off / on), the
 true table motion of the emulated plant under the same floor vibration.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "recording"} on stdout; progress goes to stderr. Exit 1 after a fault.
+"isolation_reduction_db", "recording"} on stdout; progress goes to stderr. Exit 1 after a fault; stopped
+early (Ctrl-C, SIGTERM) it says so, gives no isolation figure and exits 130.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
+  rig hil --seconds 4 --inject silence:*:accel@2
 """
 from __future__ import annotations
 
@@ -22,14 +25,12 @@ import math
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
-import drivers
 from drivers.protocol import dta as proto
-from rig import cliargs
-from rig.backends import make_port
+from rig import cliargs, inject
+from rig.backends import default_config, make_port
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
 from rig.port import Commands
@@ -38,7 +39,8 @@ from rig.session import Session
 
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
-HIL_DEFAULT_CONFIG = Path(drivers.__file__).resolve().parent / "devicemaps" / "hil.toml"
+HIL_DEFAULT_CONFIG = default_config("hil")
+CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
 
 def add_arguments(p) -> None:
@@ -51,6 +53,11 @@ def add_arguments(p) -> None:
     p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
+    p.add_argument("--force", action="store_true",
+                   help="run isolation controllers that `rig design` calls unstable at the HIL rate")
+    p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
+                   help="fault rehearsal on the emulated devices at loop time T s, e.g. silence:*:accel@2 "
+                        "(repeatable; see rig run --help)")
 
 
 def hil_config(cfg, rate_hz: float | None = None):
@@ -120,13 +127,25 @@ def run(args) -> int:
     seconds = args.seconds if args.seconds is not None else cfg.hil.seconds
     if not 0 < seconds <= 3600:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
+    injections = [inject.parse(x) for x in getattr(args, "inject", [])]
+    for inj in injections:
+        inject.check(inj, "hil")
     if args.bench:
         return bench(cfg, seconds, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
+    if not args.json:
+        print(f"rig hil: config {cfg.source}", file=sys.stderr)
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
-                  quiet=args.json)
+                  quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "recording")}
+    if res["stop_reason"] in ("SIGINT", "SIGTERM"):
+        print(f"rig hil: interrupted ({res['stop_reason']}) at t = {res['t_s']:.1f} s of {seconds:g} s: the run "
+              f"did not finish, no isolation figure; {out['samples_recorded']} samples recorded to "
+              f"{out['recording']}", file=sys.stderr)
+        if args.json:
+            print(json.dumps(dict(out, isolation_reduction_db=None)))
+        return 130
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)
@@ -145,7 +164,7 @@ def run(args) -> int:
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
-            port_options: dict | None = None) -> dict:
+            port_options: dict | None = None, injections=(), stability_check: bool = True) -> dict:
     """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more)."""
     rate = cfg.loop.rate_hz
     if record is None:
@@ -156,8 +175,9 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
                       keep_timing=int(seconds * rate) + 16, record=record,
                       record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial"},
-                      realtime=realtime, signals=True)
+                      realtime=realtime, signals=True, stability_check=stability_check)
     phases = None
+    reason = None
     with session:
         port, loop = session.port, session.loop
         rig = port.rig
@@ -165,7 +185,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
             phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
             phases.start()
-            session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+            with inject.Armed(session, injections):
+                reason = session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
         finally:
             if phases is not None:
                 phases.stop()
@@ -181,7 +202,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             "isolation_reduction_db": None if math.isnan(red) else round(red, 2),
             "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_off_m": off,
             "table_rms_on_m": on, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
-            "lost_conversions": lost}
+            "lost_conversions": lost, "stop_reason": reason,
+            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
 
 
 def _raw_round_trips(port, n: int) -> dict:

@@ -144,6 +144,11 @@ def run(args) -> int:
     t0 = time.perf_counter()
     rec = load_recording(args.recording)                 # RecordingError: one line, exit 2
     check_plausible(rec)
+    if rec.closed_loop:
+        # in closed loop the command is a function of the measured position (and its noise): an FRF fit of
+        # position/command gives the loop's sensitivity, not the actuator, and looks confident doing so
+        raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
+                       "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
 
     def progress(stage: str, frac: float) -> None:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)

@@ -12,8 +12,22 @@ Switching isolation while running (bumpless; stroke centring stays on):
   kill -USR1 <pid>                 toggles isolation on/off
   --control FILE                   the file is polled every 0.1 s; write one word into it:
                                    `on` / `off` (isolation), `stop` (safe stop)
-The status line on stderr shows state, isolation, loop timing, overruns, strokes and commands.
-Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error.
+Only changes of the control file after the start count; its folder must exist.
+The status line on stderr shows state, isolation (SUSPENDED and the mounts while the saturation recovery
+holds it off), loop timing, overruns, strokes and commands.
+
+Without --config the sim and hardware backends run the Table 1 defaults and the hil backend its own design
+(drivers/devicemaps/hil.toml: the HIL rate and the controller tuned for it). At start-up `rig run` refuses
+isolation controllers that `rig design` calls unstable on the configured plant (--force runs them), and a
+rate the loop cannot hold on this machine (measured over the first periods). While running, the loop faults
+when it falls lag_limit_s behind real time, misses more than missed_limit of its deadlines over
+missed_window_s, when a valve command limit-cycles ([safety] oscillation_*), or when the recording's writer
+dies.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T (repeatable; rig/inject.py lists the knobs), e.g.
+  rig run --seconds 3 --inject nan:front_left:accel@1.5
+One process per rig: a second one driving the same devices is refused, naming the first (rig/lock.py).
+Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 130 after
+Ctrl-C during the start-up.
 """
 from __future__ import annotations
 
@@ -21,8 +35,8 @@ import logging
 import os
 import sys
 
-from rig import cliargs
-from rig.backends import BACKENDS
+from rig import cliargs, inject
+from rig.backends import BACKENDS, default_config
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
@@ -30,6 +44,8 @@ from rig.lifecycle import State
 from rig.session import Session
 
 log = logging.getLogger("rig.run")
+CONFIG_HELP = ("TOML configuration (default: the paper's Table 1 values; with --backend hil the HIL design, "
+               "drivers/devicemaps/hil.toml)")
 
 
 def warmup_s(ctrls) -> float:
@@ -58,6 +74,13 @@ def add_arguments(p) -> None:
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
     p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument("--force", action="store_true",
+                   help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
+                        "faults a limit cycle)")
+    p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
+                   help="fault rehearsal: drive a fault knob at loop time T s, e.g. nan:front_left:accel@2 "
+                        "(repeatable; kinds: sim nan, range, stuck, stale, drop, device; hil silence, exception, "
+                        "garbage, stale, fragment, range, nan, fault, hold; both overrun, stall, recorder)")
     p.add_argument("--console", action="store_true",
                    help="serve the operator console (a live web page) on 127.0.0.1; its address, with a random "
                         "access token, is printed at start")
@@ -73,6 +96,11 @@ def run(args) -> int:
         logging.getLogger("rig").setLevel(logging.INFO)
     cfg = load_config(args.config)
     backend = args.backend or cfg.backend.name
+    if args.config is None and default_config(backend) is not None:
+        cfg = load_config(default_config(backend))        # hil: its own design, not Table 1's at the HIL rate
+    injections = [inject.parse(x) for x in args.inject]
+    for inj in injections:
+        inject.check(inj, backend)
     if args.seconds is not None and args.seconds <= 0:
         raise RigError(f"--seconds: expected > 0, got {args.seconds}")
     if args.settle is not None and not 0 <= args.settle <= 3600:
@@ -87,6 +115,8 @@ def run(args) -> int:
         cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
     if (args.port is not None or args.read_only) and not args.console:
         raise RigError("--port/--read-only: only with --console")
+    if injections and args.console:
+        raise RigError("--inject: not with --console (rehearse faults on a run without it)")
     clock = SimClock() if args.sim_time else MonotonicClock()
 
     def new_session(record=args.record) -> Session:
@@ -95,13 +125,14 @@ def run(args) -> int:
                        record=record, record_attrs={"command": "rig run", "isolation_at_start": args.isolation,
                                                     "overrun_policy": args.policy or cfg.loop.overrun_policy},
                        realtime=cfg.loop.realtime and not args.no_realtime, signals=True,
-                       status=not args.quiet, control_file=args.control, stop_on_fault=not args.console)
+                       status=not args.quiet, control_file=args.control, stop_on_fault=not args.console,
+                       stability_check=not args.force)
 
     def started(session) -> float:
         """Log the start; the settle time before activation."""
         loop = session.loop
-        log.info("backend %s, %d mounts at %g Hz, isolation %s, pid %d (SIGUSR1 toggles isolation%s)",
-                 backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
+        log.info("backend %s, %d mounts at %g Hz, isolation %s, config %s, pid %d (SIGUSR1 toggles isolation%s)",
+                 backend, loop.n, loop.rate_hz, args.isolation, cfg.source, os.getpid(),
                  f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
         cliargs.check_settle(settle, args.seconds, default="the default --settle")
@@ -115,7 +146,11 @@ def run(args) -> int:
     else:
         with new_session() as session:
             loop = session.loop
-            reason = session.run(seconds=args.seconds, activate_after_s=started(session))
+            settle = started(session)
+            with inject.Armed(session, injections) as armed:
+                reason = session.run(seconds=args.seconds, activate_after_s=settle)
+            for spec, t in armed.applied.items():
+                log.info("injected %s at t = %.3f s", spec, t)
     tm = loop.timing_us()
     log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
              "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,

@@ -167,15 +167,15 @@ def test_diagnose_of_closed_loop_other_plant_says_why(tmp_path):
     assert any("Closed-loop data" in s for s in doc["verdict"]["suggestions"])
 
 
-def test_identify_on_a_rig_run_recording_says_closed_loop(tmp_path):
-    """The issue's case: `rig identify` on what `rig run` recorded (the isolation loop) must say so."""
+def test_diagnose_of_a_rig_run_recording_says_closed_loop(tmp_path):
+    """The issue's case: what `rig run` recorded (the isolation loop) is named closed-loop data by the diagnosis
+    (`rig identify` refuses it outright: tests/rig/test_ident_roundtrip.py)."""
     run = tmp_path / "run.h5"
-    res = subprocess.run(RIG + ["run", "--sim-time", "--seconds", "2", "--record", str(run), "--quiet"],
+    res = subprocess.run(RIG + ["run", "--sim-time", "--seconds", "6", "--record", str(run), "--quiet"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
-    res = _rig("identify", run, "--json")
+    res = _rig("diagnose", run, "--out", tmp_path / "out", "--json")
     _no_traceback(res)
     assert res.returncode == 0, res.stderr
-    loop = json.loads(res.stdout)["fit"]["closed_loop"]
-    assert loop["closed_loop"] is True and "rig run" in loop["reason"]
-    assert "WARNING: closed-loop" in res.stderr
+    doc = json.loads(res.stdout)
+    assert any("Closed-loop data" in s and "rig run" in s for s in doc["verdict"]["suggestions"]), doc["verdict"]
