@@ -24,7 +24,7 @@ from __future__ import annotations
 import gzip
 import io
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +48,7 @@ class Recording:
     accel_mps2: np.ndarray
     fs_hz: float
     source: str = "<memory>"
+    meta: dict = field(default_factory=dict)     # the file's attributes (HDF5: e.g. command = "rig run")
     # why the valve command depends on the measurement (feedback), "" if open loop. In an operated track run
     # the position's noise and disturbances reach the command too; reference_m is the external excitation the
     # loop followed (None: feedback alone, nothing to identify from)
@@ -111,6 +112,15 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
     off = np.abs(dt - step) > UNIFORM_TOL * step
     if off.any():
         k = int(np.argmax(off)) + 1
+        if dt[k - 1] > step:
+            # a gap: one line naming the first one (segments are not stitched: the plant's state across the gap
+            # is unknown, so each side would need its own start transient)
+            missing = int(round(dt[k - 1] / step)) - 1
+            more = int(off.sum()) - 1
+            raise RecordingError(
+                f"{source}: time_s not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after t = {t[k - 1]:.6g} s "
+                f"(about {missing} samples missing, expected steps of {step:.6g} s"
+                f"{f'; {more} more irregular steps after it' if more else ''}): split the recording at the gap")
         raise RecordingError(f"{source}: time_s not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
                              f"expected {step:.6g} s")
     # the sample rate from the whole span (robust to per-step rounding of printed times)
@@ -119,6 +129,22 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
         raise RecordingError(f"{source}: cannot determine a sample rate from time_s")
     return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
                      accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
+
+
+# Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
+# beyond them is a wrong unit or a corrupt file.
+PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
+
+
+def check_plausible(rec: Recording) -> None:
+    """One clear line for a value no sensor or command of a rig can have (e.g. 1e300 from a corrupt export)."""
+    for name, lim in PLAUSIBLE_ABS.items():
+        a = getattr(rec, name)
+        bad = np.abs(a) > lim
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RecordingError(f"{rec.source}: {name} is {a[k]:.6g} at sample {k} (t = {rec.t_s[k]:.6g} s): not a "
+                                 f"plausible value (expected |{name}| < {lim:g}); check the column's units")
 
 
 # ---- readers ----------------------------------------------------------------------------------------
@@ -215,6 +241,15 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
+            meta = {}
+            for k, v in f.attrs.items():
+                if isinstance(v, bytes):
+                    v = v.decode(errors="replace")
+                if isinstance(v, (str, int, float, bool, np.integer, np.floating, np.bool_)):
+                    meta[str(k)] = v.item() if hasattr(v, "item") else v
+                elif isinstance(v, np.ndarray) and v.ndim == 1 and v.size <= 64:
+                    meta[str(k)] = [x.decode(errors="replace") if isinstance(x, bytes) else
+                                    (x.item() if hasattr(x, "item") else x) for x in v]
             track = _track_rows(g, mount, source) if "mode" in g and "reference_m" in g else None
             if track is not None:
                 sel, ref = track
@@ -225,6 +260,7 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
     rec = _validated(cols, source)
+    rec.meta = meta
     rec.closed_loop = closed
     if track is not None:
         rec.closed_loop, rec.reference_m = "an operated run in track mode", ref

@@ -23,12 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from rig.config import load_config
-    from rig.recording import load_recording
+    from rig.recording import check_plausible, load_recording
     from sim_backend.linear import ActuatorParams
 
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     rec = load_recording(args.recording)                      # RecordingError: one line, exit 2
+    check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
         raise RigError(f"--out {args.out}: exists and is not a folder")
 
