@@ -213,6 +213,31 @@ class ControllerConfig:
 
 
 @dataclass(frozen=True)
+class SensorsConfig:
+    """Optional sensors beyond the paper's: a floor accelerometer at each mount, the input of the floor-motion
+    feedforward (controllers/feedforward.py). On the hardware it sits on further channels of the analog input
+    module (drivers/devicemaps/adam6024_modbus.md); the simulated rig gives it its own noise."""
+    floor_accel: bool = _f(False, "")                         # fitted (the loop reads and checks it)
+    floor_V_per_mps2: float = _f(2.0, "V/(m/s^2)", gt=0)     # sensitivity with its conditioner
+    floor_range_mps2: float = _f(5.0, "m/s^2", gt=0)         # plausible range; beyond (or NaN) = fault
+    # white noise of the simulated sensor (a seismic accelerometer, ~0.1 ug/sqrt(Hz))
+    floor_noise_mps2_per_rthz: float = _f(1e-6, "m/s^2/sqrt(Hz)", ge=0)
+    floor_channels: tuple[int, ...] = _f((4, 5, 6, 7), "")   # analog module AI channels, MOUNTS order
+
+
+@dataclass(frozen=True)
+class PlantErrorConfig:
+    """The simulated rig's actuators as factors on the configured model (1 = as modelled): the plant the
+    controllers and the feedforward meet when their model is wrong (Eq. 11's x_d). Simulated plants only."""
+    K_L: float = _f(1.0, "", gt=0)
+    C: float = _f(1.0, "", gt=0)
+    w_nv: float = _f(1.0, "", gt=0)
+    zeta: float = _f(1.0, "", gt=0)
+    K_Q: float = _f(1.0, "", gt=0)
+    K_C: float = _f(1.0, "", gt=0)
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -227,6 +252,8 @@ class Config:
     drivers: DriversConfig = field(default_factory=DriversConfig)
     hil: HilConfig = field(default_factory=HilConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    plant_error: PlantErrorConfig = field(default_factory=PlantErrorConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
     def replace(self, **sections) -> "Config":
@@ -251,6 +278,10 @@ def _check_value(where: str, name: str, ftype, meta, value):
     elif ftype is str or ftype == "str":
         if not isinstance(value, str):
             raise ConfigError(f"{where}.{name}: expected a string, got {value!r}")
+    elif origin is tuple and typing.get_args(ftype)[:1] == (int,):
+        if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            raise ConfigError(f"{where}.{name}: expected a list of integers, got {value!r}")
+        value = tuple(value)
     elif origin in (list, tuple) or ftype in ("list[float]", "tuple[float, ...]"):
         if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                   for v in value):
@@ -308,12 +339,27 @@ def _check_cross(cfg: Config) -> None:
     if cfg.safety.stroke_limit_m > cfg.actuator.stroke_m:
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= actuator.stroke_m "
                           f"({cfg.actuator.stroke_m} m), got {cfg.safety.stroke_limit_m}")
+    _check_sensors(cfg)
     if cfg.machine.modal_model:
         p = Path(cfg.machine.modal_model)
         if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):
             p = Path(cfg.source).parent / p
         if not p.is_file():
             raise ConfigError(f"{cfg.source}: machine.modal_model: file not found: {p}")
+
+
+def _check_sensors(cfg: Config) -> None:
+    """The floor accelerometers: one analog channel each, none shared with the mount accelerometers (AI
+    ch0-3), within the module's 8 channels; the range within the module's +-10 V."""
+    s = cfg.sensors
+    ch = s.floor_channels
+    if len(ch) != len(MOUNTS) or len(set(ch)) != len(ch) or not all(4 <= c <= 7 for c in ch):
+        raise ConfigError(f"{cfg.source}: sensors.floor_channels: expected {len(MOUNTS)} distinct analog input "
+                          f"channels in 4..7 (ch0-3 are the mount accelerometers), got {list(ch)}")
+    if s.floor_range_mps2 * s.floor_V_per_mps2 > 10.0:
+        raise ConfigError(f"{cfg.source}: sensors.floor_range_mps2: expected <= 10 V / floor_V_per_mps2 "
+                          f"({10.0 / s.floor_V_per_mps2:g} m/s^2, the module's input range), "
+                          f"got {s.floor_range_mps2}")
 
 
 def load_config(path: str | Path | None) -> Config:

@@ -6,6 +6,9 @@ commands; FAULT writes nothing after port.safe_state(). Requests (activation, is
 thread- and signal-safe: they are single assignments, applied at the next period boundary. On activation
 the controllers switch isolation on their own bumpless way and the limiter ramps from the null the valve
 held, so (re-)activation never jumps.
+
+The isolation mode: off, feedback, or feedback_feedforward (the floor feedforward added, when the loop has it).
+`isolation` and `feedforward` are the two switches behind it; the feedforward acts only while isolation is on.
 """
 from __future__ import annotations
 
@@ -16,9 +19,12 @@ from rig.port import Commands
 
 log = logging.getLogger("rig.loop")
 
+MODES = ("off", "feedback", "feedback_feedforward")
+
 
 class LifecycleGate:
-    def __init__(self, kernel, port, event, *, isolation: bool, stop_on_fault: bool) -> None:
+    def __init__(self, kernel, port, event, *, isolation: bool, stop_on_fault: bool,
+                 feedforward: bool = False) -> None:
         self.kernel = kernel
         self.port = port
         self._event = event                  # event(text): the recording's event list
@@ -30,6 +36,8 @@ class LifecycleGate:
         self.t_ns = 0                        # the period being run (fault times, events)
         self._active_request: bool | None = None
         self._iso_request: bool | None = None
+        self.feedforward = bool(feedforward) and bool(getattr(kernel, "nf", 0))
+        self._ff_request: bool | None = None
         self._reset_request = False
         self.pending = False                 # any request below is waiting (a plain flag: one load per period)
         self._recorder_request = None        # (recorder,) to record into from the next period
@@ -48,6 +56,22 @@ class LifecycleGate:
     def request_isolation(self, on: bool) -> None:
         self._iso_request = bool(on)
         self.pending = True
+
+    def request_mode(self, mode: str) -> None:
+        """off / feedback / feedback_feedforward (ValueError for another word, or feedforward without floor
+        sensors): isolation and the feedforward switched together at the next period boundary."""
+        if mode not in MODES:
+            raise ValueError(f"isolation mode {mode!r}: expected one of {', '.join(MODES)}")
+        if mode == "feedback_feedforward" and not getattr(self.kernel, "nf", 0):
+            raise ValueError("isolation mode feedback_feedforward: the loop has no floor feedforward "
+                             "([sensors] floor_accel = false)")
+        self._ff_request = mode == "feedback_feedforward"
+        self._iso_request = mode != "off"
+        self.pending = True
+
+    @property
+    def mode(self) -> str:
+        return MODES[0] if not self.isolation else MODES[2] if self.feedforward else MODES[1]
 
     def toggle_isolation(self) -> None:
         self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
@@ -85,13 +109,21 @@ class LifecycleGate:
                 self.activate()
             elif not req and lc.state is State.ACTIVE:
                 self.deactivate()
-        if self._iso_request is not None:
+        if self._iso_request is not None or self._ff_request is not None:
+            before = self.mode
             on, self._iso_request = self._iso_request, None
-            if on != self.isolation:
+            if on is not None and on != self.isolation:
                 self.isolation = on
                 if lc.state is State.ACTIVE:
                     self.kernel.set_enabled(on)
                 self._event(f"isolation {'on' if on else 'off'}")
+            ff, self._ff_request = self._ff_request, None
+            if ff is not None:
+                self.feedforward = ff
+            self._apply_feedforward()
+            if self.mode != before and self.kernel.nf:
+                log.info("isolation mode %s", self.mode)
+                self._event(f"mode {self.mode}")
 
     # ---- transitions (the loop's thread) ----------------------------------------------------------------
     def configure(self) -> None:
@@ -103,6 +135,7 @@ class LifecycleGate:
         """INACTIVE -> ACTIVE: warm states, isolation switched on bumplessly, the limiter from null."""
         self.lc.activate()
         self.kernel.set_enabled(self.isolation)
+        self._apply_feedforward()
         self.kernel.reset_limiter()
         self._event("ACTIVE")
 
@@ -111,10 +144,16 @@ class LifecycleGate:
         if self.lc.state is State.ACTIVE:
             self.lc.deactivate()
             self.kernel.set_enabled(False)
+            self._apply_feedforward()
             self.kernel.reset_limiter()
             self.kernel.null_commands()
             self.write_null()
             self._event("INACTIVE")
+
+    def _apply_feedforward(self) -> None:
+        """The kernel's feedforward switch from the mode and the lifecycle: on only while ACTIVE and isolating."""
+        if self.kernel.nf:
+            self.kernel.set_feedforward(self.isolation and self.feedforward and self.lc.state is State.ACTIVE)
 
     def reset_fault(self) -> None:
         """FAULT -> INACTIVE after the cause is cleared (explicit acknowledgement); fresh controller states."""

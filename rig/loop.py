@@ -13,7 +13,9 @@ the controllers once per conversion, in order, older ones first; a period withou
 command. Skipped periods are replayed into the controllers (at most MAX_HELD_STEPS; longer gaps fault on the
 watchdog anyway). Any exception of the port is a fault, never a silent death. The controllers' saturation
 recovery suspending or resuming a mount's isolation is logged and recorded as an event once per change
-(checked at 10 Hz, off the per-period path).
+(checked at 10 Hz, off the per-period path). With floor feedforward filters (one per mount) the loop takes the
+port's floor accelerometers (Measurements.floor_accel_mps2) and the mode (off / feedback /
+feedback_feedforward) is switched through the gate's requests.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from rig.gate import LifecycleGate
 from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, PeriodKernel
 from rig.lifecycle import State
 from rig.port import Commands
-from rig.safety import LIMIT_NAN
+from rig.safety import CHECK_FLOOR, LIMIT_NAN, floor_reason
 from rig.scheduler import Scheduler
 from rig.tap import RecordingTap
 
@@ -42,7 +44,8 @@ class Loop:
     def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
                  rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
                  keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
-                 stop_on_fault: bool = True, watchdog_thread: bool | None = None) -> None:
+                 stop_on_fault: bool = True, watchdog_thread: bool | None = None, feedforward: list | None = None,
+                 feedforward_on: bool = False) -> None:
         self.cfg = cfg
         self.port = port
         self.n = int(port.n_mounts)
@@ -58,11 +61,14 @@ class Loop:
         self.rate_hz, self.period_ns, self.policy = self.sched.rate_hz, self.sched.period_ns, self.sched.policy
         self.dt = self.period_ns * 1e-9
         self.names = names or mount_names(self.n)
-        self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS)
+        if feedforward and not getattr(port, "floor_sensors", False):
+            raise ConfigError(f"loop: the floor feedforward needs floor accelerometers, and the {port.name} port "
+                              f"has none ([sensors] floor_accel)")
+        self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS, feedforward)
         self.channels = self.kernel.layout.channels         # the recording layout of this loop
         self.tap = RecordingTap(self.kernel)
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
-                                  stop_on_fault=stop_on_fault)
+                                  stop_on_fault=stop_on_fault, feedforward=feedforward_on)
         self.gate.bind_recorder = self.tap.bind
         self.check, self.limiter, self.states = self.kernel.check, self.kernel.limiter, self.kernel.states
         self._commands = Commands([0.0] * self.n)          # the port must copy, not keep, the list
@@ -101,7 +107,7 @@ class Loop:
             code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns)
+                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *m.floor_accel_mps2)
         except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
             gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
             code = -1
@@ -128,6 +134,8 @@ class Loop:
             self._watch_suspension()
 
     def _reason(self, code: int, m, t_ns: int) -> str:
+        if code - code % 100 == CHECK_FLOOR:
+            return floor_reason(code, self.names, m.floor_accel_mps2, self.kernel.floor_range)
         if code < LIMIT_NAN:
             return self.check.reason(code, self.kernel.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
         return self.limiter.reason(code)
@@ -189,6 +197,10 @@ class Loop:
     def toggle_isolation(self) -> None:
         self.gate.toggle_isolation()
 
+    def request_mode(self, mode: str) -> None:
+        """Thread/signal-safe: off / feedback / feedback_feedforward at the next period boundary (bumpless)."""
+        self.gate.request_mode(mode)
+
     def stop(self, reason: str) -> None:
         """Thread/signal-safe: leave the loop at the next period boundary, then stop safely."""
         self.gate.stop(reason)
@@ -219,6 +231,7 @@ class Loop:
     lc = property(lambda self: self.gate.lc)
     state = property(lambda self: self.gate.lc.state)
     isolation = property(lambda self: self.gate.isolation)
+    mode = property(lambda self: self.gate.mode)
     stop_reason = property(lambda self: self.gate.stop_reason,
                            lambda self, v: setattr(self.gate, "stop_reason", v))
     stop_on_fault = property(lambda self: self.gate.stop_on_fault,

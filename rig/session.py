@@ -19,10 +19,12 @@ import sys
 import threading
 import time
 
+from controllers import isolation as _isolation
+from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from rig.backends import make_port
 from rig.clock import MonotonicClock
-from rig.config import Config
+from rig.config import Config, mount_names
 from rig.errors import ConfigError
 from rig.loop import Loop
 from rig.recorder import Recorder
@@ -37,7 +39,10 @@ class Session:
     (cfg, dt) -> list, or None for the isolation controllers of cfg.controller. record: an HDF5 path (the
     loop's layout, or `columns`: a Columns selection of it); realtime: the loop thread's real-time set-up
     (real clock only); signals: SIGINT/SIGTERM stop the run safely, SIGUSR1 toggles isolation;
-    status / control_file: the status line on stderr, a control file polled for on/off/stop."""
+    status / control_file: the status line on stderr, a control file polled for on/off/stop.
+    Floor feedforward ([sensors] floor_accel, isolation controllers on every mount): built into the loop's
+    period (controllers/feedforward.py, [controller] ff_*), off at the start unless feedforward=True;
+    the mode switches live (request_mode). feedforward=True without floor sensors raises ConfigError."""
 
     def __init__(self, cfg: Config, backend: str = "sim", *, controllers=None, clock=None,
                  rate_hz: float | None = None, port_options: dict | None = None, isolation: bool = True,
@@ -45,7 +50,7 @@ class Session:
                  keep_timing: int = 1 << 15, stop_on_fault: bool = True, watchdog_thread: bool | None = None,
                  record=None, record_attrs: dict | None = None, columns: "Columns | None" = None,
                  realtime: bool = False, signals: bool = False, status: bool = False,
-                 control_file: str | None = None) -> None:
+                 control_file: str | None = None, feedforward: bool = False) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clock = clock if clock is not None else MonotonicClock()
@@ -54,7 +59,11 @@ class Session:
         self._controllers = controllers
         self._port_options = dict(port_options or {})
         self._loop_kw = dict(isolation=isolation, overrun_policy=overrun_policy, names=names,
-                             keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread)
+                             keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread,
+                             feedforward_on=bool(feedforward))
+        if feedforward and not cfg.sensors.floor_accel:
+            raise ConfigError(f"{cfg.source}: the floor feedforward needs floor accelerometers: "
+                              f"sensors.floor_accel = true")
         self.record = record
         self._record_attrs = dict(record_attrs or {})
         self.columns = columns
@@ -78,7 +87,7 @@ class Session:
             elif callable(ctrls):
                 ctrls = ctrls(self.cfg, self.dt)
             self.loop = Loop(self.cfg, self.port, list(ctrls), clock=self.clock, rate_hz=self.rate_hz,
-                             **self._loop_kw)
+                             feedforward=self._feedforward(ctrls), **self._loop_kw)
             if self.record is not None:
                 self.recorder = self._start_recorder(stack)
             stack.callback(self.loop.safe_stop)
@@ -107,6 +116,16 @@ class Session:
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
         return rec
+
+    def _feedforward(self, ctrls) -> list | None:
+        """The floor feedforward filters, one per mount: with floor accelerometers and isolation controllers
+        on every mount (other kinds run without it)."""
+        if not self.cfg.sensors.floor_accel or not all(getattr(c, "kind", None) == _isolation.KIND for c in ctrls):
+            if self._loop_kw["feedforward_on"]:
+                raise ConfigError("Session: feedforward=True needs isolation controllers on every mount")
+            return None
+        names = self._loop_kw["names"] or mount_names(self.port.n_mounts)
+        return make_feedforward_filters(self.cfg, self.dt, names=tuple(names))
 
     def __exit__(self, *exc) -> None:
         stack, self._stack = self._stack, None
@@ -156,6 +175,10 @@ class Session:
     def request_active(self, on: bool) -> None:
         self.loop.request_active(on)
 
+    def request_mode(self, mode: str) -> None:
+        """off / feedback / feedback_feedforward, bumpless, at the next period boundary (rig.gate.MODES)."""
+        self.loop.request_mode(mode)
+
     def reset_fault(self) -> None:
         self.loop.gate.request_reset_fault()
 
@@ -183,7 +206,8 @@ class Session:
         lp = self.loop
         m = lp.last_meas
         return {"t_s": (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None else 0.0, "state": lp.state.name,
-                "isolation": lp.isolation, "fault_reason": lp.lc.fault_reason, "iterations": lp.iterations,
+                "isolation": lp.isolation, "mode": lp.mode, "fault_reason": lp.lc.fault_reason,
+                "iterations": lp.iterations,
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,
                 "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us()}
@@ -238,7 +262,8 @@ class _StatusLine(_Helper):
 
 
 class _ControlFile(_Helper):
-    """Polls a control file every 0.1 s: `on` / `off` switch isolation, `stop` stops safely."""
+    """Polls a control file every 0.1 s: `on` / `off` switch isolation, `feedback` / `feedback_feedforward`
+    the mode, `stop` stops safely."""
 
     def __init__(self, path: str, session: Session) -> None:
         super().__init__("rig-control")
@@ -263,5 +288,11 @@ class _ControlFile(_Helper):
                 self.session.request_isolation(False)
             elif word == "stop":
                 self.session.safe_stop("control file: stop")
+            elif word in ("feedback", "feedback_feedforward"):
+                try:
+                    self.session.request_mode(word)
+                except ValueError as e:
+                    log.warning("%s: %s", self.path, e)
             elif word:
-                log.warning("%s: unknown control word %r (expected on, off or stop)", self.path, word)
+                log.warning("%s: unknown control word %r (expected on, off, feedback, feedback_feedforward or stop)",
+                            self.path, word)

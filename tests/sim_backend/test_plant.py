@@ -187,7 +187,7 @@ def test_rig_plant_step_equals_batch_and_floor_rms():
         plant.step(cmd[k].tolist())
     g = FloorMotion(dt, rms_m=10e-6, seed=4).next_block(n)
     assert np.allclose(np.array(xg), g[:, :4])
-    Y = simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:], outputs=[I_TABLE + 1])
+    Y = simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:8], outputs=[I_TABLE + 1])
     assert np.allclose(table, Y[:, 0], atol=1e-12)
     long = FloorMotion(dt, rms_m=10e-6, seed=5).next_block(50000)
     assert np.std(long[:, :4]) == pytest.approx(10e-6, rel=0.1)
