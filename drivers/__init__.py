@@ -11,14 +11,15 @@ from __future__ import annotations
 from drivers.port import DriverPort
 from rig.config import MOUNTS
 
-ACCEL_CHANNELS = (0, 1, 2, 3)          # AI ch0-3 = accelerometers, MOUNTS order (ch4-5 spare)
+ACCEL_CHANNELS = (0, 1, 2, 3)          # AI ch0-3 = mount accelerometers, MOUNTS order; ch4-7: [sensors] floor_channels
 
 
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
                       modbus_port: int, serial_port: str, stale_s: float, serial_stale_s: float | None = None,
                       poll_s: float | None = None, on_close=None, priority: int | None = None,
                       sample_driven: bool | None = None):
-    """The three drivers as one port (nothing is opened here; the hardware libraries load here)."""
+    """The three drivers as one port (nothing is opened here; the hardware libraries load here). With floor
+    accelerometers ([sensors] floor_accel) the analog module also reads [sensors] floor_channels."""
     from drivers.canopen_valves import CanopenValves           # lazy: loads canopen and python-can
     from drivers.modbus_io import ModbusAnalogIO               # lazy: loads pymodbus
     from drivers.serial_dta import DisplacementAmplifier       # lazy: loads pyserial
@@ -30,12 +31,15 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     valves = CanopenValves(interface=can_interface, channel=can_channel, bitrate=d.can_bitrate,
                            node_ids=[d.valve_node_id_base + i for i in range(len(names))], names=names,
                            max_V=cfg.valve.max_V, stale_s=stale_s, priority=prio)
-    accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit, channels=list(ACCEL_CHANNELS),
-                           names=names, V_per_mps2=d.accel_V_per_mps2, timeout_s=d.modbus_timeout_s,
-                           watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll, priority=prio,
-                           fifo=fifo)
+    s = cfg.sensors
+    floor = list(s.floor_channels) if s.floor_accel else []
+    accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit, channels=list(ACCEL_CHANNELS) + floor,
+                           names=names + [f"floor {m}" for m in names][:len(floor)],
+                           V_per_mps2=[d.accel_V_per_mps2] * len(names) + [s.floor_V_per_mps2] * len(floor),
+                           timeout_s=d.modbus_timeout_s, watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll,
+                           priority=prio, fifo=fifo)
     stroke = DisplacementAmplifier(port=serial_port, baud=d.serial_baud, names=names,
                                    stale_s=serial_stale_s if serial_stale_s is not None else stale_s, poll_s=poll,
                                    priority=prio)
     return DriverPort(name, valves, accel, stroke, n_mounts=len(names), on_close=on_close,
-                      sample_driven=fifo)
+                      sample_driven=fifo, floor_sensors=bool(floor))

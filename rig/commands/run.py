@@ -12,7 +12,9 @@ Switching isolation while running (bumpless; stroke centring stays on):
   kill -USR1 <pid>                 toggles isolation on/off
   --control FILE                   the file is polled every 0.1 s; write one word into it:
                                    `on` / `off` (isolation), `stop` (safe stop)
-The status line on stderr shows state, isolation, loop timing, overruns, strokes and commands.
+  `feedback` / `feedback_feedforward`  the isolation mode (with floor accelerometers, [sensors] floor_accel)
+The status line on stderr shows state, isolation, loop timing, overruns, strokes and commands. With --record
+the run ends with the recording's vibration-criterion classes per mode (rig report REC: the curves).
 Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error.
 """
 from __future__ import annotations
@@ -24,7 +26,8 @@ import sys
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
-from rig.errors import RigError
+from rig import report
+from rig.errors import RecordingError, RigError
 from rig.lifecycle import State
 from rig.session import Session
 
@@ -45,6 +48,9 @@ def add_arguments(p) -> None:
                    help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
+    p.add_argument("--feedforward", action="store_true",
+                   help="floor feedforward on from the start (needs [sensors] floor_accel = true; switch it while "
+                        "running with the control file's feedback / feedback_feedforward)")
     p.add_argument("--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
     p.add_argument("--control", metavar="FILE", default=None,
                    help="control file polled every 0.1 s: write `on`, `off` or `stop` into it")
@@ -80,7 +86,7 @@ def run(args) -> int:
                       record=args.record, record_attrs={"command": "rig run", "isolation_at_start": args.isolation,
                                                         "overrun_policy": args.policy or cfg.loop.overrun_policy},
                       realtime=cfg.loop.realtime and not args.no_realtime, signals=True,
-                      status=not args.quiet, control_file=args.control)
+                      status=not args.quiet, control_file=args.control, feedforward=args.feedforward)
     with session:
         loop = session.loop
         log.info("backend %s, %d mounts at %g Hz, isolation %s, pid %d (SIGUSR1 toggles isolation%s)",
@@ -95,6 +101,16 @@ def run(args) -> int:
              "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
              100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
              f", recorded to {args.record}" if args.record else "")
+    if args.record:
+        _vc_summary(args.record)
     if loop.lc.state is State.FAULT:
         return 1                          # the reason was logged once, when it happened
     return 0
+
+
+def _vc_summary(path) -> None:
+    """The recording's VC classes per isolation mode, one line (rig report REC gives the curves)."""
+    try:
+        log.info("%s (curves: rig report %s)", report.summary(report.vc_of_recording(path)), path)
+    except RecordingError as e:
+        log.info("no VC report: %s", e)
