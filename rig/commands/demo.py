@@ -185,10 +185,13 @@ def _figures(traces, sl, fs) -> dict:
     res["vc"] = {key: vc_report({m: traces[m][key][sl] for m in MODES}, fs) for key in ("table", "tool")}
     res["vc_class"] = res["vc"]["table"]["vc_class"]
     res["vc_class_tool"] = res["vc"]["tool"]["vc_class"]
-    # per one-third-octave band, like with like: the band's rms velocity with isolation over without
+    # per one-third-octave band, like with like: the band's rms velocity with isolation over without (null for
+    # a band no frequency bin of the record falls in: a record shorter than a few seconds at the lowest bands)
     vt = res["vc"]["table"]["velocity_um_s"]
-    res["band_reduction_db"] = {m: [20 * math.log10(a / b) for a, b in zip(vt["off"], vt[m])] for m in MODES[1:]}
-    res["max_band_amplification_db"] = {m: max(0.0, -min(v)) for m, v in res["band_reduction_db"].items()}
+    res["band_reduction_db"] = {m: [20 * math.log10(a / b) if a > 0 and b > 0 else None
+                                    for a, b in zip(vt["off"], vt[m])] for m in MODES[1:]}
+    res["max_band_amplification_db"] = {m: max([0.0] + [-x for x in v if x is not None])
+                                        for m, v in res["band_reduction_db"].items()}
     return res
 
 

@@ -387,3 +387,31 @@ def test_module_watchdog_trip_is_a_fault():
         assert m.device_fault is not None and "host watchdog tripped" in m.device_fault
     finally:
         p.close()
+
+
+def test_floor_accelerometers_on_ch4_7_in_registers_fifo_and_driver(modbus_alone, modbus_module):
+    """The floor accelerometers ([sensors] floor_accel) on AI ch4-7: in the live registers and in every FIFO
+    entry, with the same conversion counter as the mount accelerometers; the driver reads them with their own
+    sensitivity after the mount values, in the newest sample and in every older conversion."""
+    arr, client = modbus_alone
+    floor = [0.03, -0.07, 0.11, -0.22]
+    for k in range(2, 6):
+        sh.publish(arr, k * 1e-3, [0.01 * k] * 4, [0.0] * 4, floor_mps2=[g * k for g in floor])
+    r = client.read_holding_registers(0, count=modbus_io.N_READ_FIFO, device_id=1)
+    assert not r.isError() and r.registers[8] == 5
+    got = [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[4:8]]
+    assert got == pytest.approx([g * 5 for g in floor], abs=20 / 65535)
+    entry = r.registers[modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH:modbus_io.REG_FIFO + 2 * modbus_io.FIFO_WIDTH]
+    assert entry[0] == 4 and [modbus_io.raw_to_volts(x) / 2.0 for x in entry[5:9]] == pytest.approx(
+        [g * 4 for g in floor], abs=20 / 65535)
+    drv = modbus_io.ModbusAnalogIO(host="127.0.0.1", port=client.comm_params.port, unit=1,
+                                   channels=[0, 1, 2, 3, 4, 5, 6, 7], names=list("abcdefgh"),
+                                   V_per_mps2=[2.0] * 4 + [2.0] * 4, timeout_s=0.5, watchdog_s=0.0, stale_s=1.0,
+                                   poll_s=0.01, fifo=True)
+    drv.client = client
+    assert drv._poll_once()
+    assert drv.sample[0][4:] == pytest.approx([g * 5 for g in floor], abs=1e-4)
+    n, last, acc, older = drv.conversions_since(2)
+    assert (n, last) == (3, 5) and len(older) == 2
+    for k, o in zip((3, 4), older):
+        assert o == pytest.approx([0.01 * k] * 4 + [g * k for g in floor], abs=1e-4)
