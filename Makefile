@@ -23,6 +23,7 @@ test: install
 bench: install
 	$(BIN)/rig bench sim --seconds 100 --rate 5000
 	$(BIN)/rig bench loop --rate 5000 --seconds 10
+	$(BIN)/rig bench loop --feedforward --rate 5000 --seconds 5 --rounds 4
 
 clean:
 	rm -rf $(VENV) demo_out build *.egg-info

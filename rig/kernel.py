@@ -310,7 +310,7 @@ class PeriodKernel:
         if len(older) > OLDER_CAP:
             raise ValueError(f"{len(older)} older conversions in one read (at most {OLDER_CAP})")
         for k, a in enumerate(older):
-            self._pack_older(self.mem, self._older_bytes + 8 * self._older_width * k, *a)
+            self._pack_older(self.mem, self._older_bytes + 8 * self._older_width * k, *a[:self._older_width])
         return len(older)
 
     def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
@@ -320,7 +320,7 @@ class PeriodKernel:
         ns = m.new_samples
         return self.call(self.mem, ring, slot, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
                          self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *m.floor_accel_mps2)
+                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
 
     def commands(self) -> tuple:
         """The limited commands of the last period (the row's valve_cmd_V)."""

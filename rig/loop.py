@@ -66,6 +66,7 @@ class Loop:
                               f"has none ([sensors] floor_accel)")
         self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS, feedforward)
         self.channels = self.kernel.layout.channels         # the recording layout of this loop
+        self._floor = bool(self.kernel.nf)                   # the kernel takes the floor accelerometers
         self.tap = RecordingTap(self.kernel)
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
                                   stop_on_fault=stop_on_fault, feedforward=feedforward_on)
@@ -103,11 +104,12 @@ class Loop:
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = self.sched.t0_ns
+        fl = m.floor_accel_mps2 if self._floor else ()
         try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
             code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *m.floor_accel_mps2)
+                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
         except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
             gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
             code = -1

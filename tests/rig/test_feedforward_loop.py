@@ -184,3 +184,17 @@ def test_feedforward_on_the_simulated_rig_with_the_actuators_off_the_model():
     fb_db, both_db = 20 * math.log10(off / fb), 20 * math.log10(off / both)
     assert fb_db >= 12.0 and both_db >= 20.0, (fb_db, both_db)
     assert both_db == pytest.approx(predicted, abs=2.0)
+
+
+def test_floor_accelerometers_without_the_feedforward():
+    """A port with floor accelerometers under controllers that take no feedforward (another kind): the loop
+    runs as without them (the floor values are not handed to the kernel), also over older conversions."""
+    from tests.rig.support import CentringP
+    with Session(FLOOR, "sim", clock=SimClock(), controllers=[CentringP() for _ in range(4)]) as s:
+        assert s.port.floor_sensors and s.loop.kernel.nf == 0
+        s.loop.activate()
+        p = 0
+        for _ in range(200):
+            s.loop.cycle(p * s.loop.period_ns)
+            p += 3 if p % 50 == 0 else 1                   # skipped periods: older conversions handed over
+        assert s.loop.state is State.ACTIVE
