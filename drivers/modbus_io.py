@@ -206,9 +206,9 @@ class ModbusAnalogIO(TriggeredPoller):
 
     def check(self, now_ns: int) -> str | None:
         acc, t_ns, raw = self.sample
-        asked = self.asked_ns
-        # the module was asked and has not delivered a new sample for longer than the limit
-        if asked and now_ns - asked > self.stale_ns:
+        # the module was asked and its newest sample is older than the limit: measured from the sample, as
+        # the loop's sensor check measures it, so a silent module is named here first (not as a stale mount)
+        if self.asked_ns and now_ns - t_ns > self.stale_ns:
             why = f"; last error: {self.last_error}" if self.last_error else "; values not updating"
             return (f"{self.where}: no new sample for {(now_ns - t_ns) / 1e6:.1f} ms "
                     f"(limit {self.stale_ns / 1e6:g} ms){why}")

@@ -5,6 +5,7 @@ import argparse
 import importlib
 import sys
 
+from rig.cliargs import ArgumentParser, check_outputs
 from rig.errors import RigError
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
@@ -24,7 +25,7 @@ COMMANDS = {
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rig", description="Controller runtime for the electro-hydraulic "
+    parser = ArgumentParser(prog="rig", description="Controller runtime for the electro-hydraulic "
                                      "vibration-isolation rig (Law et al., CIRP 2015).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
@@ -41,11 +42,15 @@ def main(argv: list[str] | None = None) -> int:
     # Import only the module of the command asked for (hardware libraries stay unloaded otherwise).
     only = next((a for a in argv if a in COMMANDS), None)
     parser = build_parser(only)
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:                  # a bad argument (one line printed) or --help: the exit status
+        return e.code if isinstance(e.code, int) else 2
     if not args.command:
         parser.print_help()
         return 2
     try:
+        check_outputs(args)                 # before anything is opened, started or truncated
         return int(importlib.import_module(COMMANDS[args.command][0]).run(args) or 0)
     except RigError as e:
         print(f"rig {args.command}: error: {e}", file=sys.stderr)

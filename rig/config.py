@@ -2,6 +2,9 @@
 
 Every section is a frozen dataclass. Field metadata gives the unit and the physical range, so a wrong value
 ends in one line naming the file and the key (`ConfigError`). Later issues add sections here.
+The ranges are physical, not tuned: wide enough for any rig of this kind (a 10 g slider to a 100 t ram), narrow
+enough to catch a slipped exponent. Every frequency in Hz of the controller, vibration and stand sections is
+below the Nyquist frequency of the loop rate it runs at (`check_nyquist`).
 """
 from __future__ import annotations
 
@@ -22,84 +25,88 @@ def mount_names(n: int) -> tuple[str, ...]:
     return MOUNTS[:n] if n <= len(MOUNTS) else tuple(f"mount{i}" for i in range(n))
 
 
-def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None):
-    """A config field with its unit and physical range."""
+def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None, n=None, nyquist=True):
+    """A config field with its unit and physical range (for a list: of each value; n = its length).
+    nyquist: a frequency (unit Hz) is also below the Nyquist frequency of the loop (check_nyquist)."""
     return field(default=default, metadata={"unit": unit, "gt": gt, "ge": ge, "le": le, "lt": lt,
-                                            "choices": choices})
+                                            "choices": choices, "n": n, "nyquist": nyquist})
+
+
+SEED_MAX = 2 ** 32 - 1                      # numpy seeds are unsigned
 
 
 @dataclass(frozen=True)
 class ActuatorConfig:
     """Table 1, actuator data (CAD estimates; C and K_L identified)."""
-    M: float = _f(56.0, "kg", gt=0)            # moving mass
-    A_p: float = _f(3.10e-2, "m^2", gt=0)      # active piston area
-    C: float = _f(1951.0, "N s/m", ge=0)       # viscous coefficient (identified)
-    V_t: float = _f(5.39e-4, "m^3", gt=0)      # total chamber volume
-    K_L: float = _f(6.8e8, "N/m", gt=0)        # static (membrane spring) stiffness
-    stroke_m: float = _f(1.0e-3, "m", gt=0)    # usable stroke either side of mid-stroke
+    M: float = _f(56.0, "kg", ge=0.01, le=1e5)            # moving mass: a 10 g slider to a 100 t ram
+    A_p: float = _f(3.10e-2, "m^2", ge=1e-6, le=1.0)      # active piston area: bore ~1 mm to ~1.1 m
+    C: float = _f(1951.0, "N s/m", ge=0, le=1e8)          # viscous coefficient (identified)
+    V_t: float = _f(5.39e-4, "m^3", ge=1e-8, le=1.0)      # total chamber volume: 0.01 ml to 1000 l
+    K_L: float = _f(6.8e8, "N/m", ge=1.0, le=1e11)        # static (membrane spring) stiffness; steel ~1e10
+    stroke_m: float = _f(1.0e-3, "m", ge=1e-6, le=1.0)    # usable stroke either side of mid-stroke
 
 
 @dataclass(frozen=True)
 class ValveConfig:
     """Table 1, proportional valve (D3FP) data; identified values."""
-    K_v: float = _f(2.0, "mA/V", gt=0)          # driver gain, voltage -> current
-    K_Q: float = _f(1.94e-6, "m^3/s/mA", gt=0)  # flow gain
-    K_C: float = _f(6.6e-11, "m^3/s/Pa", gt=0)  # flow-pressure coefficient
-    w_nv: float = _f(524.0, "rad/s", gt=0)      # apparent natural frequency
-    zeta: float = _f(0.65, "", gt=0)            # apparent damping ratio
-    max_V: float = _f(10.0, "V", gt=0)          # command range of the valve amplifier (+-)
+    K_v: float = _f(2.0, "mA/V", ge=1e-3, le=1e3)          # driver gain, voltage -> current
+    K_Q: float = _f(1.94e-6, "m^3/s/mA", ge=1e-12, le=1e-2)  # flow gain (1e-2: 12000 l/min at 20 mA)
+    K_C: float = _f(6.6e-11, "m^3/s/Pa", ge=1e-18, le=1e-6)  # flow-pressure coefficient
+    w_nv: float = _f(524.0, "rad/s", ge=6.0, le=1.3e5)      # apparent natural frequency: ~1 Hz to ~20 kHz
+    zeta: float = _f(0.65, "", gt=0, le=10)                # apparent damping ratio (overdamped fits < 10)
+    max_V: float = _f(10.0, "V", gt=0, le=50)              # command range of the valve amplifier (+-)
 
 
 @dataclass(frozen=True)
 class FluidConfig:
-    beta: float = _f(1.4e9, "Pa", gt=0)         # effective bulk modulus
+    beta: float = _f(1.4e9, "Pa", ge=1e7, le=1e10)   # effective bulk modulus: aerated oil to water/glycol
 
 
 @dataclass(frozen=True)
 class MachineConfig:
     """The flexible machine on the four mounts (Eq. 15, Table 2)."""
-    mass_kg: float = _f(16000.0, "kg", gt=0)
+    mass_kg: float = _f(16000.0, "kg", ge=1.0, le=1e6)   # up to 1000 t
     modal_model: str = _f("", "path")           # empty: the embedded Table 2 model (sim_backend/data)
     modal_damping: float = _f(0.03, "", gt=0, lt=1)
 
 
 @dataclass(frozen=True)
 class LoopConfig:
-    rate_hz: float = _f(5000.0, "Hz", gt=0, le=100000)
+    rate_hz: float = _f(5000.0, "Hz", ge=10, le=100000)
     # catch_up by default: on a non-real-time host a skipped period is a delay the isolation loop may not survive
     overrun_policy: str = _f("catch_up", "", choices=("skip", "catch_up"))
     realtime: bool = _f(True, "")               # try SCHED_FIFO, affinity, mlockall where allowed
     rt_priority: int = _f(80, "", ge=1, le=99)  # SCHED_FIFO priority of the loop thread
-    cpu: int = _f(-1, "", ge=-1)                # CPU the loop thread is pinned to (-1 = the last one)
+    cpu: int = _f(-1, "", ge=-1, le=4095)       # CPU the loop thread is pinned to (-1 = the last one)
     # real clock: sleep until spin_us before each deadline, then spin (hybrid wait; compare with
     # `rig bench loop --spin-us US`)
     spin_us: float = _f(60.0, "us", ge=0, le=1000)
     # CPU wake-up latency requested from the OS power management while the loop runs (PM QoS,
     # /dev/cpu_dma_latency, as cyclictest does); -1 leaves it alone. 0 keeps idle CPUs out of halt, which
     # shortens the wake-up tail of a sleeping loop (README: loop timing)
-    cpu_latency_us: int = _f(0, "us", ge=-1)
+    cpu_latency_us: int = _f(0, "us", ge=-1, le=1000000)
 
 
 @dataclass(frozen=True)
 class SafetyConfig:
     """Plausibility checks and limits applied every period (rig/safety.py)."""
-    valve_limit_V: float = _f(10.0, "V", gt=0)          # command clamp, <= valve.max_V
-    slew_V_per_s: float = _f(1.0e4, "V/s", gt=0)        # command slew limit
-    accel_range_mps2: float = _f(50.0, "m/s^2", gt=0)   # accelerometer range; beyond = implausible
-    stroke_range_m: float = _f(2.0e-3, "m", gt=0)       # transducer range; beyond = implausible
-    stroke_limit_m: float = _f(0.9e-3, "m", gt=0)       # stroke limit (fault), <= actuator.stroke_m
-    stale_s: float = _f(0.002, "s", gt=0)               # a sample older than this is stale
-    stuck_samples: int = _f(250, "", gt=1)              # same value over this many new samples = stuck
-    watchdog_s: float = _f(0.05, "s", gt=0)             # loop silent for longer = fault, valve to null
-    saturation_s: float = _f(1.0, "s", gt=0)            # command at the clamp this long = not in control
+    valve_limit_V: float = _f(10.0, "V", gt=0, le=50)   # command clamp, <= valve.max_V
+    slew_V_per_s: float = _f(1.0e4, "V/s", gt=0, le=1e8)        # command slew limit
+    accel_range_mps2: float = _f(50.0, "m/s^2", gt=0, le=1e4)   # accelerometer range (<= ~1000 g)
+    stroke_range_m: float = _f(2.0e-3, "m", gt=0, le=1.0)       # transducer range; beyond = implausible
+    stroke_limit_m: float = _f(0.9e-3, "m", gt=0, le=1.0)       # stroke limit (fault), <= actuator.stroke_m
+    stale_s: float = _f(0.002, "s", gt=0, le=10)                # a sample older than this is stale
+    stuck_samples: int = _f(250, "", gt=1, le=10000000)         # same value over this many new samples = stuck
+    watchdog_s: float = _f(0.05, "s", gt=0, le=10)              # loop silent for longer = fault, valve to null
+    saturation_s: float = _f(1.0, "s", gt=0, le=3600)           # command at the clamp this long = not in control
 
 
 @dataclass(frozen=True)
 class RecordingConfig:
     """The HDF5 recorder (rig/recorder.py)."""
     flush_s: float = _f(0.05, "s", gt=0, le=0.1)        # kill -9 loses at most this much
-    ring_s: float = _f(2.0, "s", gt=0)                  # ring capacity; the loop never blocks on it
-    chunk_rows: int = _f(1024, "", gt=0)                # HDF5 chunk length
+    ring_s: float = _f(2.0, "s", gt=0, le=60)           # ring capacity; the loop never blocks on it
+    chunk_rows: int = _f(1024, "", gt=0, le=1000000)    # HDF5 chunk length, at most flush_s / 2 of rows
 
 
 @dataclass(frozen=True)
@@ -113,9 +120,9 @@ class VibrationConfig:
     falling as 1/f across the band (valve authority: 10 V moves the piston at most ~1.25 mm/s)."""
     band_lo_hz: float = _f(1.0, "Hz", gt=0)
     band_hi_hz: float = _f(50.0, "Hz", gt=0)
-    rms_m: float = _f(3e-6, "m", ge=0)
+    rms_m: float = _f(3e-6, "m", ge=0, le=1e-2)           # 10 mm rms is an earthquake, not a shop floor
     spectrum: str = _f("velocity_flat", "", choices=("velocity_flat", "displacement_flat"))
-    seed: int = _f(1, "")
+    seed: int = _f(1, "", ge=0, le=SEED_MAX)
 
 
 @dataclass(frozen=True)
@@ -123,35 +130,36 @@ class DriversConfig:
     """Real devices behind the `hardware` backend (drivers/devicemaps/*.md document the maps)."""
     can_interface: str = _f("socketcan", "")             # python-can interface of the valve bus
     can_channel: str = _f("can0", "")
-    can_bitrate: int = _f(1000000, "bit/s", gt=0)
+    can_bitrate: int = _f(1000000, "bit/s", ge=10000, le=1000000)   # classic CAN
     valve_node_id_base: int = _f(1, "", ge=1, le=124)    # node id = base + mount index (MOUNTS order)
     modbus_host: str = _f("192.168.1.10", "")            # ADAM-6024-style analog I/O module
     modbus_port: int = _f(502, "", ge=1, le=65535)
     modbus_unit: int = _f(1, "", ge=0, le=247)
-    modbus_timeout_s: float = _f(0.02, "s", gt=0)        # one request; the poller thread owns it
-    modbus_watchdog_s: float = _f(0.5, "s", ge=0)        # module host watchdog (0 = off): AO to safe values
-    accel_V_per_mps2: float = _f(2.0, "V/(m/s^2)", gt=0)  # accelerometer + conditioner sensitivity
+    modbus_timeout_s: float = _f(0.02, "s", gt=0, le=10)   # one request; the poller thread owns it
+    # module host watchdog (0 = off): AO to safe values; 40021 holds tenths of a second in 16 bits
+    modbus_watchdog_s: float = _f(0.5, "s", ge=0, le=6553.5)
+    accel_V_per_mps2: float = _f(2.0, "V/(m/s^2)", ge=1e-4, le=100)  # sensor + conditioner: 1 mV/g to 1 kV/g
     # the module converts once per SYNC into a FIFO of its last 64 conversions (40025-40344, as the emulated
     # module does): every conversion then reaches the controllers once, in order (drivers/port.py)
     accel_sync_fifo: bool = _f(False, "")
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
-    serial_baud: int = _f(921600, "bit/s", gt=0)
-    stale_s: float = _f(0.02, "s", gt=0)                 # a device silent for longer ends in FAULT
-    serial_stale_s: float = _f(0.1, "s", gt=0)           # the same for the displacement amplifier (centring)
+    serial_baud: int = _f(921600, "bit/s", ge=300, le=12000000)
+    stale_s: float = _f(0.02, "s", gt=0, le=10)          # a device silent for longer ends in FAULT
+    serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the displacement amplifier (centring)
     thread_priority: int = _f(55, "", ge=0, le=99)       # SCHED_FIFO of the driver threads (0 = normal)
 
 
 @dataclass(frozen=True)
 class HilConfig:
     """`rig hil`: the emulated rig behind the real drivers."""
-    rate_hz: float = _f(500.0, "Hz", gt=0, le=5000)      # loop rate of HIL runs (Modbus, one GIL limit it)
-    seconds: float = _f(10.0, "s", gt=0)                 # isolation off, then on: half each
-    settle_s: float = _f(1.0, "s", ge=0)                 # discarded at the start of each half
+    rate_hz: float = _f(500.0, "Hz", ge=10, le=5000)     # loop rate of HIL runs (Modbus, one GIL limit it)
+    seconds: float = _f(10.0, "s", gt=0, le=86400)       # isolation off, then on: half each
+    settle_s: float = _f(1.0, "s", ge=0, le=3600)        # discarded at the start of each half
     # HIL runs on a shared dev/CI machine, where the whole VM stops for tens of ms at times, so the staleness
     # limit and the loop watchdog of HIL runs sit above such stalls (the hardware keeps [safety] watchdog_s = 50 ms)
-    stale_s: float = _f(0.1, "s", gt=0)                  # staleness limit of HIL runs (drivers and safety)
-    watchdog_s: float = _f(0.1, "s", gt=0)               # loop watchdog of HIL runs (safety.watchdog_s)
-    serial_stale_s: float = _f(0.1, "s", gt=0)           # the same for the emulated serial amplifier
+    stale_s: float = _f(0.1, "s", gt=0, le=10)           # staleness limit of HIL runs (drivers and safety)
+    watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
+    serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
     device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
 
 
@@ -160,17 +168,17 @@ class StandConfig:
     """The simulated single-actuator test stand (chirp runs on the sim backend): effect switches, 0 = off.
     Names as in docs/MODEL.md (the effect switches)."""
     delay_s: float = _f(0.0, "s", ge=0, le=0.1)                 # transport_delay
-    saturation_limit_ma: float = _f(0.0, "mA", ge=0)           # valve_saturation
-    deadband_width_ma: float = _f(0.0, "mA", ge=0)             # valve_deadband
-    friction_force_n: float = _f(0.0, "N", ge=0)               # coulomb_friction
+    saturation_limit_ma: float = _f(0.0, "mA", ge=0, le=1000)  # valve_saturation
+    deadband_width_ma: float = _f(0.0, "mA", ge=0, le=1000)    # valve_deadband
+    friction_force_n: float = _f(0.0, "N", ge=0, le=1e7)       # coulomb_friction
     base_frequency_hz: float = _f(0.0, "Hz", ge=0)             # base_resonance
     base_damping_ratio: float = _f(0.03, "", gt=0, lt=1)
-    base_mass_kg: float = _f(200.0, "kg", gt=0)
+    base_mass_kg: float = _f(200.0, "kg", ge=0.01, le=1e6)
     disturbance_frequency_hz: float = _f(0.0, "Hz", ge=0)      # periodic_disturbance
-    disturbance_force_n: float = _f(0.0, "N", ge=0)
-    position_noise_m: float = _f(2e-8, "m", ge=0)              # transducer noise, rms
-    accel_noise_mps2: float = _f(2e-4, "m/s^2", ge=0)          # accelerometer noise, rms
-    seed: int = _f(0, "")
+    disturbance_force_n: float = _f(0.0, "N", ge=0, le=1e7)
+    position_noise_m: float = _f(2e-8, "m", ge=0, le=1e-3)     # transducer noise, rms
+    accel_noise_mps2: float = _f(2e-4, "m/s^2", ge=0, le=100)  # accelerometer noise, rms
+    seed: int = _f(0, "", ge=0, le=SEED_MAX)
 
 
 @dataclass(frozen=True)
@@ -182,34 +190,37 @@ class ControllerConfig:
     Corners above the Nyquist frequency are allowed (Tustin maps them inside the unit circle): the leads then
     act as near-differentiators up to Nyquist and the roll-off as its double zero at z = -1."""
     blend_hz: float = _f(0.1, "Hz", gt=0)               # accelerometer / stroke complementary blend
-    kp_V_per_m: float = _f(288544, "V/m", gt=0)         # PI proportional gain on the compensated position
+    kp_V_per_m: float = _f(288544, "V/m", gt=0, le=1e10)         # PI proportional gain on the compensated position
     pi_corner_hz: float = _f(26.9524, "Hz", gt=0)       # PI integral corner
+    # lead poles and the roll-off may sit above Nyquist: Tustin maps them inside the unit circle (see above)
     lead1_zero_hz: float = _f(5.56773, "Hz", gt=0)
-    lead1_pole_hz: float = _f(5000, "Hz", gt=0)
+    lead1_pole_hz: float = _f(5000, "Hz", gt=0, le=1e6, nyquist=False)
     lead2_zero_hz: float = _f(26.8104, "Hz", gt=0)
-    lead2_pole_hz: float = _f(5000, "Hz", gt=0)
-    rolloff_hz: float = _f(5000, "Hz", ge=0)            # second-order low-pass (0 = none)
-    rolloff_zeta: float = _f(0.334788, "", gt=0)
+    lead2_pole_hz: float = _f(5000, "Hz", gt=0, le=1e6, nyquist=False)
+    rolloff_hz: float = _f(5000, "Hz", ge=0, le=1e6, nyquist=False)   # second-order low-pass (0 = none)
+    rolloff_zeta: float = _f(0.334788, "", gt=0, le=10)
     notch_hz: float = _f(229.856, "Hz", ge=0)           # optional notch (0 = none)
-    notch_zeta_zero: float = _f(0.427624, "", ge=0)
-    notch_zeta_pole: float = _f(2.26149, "", gt=0)
-    notch2_hz: float = _f(97.368, "Hz", ge=0)              # optional second notch, or peak (zeta_zero > zeta_pole)
-    notch2_zeta_zero: float = _f(0.0984906, "", ge=0)
-    notch2_zeta_pole: float = _f(0.0353757, "", gt=0)
+    notch_zeta_zero: float = _f(0.427624, "", ge=0, le=10)
+    notch_zeta_pole: float = _f(2.26149, "", gt=0, le=10)
+    notch2_hz: float = _f(97.368, "Hz", ge=0)           # optional second notch, or peak (zeta_zero > zeta_pole)
+    notch2_zeta_zero: float = _f(0.0984906, "", ge=0, le=10)
+    notch2_zeta_pole: float = _f(0.0353757, "", gt=0, le=10)
     # floor-motion feedforward (controllers/feedforward.py): inverse actuator model on the floor accelerometer
     ff_hp_hz: float = _f(0.1, "Hz", gt=0)              # floor accelerometer high-pass (double integration)
     ff_lowpass_hz: float = _f(600.0, "Hz", gt=0)       # roll-off of the inverse (6th-order Butterworth)
-    ff_gain: float = _f(1.0, "", ge=0)                 # trim on the feedforward path (1 = cancel as modelled)
+    ff_gain: float = _f(1.0, "", ge=0, le=2)           # trim on the feedforward path (1 = cancel as modelled)
     centring_hz: float = _f(0.02, "Hz", gt=0)            # slow centring crossover while isolation is off
     prewarp_hz: float = _f(200.0, "Hz", gt=0)            # Tustin prewarp of the compensator (phase crossover)
-    fade_s: float = _f(0.1, "s", gt=0)                   # bumpless on/off: switching offset decay time
-    sat_reset_s: float = _f(0.1, "s", ge=0)             # isolating at the valve clamp this long: suspend (0 = off)
-    sat_resume_s: float = _f(0.5, "s", gt=0)            # suspended: resume after the estimate is settled this long
-    gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "")   # per-mount multiplier on kp (MOUNTS order)
-    track_kp_V_per_m: float = _f(1.81e6, "V/m", ge=0)    # actuator reference-tracking PID (paper Fig. 4):
-    track_ki_V_per_ms: float = _f(8.46e7, "V/(m s)", ge=0)   # Ki/Kp at the actuator lag corner, ~95 Hz
-    track_kd_Vs_per_m: float = _f(5.43e3, "V s/m", ge=0)     # bandwidth (controllers/tracking.py)
-    track_deriv_hz: float = _f(1000.0, "Hz", gt=0)       # derivative filter corner
+    fade_s: float = _f(0.1, "s", gt=0, le=60)            # bumpless on/off: switching offset decay time
+    sat_reset_s: float = _f(0.1, "s", ge=0, le=60)      # isolating at the valve clamp this long: suspend (0 = off)
+    sat_resume_s: float = _f(0.5, "s", gt=0, le=60)     # suspended: resume after the estimate is settled this long
+    # per-mount multiplier on kp (MOUNTS order): a correction between mounts, not a sign change or an off switch
+    gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "", gt=0, le=10, n=len(MOUNTS))
+    track_kp_V_per_m: float = _f(1.81e6, "V/m", ge=0, le=1e10)     # actuator reference-tracking PID (paper Fig. 4):
+    track_ki_V_per_ms: float = _f(8.46e7, "V/(m s)", ge=0, le=1e13)  # Ki/Kp at the actuator lag corner, ~95 Hz
+    track_kd_Vs_per_m: float = _f(5.43e3, "V s/m", ge=0, le=1e8)     # bandwidth (controllers/tracking.py)
+    # derivative filter corner; Tustin without prewarp squeezes a corner above Nyquist below it (stable)
+    track_deriv_hz: float = _f(1000.0, "Hz", gt=0, le=1e6, nyquist=False)
 
 
 @dataclass(frozen=True)
@@ -218,23 +229,24 @@ class SensorsConfig:
     feedforward (controllers/feedforward.py). On the hardware it sits on further channels of the analog input
     module (drivers/devicemaps/adam6024_modbus.md); the simulated rig gives it its own noise."""
     floor_accel: bool = _f(False, "")                         # fitted (the loop reads and checks it)
-    floor_V_per_mps2: float = _f(2.0, "V/(m/s^2)", gt=0)     # sensitivity with its conditioner
-    floor_range_mps2: float = _f(5.0, "m/s^2", gt=0)         # plausible range; beyond (or NaN) = fault
+    floor_V_per_mps2: float = _f(2.0, "V/(m/s^2)", ge=1e-3, le=1e3)   # sensitivity with its conditioner
+    floor_range_mps2: float = _f(5.0, "m/s^2", gt=0, le=1e3)         # plausible range; beyond (or NaN) = fault
     # white noise of the simulated sensor (a seismic accelerometer, ~0.1 ug/sqrt(Hz))
-    floor_noise_mps2_per_rthz: float = _f(1e-6, "m/s^2/sqrt(Hz)", ge=0)
-    floor_channels: tuple[int, ...] = _f((4, 5, 6, 7), "")   # analog module AI channels, MOUNTS order
+    floor_noise_mps2_per_rthz: float = _f(1e-6, "m/s^2/sqrt(Hz)", ge=0, le=1.0)
+    floor_channels: tuple[int, ...] = _f((4, 5, 6, 7), "", ge=4, le=7, n=len(MOUNTS))   # AI channels, MOUNTS order
 
 
 @dataclass(frozen=True)
 class PlantErrorConfig:
     """The simulated rig's actuators as factors on the configured model (1 = as modelled): the plant the
-    controllers and the feedforward meet when their model is wrong (Eq. 11's x_d). Simulated plants only."""
-    K_L: float = _f(1.0, "", gt=0)
-    C: float = _f(1.0, "", gt=0)
-    w_nv: float = _f(1.0, "", gt=0)
-    zeta: float = _f(1.0, "", gt=0)
-    K_Q: float = _f(1.0, "", gt=0)
-    K_C: float = _f(1.0, "", gt=0)
+    controllers and the feedforward meet when their model is wrong (Eq. 11's x_d). Simulated plants only.
+    Within a factor of two: further off is another actuator, not a model error."""
+    K_L: float = _f(1.0, "", ge=0.5, le=2.0)
+    C: float = _f(1.0, "", ge=0.5, le=2.0)
+    w_nv: float = _f(1.0, "", ge=0.5, le=2.0)
+    zeta: float = _f(1.0, "", ge=0.5, le=2.0)
+    K_Q: float = _f(1.0, "", ge=0.5, le=2.0)
+    K_C: float = _f(1.0, "", ge=0.5, le=2.0)
 
 
 @dataclass(frozen=True)
@@ -287,12 +299,22 @@ def _check_value(where: str, name: str, ftype, meta, value):
                                                   for v in value):
             raise ConfigError(f"{where}.{name}: expected a list of numbers, got {value!r}")
         value = tuple(float(v) for v in value)
+        if not all(math.isfinite(v) for v in value):
+            raise ConfigError(f"{where}.{name}: expected finite numbers, got {list(value)!r}")
+    if isinstance(value, tuple):
+        if meta.get("n") is not None and len(value) != meta["n"]:
+            raise ConfigError(f"{where}.{name}: expected a list of {meta['n']} numbers (one per mount: "
+                              f"{', '.join(MOUNTS)}), got {len(value)}: {list(value)!r}")
     unit = f" {meta['unit']}" if meta.get("unit") and meta["unit"] != "path" else ""
     for key, ok, word in (("gt", lambda v, b: v > b, ">"), ("ge", lambda v, b: v >= b, ">="),
                           ("lt", lambda v, b: v < b, "<"), ("le", lambda v, b: v <= b, "<=")):
         bound = meta.get(key)
-        if bound is not None and isinstance(value, (int, float)) and not ok(value, bound):
-            raise ConfigError(f"{where}.{name}: expected {word} {bound}{unit}, got {value!r}")
+        if bound is None or isinstance(value, (bool, str)):
+            continue
+        for v in (value if isinstance(value, tuple) else (value,)):
+            if not ok(v, bound):
+                got = f"{v!r}" if not isinstance(value, tuple) else f"{v!r} in {list(value)!r}"
+                raise ConfigError(f"{where}.{name}: expected {word} {bound:g}{unit}, got {got}")
     if meta.get("choices") and value not in meta["choices"]:
         raise ConfigError(f"{where}.{name}: expected one of {', '.join(meta['choices'])}, got {value!r}")
     return value
@@ -340,6 +362,10 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= actuator.stroke_m "
                           f"({cfg.actuator.stroke_m} m), got {cfg.safety.stroke_limit_m}")
     _check_sensors(cfg)
+    if cfg.safety.stroke_limit_m > cfg.safety.stroke_range_m:      # a limit the transducer cannot see
+        raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= safety.stroke_range_m "
+                          f"({cfg.safety.stroke_range_m} m), got {cfg.safety.stroke_limit_m}")
+    check_nyquist(cfg, cfg.loop.rate_hz)
     if cfg.machine.modal_model:
         p = Path(cfg.machine.modal_model)
         if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):
@@ -349,17 +375,41 @@ def _check_cross(cfg: Config) -> None:
 
 
 def _check_sensors(cfg: Config) -> None:
-    """The floor accelerometers: one analog channel each, none shared with the mount accelerometers (AI
-    ch0-3), within the module's 8 channels; the range within the module's +-10 V."""
+    """The floor accelerometers: one analog channel each (ch4-7: ch0-3 are the mount accelerometers); the
+    range within the module's +-10 V."""
     s = cfg.sensors
     ch = s.floor_channels
-    if len(ch) != len(MOUNTS) or len(set(ch)) != len(ch) or not all(4 <= c <= 7 for c in ch):
+    if len(set(ch)) != len(ch):
         raise ConfigError(f"{cfg.source}: sensors.floor_channels: expected {len(MOUNTS)} distinct analog input "
-                          f"channels in 4..7 (ch0-3 are the mount accelerometers), got {list(ch)}")
+                          f"channels (one per mount), got {list(ch)}")
     if s.floor_range_mps2 * s.floor_V_per_mps2 > 10.0:
         raise ConfigError(f"{cfg.source}: sensors.floor_range_mps2: expected <= 10 V / floor_V_per_mps2 "
                           f"({10.0 / s.floor_V_per_mps2:g} m/s^2, the module's input range), "
                           f"got {s.floor_range_mps2}")
+
+
+NYQUIST_SECTIONS = ("controller", "vibration", "stand")
+F_MIN_HZ = 1e-3          # a slower "frequency" (a period over 15 min) is a constant within any run
+
+
+def check_nyquist(cfg: Config, rate_hz: float, *, sections=NYQUIST_SECTIONS, rate_source: str | None = None) -> None:
+    """Every frequency in Hz of `sections` (except the rates themselves; 0 = off) below rate_hz / 2: a
+    discrete filter or a floor band cannot hold a frequency at or above Nyquist (a notch there turns into a
+    limit cycle, a band-pass design fails); and not below F_MIN_HZ. ConfigError naming the key and the rate."""
+    nyq = rate_hz / 2
+    src = rate_source or f"loop.rate_hz = {rate_hz:g} Hz"
+    for sec in sections:
+        obj = getattr(cfg, sec)
+        for f in dataclasses.fields(obj):
+            if f.metadata.get("unit") != "Hz" or f.name.endswith("rate_hz") or not f.metadata.get("nyquist"):
+                continue
+            v = getattr(obj, f.name)
+            if 0 < v < F_MIN_HZ:
+                off = "0 (off) or " if f.metadata.get("ge") == 0 else ""
+                raise ConfigError(f"{cfg.source}: {sec}.{f.name}: expected {off}>= {F_MIN_HZ:g} Hz, got {v:g}")
+            if v > 0 and not v < nyq:
+                raise ConfigError(f"{cfg.source}: {sec}.{f.name}: expected < {nyq:g} Hz (the Nyquist frequency "
+                                  f"of {src}), got {v:g}")
 
 
 def load_config(path: str | Path | None) -> Config:
@@ -383,7 +433,10 @@ def load_config(path: str | Path | None) -> Config:
 def hil_run_config(cfg: Config, rate_hz: float | None = None) -> Config:
     """The config of a run against the emulated rig: the loop at rate_hz (default [hil] rate_hz), the safety
     checks with the [hil] staleness limit and watchdog."""
-    return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=float(rate_hz or cfg.hil.rate_hz)),
+    rate = float(rate_hz or cfg.hil.rate_hz)
+    # the emulated floor runs at the HIL rate too
+    check_nyquist(cfg, rate, sections=("vibration",), rate_source=f"the HIL loop at {rate:g} Hz")
+    return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=rate),
                        safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s,
                                                   watchdog_s=cfg.hil.watchdog_s))
 

@@ -70,6 +70,7 @@ class Session:
         self.realtime = bool(realtime) and self.clock.is_real
         self._signals, self._status, self._control_file = signals, status, control_file
         self.port = self.loop = self.recorder = None
+        self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
         self._rt_loop = None
 
@@ -111,7 +112,8 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs})
+                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       wait_when_full=not self.clock.is_real)
         stack.enter_context(rec)
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
@@ -194,8 +196,8 @@ class Session:
         return rec
 
     def stop_recording(self, rec: Recorder, timeout_s: float = 1.0) -> None:
-        """Stop recording into `rec` at the next period boundary, then close it."""
-        self.loop.gate.request_recorder(None)
+        """Stop recording into `rec` at the next period boundary (back to idle_recorder), then close it."""
+        self.loop.gate.request_recorder(self.idle_recorder)
         end = time.monotonic() + timeout_s
         while self.loop.recorder is rec and time.monotonic() < end:
             time.sleep(0.002)

@@ -6,7 +6,11 @@
                                                   what the machine itself allows (same JSON)
   rig bench loop --feedforward [--rounds R] ...   the feedback-only loop and the loop with the floor
                                                   accelerometers and feedforward, alternating in one run
+  rig bench loop --console ...                    blocks without and with the operator console and a browser
+                                                  on its page, alternating (rig/console/bench.py)
   rig bench sim ...                               simulation speed of the plant
+  rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
+                                                  hour, gzip against none (rig/commands/bench_recorder.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -34,8 +38,10 @@ import tempfile
 
 import numpy as np
 
+from rig import cliargs
 from rig.clock import MonotonicClock
 from rig.config import load_config
+from rig.console import bench as console_bench
 from rig.errors import RigError
 from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
 from rig.session import Session
@@ -48,25 +54,33 @@ def add_arguments(p) -> None:
     sub = p.add_subparsers(dest="bench_what", metavar="WHAT")
     lp = sub.add_parser("loop", help="control loop timing: four mounts on the simulated backend")
     _config_arg(lp)
-    lp.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [loop] rate_hz)")
-    lp.add_argument("--seconds", type=float, default=10.0, metavar="N", help="duration (default 10)")
+    lp.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
+                    help="loop rate (default [loop] rate_hz)")
+    lp.add_argument("--seconds", type=cliargs.seconds(le=3600), default=10.0, metavar="N",
+                    help="duration (default 10)")
     lp.add_argument("--policy", choices=("skip", "catch_up"), default=None, help="overrun policy")
     lp.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
-    lp.add_argument("--spin-us", type=float, default=None, metavar="US",
+    lp.add_argument("--spin-us", type=cliargs.Number(ge=0, le=1000, unit="us"), default=None, metavar="US",
                     help="hybrid wait: sleep to US before each deadline, then spin (default [loop] spin_us)")
-    lp.add_argument("--record", metavar="FILE", default=None,
-                    help="keep the recording here (default: a temporary file, deleted)")
+    cliargs.output_arg(lp, "--record", metavar="FILE", default=None,
+                       help="keep the recording here (default: a temporary file, deleted)")
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
     lp.add_argument("--feedforward", action="store_true",
                     help="compare the feedback-only loop with the loop with floor feedforward, alternating runs")
-    lp.add_argument("--rounds", type=int, default=4, metavar="R",
-                    help="with --feedforward: rounds of one run each (default 4)")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    console_bench.add_arguments(lp)
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
+    rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
+    _config_arg(rp)
+    rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
+                    help="seconds of `rig run` (sim backend, simulated time) recorded, then replayed (default 10)")
+    rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
+                    help="replays of each mode, alternating (default 3; medians are printed)")
+    rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -80,15 +94,18 @@ def run(args) -> int:
         return bench_loop(args)
     if what == "sim":
         return bench_sim(args)
+    if what == "recorder":
+        return bench_recorder(args)
     raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
 def add_sim_arguments(p) -> None:
     """Arguments of `rig bench sim`."""
-    p.add_argument("--seconds", type=float, default=100.0, metavar="N", help="simulated time (default 100)")
-    p.add_argument("--rate", type=float, default=5000.0, metavar="HZ", help="loop rate (default 5000)")
-    p.add_argument("--repeats", type=int, default=3, help="batch runs to time (default 3)")
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=100.0, metavar="N",
+                   help="simulated time (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=5000.0, metavar="HZ", help="loop rate (default 5000)")
+    p.add_argument("--repeats", type=cliargs.count(1, 1000), default=3, help="batch runs to time (default 3)")
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
@@ -96,6 +113,8 @@ def bench_sim(args) -> int:
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
+    cliargs.check_rate(cfg, args.rate, "--rate", sections=("vibration",))   # timing only: any controller
+    cliargs.check_periods(args.seconds, args.rate)
     res = run_bench(cfg, args.seconds, args.rate, args.repeats,
                     progress=lambda m: print(f"bench sim: {m}", file=sys.stderr))
     if args.json:
@@ -112,12 +131,34 @@ def bench_sim(args) -> int:
     return 0
 
 
+# ---- rig bench recorder ----------------------------------------------------------------------------------
+def bench_recorder(args) -> int:
+    from rig.commands.bench_recorder import bench_recorder as measure
+    cfg = load_config(getattr(args, "config", None))
+    res = measure(cfg, args.seconds, cfg.loop.rate_hz, args.rounds,
+                    progress=lambda m: print(f"bench recorder: {m}", file=sys.stderr, flush=True))
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(f"recording of `rig run` at {res['rate_hz']:g} Hz: {res['columns']} columns a row "
+          f"({res['controller_state_columns']} of them controller states); medians of {res['rounds']} rounds")
+    for m, r in res["modes"].items():
+        print(f"  {m:5s} writer {r['writer_rows_per_cpu_s']:>9,} rows per CPU s = "
+              f"{r['writer_cpu_percent_at_rate']:5.1f} % of a core at {res['rate_hz']:g} Hz; "
+              f"{r['bytes_per_row']:7.1f} B/row = {r['MB_per_s_at_rate']:.2f} MB/s = {r['GB_per_hour_at_rate']:.2f} GB/h; "
+              f"rows lost {r['rows_lost']}")
+    print(f"  gzip/none: size x{res['gzip_size_ratio']}, writer CPU x{res['gzip_cpu_ratio']}")
+    return 0
+
+
 # ---- rig bench loop --------------------------------------------------------------------------------------
 def bench_loop(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
+    cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller
+    cliargs.check_periods(args.seconds, rate)
     if not (0 < rate <= 100000):
         raise RigError(f"--rate: expected 0 < HZ <= 100000, got {rate}")
     if not (0 < args.seconds <= 3600):
@@ -129,6 +170,8 @@ def bench_loop(args) -> int:
         return _empty_loop(cfg, args, rate, clock)
     if args.feedforward:
         return _feedforward_ab(cfg, args, rate)
+    if args.console:
+        return console_bench.bench_console(args, cfg, rate, clock)
     path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
@@ -172,7 +215,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
     """Feedback only and feedback + feedforward, alternating runs (AB BA AB ...), recording on, each run its
     own session; pooled compute and wake-up figures per path and their difference."""
     import dataclasses
-    if not 1 <= args.rounds <= 100:
+    if not 1 <= args.rounds <= 100:              # (--rounds is shared with --console: rig/console/bench.py)
         raise RigError(f"--rounds: expected 1 to 100, got {args.rounds}")
     realtime = cfg.loop.realtime and not args.no_realtime
     paths = ("feedback", "feedback_feedforward")

@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from controllers.playback import SignalPlayback
+from rig import cliargs
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
 from rig.config import MOUNTS, hil_run_config, load_config
@@ -39,19 +40,25 @@ from sim_backend.linear import ActuatorParams
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
-    p.add_argument("--amplitude", type=float, default=2.0, metavar="V", help="chirp amplitude, V (default 2)")
-    p.add_argument("--f0", type=float, default=0.1, metavar="HZ", help="start frequency, Hz (default 0.1)")
-    p.add_argument("--f1", type=float, default=100.0, metavar="HZ", help="end frequency, Hz (default 100)")
-    p.add_argument("--duration", type=float, default=100.0, metavar="S", help="chirp length, s (default 100)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+    p.add_argument("--amplitude", type=cliargs.Number(gt=0, le=50, unit="V"), default=2.0, metavar="V",
+                   help="chirp amplitude, V (default 2)")
+    p.add_argument("--f0", type=cliargs.Number(ge=0, unit="Hz"), default=0.1, metavar="HZ",
+                   help="start frequency, Hz (default 0.1)")
+    p.add_argument("--f1", type=cliargs.Number(gt=0, unit="Hz"), default=100.0, metavar="HZ",
+                   help="end frequency, Hz (default 100)")
+    p.add_argument("--duration", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S), default=100.0, metavar="S",
+                   help="chirp length, s (default 100)")
+    p.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
                    help="loop (and recording) rate, Hz (default: [loop] rate_hz; hil: [hil] rate_hz)")
-    p.add_argument("--mount", default="front_left", help="mount whose valve is chirped (hil/hardware)")
-    p.add_argument("--settle", type=float, default=0.05, metavar="S",
+    p.add_argument("--mount", default="front_left", choices=MOUNTS,
+                   help="mount whose valve is chirped (hil/hardware)")
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=0.05, metavar="S",
                    help="seconds INACTIVE (valve at null, sensors checked) before the chirp (default 0.05)")
     p.add_argument("--realtime", action="store_true", help="sim backend: pace on the wall clock (default: "
                    "simulated time, as fast as possible)")
-    p.add_argument("--seed", type=int, default=None, help="sim backend: sensor noise seed (default: [stand] seed)")
-    p.add_argument("--out", metavar="REC", type=Path, required=True,
+    p.add_argument("--seed", type=cliargs.seed(), default=None,
+                   help="sim backend: sensor noise seed (default: [stand] seed)")
+    cliargs.output_arg(p, "--out", metavar="REC", required=True,
                    help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
     p.add_argument("--csv", action="store_true", help="write the shared CSV format instead of HDF5")
 
@@ -118,10 +125,12 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
               duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
-              stand_params=None, stand_effects=None, progress=None) -> dict:
+              stand_params=None, stand_effects=None, progress=None, on_session=None) -> dict:
     """Run the chirp through rig.loop and write the recording. Returns a summary dict.
-    progress: optional callable(t_s, total_s) polled from a helper thread."""
+    progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
+    callable(session) once the session is built (a console stops it safely from another thread)."""
     rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+    cliargs.check_rate(cfg, rate, sections=("stand",))
     if backend == "hil":
         # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
         cfg = hil_run_config(cfg, rate)
@@ -166,6 +175,8 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     wall0 = time.perf_counter()
     with session:
         loop = session.loop
+        if on_session is not None:
+            on_session(session)
 
         def poll():
             while not done.wait(0.1):

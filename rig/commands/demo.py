@@ -22,12 +22,11 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
-
 import numpy as np
 import scipy.signal
 
 from controllers.vibration_criteria import plot_vc, vc_report
+from rig import cliargs
 from rig.clock import SimClock
 from rig.config import load_config
 from rig.errors import RigError
@@ -39,17 +38,17 @@ LABELS = {"off": "isolation off", "feedback": "feedback", "feedback_feedforward"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=10.0, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
                    help="simulated seconds metered per mode (off, feedback, feedback + feedforward; default 10)")
-    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=60), default=1.0, metavar="S",
                    help="seconds run before metering in each mode (default 1)")
-    p.add_argument("--rms-um", type=float, default=None, metavar="UM",
+    p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",
                    help="floor displacement rms in um (default: [vibration] rms_m of the config)")
-    p.add_argument("--model-error", type=float, default=10.0, metavar="PCT",
+    p.add_argument("--model-error", type=cliargs.Number(ge=0, le=50, unit="%"), default=10.0, metavar="PCT",
                    help="the plant's actuator parameters PCT %% off the controllers' model, in the worst corner "
                         "for the feedforward (default 10; 0: the plant as [plant_error] of the config says)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write demo.png (traces, spectra, VC curves of the three modes) and demo.json to DIR")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write demo.png (traces, spectra, VC curves of the three modes) and demo.json to DIR")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
@@ -107,15 +106,7 @@ def _log(text: str) -> None:
 def _demo_config(args):
     """The config of the demo (floor accelerometers fitted) and the description of its plant."""
     cfg = load_config(args.config)
-    if not 0.5 <= args.seconds <= 600:
-        raise RigError(f"--seconds: expected 0.5 to 600 s per mode, got {args.seconds}")
-    if not 0 <= args.settle <= 60:
-        raise RigError(f"--settle: expected 0 <= settle <= 60 s, got {args.settle}")
-    if not 0 <= args.model_error <= 50:
-        raise RigError(f"--model-error: expected 0 to 50 %, got {args.model_error}")
     if args.rms_um is not None:
-        if not 0 < args.rms_um <= 1000:
-            raise RigError(f"--rms-um: expected 0 < rms <= 1000 um, got {args.rms_um}")
         cfg = cfg.replace(vibration=dataclasses.replace(cfg.vibration, rms_m=args.rms_um * 1e-6))
     cfg = cfg.replace(sensors=dataclasses.replace(cfg.sensors, floor_accel=True))
     if args.model_error == 0:

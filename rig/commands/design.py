@@ -27,6 +27,7 @@ from pathlib import Path
 # shared 2-core machine: 8 ms with one thread, 117 ms with two). Set before numpy loads, for the CLI.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from rig import cliargs
 from rig.errors import RigError
 
 PAPER = {  # Law et al. 2015, text of Figs. 11-13
@@ -40,15 +41,16 @@ PAPER = {  # Law et al. 2015, text of Figs. 11-13
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write the figures (PNG), design.md (beside the paper's numbers) and design.json")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write the figures (PNG), design.md (beside the paper's numbers) and design.json")
     p.add_argument("--identified", metavar="DIR", type=Path, default=None,
                    help="design on the actuator identified by `rig identify --out DIR` (DIR/identify.json) "
                         "instead of the configured one")
     p.add_argument("--tune", action="store_true",
                    help="retune the feedback first (structured optimiser, controllers/tune.py; ~1-2 min)")
-    p.add_argument("--starts", type=int, default=8, metavar="N", help="optimiser starts with --tune (default 8)")
-    p.add_argument("--robust", type=int, default=100, metavar="N",
+    p.add_argument("--starts", type=cliargs.count(1, 200), default=8, metavar="N",
+                   help="optimiser starts with --tune (default 8)")
+    p.add_argument("--robust", type=cliargs.count(0, 100000), default=100, metavar="N",
                    help="random plants in the robustness check, besides its 48 corners (default 100)")
 
 

@@ -8,15 +8,16 @@ import sys
 import time
 from pathlib import Path
 
+from rig import cliargs
 from rig.errors import RigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)")
-    p.add_argument("--out", metavar="DIR", type=Path, required=True,
-                   help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
-    p.add_argument("--seed", type=int, default=0, help="seed of the engine's random choices (default 0)")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", required=True,
+                       help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
+    p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
     p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
 
 

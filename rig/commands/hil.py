@@ -35,6 +35,7 @@ import numpy as np
 
 import drivers
 from drivers.protocol import dta as proto
+from rig import cliargs
 from rig.backends import make_port
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
@@ -49,12 +50,13 @@ HIL_DEFAULT_CONFIG = Path(drivers.__file__).resolve().parent / "devicemaps" / "h
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=None, metavar="N",
                    help="run length, split evenly into the modes: off, feedback (and feedback + feedforward with "
                         "floor accelerometers) (default [hil] seconds)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="loop rate (default [hil] rate_hz)")
-    p.add_argument("--record", metavar="FILE", default=None,
-                   help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
+    p.add_argument("--rate", type=cliargs.rate_hz(le=5000), default=None, metavar="HZ",
+                   help="loop rate (default [hil] rate_hz)")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None,
+                       help="HDF5 recording of the run (default hil-<date>-<time>.h5 in the current directory)")
     p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
@@ -130,13 +132,12 @@ def run(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
     if args.bench:
         return bench(cfg, seconds, args.json)
+    cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json)
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db",
                                "recording")}
-    if res["fault_reason"]:
-        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)

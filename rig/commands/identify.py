@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from rig import cliargs
 from rig.errors import RigError
 
 UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s/mA", "K_C": "m^3/s/Pa"}
@@ -17,11 +18,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; time_s,valve_cmd_V,position_m,accel_mps2)")
     p.add_argument("--json", action="store_true",
                    help='print only {"parameters", "std", "fit", ...} as JSON (SI units, w_nv in rad/s)')
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
-                   help="write identified.md (table beside Table 1), identify.json and fig3_bode.png here")
-    p.add_argument("--starts", type=int, default=8, help="multi-start count of the FRF fit (default 8)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the multi-start points (default 0)")
-    p.add_argument("--repeat", type=int, default=1, metavar="N",
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write identified.md (table beside Table 1), identify.json and fig3_bode.png here")
+    p.add_argument("--starts", type=cliargs.count(1, 1000), default=8,
+                   help="multi-start count of the FRF fit (default 8)")
+    p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the multi-start points (default 0)")
+    p.add_argument("--repeat", type=cliargs.count(1, 1000), default=1, metavar="N",
                    help="benchmark: identify N times and print p50/p99/max of the time on stderr")
     p.add_argument("--no-refine", action="store_true",
                    help="skip the time-domain output-error refinement (FRF fit only, as the paper)")

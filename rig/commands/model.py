@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 
+from rig import cliargs
 from rig.config import load_config
 from rig.errors import RigError
 
@@ -22,7 +23,9 @@ ROWS = [  # key, label, unit, paper's figure
 
 def add_arguments(p):
     p.add_argument("--json", action="store_true", help="print the figures as JSON only")
-    p.add_argument("--plot", metavar="FILE", help="write a Bode plot of G_EHA (Eq. 10) as PNG")
+    cliargs.output_arg(p, "--plot", metavar="FILE", suffix=".png", suffixes=(".png", ".pdf", ".svg"),
+                       help="write a Bode plot of G_EHA (Eq. 10): PNG (.png added to a name without a suffix), "
+                            "or PDF/SVG by the suffix")
 
 
 def figures(cfg) -> dict:

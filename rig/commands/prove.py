@@ -6,18 +6,19 @@ import json
 import sys
 from pathlib import Path
 
+from rig import cliargs
 from rig.errors import RigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cases", metavar="DIR", type=Path, default=None,
                    help="grade the recordings of DIR against its answers.json (default: simulate blind cases)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the blind cases (default 1)")
-    p.add_argument("--n", type=int, default=30, help="number of blind cases (default 30)")
-    p.add_argument("--duration", type=float, default=100.0, metavar="S",
+    p.add_argument("--seed", type=cliargs.seed(), default=1, help="seed of the blind cases (default 1)")
+    p.add_argument("--n", type=cliargs.count(1, 10000), default=30, help="number of blind cases (default 30)")
+    p.add_argument("--duration", type=cliargs.seconds(ge=1, le=1000), default=100.0, metavar="S",
                    help="chirp length of the blind cases, 0.1 -> 100 Hz (default 100 s, as the paper)")
-    p.add_argument("--workers", type=int, default=2, help="processes (default 2)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None,
+    p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                    help="write the table, confusion matrix and score as DIR/proof.md and DIR/proof.json")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 

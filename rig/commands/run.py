@@ -23,10 +23,10 @@ import logging
 import os
 import sys
 
+from rig import cliargs, report
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
-from rig import report
 from rig.errors import RecordingError, RigError
 from rig.lifecycle import State
 from rig.session import Session
@@ -44,17 +44,17 @@ def warmup_s(ctrls) -> float:
 def add_arguments(p) -> None:
     p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
-    p.add_argument("--seconds", type=float, default=None, metavar="N",
+    p.add_argument("--seconds", type=cliargs.seconds(), default=None, metavar="N",
                    help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
     p.add_argument("--feedforward", action="store_true",
                    help="floor feedforward on from the start (needs [sensors] floor_accel = true; switch it while "
                         "running with the control file's feedback / feedback_feedforward)")
-    p.add_argument("--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
+    cliargs.output_arg(p, "--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
     p.add_argument("--control", metavar="FILE", default=None,
                    help="control file polled every 0.1 s: write `on`, `off` or `stop` into it")
-    p.add_argument("--settle", type=float, default=None, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=None, metavar="S",
                    help="seconds INACTIVE (reading, checking, valve null, filters warming) before activation "
                         "(default: sim 0.05, hil/hardware the controllers' warm-up, 2 / blend_hz)")
     p.add_argument("--policy", choices=("skip", "catch_up"), default=None,
@@ -63,6 +63,12 @@ def add_arguments(p) -> None:
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
     p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument("--console", action="store_true",
+                   help="serve the operator console (a live web page) on 127.0.0.1; its address, with a random "
+                        "access token, is printed at start")
+    p.add_argument("--port", type=cliargs.Number(ge=0, le=65535, integer=True), default=None, metavar="N",
+                   help="console port (default: the first free one from 8765; 0: any free port)")
+    p.add_argument("--read-only", action="store_true", help="console shows everything and accepts no command")
 
 
 def run(args) -> int:
@@ -78,24 +84,44 @@ def run(args) -> int:
         raise RigError(f"--settle: expected 0 <= S <= 3600, got {args.settle}")
     if args.sim_time and backend != "sim":
         raise RigError("--sim-time: only with --backend sim")
+    if args.settle is not None:
+        cliargs.check_settle(args.settle, args.seconds)
     if backend == "hil":
         # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
         cfg = hil_run_config(cfg)
+        cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
+    if (args.port is not None or args.read_only) and not args.console:
+        raise RigError("--port/--read-only: only with --console")
     clock = SimClock() if args.sim_time else MonotonicClock()
-    session = Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
-                      record=args.record, record_attrs={"command": "rig run", "isolation_at_start": args.isolation,
-                                                        "overrun_policy": args.policy or cfg.loop.overrun_policy},
-                      realtime=cfg.loop.realtime and not args.no_realtime, signals=True,
-                      status=not args.quiet, control_file=args.control, feedforward=args.feedforward)
-    with session:
+
+    def new_session(record=args.record) -> Session:
+        # with the console a fault keeps the loop running in FAULT (valves safe, sensors read) for the operator
+        return Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
+                       record=record, record_attrs={"command": "rig run", "isolation_at_start": args.isolation,
+                                                    "overrun_policy": args.policy or cfg.loop.overrun_policy},
+                       realtime=cfg.loop.realtime and not args.no_realtime, signals=True,
+                       status=not args.quiet, control_file=args.control, stop_on_fault=not args.console,
+                       feedforward=args.feedforward)
+
+    def started(session) -> float:
+        """Log the start; the settle time before activation."""
         loop = session.loop
         log.info("backend %s, %d mounts at %g Hz, isolation %s, pid %d (SIGUSR1 toggles isolation%s)",
                  backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
                  f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
+        cliargs.check_settle(settle, args.seconds, default="the default --settle")
         if settle > 1.0:
             log.info("warming up the controllers for %.1f s before activation (valves at null)", settle)
-        reason = session.run(seconds=args.seconds, activate_after_s=settle)
+        return settle
+
+    if args.console:
+        from rig.console.runner import run_with_console
+        loop, reason = run_with_console(args, cfg, backend, new_session, started)
+    else:
+        with new_session() as session:
+            loop = session.loop
+            reason = session.run(seconds=args.seconds, activate_after_s=started(session))
     tm = loop.timing_us()
     log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
              "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,

@@ -187,4 +187,4 @@ def test_rig_demo_bad_model_error_is_one_line(capsys):
     from rig.cli import main
     assert main(["demo", "--model-error", "80"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["rig demo: error: --model-error: expected 0 to 50 %, got 80.0"]
+    assert err == ["rig demo: error: --model-error: expected >= 0 % and <= 50 %, got '80'"]

@@ -92,7 +92,7 @@ def test_kernel_replay_equals_interpolated_reference_steps():
 
 @pytest.mark.parametrize("mounts", [1, 3, 8])
 def test_kernel_of_any_mount_count_runs_the_law_of_each_mount(mounts):
-    cfg = WIDE.replace(controller=config_from_dict({"controller": {"gain_trim": [1.0] * 8}}).controller)
+    cfg = WIDE.replace(controller=config_from_dict({"controller": {"gain_trim": [1.0] * 4}}).controller)
     ctrls = [c for c in make_isolation_controllers(cfg, DT) for _ in range(2)][:mounts]
     k = _kernel(ctrls)
     acc, xs = _inputs(3000, seed=9, mounts=mounts)

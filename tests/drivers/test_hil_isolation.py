@@ -111,7 +111,7 @@ def test_bad_rate_is_one_line_user_error():
     out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--rate", "0", "--json"], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 2 and out.stdout == ""
-    assert out.stderr.strip() == "rig hil: error: --rate: expected 0 < HZ <= 5000 for HIL, got 0.0"
+    assert out.stderr.strip() == "rig hil: error: --rate: expected > 0 Hz and <= 5000 Hz, got '0'"
 
 
 def test_rig_run_with_the_hil_backend():

@@ -145,14 +145,15 @@ def test_feedforward_needs_floor_accelerometers():
 
 
 def test_sensors_config_errors_are_one_line():
-    for bad, words in (({"floor_channels": [4, 5, 6]}, "sensors.floor_channels: expected 4 distinct"),
-                       ({"floor_channels": [2, 5, 6, 7]}, "in 4..7"),
+    for bad, words in (({"floor_channels": [4, 5, 6]}, "sensors.floor_channels: expected a list of 4"),
+                       ({"floor_channels": [4, 5, 5, 7]}, "sensors.floor_channels: expected 4 distinct"),
+                       ({"floor_channels": [2, 5, 6, 7]}, r"expected >= 4, got 2 in \[2, 5, 6, 7\]"),
                        ({"floor_channels": [4, 5, 6, 7.0]}, "expected a list of integers"),
                        ({"floor_range_mps2": 8.0}, "sensors.floor_range_mps2: expected <= 10 V"),
                        ({"floor_noise_mps2_per_rthz": -1.0}, "expected >= 0")):
         with pytest.raises(ConfigError, match=words):
             config_from_dict({"sensors": bad})
-    with pytest.raises(ConfigError, match="plant_error.K_Q: expected > 0"):
+    with pytest.raises(ConfigError, match="plant_error.K_Q: expected >= 0.5"):
         config_from_dict({"plant_error": {"K_Q": 0.0}})
 
 

@@ -60,8 +60,8 @@ def test_loaded_case_moves_hydraulic_frequency():
 
 
 @pytest.mark.parametrize("text, needle", [
-    ("[actuator]\nM = -56\n", "actuator.M: expected > 0"),
-    ("[actuator]\nA_p = 0\n", "actuator.A_p: expected > 0"),
+    ("[actuator]\nM = -56\n", "actuator.M: expected >= 0.01 kg"),
+    ("[actuator]\nA_p = 0\n", "actuator.A_p: expected >= 1e-06 m^2"),
     ("[valve]\nK_Q = \"big\"\n", "valve.K_Q: expected a number"),
     ("[valve]\nflow = 1\n", "valve.flow: unknown key"),
     ("[pump]\nP_s = 1\n", "[pump]: unknown section"),

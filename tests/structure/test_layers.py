@@ -7,7 +7,7 @@ Layers, lowest first; a module may import its own layer and those below, never o
   3 runtime       rig kernel, safety, loop and its parts, recorder and recordings, analysis of recordings;
                   ports beside it: drivers.*, sim_backend.backend, sim_backend.emulators.*
   4 registry      rig.backends, rig.session (builds runs from the registry)
-  5 commands      rig.commands.*, rig.cli
+  5 commands      rig.commands.*, rig.cli, rig.console.* (the operator console: drives sessions as a command does)
 Within layer 3 the runtime knows no backend, the drivers know no simulator or emulator, and the simulated
 ports know no driver (only the shared protocol maps of layer 1).
 Function-local imports of the project's own modules are kept for the registry and the command line (they load
@@ -25,7 +25,7 @@ from tests.paths import REPO
 
 PACKAGES = ("rig", "controllers", "drivers", "sim_backend")
 LAYER_PREFIXES = [                      # most specific first
-    ("rig.commands", 5), ("rig.cli", 5),
+    ("rig.commands", 5), ("rig.cli", 5), ("rig.console", 5),
     ("rig.backends", 4), ("rig.session", 4),
     ("rig.errors", 0), ("rig.config", 0), ("rig.port", 0), ("rig.clock", 0), ("rig.rt", 0), ("rig.lifecycle", 0),
     ("drivers.protocol", 1), ("sim_backend.backend", 3), ("sim_backend.emulators", 3), ("sim_backend", 1),

@@ -1,0 +1,157 @@
+"""Argument types and checks of the `rig` command line.
+
+A bad value ends in one line naming the option and what was expected, exit status 2, before anything is
+opened, started or written: numbers are finite and inside a stated range with their unit, and output files
+and folders are never overwritten without `--overwrite` (`check_outputs`, the one place of that rule).
+Checks that need the loaded configuration (a rate against the configured frequencies, --settle against
+--seconds) are functions here, called in one line by the commands.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from rig.config import check_nyquist
+from rig.errors import RigError
+
+MAX_RATE_HZ = 100000.0        # the loop's own ceiling ([loop] rate_hz): 10 us a period
+MAX_RUN_S = 86400.0           # one day of loop time per run
+MAX_CHIRP_S = 3600.0          # one hour of chirp (the paper's identification chirp is 100 s)
+MAX_SEED = 2 ** 32 - 1        # numpy seeds are unsigned; 32 bits are plenty
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with a one-line error (the usage text is what --help is for)."""
+
+    def error(self, message: str):
+        if message.startswith("argument "):          # "argument --rate: expected ..." -> "--rate: expected ..."
+            message = message[len("argument "):]
+        else:
+            message += f" (see {self.prog} --help)"
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}"
+
+
+class Number:
+    """A finite float (or int) with optional bounds: `Number(gt=0, le=100000, unit="Hz")`."""
+
+    def __init__(self, *, gt=None, ge=None, lt=None, le=None, unit: str = "", integer: bool = False) -> None:
+        self.gt, self.ge, self.lt, self.le, self.unit, self.integer = gt, ge, lt, le, unit, integer
+
+    def expected(self) -> str:
+        unit = f" {self.unit}" if self.unit else ""
+        parts = [f"{op} {_fmt(b)}{unit}" for op, b in ((">", self.gt), (">=", self.ge), ("<", self.lt),
+                                                       ("<=", self.le)) if b is not None]
+        if self.integer:
+            return "an integer" + (" " + " and ".join(parts) if parts else "")
+        return " and ".join(parts) if parts else f"a finite number{unit}"
+
+    def __call__(self, text: str):
+        try:
+            v = int(text, 10) if self.integer else float(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected {self.expected()}, got {text!r}") from None
+        ok = math.isfinite(v) and (self.gt is None or v > self.gt) and (self.ge is None or v >= self.ge) and \
+            (self.lt is None or v < self.lt) and (self.le is None or v <= self.le)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"expected {self.expected()}, got {text!r}")
+        return v
+
+    def __repr__(self) -> str:              # argparse names the type in some messages
+        return self.expected()
+
+
+def seconds(*, gt=0.0, ge=None, le=MAX_RUN_S) -> Number:
+    """A duration in seconds (> 0 unless ge is given)."""
+    return Number(gt=None if ge is not None else gt, ge=ge, le=le, unit="s")
+
+
+def rate_hz(le: float = MAX_RATE_HZ) -> Number:
+    """A loop rate: > 0 and at most le Hz (0 is refused, not read as 'the default')."""
+    return Number(gt=0.0, le=le, unit="Hz")
+
+
+def count(ge: int = 1, le: int = 1_000_000) -> Number:
+    return Number(ge=ge, le=le, integer=True)
+
+
+def seed() -> Number:
+    return Number(ge=0, le=MAX_SEED, integer=True)
+
+
+# ---- output files and folders --------------------------------------------------------------------------
+class _Output(argparse.Action):
+    """Stores the path and registers it (option, path, kind) for check_outputs."""
+
+    def __init__(self, option_strings, dest, kind: str = "file", suffix: str = "", suffixes=(), **kw):
+        super().__init__(option_strings, dest, **kw)
+        self.kind, self.suffix, self.suffixes = kind, suffix, tuple(suffixes)
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        p = Path(value)
+        if self.kind == "file":
+            if not p.name or value.endswith(("/", "\\")) or p.is_dir():
+                parser.error(f"argument {self.option_strings[0]}: expected a file name, got {value!r}"
+                             f"{' (a folder)' if p.is_dir() else ''}")
+            if self.suffix and not p.suffix:
+                p = p.with_name(p.name + self.suffix)       # what is written is what is said
+            elif self.suffixes and p.suffix.lower() not in self.suffixes:
+                parser.error(f"argument {self.option_strings[0]}: expected a file name ending in "
+                             f"{', '.join(self.suffixes)}, got {value!r}")
+        setattr(namespace, self.dest, p)
+        outs = [o for o in getattr(namespace, "_outputs", []) if o[0] != self.option_strings[0]]
+        namespace._outputs = outs + [(option_string or self.option_strings[0], p, self.kind)]
+
+
+def output_arg(p: argparse.ArgumentParser, *flags: str, kind: str = "file", suffix: str = "",
+               suffixes=(), **kw) -> None:
+    """An option naming a file (kind "file") or folder ("folder") the command writes, and --overwrite once.
+    suffix: added to a file name without one (matplotlib would add it silently); suffixes: the ones allowed."""
+    p.add_argument(*flags, action=_Output, kind=kind, suffix=suffix, suffixes=suffixes, **kw)
+    if not any("--overwrite" in a.option_strings for a in p._actions):
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace existing output files (default: refuse, naming the file)")
+
+
+def check_outputs(args) -> None:
+    """The rule: an output file that exists, or an output folder that is not empty, is refused without
+    --overwrite; a file name that is a folder (or a folder name that is a file) always. RigError, one line."""
+    overwrite = bool(getattr(args, "overwrite", False))
+    for option, path, kind in getattr(args, "_outputs", []):
+        if kind == "file":
+            if path.is_dir():
+                raise RigError(f"{option} {path}: is a folder, expected a file name")
+            if path.exists() and not overwrite:
+                raise RigError(f"{option} {path}: file exists (add --overwrite to replace it)")
+        else:
+            if path.exists() and not path.is_dir():
+                raise RigError(f"{option} {path}: exists and is not a folder")
+            if path.is_dir() and not overwrite and any(path.iterdir()):
+                raise RigError(f"{option} {path}: folder is not empty (add --overwrite to write into it)")
+
+
+# ---- checks that need the configuration or more than one option -----------------------------------------
+def check_settle(settle_s: float, seconds_s: float | None, *, default: str = "") -> None:
+    """INACTIVE for settle_s, then ACTIVE: a run shorter than its settle time would never activate."""
+    if seconds_s is not None and settle_s >= seconds_s:
+        what = f"--settle {settle_s:g} s" if not default else f"the settle time ({default}: {settle_s:.3g} s)"
+        raise RigError(f"--seconds {seconds_s:g}: expected longer than {what}, or the run would end before "
+                       f"activation (give a longer --seconds or a shorter --settle)")
+
+
+def check_periods(seconds_s: float, rate_hz: float, at_least: int = 10, option: str = "--seconds") -> None:
+    """A benchmark of fewer than at_least periods measures nothing (and an empty one has no percentiles)."""
+    if seconds_s * rate_hz < at_least:
+        raise RigError(f"{option} {seconds_s:g}: expected at least {at_least} periods at {rate_hz:g} Hz "
+                       f"(>= {at_least / rate_hz:g} s)")
+
+
+def check_rate(cfg, rate_hz: float, where: str = "", *, sections=("controller", "vibration")) -> None:
+    """Frequencies of the configuration against the Nyquist frequency of the rate the command will run at
+    (where: the option or key that set it, for the message)."""
+    check_nyquist(cfg, rate_hz, sections=sections,
+                  rate_source=f"the loop at {rate_hz:g} Hz" + (f", {where}" if where else ""))

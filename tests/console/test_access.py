@@ -1,0 +1,114 @@
+"""The console's web server over plain HTTP and websockets: nothing without the token (page, data, control),
+no other Host, read-only refuses every command, commands reach the loop through the session's requests, and
+the only listening socket is on 127.0.0.1."""
+from __future__ import annotations
+
+import json
+
+import psutil
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from rig.lifecycle import State
+from tests.console.support import base, command, http, live_run, state, wait
+
+
+@pytest.fixture(scope="module")
+def run():
+    with live_run() as (s, console):
+        yield s, console
+
+
+@pytest.mark.parametrize("path", ["/", "/api/state", "/static/console.js", "/static/vendor/uplot/uPlot.iife.min.js",
+                                  "/static/index.html"])
+def test_no_page_and_no_data_without_the_token(run, path):
+    s, console = run
+    for suffix in ("", "?token=", "?token=" + "0" * len(console.token), "?token=" + console.token[:-1]):
+        code, body = http(base(console) + path + suffix)
+        assert code == 403 and "forbidden" in body and "rig" not in body.split("forbidden")[0]
+    code, body = http(base(console) + path + "?token=" + console.token)
+    assert code == 200 and body
+
+
+def test_no_control_without_the_token(run):
+    s, console = run
+    assert s.loop.isolation
+    code, body = http(f"{base(console)}/api/command", data={"cmd": "isolation", "args": {"on": False}})
+    assert code == 403
+    code, body = http(f"{base(console)}/api/command?token=nope", data={"cmd": "safe_stop", "args": {}})
+    assert code == 403
+    with pytest.raises(InvalidStatus) as e:
+        connect(f"ws://127.0.0.1:{console.port}/ws", open_timeout=10)
+    assert e.value.response.status_code == 403
+    assert s.loop.isolation and s.loop.stop_reason is None and s.loop.state is State.ACTIVE
+
+
+def test_another_host_name_or_origin_is_refused(run):
+    """The token alone is not enough from a page of another site (DNS rebinding, cross-site websocket)."""
+    s, console = run
+    code, _ = http(f"{base(console)}/api/state?token={console.token}", headers={"Host": "evil.example"})
+    assert code == 403
+    with pytest.raises(InvalidStatus):
+        connect(f"ws://127.0.0.1:{console.port}/ws?token={console.token}", origin="http://evil.example",
+                open_timeout=10)
+
+
+def test_state_and_commands_with_the_token(run):
+    s, console = run
+    st = wait(lambda: (lambda x: x if x["now"].get("state") == "ACTIVE" and len(x["traces"]["t"]) > 10 else None)(
+        state(console)), "ACTIVE with traces")
+    assert st["layout"]["mounts"] == ["front_left", "front_right", "rear_left", "rear_right"]
+    assert st["layout"]["limits"]["valve_limit_V"] == s.cfg.safety.valve_limit_V
+    assert len(st["traces"]["v"]) == 12 and len(st["traces"]["t"]) > 10
+    code, reply = command(console, "isolation", on=False)
+    assert code == 200 and reply["ok"], reply
+    wait(lambda: state(console)["now"]["isolation"] is False, "isolation off on the console")
+    assert s.loop.isolation is False
+    code, reply = command(console, "isolation", on=True)
+    wait(lambda: state(console)["now"]["isolation"] is True, "isolation on on the console")
+    events = wait(lambda: (lambda ev: ev if any("isolation on requested" in t for t in ev) else None)(
+        [e["text"] for e in state(console)["events"]]), "the command's log line")
+    assert "isolation off" in events and "isolation on" in events            # from the rows' flags
+    assert any("isolation off requested" in t and "http 127.0.0.1" in t for t in events)   # the command's log line
+
+
+def test_malformed_and_unknown_commands_are_refused_with_one_line(run):
+    s, console = run
+    for cmd, args, want in (("launch", {}, "unknown command 'launch'"),
+                            ("isolation", {}, "missing argument 'on'"),
+                            ("isolation", {"on": "yes"}, "on must be bool"),
+                            ("chirp", {"amplitude_V": float("nan"), "f0_hz": 1, "f1_hz": 2, "duration_s": 3,
+                                       "mount": "front_left"}, "amplitude_V must be a finite number")):
+        code, body = http(f"{base(console)}/api/command?token={console.token}", data={"cmd": cmd, "args": args})
+        reply = json.loads(body)
+        assert code == 409 and not reply["ok"] and "\n" not in reply["text"] and want in reply["text"]
+    code, reply = command(console, "reset_fault")
+    assert code == 409 and "no fault to reset" in reply["text"]
+    assert s.loop.state is State.ACTIVE
+
+
+def test_read_only_shows_everything_and_refuses_every_command():
+    with live_run(read_only=True) as (s, console):
+        st = wait(lambda: (lambda x: x if x["now"].get("state") == "ACTIVE" else None)(state(console)), "ACTIVE")
+        assert st["read_only"] is True and len(st["traces"]["t"]) > 0
+        for cmd, args in (("isolation", {"on": False}), ("safe_stop", {}), ("deactivate", {}),
+                          ("record_start", {"path": "x.h5"})):
+            code, reply = command(console, cmd, **args)
+            assert code == 403 and reply["text"] == "read-only console: commands are refused"
+        with connect(f"ws://127.0.0.1:{console.port}/ws?token={console.token}", open_timeout=10) as ws:
+            full = json.loads(ws.recv(10))
+            assert full["type"] == "full" and full["read_only"]
+            ws.send(json.dumps({"id": 7, "cmd": "isolation", "args": {"on": False}}))
+            reply = next(m for m in (json.loads(ws.recv(10)) for _ in range(200)) if m["type"] == "reply")
+        assert reply == {"ok": False, "text": "read-only console: commands are refused", "type": "reply", "id": 7}
+        assert s.loop.isolation and s.loop.state is State.ACTIVE and s.loop.stop_reason is None
+
+
+def test_the_only_listening_socket_is_on_loopback(run):
+    s, console = run
+    procs = [psutil.Process()] + psutil.Process().children(recursive=True)
+    listening = [(p.pid, c.laddr) for p in procs for c in p.net_connections(kind="inet")
+                 if c.status == psutil.CONN_LISTEN or (c.type == 2 and c.laddr)]    # TCP listen, bound UDP
+    assert any(a.port == console.port for _, a in listening)                 # the check sees the console
+    assert all(a.ip == "127.0.0.1" for _, a in listening), listening

@@ -1,0 +1,188 @@
+"""The command line's bad-input cases of issue 17 (item 8 and item 4), one named test each: a bad value ends in
+one line naming the option and what was expected, exit 2, before anything runs; outputs are never overwritten
+without --overwrite; `rig model --plot` writes what it says."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from rig.cli import main
+from tests.paths import REPO
+
+
+
+def _one_line_error(capsys, *needles) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert "error:" in err[0] and "Traceback" not in err[0]
+    for n in needles:
+        assert n in err[0], err[0]
+    return err[0]
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["run", "--seconds", "nan"], "--seconds"),
+    (["run", "--seconds", "inf"], "--seconds"),
+    (["demo", "--seconds", "nan"], "--seconds"),
+    (["bench", "loop", "--seconds", "nan"], "--seconds"),
+    (["bench", "sim", "--seconds", "nan"], "--seconds"),
+    (["hil", "--seconds", "nan"], "--seconds"),
+])
+def test_seconds_nan(capsys, argv, option):
+    """Was: ValueError: cannot convert float NaN to integer (a traceback)."""
+    assert main(argv) == 2
+    _one_line_error(capsys, option, "'nan'" if "nan" in argv else "'inf'")
+
+
+@pytest.mark.parametrize("argv", [["chirp", "--duration", "nan", "--out", "x.h5"], ["prove", "--duration", "nan"]])
+def test_duration_nan(tmp_path, monkeypatch, capsys, argv):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    _one_line_error(capsys, "--duration", "'nan'")
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("argv", [["chirp", "--out", "x.h5"], ["bench", "loop"], ["bench", "sim"], ["hil"]])
+@pytest.mark.parametrize("value", ["nan", "0", "-5", "1e9"])
+def test_rate_nan_zero_negative_and_huge(tmp_path, monkeypatch, capsys, argv, value):
+    """--rate 0 silently meant 5000 Hz in `chirp` and `bench loop`; `chirp --rate 1e9` hung; nan was a
+    traceback. Now all are refused at once, naming the option and the range."""
+    monkeypatch.chdir(tmp_path)
+    t0 = time.monotonic()
+    assert main(argv + ["--rate", value]) == 2
+    assert time.monotonic() - t0 < 10                       # refused, not run
+    _one_line_error(capsys, "--rate", "Hz", repr(value))
+
+
+def test_chirp_negative_settle_is_refused(tmp_path, capsys):
+    """Was: accepted, and the chirp was cut by the negative settle time (half the chirp recorded)."""
+    out = tmp_path / "c.h5"
+    assert main(["chirp", "--settle", "-1", "--duration", "1", "--out", str(out)]) == 2
+    _one_line_error(capsys, "--settle", ">= 0 s")
+    assert not out.exists()
+
+
+def test_settle_longer_than_seconds_is_refused(capsys):
+    """Was: the run stayed INACTIVE to the end and exited 0."""
+    assert main(["run", "--sim-time", "--seconds", "0.5", "--settle", "2", "--quiet"]) == 2
+    _one_line_error(capsys, "--seconds 0.5", "--settle 2")
+
+
+@pytest.mark.hil
+def test_default_warm_up_longer_than_seconds_is_refused(tmp_path):
+    """`rig run --backend hil` warms the controllers up for 2 / blend_hz (5.1 s with hil.toml): a run shorter
+    than that would never activate. Refused with one line; the emulated rig it started is stopped again."""
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--backend", "hil", "--config",
+                          str(REPO / "drivers" / "devicemaps" / "hil.toml"), "--seconds", "2", "--no-realtime",
+                          "--quiet"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("rig run: error: --seconds 2: expected longer than the settle time (the default --settle: 5.07 s)")
+
+
+def test_hil_rate_above_the_controllers_nyquist_is_refused(capsys):
+    """`rig hil --rate 150` with hil.toml (roll-off at 223 Hz): refused before the emulated rig starts."""
+    assert main(["hil", "--rate", "150", "--seconds", "1"]) == 2
+    _one_line_error(capsys, "controller.", "Nyquist", "150 Hz")
+
+
+def test_model_plot_name_without_suffix_writes_what_it_says(tmp_path, capsys):
+    """Was: `rig model --plot DIR` wrote DIR.png and said DIR."""
+    target = tmp_path / "bode"
+    assert main(["model", "--plot", str(target)]) == 0
+    err = capsys.readouterr().err
+    assert (tmp_path / "bode.png").stat().st_size > 10000 and not target.exists()
+    assert f"Bode plot written to {target}.png" in err
+
+
+def test_model_plot_pdf_and_bad_suffix(tmp_path, capsys):
+    assert main(["model", "--plot", str(tmp_path / "bode.pdf")]) == 0
+    assert (tmp_path / "bode.pdf").read_bytes()[:4] == b"%PDF"
+    capsys.readouterr()
+    assert main(["model", "--plot", str(tmp_path / "bode.txt")]) == 2
+    _one_line_error(capsys, "--plot", ".png, .pdf, .svg")
+    assert main(["model", "--plot", str(tmp_path)]) == 2            # a folder
+    _one_line_error(capsys, "--plot", "(a folder)")
+
+
+# ---- outputs are never overwritten without --overwrite ------------------------------------------------------
+FILE_OUTPUTS = [
+    (["run", "--sim-time", "--seconds", "0.1", "--quiet", "--record"], "--record"),
+    (["bench", "loop", "--seconds", "0.1", "--no-realtime", "--record"], "--record"),
+    (["hil", "--seconds", "1", "--record"], "--record"),
+    (["chirp", "--duration", "0.5", "--out"], "--out"),
+    (["model", "--plot"], "--plot"),
+]
+FOLDER_OUTPUTS = [
+    (["demo", "--seconds", "1", "--out"], "--out"),
+    (["design", "--out"], "--out"),
+    (["identify", "missing.h5", "--out"], "--out"),
+    (["diagnose", "missing.h5", "--out"], "--out"),
+    (["prove", "--n", "1", "--out"], "--out"),
+]
+
+
+@pytest.mark.parametrize("argv, option", FILE_OUTPUTS)
+def test_existing_output_file_is_not_overwritten(tmp_path, monkeypatch, capsys, argv, option):
+    monkeypatch.chdir(tmp_path)
+    f = tmp_path / ("old.png" if option == "--plot" else "old.h5")
+    f.write_bytes(b"yesterday")
+    t0 = time.monotonic()
+    assert main(argv + [str(f)]) == 2
+    assert time.monotonic() - t0 < 10                       # before anything started
+    line = _one_line_error(capsys, f"{option} {f}", "exists", "--overwrite")
+    assert line.startswith(f"rig {argv[0]}: error:")
+    assert f.read_bytes() == b"yesterday"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f.name]
+
+
+@pytest.mark.parametrize("argv, option", FOLDER_OUTPUTS)
+def test_output_folder_with_files_is_not_written_into(tmp_path, monkeypatch, capsys, argv, option):
+    monkeypatch.chdir(tmp_path)
+    d = tmp_path / "out"
+    d.mkdir()
+    (d / "notes.md").write_text("mine")
+    assert main(argv + [str(d)]) == 2
+    _one_line_error(capsys, f"{option} {d}", "not empty", "--overwrite")
+    assert [p.name for p in d.iterdir()] == ["notes.md"]
+
+
+def test_overwrite_replaces_a_recording_after_a_run(tmp_path, capsys):
+    rec = tmp_path / "run.h5"
+    rec.write_bytes(b"old")
+    assert main(["run", "--sim-time", "--seconds", "0.2", "--quiet", "--record", str(rec), "--overwrite"]) == 0
+    from rig.recorder import read_recording
+    d = read_recording(rec)
+    assert d["attrs"]["complete"] and len(d["time_s"]) >= 900
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]       # no partial file left
+
+
+def test_overwrite_into_a_folder_keeps_other_files(tmp_path, capsys):
+    d = tmp_path / "out"
+    d.mkdir()
+    (d / "notes.md").write_text("mine")
+    assert main(["demo", "--seconds", "1", "--settle", "0.2", "--out", str(d), "--overwrite"]) == 0
+    assert (d / "notes.md").read_text() == "mine"
+    assert json.loads((d / "demo.json").read_text())["loop"]["periods"] > 0
+
+
+def test_demo_rms_option_keeps_the_spectrum(capsys):
+    """Found by the campaign: `rig demo --rms-um 1` rebuilt [vibration] positionally, the seed landed in the
+    spectrum field, and the floor model raised a ValueError (a traceback)."""
+    assert main(["demo", "--rms-um", "1", "--seconds", "0.5", "--settle", "0.1"]) == 0
+    out = capsys.readouterr().out
+    floor_um = float(out.split("rig demo: floor ")[1].split(" um")[0])
+    assert 0.5 < floor_um < 1.5                                  # the level asked for, not the default 3 um
+
+
+@pytest.mark.parametrize("argv", [["bench", "loop", "--no-realtime", "--seconds", "4.577290772920443e-59"],
+                                  ["bench", "sim", "--repeats", "1", "--seconds", "1e-9"]])
+def test_benchmark_shorter_than_ten_periods_is_refused(capsys, argv):
+    """Found by the campaign: a benchmark of (next to) no periods ended in a ValueError or IndexError from an
+    empty array's percentiles."""
+    assert main(argv) == 2
+    _one_line_error(capsys, "--seconds", "at least 10 periods")
