@@ -52,7 +52,12 @@ def _longest(mask: np.ndarray) -> tuple[int, int]:
 def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     """The report of one recording as JSON-ready values (RecordingError for a file that is not a loop
     recording, one line naming the file and what is missing)."""
-    r = read_recording(path)
+    if not Path(path).is_file():
+        raise RecordingError(f"{path}: no such recording (expected the HDF5 file of rig run --record or rig hil)")
+    try:
+        r = read_recording(path)
+    except RecordingError as e:                     # h5py's reasons run over several lines: the first says it
+        raise RecordingError(str(e).splitlines()[0]) from None
     for key in ("time_s", "accel_mps2", "lifecycle_state", "isolation_on"):
         if key not in r:
             raise RecordingError(f"{path}: no {key} dataset (expected a recording of rig run or rig hil)")

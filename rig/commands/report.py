@@ -10,23 +10,21 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
-from rig import report
+from rig import cliargs, report
 from rig.errors import RigError
 
 
 def add_arguments(p) -> None:
     p.add_argument("recording", metavar="REC", help="HDF5 recording of rig run --record or rig hil")
-    p.add_argument("--settle", type=float, default=1.0, metavar="S",
+    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=60), default=1.0, metavar="S",
                    help="seconds left out at the start of each mode (switching fade; default 1)")
-    p.add_argument("--out", metavar="DIR", type=Path, default=None, help="write report.png and report.json")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write report.png and report.json to DIR")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
 def run(args) -> int:
-    if not 0 <= args.settle <= 60:
-        raise RigError(f"--settle: expected 0 to 60 s, got {args.settle}")
     rep = report.vc_of_recording(args.recording, settle_s=args.settle)
     for mode, why in rep["skipped_modes"].items():
         print(f"rig report: {mode}: too short for a VC report ({why})", file=sys.stderr)

@@ -71,5 +71,9 @@ def test_not_a_loop_recording_is_one_line(tmp_path, capsys):
     assert main(["report", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"rig report: error: {bad}: no accel_mps2 dataset (expected a recording of rig run or rig hil)"]
-    with pytest.raises(RecordingError, match="cannot open recording"):
+    with pytest.raises(RecordingError, match="no such recording"):
         report.vc_of_recording(tmp_path / "missing.h5")
+    (tmp_path / "text.h5").write_text("not HDF5")
+    with pytest.raises(RecordingError, match="cannot open recording") as e:
+        report.vc_of_recording(tmp_path / "text.h5")
+    assert "\n" not in str(e.value)
