@@ -195,25 +195,22 @@ def _print(res: dict, v) -> None:
         print(f"plant: actuator {p['model_error_pct']:g} % off the controllers' model ({fac}; {p['chosen']})")
     else:
         print(f"plant: {p['chosen']}")
-    head = "".join(f"{LABELS[m]:>26s}" for m in MODES)
-    print(f"{'':26s}{head}")
+    w = 26
 
+    def row(label, cells):
+        print(f"{label:28s}" + "".join(f"{c:>{w}s}" for c in cells))
+    row("", [LABELS[m] for m in MODES])
     for key, lab in (("table", "table Y rms"), ("tool", "tool point Y rms")):
         r = res[f"{key}_rms_um"]
-        print(f"{lab + ' (1-100 Hz)':26s}" + "".join(
-            f"{r[m + '_1_100hz']:13.3f} um" + (f" {res['reduction_db'][key + '_1_100hz'][m]:6.1f} dB" if m != "off"
-                                               else " " * 10) for m in MODES))
-        print(f"{lab:26s}" + "".join(
-            f"{r[m]:13.3f} um" + (f" {res['reduction_db'][key][m]:6.1f} dB" if m != "off" else " " * 10)
-            for m in MODES))
-    print(f"{'VC class, table':26s}" + "".join(f"{res['vc_class'][m]:>26s}" for m in MODES))
-    print(f"{'VC class, tool point':26s}" + "".join(f"{res['vc_class_tool'][m]:>26s}" for m in MODES))
-    print(f"{'max band amplification':26s}{'':26s}" + "".join(
-        f"{res['max_band_amplification_db'][m]:20.1f} dB   " for m in MODES[1:]))
-    print(f"{'valve command rms':26s}" + "".join(f"{res['valve_rms_V'][m]:14.3f} V{'':10s}" for m in MODES))
-    print(f"{'periods at valve limit':26s}" + "".join(
-        f"{100 * res['valve_limited_fraction'][m]:14.1f} %{'':10s}" for m in MODES))
-    print(f"{'max |stroke|':26s}" + "".join(f"{res['max_abs_stroke_um'][m]:13.1f} um{'':10s}" for m in MODES))
+        for suffix, band in (("_1_100hz", " (1-100 Hz)"), ("", "")):
+            row(lab + band, [f"{r[m + suffix]:.3f} um" + (f" ({res['reduction_db'][key + suffix][m]:.1f} dB)"
+                                                          if m != "off" else "") for m in MODES])
+    row("VC class, table", [res["vc_class"][m] for m in MODES])
+    row("VC class, tool point", [res["vc_class_tool"][m] for m in MODES])
+    row("max band amplification", [""] + [f"{res['max_band_amplification_db'][m]:.1f} dB" for m in MODES[1:]])
+    row("valve command rms", [f"{res['valve_rms_V'][m]:.3f} V" for m in MODES])
+    row("periods at valve limit", [f"{100 * res['valve_limited_fraction'][m]:.1f} %" for m in MODES])
+    row("max |stroke|", [f"{res['max_abs_stroke_um'][m]:.1f} um" for m in MODES])
     worst = max(res["valve_limited_fraction"].values())
     if worst > 0.01:
         print(f"note: the valve was at its limit in {100 * worst:.1f} % of the periods of a mode (the loop is "
