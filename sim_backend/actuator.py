@@ -262,6 +262,9 @@ class StandPlant:
         self.position_m = self._noisy_pos(0.0)
         self.accel_mps2 = 0.0
         self.t_s = 0.0
+        # compile (or load) the step now: a first compile inside a running loop stalls it past its watchdog
+        _advance_stand(np.zeros(7), 0, np.zeros_like(self.hist), self.fs, 1, fx.delay_s, p.K_v, 0.0, self.prm,
+                       0.0, 0.0, 0.0, np.zeros(2), np.zeros((5, 7)))
 
     def _noisy_pos(self, x):
         return x + (self.fx.position_noise_m * self.rng.standard_normal() if self.fx.position_noise_m else 0.0)

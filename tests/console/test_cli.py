@@ -84,7 +84,10 @@ def test_chirp_identification_from_the_page(chromium, tmp_path):
         while page.locator("#ident-table").count() == 0 and time.monotonic() < end:
             progress.append((page.text_content("#chirp-text"), page.evaluate("+document.getElementById("
                                                                              "'chirp-progress').value")))
+            if progress[-1][0].startswith("failed"):
+                break
             time.sleep(0.2)
+        assert page.locator("#ident-table").count(), f"no identification: {progress[-1][0]!r}\n{''.join(lines)}"
         table = page.locator("#ident-table").inner_text()
         wait_for(page, "rigStats.lastNow && rigStats.lastNow.state === 'ACTIVE'", 60)   # the run resumed
         page.click("#safe-stop")
