@@ -180,9 +180,9 @@ class FeedforwardFilter:
 
 @numba.njit(cache=True)
 def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_floor_mps2: float) -> float:
-    """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain, which moves towards the
-    switch request (0 or 1) with factor `fade` per period. Compiled (numba): the runtime's period
-    (rig/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
+    """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain,
+    which moves towards the switch request (0 or 1) with factor `fade` per period. Compiled (numba): the runtime's
+    period (rig/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
     n = coef.shape[0] // 5
     o = 2 * n
     y, _, _ = sections_step(state, coef, 0, 0, n, accel_floor_mps2)

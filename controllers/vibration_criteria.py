@@ -4,8 +4,9 @@ criteria users judge isolation by (Ungar & Gordon; IEST-RP-CC012), and the class
 - Bands: base-10 one-third octaves (IEC 61260), exact centres 10^(n/10) Hz, edges centre x 10^(+-1/20),
   labelled by their nominal centres (1, 1.25, 1.6, 2, 2.5, 3.15, 4, 5, 6.3, 8, 10, ..., 80, 100 Hz).
 - Band rms velocity: the Welch PSD of the velocity (Hann window, linear detrend; a displacement record is
-  differentiated in the frequency domain, |V| = 2 pi f |X|, an acceleration record integrated, |V| = |A| /
-  (2 pi f)) integrated over the frequency bins whose centre falls in the band. Brick-wall bands, so a sine at a band's centre gives exactly its rms in that band.
+  differentiated in the frequency domain, |V| = 2 pi f |X|, an acceleration record integrated,
+  |V| = |A| / (2 pi f)) integrated over the frequency bins whose centre falls in the band. Brick-wall bands, so
+  a sine at a band's centre gives exactly its rms in that band.
 - Criteria (rms velocity per one-third octave band):
     ISO lines (ISO 2631-2 base curve for vertical vibration, times 1 / 2 / 4 / 8 for operating theatre /
     residential (day) / office / workshop): 100 um/s from 8 Hz up; below 8 Hz constant acceleration

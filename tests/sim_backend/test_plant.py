@@ -224,8 +224,9 @@ def _floor_run(cfg, n, dt, **kw):
 
 def test_floor_accelerometer_reads_the_floor_acceleration_with_its_own_noise():
     """[sensors] floor_accel: the floor accelerometer at each mount reads the second derivative of the floor
-    motion there, in step with it (a fourth-order stencil agrees within 0.5 % rms), plus white noise of its configured density from a
-    generator of its own: fitting the sensors changes nothing else the plant computes."""
+    motion there, in step with it (a fourth-order stencil agrees within 0.5 % rms), plus white noise of its
+    configured density from a generator of its own: fitting the sensors changes nothing else the plant
+    computes."""
     import dataclasses
     dt, n = 1 / 5000, 1 << 15
     base = Config()
