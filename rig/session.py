@@ -24,8 +24,9 @@ from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from rig.backends import make_port
 from rig.clock import MonotonicClock
-from rig.config import Config, mount_names
+from rig.config import MOUNTS, Config, mount_names
 from rig.errors import ConfigError
+from rig.kernel import period_entry
 from rig.loop import Loop
 from rig.recorder import Recorder
 from rig.rt import enter_realtime, leave_realtime
@@ -80,6 +81,9 @@ class Session:
         try:
             if self._signals:
                 self._install_signals(stack)
+            # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
+            # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
+            period_entry(len(MOUNTS), bool(self.cfg.sensors.floor_accel))
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             ctrls = self._controllers
