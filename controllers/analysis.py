@@ -228,6 +228,56 @@ def is_stable(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay: int = 1) -> tu
     return ok_fast and ok_slow, z
 
 
+def unstable_loops(cfg, ctrls, dt: float, delay: int = 1) -> list[str]:
+    """What `rig design` would call unstable, from the closed-loop poles alone (no frequency grid: about 0.2 s
+    for the four SISO loops and the MIMO one): each mount's loop closed alone (the paper's SISO view) and all
+    four together. Empty when all are stable; otherwise one entry per unstable view with its largest |z| and
+    that pole's frequency."""
+    rig = DiscreteRig(cfg, dt, f_hz=np.array([1.0]))
+    ctrls = _same_models_once(ctrls)
+    out = []
+    views = [(MOUNTS[i], [ctrls[i]] * len(MOUNTS), (i,)) for i in range(len(ctrls))] + \
+        [("all four loops (MIMO)", ctrls, tuple(range(len(ctrls))))]
+    for name, cs, loops in views:
+        ok, z = is_stable(rig, cs, loops=loops, delay=delay)
+        if not ok:
+            k = int(np.argmax(np.abs(z)))
+            f = abs(np.angle(z[k])) / (2 * np.pi * dt)
+            out.append(f"{name}: pole |z| = {abs(z[k]):.3f} at {f:.0f} Hz")
+    return out
+
+
+class _Models:
+    """A controller's state-space models (ss, css), computed once and shared by controllers of equal
+    parameters (the four mounts usually are): the continuous twin costs most of a stability check."""
+
+    def __init__(self, ctrl) -> None:
+        self.ctrl = ctrl
+        self._ss = self._css = None
+
+    def ss(self):
+        if self._ss is None:
+            self._ss = self.ctrl.ss()
+        return self._ss
+
+    def css(self):
+        if self._css is None:
+            self._css = self.ctrl.css()
+        return self._css
+
+
+def _same_models_once(ctrls) -> list:
+    by_params: dict = {}
+    out = []
+    for c in ctrls:
+        key = (type(c), getattr(c, "p", id(c)), getattr(c, "dt", None), getattr(c, "compensator", None))
+        try:
+            out.append(by_params.setdefault(key, _Models(c)))
+        except TypeError:                 # unhashable parameters: no sharing
+            out.append(_Models(c))
+    return out
+
+
 def floor_accel(rig: DiscreteRig) -> np.ndarray:
     """What a floor accelerometer at a mount reads per metre of floor motion there: -w^2 (the floor moves
     continuously, so its sampled acceleration follows exactly for a sinusoid)."""

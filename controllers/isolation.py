@@ -62,7 +62,7 @@ from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
 from controllers.limits import clamp, slew
 from controllers.state import step_law
-from rig.config import MOUNTS, ControllerConfig, SafetyConfig
+from rig.config import ControllerConfig, SafetyConfig, layout_mounts
 from sim_backend.linear import ActuatorParams
 
 KIND = 1                      # rig/kernel.py dispatches on it
@@ -234,6 +234,17 @@ class IsolationController:
             state[o + _I] = 0.0
             state[o + _ON] = 0.0
         return state
+
+    def take_over(self, state, u_V: float) -> list:
+        """Isolation on, taking the valve from a command u_V (another controller's) without a jump: the
+        centring integral takes over u_V (held while isolating), the fading offset the isolation term."""
+        st = list(state)
+        o = self._o
+        st[o + _ON], st[o + _SUS], st[o + _K], st[o + _I] = 1.0, 0.0, 0.0, 0.0
+        st[o + _C] = -u_V
+        st[o + _B] = self.kp * st[o + _V]
+        st[o + _U] = u_V
+        return st
 
     def enabled(self, state: list) -> bool:
         return state[self._o + _ON] > 0.5
@@ -410,6 +421,7 @@ def _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp):
 
 
 def make_isolation_controllers(cfg, dt: float, *, compensator: bool = True) -> list[IsolationController]:
-    """One controller per mount, rig.config.MOUNTS order, from cfg.controller (the runtime's entry point)."""
+    """One controller per mount of the layout (rig.config.layout_mounts: MOUNTS order on the machine), from
+    cfg.controller (the runtime's entry point)."""
     return [IsolationController(params_from_config(cfg, i), dt, compensator=compensator, name=m)
-            for i, m in enumerate(MOUNTS)]
+            for i, m in enumerate(layout_mounts(cfg))]

@@ -17,10 +17,12 @@ from rig.errors import DeviceError
 
 class DisplacementAmplifier(TriggeredPoller):
     def __init__(self, *, port: str, baud: int, names: list[str], stale_s: float, poll_s: float,
-                 reply_timeout_s: float = 0.01, priority: int = 0, keep_latency: int = 1 << 16):
+                 reply_timeout_s: float = 0.01, priority: int = 0, keep_latency: int = 1 << 16,
+                 channels: list[int] | None = None):
         self.path = port
         self.baud = baud
         self.names = list(names)
+        self.channels = list(range(len(names))) if channels is None else list(channels)   # 0-based, per name
         self.stale_ns = int(stale_s * 1e9)
         self.poll_ns = int(poll_s * 1e9)
         self.priority = priority
@@ -112,7 +114,8 @@ class DisplacementAmplifier(TriggeredPoller):
             if f.seq != self._seq:
                 self._seq = f.seq
                 self.asked_ns = 0
-                self.sample = (f.position_m, t1, f.status)
+                ch = self.channels
+                self.sample = (tuple(f.position_m[c] for c in ch), t1, tuple(f.status[c] for c in ch))
         elif f.kind == "E":
             self.device_error = ",".join(f.fields)
 
@@ -122,7 +125,7 @@ class DisplacementAmplifier(TriggeredPoller):
             return f"{self.where}: amplifier reports error {self.device_error}"
         for i, st in enumerate(status):
             if st != "OK":
-                return f"{self.where} ch{i + 1} ({self.names[i]}): {proto.STATUS_TEXT.get(st, st)}"
+                return f"{self.where} ch{self.channels[i] + 1} ({self.names[i]}): {proto.STATUS_TEXT.get(st, st)}"
         asked = self.asked_ns
         if asked and now_ns - asked > self.stale_ns:        # asked, and no new sample for too long
             why = self.last_error or "sequence number not advancing (frozen amplifier)"

@@ -6,13 +6,21 @@
 
 Every factory is factory(cfg, *, dt, clock, **options) -> a rig.port.Port; construction touches no device,
 open() does the slow set-up. Adding a backend: write its factory and add one line to BACKENDS.
+
+`devices(cfg, name)` names the physical devices a backend drives (one lock each, rig/lock.py: one process
+per rig); the sim and hil backends drive devices of their own, made for the run, and share none.
+`default_config(name)` is the configuration a backend runs without --config (hil: its own design, at the HIL
+rate).
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
+import os
+from pathlib import Path
 
-from rig.config import MOUNTS
+from rig.config import layout_mounts
 from rig.errors import ConfigError
 
 BACKENDS = {
@@ -20,6 +28,25 @@ BACKENDS = {
     "hil": "rig.backends:make_hil_port",
     "hardware": "rig.backends:_hardware",
 }
+
+
+def default_config(name: str) -> Path | None:
+    """The configuration file of backend `name` when none is given (None: the Table 1 defaults). hil: the
+    HIL rate and the isolation controller designed for it (drivers/devicemaps/hil.toml,
+    controllers/tune_hil.py)."""
+    if name != "hil":
+        return None
+    spec = importlib.util.find_spec("drivers")           # located, not imported (no hardware library loads)
+    return Path(spec.origin).resolve().parent / "devicemaps" / "hil.toml"
+
+
+def devices(cfg, name: str) -> tuple[str, ...]:
+    """The physical devices backend `name` drives under cfg, as lock names (none for sim and hil)."""
+    if name != "hardware":
+        return ()
+    d = cfg.drivers
+    return (f"can-{d.can_interface}-{d.can_channel}", f"modbus-{d.modbus_host}-{d.modbus_port}",
+            f"serial-{os.path.realpath(d.serial_port)}")
 
 
 def make_port(cfg, name: str, *, dt: float | None = None, clock=None, **options):
@@ -49,9 +76,12 @@ def _hardware(cfg, *, dt: float | None = None, clock=None):
 def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale_s: float | None = None,
                   serial_stale_s: float | None = None, poll_s: float | None = None, priority: int | None = None):
     """The drivers against a freshly started emulated rig (the port's `.rig`; stopped by port.close()).
-    plant: default the four-mount RigPlant under the configured floor vibration, stepped at the loop period.
-    The emulated module converts at each plant step (each SYNC), so the port is sample-driven."""
+    plant: default the layout's, stepped at the loop period: the four-mount RigPlant under the configured floor
+    vibration, or on the stand layout the actuators on their stands (the prototype: one) on the floor of
+    [stand] base_motion_rms_m. The emulated module converts at each plant step (each SYNC), so the port is
+    sample-driven."""
     from drivers import build_driver_port
+    from sim_backend.backend import stand_bank
     from sim_backend.emulators.rig import EmulatedRig
     from sim_backend.rig_plant import FloorMotion, RigPlant
     if dt is None and cfg.loop.rate_hz > cfg.hil.rate_hz:
@@ -59,11 +89,13 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
             "hil: loop.rate_hz %g Hz is above hil.rate_hz %g Hz: expect overruns and late samples (the HIL "
             "configuration is drivers/devicemaps/hil.toml)", cfg.loop.rate_hz, cfg.hil.rate_hz)
     dt = dt if dt is not None else 1.0 / cfg.loop.rate_hz
-    if plant is None:
+    if plant is None and cfg.layout.plant == "stand":
+        plant = stand_bank(cfg, dt)
+    elif plant is None:
         plant = RigPlant(cfg, dt, floor=FloorMotion.from_config(cfg, dt), seed=cfg.vibration.seed)
     d = cfg.drivers
     emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
-                      node_ids=[d.valve_node_id_base + i for i in range(len(MOUNTS))],
+                      node_ids=[d.valve_node_id_base + i for i in range(len(layout_mounts(cfg)))],
                       priority=cfg.hil.device_priority if priority is None else priority,
                       floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels).start()
     try:

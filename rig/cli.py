@@ -7,6 +7,7 @@ import sys
 
 from rig.cliargs import ArgumentParser, check_outputs
 from rig.errors import RigError
+from rig.signals import hold_early
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
 COMMANDS = {
@@ -21,6 +22,7 @@ COMMANDS = {
     "diagnose": ("rig.commands.diagnose", "find and model the physics a recording shows but the model lacks"),
     "prove": ("rig.commands.prove", "blind proof of diagnosis on simulated or given recordings"),
     "report": ("rig.commands.report", "vibration-criterion (VC) report of a run recording, per isolation mode"),
+    "drill": ("rig.commands.drill", "fault drill: each fault rehearsed, what the rig does, time to FAULT"),
 }
 
 
@@ -30,14 +32,16 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
+        mod = importlib.import_module(module) if only is None or only == name else None
         p.add_argument("--config", metavar="FILE", default=None,
-                       help="TOML configuration (default: the paper's Table 1 values)")
-        if only is None or only == name:
-            importlib.import_module(module).add_arguments(p)
+                       help=getattr(mod, "CONFIG_HELP", "TOML configuration (default: the paper's Table 1 values)"))
+        if mod is not None:
+            mod.add_arguments(p)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal (rig/signals.py)
     argv = sys.argv[1:] if argv is None else argv
     # Import only the module of the command asked for (hardware libraries stay unloaded otherwise).
     only = next((a for a in argv if a in COMMANDS), None)

@@ -18,6 +18,8 @@ from pathlib import Path
 from rig.errors import ConfigError
 
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
+MAX_MOUNTS = 8                 # the period kernel's limit (rig/kernel.py)
+PLANTS = ("machine", "stand")
 
 
 def mount_names(n: int) -> tuple[str, ...]:
@@ -33,6 +35,16 @@ def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None, n=
 
 
 SEED_MAX = 2 ** 32 - 1                      # numpy seeds are unsigned
+
+
+@dataclass(frozen=True)
+class LayoutConfig:
+    """What the mounts stand on. "machine": the flexible machine of [machine] on its four mounts (Eq. 15,
+    Table 2). "stand": each mount an actuator alone on its test stand with its load; the prototype of the
+    paper's Fig. 2 is one such mount (drivers/devicemaps/prototype.toml). Any count from 1 to MAX_MOUNTS."""
+    plant: str = _f("machine", "", choices=PLANTS)
+    mounts: tuple[str, ...] = _f((), "")        # mount names (default: MOUNTS for the machine, stand for a stand)
+    load_kg: float = _f(0.0, "kg", ge=0, le=1e6)   # stand: mass carried on the piston beyond actuator.M
 
 
 @dataclass(frozen=True)
@@ -99,6 +111,18 @@ class SafetyConfig:
     stuck_samples: int = _f(250, "", gt=1, le=10000000)         # same value over this many new samples = stuck
     watchdog_s: float = _f(0.05, "s", gt=0, le=10)              # loop silent for longer = fault, valve to null
     saturation_s: float = _f(1.0, "s", gt=0, le=3600)           # command at the clamp this long = not in control
+    # the loop's timing (rig/scheduler.py): how far behind real time it may run, the share of deadlines it may
+    # miss over a window, and the share of its period one period's work may take (measured over the first
+    # periods at start-up: above it the rate is refused)
+    lag_limit_s: float = _f(0.05, "s", gt=0, le=10)      # period deadline this far behind real time = fault
+    missed_limit: float = _f(0.5, "", gt=0, le=1)        # missed deadlines over missed_window_s = fault
+    missed_window_s: float = _f(1.0, "s", gt=0, le=60)
+    period_budget: float = _f(0.5, "", gt=0, le=1)       # a period's work (p50) / the period, at start-up
+    # limit cycle in the valve command (rig/safety.py check_oscillation): the command swinging between
+    # +-oscillation_level * valve_limit_V at oscillation_hz or faster, over oscillation_window_s
+    oscillation_level: float = _f(0.5, "", gt=0, le=1)
+    oscillation_hz: float = _f(30.0, "Hz", gt=0)
+    oscillation_window_s: float = _f(0.1, "s", gt=0, le=1)
 
 
 @dataclass(frozen=True)
@@ -159,6 +183,7 @@ class HilConfig:
     # limit and the loop watchdog of HIL runs sit above such stalls (the hardware keeps [safety] watchdog_s = 50 ms)
     stale_s: float = _f(0.1, "s", gt=0, le=10)           # staleness limit of HIL runs (drivers and safety)
     watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
+    lag_limit_s: float = _f(0.1, "s", gt=0, le=10)       # lag limit of HIL runs (safety.lag_limit_s)
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
     device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
 
@@ -179,6 +204,8 @@ class StandConfig:
     position_noise_m: float = _f(2e-8, "m", ge=0, le=1e-3)     # transducer noise, rms
     accel_noise_mps2: float = _f(2e-4, "m/s^2", ge=0, le=100)  # accelerometer noise, rms
     seed: int = _f(0, "", ge=0, le=SEED_MAX)
+    base_motion_rms_m: float = _f(0.0, "m", ge=0, le=1e-3)     # base_motion: the floor under the stand (band,
+                                                               # spectrum, seed of [vibration]); rig run only
 
 
 @dataclass(frozen=True)
@@ -216,11 +243,22 @@ class ControllerConfig:
     sat_resume_s: float = _f(0.5, "s", gt=0, le=60)     # suspended: resume after the estimate is settled this long
     # per-mount multiplier on kp (MOUNTS order): a correction between mounts, not a sign change or an off switch
     gain_trim: tuple[float, ...] = _f((1.0, 1.0, 1.0, 1.0), "", gt=0, le=10, n=len(MOUNTS))
-    track_kp_V_per_m: float = _f(1.81e6, "V/m", ge=0, le=1e10)     # actuator reference-tracking PID (paper Fig. 4):
-    track_ki_V_per_ms: float = _f(8.46e7, "V/(m s)", ge=0, le=1e13)  # Ki/Kp at the actuator lag corner, ~95 Hz
-    track_kd_Vs_per_m: float = _f(5.43e3, "V s/m", ge=0, le=1e8)     # bandwidth (controllers/tracking.py)
+    # actuator reference-tracking PID (paper Fig. 4): Ki/Kp at the actuator lag corner, 100 Hz bandwidth with
+    # GM >= 6 dB and PM >= 45 deg, the least transducer noise in the command (controllers/tracking.py
+    # tune_tracking at 5 kHz, one period of delay)
+    track_kp_V_per_m: float = _f(2.24e6, "V/m", ge=0, le=1e10)
+    track_ki_V_per_ms: float = _f(1.044e8, "V/(m s)", ge=0, le=1e13)
+    track_kd_Vs_per_m: float = _f(3.83e3, "V s/m", ge=0, le=1e8)
     # derivative filter corner; Tustin without prewarp squeezes a corner above Nyquist below it (stable)
-    track_deriv_hz: float = _f(1000.0, "Hz", gt=0, le=1e6, nyquist=False)
+    track_deriv_hz: float = _f(250.0, "Hz", gt=0, le=1e6, nyquist=False)
+    # the reference (controllers/tracking.py): feedforward through the actuator's inverse, previewed over the
+    # valve's and the loop's delays; rate limit; what share of the clamp a reference may ask for; profile length
+    track_ff: float = _f(1.0, "", ge=0, le=1)              # feedforward gain (0 = the PID alone, Fig. 4)
+    track_delay_periods: int = _f(1, "", ge=0, le=16)      # loop delay beyond the ZOH (sim/hardware 1)
+    track_rate_m_per_s: float = _f(5e-4, "m/s", gt=0, le=1.0)      # reference rate limit (setpoint ramps)
+    track_accel_m_per_s2: float = _f(0.03, "m/s^2", gt=0, le=1e3)  # and its acceleration limit (smooth moves)
+    track_headroom: float = _f(0.9, "", gt=0, le=1)        # share of valve_limit_V a reference may need
+    track_profile_s: float = _f(60.0, "s", gt=0, le=3600)  # longest CSV profile (its table is allocated once)
 
 
 @dataclass(frozen=True)
@@ -266,6 +304,7 @@ class Config:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     plant_error: PlantErrorConfig = field(default_factory=PlantErrorConfig)
+    layout: LayoutConfig = field(default_factory=LayoutConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
     def replace(self, **sections) -> "Config":
@@ -293,6 +332,10 @@ def _check_value(where: str, name: str, ftype, meta, value):
     elif origin is tuple and typing.get_args(ftype)[:1] == (int,):
         if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
             raise ConfigError(f"{where}.{name}: expected a list of integers, got {value!r}")
+        value = tuple(value)
+    elif origin in (list, tuple) and typing.get_args(ftype)[:1] == (str,):
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{where}.{name}: expected a list of names, got {value!r}")
         value = tuple(value)
     elif origin in (list, tuple) or ftype in ("list[float]", "tuple[float, ...]"):
         if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -366,6 +409,7 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= safety.stroke_range_m "
                           f"({cfg.safety.stroke_range_m} m), got {cfg.safety.stroke_limit_m}")
     check_nyquist(cfg, cfg.loop.rate_hz)
+    _check_layout(cfg)
     if cfg.machine.modal_model:
         p = Path(cfg.machine.modal_model)
         if not p.is_absolute() and cfg.source not in ("<defaults: Table 1>", "<dict>"):
@@ -388,7 +432,30 @@ def _check_sensors(cfg: Config) -> None:
                           f"got {s.floor_range_mps2}")
 
 
-NYQUIST_SECTIONS = ("controller", "vibration", "stand")
+def _check_layout(cfg: Config) -> None:
+    lay = cfg.layout
+    names = lay.mounts
+    where = f"{cfg.source}: layout.mounts"
+    if lay.plant == "machine" and names and tuple(names) != MOUNTS:
+        raise ConfigError(f"{where}: the machine stands on the four mounts of its modal model "
+                          f"({', '.join(MOUNTS)}), got {list(names)}")
+    if names and not 1 <= len(names) <= MAX_MOUNTS:
+        raise ConfigError(f"{where}: expected 1 to {MAX_MOUNTS} names, got {len(names)}")
+    bad = [m for m in names if not m or not m.replace("_", "").isalnum()]
+    if bad:
+        raise ConfigError(f"{where}: expected names of letters, digits and _, got {bad[0]!r}")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: a name appears twice in {list(names)}")
+
+
+def layout_mounts(cfg: Config) -> tuple[str, ...]:
+    """The mount names of the configured layout: [layout] mounts, else the machine's four or one stand."""
+    if cfg.layout.mounts:
+        return tuple(cfg.layout.mounts)
+    return MOUNTS if cfg.layout.plant == "machine" else ("stand",)
+
+
+NYQUIST_SECTIONS = ("controller", "vibration", "stand", "safety")
 F_MIN_HZ = 1e-3          # a slower "frequency" (a period over 15 min) is a constant within any run
 
 
@@ -432,13 +499,13 @@ def load_config(path: str | Path | None) -> Config:
 
 def hil_run_config(cfg: Config, rate_hz: float | None = None) -> Config:
     """The config of a run against the emulated rig: the loop at rate_hz (default [hil] rate_hz), the safety
-    checks with the [hil] staleness limit and watchdog."""
+    checks with the [hil] staleness limit, watchdog and lag limit."""
     rate = float(rate_hz or cfg.hil.rate_hz)
     # the emulated floor runs at the HIL rate too
     check_nyquist(cfg, rate, sections=("vibration",), rate_source=f"the HIL loop at {rate:g} Hz")
     return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=rate),
                        safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s,
-                                                  watchdog_s=cfg.hil.watchdog_s))
+                                                  watchdog_s=cfg.hil.watchdog_s, lag_limit_s=cfg.hil.lag_limit_s))
 
 
 def modal_model_path(cfg: Config) -> Path | None:

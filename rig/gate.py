@@ -5,10 +5,13 @@ with cold filters under floor motion can kick the loop into a latched saturation
 commands; FAULT writes nothing after port.safe_state(). Requests (activation, isolation on/off, stop) are
 thread- and signal-safe: they are single assignments, applied at the next period boundary. On activation
 the controllers switch isolation on their own bumpless way and the limiter ramps from the null the valve
-held, so (re-)activation never jumps.
+held, so (re-)activation never jumps. Operating-mode requests (a mount's mode and reference, controllers/
+modes.py) are applied the same way, each mount's latest one, and so are timed requests (`schedule`: a script
+of requests at given loop times, applied at the first period boundary at or after their time).
 
-The isolation mode: off, feedback, or feedback_feedforward (the floor feedforward added, when the loop has it).
-`isolation` and `feedforward` are the two switches behind it; the feedforward acts only while isolation is on.
+The isolation mode (not an operating mode): off, feedback, or feedback_feedforward (the floor feedforward
+added, when the loop has it). `isolation` and `feedforward` are the two switches behind it; the feedforward
+acts only while isolation is on.
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ from rig.port import Commands
 
 log = logging.getLogger("rig.loop")
 
-MODES = ("off", "feedback", "feedback_feedforward")
+ISOLATION_MODES = ("off", "feedback", "feedback_feedforward")
 
 
 class LifecycleGate:
@@ -43,6 +46,9 @@ class LifecycleGate:
         self._recorder_request = None        # (recorder,) to record into from the next period
         self.bind_recorder = None            # set by the loop: where a recorder request goes
         self._null = Commands([0.0] * kernel.n)
+        self._mode_requests: dict = {}       # mount index -> its latest operating-mode request
+        self._script: list = []              # (loop time s, action), time order
+        self.loop_time_s = lambda: 0.0       # set by the loop: the loop time of the period being run
 
     @property
     def state(self) -> State:
@@ -57,11 +63,11 @@ class LifecycleGate:
         self._iso_request = bool(on)
         self.pending = True
 
-    def request_mode(self, mode: str) -> None:
+    def request_isolation_mode(self, mode: str) -> None:
         """off / feedback / feedback_feedforward (ValueError for another word, or feedforward without floor
         sensors): isolation and the feedforward switched together at the next period boundary."""
-        if mode not in MODES:
-            raise ValueError(f"isolation mode {mode!r}: expected one of {', '.join(MODES)}")
+        if mode not in ISOLATION_MODES:
+            raise ValueError(f"isolation mode {mode!r}: expected one of {', '.join(ISOLATION_MODES)}")
         if mode == "feedback_feedforward" and not getattr(self.kernel, "nf", 0):
             raise ValueError("isolation mode feedback_feedforward: the loop has no floor feedforward "
                              "([sensors] floor_accel = false)")
@@ -70,8 +76,9 @@ class LifecycleGate:
         self.pending = True
 
     @property
-    def mode(self) -> str:
-        return MODES[0] if not self.isolation else MODES[2] if self.feedforward else MODES[1]
+    def isolation_mode(self) -> str:
+        M = ISOLATION_MODES
+        return M[0] if not self.isolation else M[2] if self.feedforward else M[1]
 
     def toggle_isolation(self) -> None:
         self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
@@ -80,6 +87,16 @@ class LifecycleGate:
     def request_reset_fault(self) -> None:
         """FAULT -> INACTIVE at the next period boundary (the operator acknowledges the fault)."""
         self._reset_request = True
+        self.pending = True
+
+    def request_mode(self, mount: int, request) -> None:
+        """Mount `mount` to an operating mode (a checked controllers.modes.ModeRequest) at the next boundary."""
+        self._mode_requests = {**self._mode_requests, mount: request}     # one assignment: thread-safe
+        self.pending = True
+
+    def schedule(self, at_s: float, action) -> None:
+        """action() at the first period boundary at or after loop time at_s (before the run: a script)."""
+        self._script = sorted(self._script + [(float(at_s), action)], key=lambda e: e[0])
         self.pending = True
 
     def request_recorder(self, recorder) -> None:
@@ -96,6 +113,11 @@ class LifecycleGate:
         """Pending requests, at the period boundary (one arriving meanwhile waits for the next)."""
         self.pending = False
         lc = self.lc
+        if self._script:
+            now = self.loop_time_s()
+            while self._script and self._script[0][0] <= now + 1e-12:
+                self._script.pop(0)[1]()
+            self.pending = self.pending or bool(self._script)     # keep looking while a script runs
         if self._recorder_request is not None:
             (rec,), self._recorder_request = self._recorder_request, None
             self.bind_recorder(rec)
@@ -109,21 +131,27 @@ class LifecycleGate:
                 self.activate()
             elif not req and lc.state is State.ACTIVE:
                 self.deactivate()
+        if self._mode_requests:
+            reqs, self._mode_requests = self._mode_requests, {}
+            for m, req in reqs.items():
+                self.kernel.switch(m, req, lc.state is State.ACTIVE)
+                self._event(f"{self.kernel.names[m]}: mode {req}")
         if self._iso_request is not None or self._ff_request is not None:
-            before = self.mode
+            before = self.isolation_mode
             on, self._iso_request = self._iso_request, None
             if on is not None and on != self.isolation:
                 self.isolation = on
                 if lc.state is State.ACTIVE:
                     self.kernel.set_enabled(on)
+                log.info("isolation %s", "on" if on else "off")
                 self._event(f"isolation {'on' if on else 'off'}")
             ff, self._ff_request = self._ff_request, None
             if ff is not None:
                 self.feedforward = ff
             self._apply_feedforward()
-            if self.mode != before and self.kernel.nf:
-                log.info("isolation mode %s", self.mode)
-                self._event(f"mode {self.mode}")
+            if self.isolation_mode != before and self.kernel.nf:
+                log.info("isolation mode %s", self.isolation_mode)
+                self._event(f"isolation mode {self.isolation_mode}")
 
     # ---- transitions (the loop's thread) ----------------------------------------------------------------
     def configure(self) -> None:
@@ -136,6 +164,7 @@ class LifecycleGate:
         self.lc.activate()
         self.kernel.set_enabled(self.isolation)
         self._apply_feedforward()
+        self.kernel.activated()
         self.kernel.reset_limiter()
         self._event("ACTIVE")
 

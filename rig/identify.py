@@ -29,9 +29,10 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from rig import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
-from rig.recording import Recording
+from rig.recording import Recording, check_plausible
 from sim_backend.linear import IDENTIFIED, ActuatorParams, g_eha_frf, zoh_delay
 
 # Bounds as ratios to the design value (p0). K_L +-50 % (issue 6); the valve's by realistic ranges for a
@@ -299,6 +300,64 @@ def time_domain_errors(p: ActuatorParams, rec: Recording) -> tuple[float, float,
 
 # ---- the whole identification -------------------------------------------------------------------------
 
+def _uncertainty(J: np.ndarray, sigma: float, prior_sd: float, p: ActuatorParams):
+    """Standard deviations, correlations and the weakly identified parameters from the Jacobian (with the
+    design prior): (std, correlation matrix, relative std of K_C*K_L, weak)."""
+    cov_data, cov_post = _covariances(J, sigma, prior_sd)
+    sd_post = np.sqrt(np.clip(np.diag(cov_post), 0, None))
+    sd_data = np.sqrt(np.clip(np.diag(cov_data), 0, None))
+    std = {k: float(getattr(p, k) * math.expm1(s)) for k, s in zip(IDENTIFIED, sd_post)}
+    iL, iC = IDENTIFIED.index("K_L"), IDENTIFIED.index("K_C")
+    corr = cov_post / np.outer(sd_post, sd_post)
+    v_prod = cov_post[iL, iL] + cov_post[iC, iC] + 2 * cov_post[iL, iC]
+    prod_rel = float(math.expm1(math.sqrt(max(v_prod, 0.0))))
+    weak = {}
+    for k, s_data, s_post in zip(IDENTIFIED, sd_data, sd_post):
+        # data that shrink the prior's spread by less than 3x leave the value to the prior and the bounds
+        if s_post > WEAK_SHRINK * prior_sd:
+            weak[k] = (f"weakly identified: +-{100 * math.expm1(s_post):.0f} % (1 sigma), the data alone "
+                       f"{'do not fix it' if s_data > 1 else f'fix it to +-{100 * math.expm1(s_data):.0f} %'}; "
+                       f"held by the design prior (+-{100 * PRIOR_REL:.0f} %) and the bounds")
+    weak["K_C*K_L"] = (f"the lag corner fixes the product K_C*K_L to +-{100 * prod_rel:.2g} %, each factor only to "
+                       f"+-{100 * math.expm1(sd_post[iC]):.2g} % (K_C) and +-{100 * math.expm1(sd_post[iL]):.2g} % "
+                       f"(K_L), corr(K_C, K_L) = {corr[iL, iC]:+.2f}")
+    return std, corr, prod_rel, weak
+
+
+def _fit_quality(rec: Recording, p: ActuatorParams, p0: ActuatorParams, frf: FRF, th, lo, hi, prod_rel: float, *,
+                 n_starts: int, distinct: int, refine_time_domain: bool) -> tuple[dict, np.ndarray]:
+    """The fit figures of the identified model against the design's, with warnings (poor fit, closed loop), and
+    the model's position."""
+    nrmse, res_rms, ym = time_domain_errors(p, rec)
+    nrmse0, res_rms0, _ = time_domain_errors(p0, rec)
+    db, deg, db_max, deg_max = frf_errors(p, frf)
+    db0, deg0, _, _ = frf_errors(p0, frf)
+    fit = {
+        "nrmse": nrmse, "residual_rms_m": res_rms, "frf_err_db": db, "frf_err_deg": deg,
+        "frf_err_db_max": db_max, "frf_err_deg_max": deg_max,
+        "initial_nrmse": nrmse0, "initial_residual_rms_m": res_rms0, "initial_frf_err_db": db0,
+        "initial_frf_err_deg": deg0,
+        "coherence_min": float(np.min(frf.coherence[frf.use])) if frf.use.any() else 0.0,
+        "band_hz": [float(frf.freqs_hz[frf.use][0]), float(frf.freqs_hz[frf.use][-1])],
+        "n_frf_bins": int(frf.use.sum()), "n_samples": rec.n, "fs_hz": rec.fs_hz,
+        "starts": n_starts, "distinct_minima": distinct,
+        "K_C*K_L": p.K_C * p.K_L, "K_C*K_L_rel_std": prod_rel,
+        "lag_corner_rad_s": p.lag_corner, "dc_gain_m_per_V": p.dc_gain_m_per_V,
+        "refined_time_domain": bool(refine_time_domain),
+        "at_bounds": [k for k, t, l, h in zip(IDENTIFIED, th, lo, hi) if min(t - l, h - t) < 0.01],
+    }
+    if nrmse > 0.2 or fit["coherence_min"] < 0.95:
+        fit["warning"] = (f"poor fit (NRMSE {nrmse:.2f}, lowest coherence used {fit['coherence_min']:.2f}): the "
+                          f"recording is not a clean chirp response of this linear model")
+    loop = closedloop.check(rec.valve_cmd_V, rec.position_m, rec.fs_hz, getattr(rec, "meta", None))
+    fit["closed_loop"] = loop.as_dict()
+    if loop.closed:
+        fit["warning"] = (f"closed-loop data ({loop.reason}): the command is not independent of the noise, so "
+                          f"these open-loop parameters are biased; identify from an open-loop run (rig chirp)"
+                          + (f"; also {fit['warning']}" if "warning" in fit else ""))
+    return fit, ym
+
+
 def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 8, refine_time_domain: bool = True,
              seed: int = 0, frf: FRF | None = None, progress=None) -> IdentResult:
     """Identify x_d = {K_L, C, w_nv, zeta, K_Q, K_C} from a chirp recording (valve_cmd_V -> position_m).
@@ -307,6 +366,7 @@ def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 
     progress: optional callable(stage: str, fraction: float) for a progress bar.
     """
     p0 = p0 or ActuatorParams()
+    check_plausible(rec)
     tick = progress or (lambda stage, frac: None)
     timing = {}
     t0 = time.perf_counter()
@@ -344,48 +404,13 @@ def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 
         r = f(th)
         sigma = float(np.sqrt(np.sum(r ** 2) / max(1, r.size - len(th)))) or 1e-12
     tick("uncertainty", 0.9)
-    cov_data, cov_post = _covariances(J, sigma, prior_sd)
     p = _to_params(th, p0)
-    sd_post = np.sqrt(np.clip(np.diag(cov_post), 0, None))
-    sd_data = np.sqrt(np.clip(np.diag(cov_data), 0, None))
-    std = {k: float(getattr(p, k) * math.expm1(s)) for k, s in zip(IDENTIFIED, sd_post)}
+    std, corr, prod_rel, weak = _uncertainty(J, sigma, prior_sd, p)
     iL, iC = IDENTIFIED.index("K_L"), IDENTIFIED.index("K_C")
-    corr = cov_post / np.outer(sd_post, sd_post)
-    v_prod = cov_post[iL, iL] + cov_post[iC, iC] + 2 * cov_post[iL, iC]
-    prod_rel = float(math.expm1(math.sqrt(max(v_prod, 0.0))))
-    weak = {}
-    for k, s_data, s_post in zip(IDENTIFIED, sd_data, sd_post):
-        # data that shrink the prior's spread by less than 3x leave the value to the prior and the bounds
-        if s_post > WEAK_SHRINK * prior_sd:
-            weak[k] = (f"weakly identified: +-{100 * math.expm1(s_post):.0f} % (1 sigma), the data alone "
-                       f"{'do not fix it' if s_data > 1 else f'fix it to +-{100 * math.expm1(s_data):.0f} %'}; "
-                       f"held by the design prior (+-{100 * PRIOR_REL:.0f} %) and the bounds")
-    weak["K_C*K_L"] = (f"the lag corner fixes the product K_C*K_L to +-{100 * prod_rel:.2g} %, each factor only to "
-                       f"+-{100 * math.expm1(sd_post[iC]):.2g} % (K_C) and +-{100 * math.expm1(sd_post[iL]):.2g} % "
-                       f"(K_L), corr(K_C, K_L) = {corr[iL, iC]:+.2f}")
     # fit quality
     tick("fit quality", 0.95)
-    nrmse, res_rms, ym = time_domain_errors(p, rec)
-    nrmse0, res_rms0, _ = time_domain_errors(p0, rec)
-    db, deg, db_max, deg_max = frf_errors(p, frf)
-    db0, deg0, _, _ = frf_errors(p0, frf)
-    fit = {
-        "nrmse": nrmse, "residual_rms_m": res_rms, "frf_err_db": db, "frf_err_deg": deg,
-        "frf_err_db_max": db_max, "frf_err_deg_max": deg_max,
-        "initial_nrmse": nrmse0, "initial_residual_rms_m": res_rms0, "initial_frf_err_db": db0,
-        "initial_frf_err_deg": deg0,
-        "coherence_min": float(np.min(frf.coherence[frf.use])) if frf.use.any() else 0.0,
-        "band_hz": [float(frf.freqs_hz[frf.use][0]), float(frf.freqs_hz[frf.use][-1])],
-        "n_frf_bins": int(frf.use.sum()), "n_samples": rec.n, "fs_hz": rec.fs_hz,
-        "starts": len(results), "distinct_minima": _distinct(results),
-        "K_C*K_L": p.K_C * p.K_L, "K_C*K_L_rel_std": prod_rel,
-        "lag_corner_rad_s": p.lag_corner, "dc_gain_m_per_V": p.dc_gain_m_per_V,
-        "refined_time_domain": bool(refine_time_domain),
-        "at_bounds": [k for k, t, l, h in zip(IDENTIFIED, th, lo, hi) if min(t - l, h - t) < 0.01],
-    }
-    if nrmse > 0.2 or fit["coherence_min"] < 0.95:
-        fit["warning"] = (f"poor fit (NRMSE {nrmse:.2f}, lowest coherence used {fit['coherence_min']:.2f}): the "
-                          f"recording is not a clean chirp response of this linear model")
+    fit, ym = _fit_quality(rec, p, p0, frf, th, lo, hi, prod_rel, n_starts=len(results),
+                           distinct=_distinct(results), refine_time_domain=refine_time_domain)
     for k in fit["at_bounds"]:
         weak.setdefault(k, "")
         weak[k] = (weak[k] + "; " if weak[k] else "") + (

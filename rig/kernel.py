@@ -3,8 +3,10 @@ period for any number of mounts (1..8), over one float64 memory block it owns.
 
 The rules are the compiled functions of their own modules (rig/safety.py: check_sensors, limit_commands;
 controllers/*.py: one law per controller kind); this module only arranges them and the memory. Per mount the
-kernel dispatches on the controller's kind (off, isolation, playback, PID) with that mount's own named state
-and coefficients, so mounts can run different kinds. Skipped periods are replayed here (the measurement
+kernel dispatches on the controller's kind (off, isolation, playback, PID, operating modes) with that mount's
+own named state and coefficients, so mounts can run different kinds. A controller may publish some of its
+state as recording channels of their own (`published`: the operating modes' mode, reference and tracking
+error); the row gets one channel per published name, one column per mount (NaN where a mount has none). Skipped periods are replayed here (the measurement
 interpolated from the last period's to this one's: holding it would leave the double integration of
 acceleration a velocity error), and a sample-driven port's older conversions are stepped here, in order.
 
@@ -26,22 +28,24 @@ import struct
 import numba
 import numpy as np
 
-from controllers import isolation, playback, tracking
+from controllers import isolation, modes, playback, tracking
 from controllers.feedforward import feedforward_step
 from controllers.isolation import isolation_step
+from controllers.modes import modes_step
 from controllers.playback import playback_step
-from controllers.tracking import pid_step
-from rig.config import Config
+from controllers.tracking import track_step
+from rig.config import MAX_MOUNTS, Config
 from rig.errors import ConfigError
 from rig.layout import RowLayout, loop_channels
-from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, SensorCheck, _F_LIMITED,
-                        _F_SATRUN, check_floor, check_sensors, limit_commands)
+from rig.recorder import Channel
+from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
+                        _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_floor, check_oscillation, check_sensors,
+                        limit_commands)
 
 KIND_OFF = 0
-KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid"}
-_ISO, _PLAY, _PID = isolation.KIND, playback.KIND, tracking.KIND
-_PID_REF = tracking.STATE_NAMES.index("reference_m")
-MAX_MOUNTS = 8
+KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid",
+         modes.KIND: "modes"}
+_ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.KIND
 OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
@@ -51,10 +55,12 @@ MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
-          "r_limited", "r_wake", "r_comp", "n_floor", "ff", "r_floor", "r_ff", "r_ff_on")
+          "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
+          "r_ff_on")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
- _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NFL, _H_FF, _H_RG, _H_RF,
- _H_RO) = range(len(HEADER))
+ _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO) = range(len(HEADER))
+_OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
 # The feedforward part of the block: the floor range, then per mount FF_TABLE
 FF_TABLE = ("coef", "n_sections", "state", "fade")
 
@@ -71,7 +77,9 @@ def _step_mount(mem, m, a, x):
     if kind == _ISO:
         return isolation_step(st, cf, a, x)
     if kind == _PID:
-        return pid_step(st, cf, st[_PID_REF], x)
+        return track_step(st, cf, x)
+    if kind == _MODES:
+        return modes_step(st, cf, a, x)
     if kind == _PLAY:
         return playback_step(st, cf)
     return 0.0
@@ -138,7 +146,7 @@ def run_period(mem, ring, slot):
     if mode == MODE_FAULT:
         row[rc:rc + n] = 0.0
     else:
-        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + 7]
+        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
         chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
         code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
         if code == 0 and nf:
@@ -162,12 +170,24 @@ def run_period(mem, ring, slot):
             if mode == MODE_ACTIVE:
                 last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
                 code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
+                if code == 0:
+                    w = len(OSC_STATE) + int(lim[_L_OSC_N])
+                    o = int(mem[_H_OSC])
+                    code = check_oscillation(mem[o:o + n * w].reshape((n, w)), lim, row[rc:rc + n],
+                                             mem[i + _IN_T_NS])
             else:
                 row[rc:rc + n] = 0.0
     o_st = int(mem[_H_ST])
     nst = int(mem[_H_NST])
     rs = int(mem[_H_RS])
     row[rs:rs + nst] = mem[o_st:o_st + nst]
+    npub = int(mem[_H_NPUB])
+    if npub:                                   # published state: its block index per (channel, mount), or -1
+        pub = int(mem[_H_PUB])
+        rp = int(mem[_H_RPUB])
+        for j in range(npub * n):
+            k = int(mem[pub + j])
+            row[rp + j] = mem[k] if k >= 0 else np.nan
     row[int(mem[_H_RL])] = flags[_F_LIMITED]
     row[int(mem[_H_RT])] = mem[i + _IN_T_S]
     row[int(mem[_H_RW])] = mem[i + _IN_WAKE]
@@ -243,9 +263,13 @@ class PeriodKernel:
         self.ffs, self.nf = ffs, nf
         self.floor_range = cfg.sensors.floor_range_mps2
         self.state_labels = tuple(f"{m}.{s}" for m, c in zip(names, controllers) for s in c.state_names)
-        self.layout = RowLayout(loop_channels(self.names, self.state_labels, floor=bool(nf)))
+        self.published = _published(controllers)      # name -> (unit, description)
+        self.layout = RowLayout(loop_channels(self.names, self.state_labels,
+                                              [Channel(k, u, n, self.names, d) for k, (u, d) in self.published.items()],
+                                              floor=bool(nf)))
         self.check = SensorCheck(cfg, n, self.names)
         self.limiter = CommandLimiter(cfg, n, dt)
+        self.osc = OscillationRule(cfg, n, self.names)
         coefs = [np.ascontiguousarray(c.coefficients(), dtype=np.float64) for c in controllers]
         nst = [len(c.state_names) for c in controllers]
         ff_coefs = [np.asarray(f.coef, dtype=np.float64) for f in ffs]
@@ -253,8 +277,9 @@ class PeriodKernel:
         parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n + nf, "older": OLDER_CAP * (n + nf),
                  "prev": 2 * n + nf, "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
-                 "coefs": sum(len(c) for c in coefs), "ff": 1 + len(FF_TABLE) * nf if nf else 0,
-                 "ff_coefs": sum(len(c) for c in ff_coefs), "ff_states": sum(ff_nst), "row": self.layout.ncols}
+                 "pub": len(self.published) * n, "coefs": sum(len(c) for c in coefs), "osc": n * self.osc.width,
+                 "ff": 1 + len(FF_TABLE) * nf if nf else 0, "ff_coefs": sum(len(c) for c in ff_coefs),
+                 "ff_states": sum(ff_nst), "row": self.layout.ncols}
         at, off = 0, {}
         for part, size in parts.items():
             off[part] = at
@@ -266,16 +291,26 @@ class PeriodKernel:
                              lay.ncols, max_held_steps, lay["time_s"], lay["accel_mps2"], lay["stroke_m"],
                              lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
                              lay["controller_state"] if "controller_state" in lay else lay.ncols,
-                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], nf, off["ff"],
+                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], len(self.published),
+                             off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
+                             nf, off["ff"],
                              *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
                                else (lay.ncols,) * 3))
-        mem[off["limits"]:off["limits"] + len(LIMITS)] = self.check.limits() + self.limiter.limits()
-        self.states = []
+        mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
+                                                          + self.osc.limits())
+        self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
+        self._osc_initial = self.osc.initial_state([c.kind in _OSC_KINDS for c in controllers])
+        self.osc_state[:] = self._osc_initial
+        self.states, self.coefs = [], []
         so, co = off["states"], off["coefs"]
+        mem[off["pub"]:off["pub"] + len(self.published) * n] = -1.0
         for m, (c, cf) in enumerate(zip(controllers, coefs)):
             mem[off["mounts"] + 5 * m:off["mounts"] + 5 * m + 5] = (c.kind, co, len(cf), so, nst[m])
             mem[co:co + len(cf)] = cf
             self.states.append(mem[so:so + nst[m]])
+            self.coefs.append(mem[co:co + len(cf)])
+            for name, _, _, idx in getattr(c, "published", ()):
+                mem[off["pub"] + list(self.published).index(name) * n + m] = so + idx
             co += len(cf)
             so += nst[m]
         self.ff_states = []
@@ -298,6 +333,7 @@ class PeriodKernel:
         self._older_width = n + nf                  # a conversion: mount accelerations, then floor ones
         self._pack_older = struct.Struct(f"<{n + nf}d").pack_into
         self._cmd = struct.Struct(f"<{n}d").unpack_from
+        self._prev_x = off["prev"] + n                  # the last checked stroke per mount
         self._cmd_bytes = 8 * (off["row"] + lay["valve_cmd_V"])
         self._raw_bytes = 8 * (off["row"] + lay["valve_cmd_raw_V"])
         self.reset_check()
@@ -360,13 +396,37 @@ class PeriodKernel:
         """Per mount: isolation held off by the controller's saturation recovery."""
         return [bool(getattr(c, "suspended", lambda s: False)(st)) for c, st in zip(self.ctrls, self.states)]
 
+    def switch(self, m: int, request, active: bool) -> None:
+        """Mount m's controller takes a request (an operating mode and its reference, controllers/modes.py),
+        from the command last written (null unless ACTIVE) and the last checked position: bumpless."""
+        c, st = self.ctrls[m], self.states[m]
+        u = float(self.last_cmd[m]) if active else 0.0
+        st[:] = c.switch(st.tolist(), request, u, float(self.mem[self._prev_x + m]), self.coefs[m])
+
+    def activated(self) -> None:
+        """INACTIVE -> ACTIVE: controllers that take the valve over (operating modes) start from the null."""
+        for m, c in enumerate(self.ctrls):
+            if hasattr(c, "switch"):
+                self.switch(m, None, False)
+
     def reset_check(self) -> None:
         self.check_state[:] = self.check.initial_state()
 
     def reset_limiter(self) -> None:
-        """The valve is at null (written while inactive, or safe state): the slew limit ramps from there."""
+        """The valve is at null (written while inactive, or safe state): the slew limit ramps from there, and
+        the oscillation rule starts with no swing seen."""
         self.last_cmd[:] = 0.0
         self.flags[_F_SATRUN] = 0.0
+        self.osc_state[:] = self._osc_initial
+
+
+def _published(controllers) -> dict:
+    """The published state channels of the controllers, in order of first appearance: name -> (unit, text)."""
+    out: dict = {}
+    for c in controllers:
+        for name, unit, text, _ in getattr(c, "published", ()):
+            out.setdefault(name, (unit, text))
+    return out
 
 
 def _check_feedforward(names, ffs: list, dt: float) -> None:

@@ -20,10 +20,12 @@ FLAG_CHANNELS = (
 )
 
 
-def loop_channels(names: tuple[str, ...], state_labels: tuple[str, ...] = (), floor: bool = False) -> list[Channel]:
+def loop_channels(names: tuple[str, ...], state_labels: tuple[str, ...] = (), published=(),
+                  floor: bool = False) -> list[Channel]:
     """The channels of a loop run over mounts `names`; state_labels name the controller-state columns
-    (`mount.state`, mount-major), none: no controller_state channel. floor: the floor accelerometers and the
-    feedforward path (controllers/feedforward.py) are in the loop."""
+    (`mount.state`, mount-major), none: no controller_state channel; published: the channels of the
+    controllers' published state (one column per mount, e.g. the operating mode and the reference).
+    floor: the floor accelerometers and the feedforward path (controllers/feedforward.py) are in the loop."""
     n = len(names)
     ch = [Channel("time_s", "s", description="loop time of the period (deadline) since start"),
           Channel("accel_mps2", "m/s^2", n, names, "absolute vertical acceleration at the mount"),
@@ -38,7 +40,7 @@ def loop_channels(names: tuple[str, ...], state_labels: tuple[str, ...] = (), fl
     if state_labels:
         ch.append(Channel("controller_state", "", len(state_labels), tuple(state_labels),
                           "controller states by name (mount.state), mount-major"))
-    return ch + list(FLAG_CHANNELS)
+    return ch + list(published) + list(FLAG_CHANNELS)
 
 
 class RowLayout:

@@ -13,22 +13,25 @@ the controllers once per conversion, in order, older ones first; a period withou
 command. Skipped periods are replayed into the controllers (at most MAX_HELD_STEPS; longer gaps fault on the
 watchdog anyway). Any exception of the port is a fault, never a silent death. The controllers' saturation
 recovery suspending or resuming a mount's isolation is logged and recorded as an event once per change
-(checked at 10 Hz, off the per-period path). With floor feedforward filters (one per mount) the loop takes the
-port's floor accelerometers (Measurements.floor_accel_mps2) and the mode (off / feedback /
-feedback_feedforward) is switched through the gate's requests.
+(checked at 10 Hz, off the per-period path), and so is the recorder's writer process: if it dies while the
+loop records, the run faults at once (valves to null) and says so. A run stops through one INACTIVE period
+(rig/scheduler.py): its last recorded row has the valve at null. With floor feedforward filters (one per
+mount) the loop takes the port's floor accelerometers (Measurements.floor_accel_mps2) and the isolation mode
+(off / feedback / feedback_feedforward) is switched through the gate's requests.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 from rig.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
 from rig.gate import LifecycleGate
-from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, PeriodKernel
+from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
 from rig.lifecycle import State
 from rig.port import Commands
-from rig.safety import CHECK_FLOOR, LIMIT_NAN, floor_reason
+from rig.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
 from rig.scheduler import Scheduler
 from rig.tap import RecordingTap
 
@@ -44,8 +47,8 @@ class Loop:
     def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
                  rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
                  keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
-                 stop_on_fault: bool = True, watchdog_thread: bool | None = None, feedforward: list | None = None,
-                 feedforward_on: bool = False) -> None:
+                 stop_on_fault: bool = True, watchdog_thread: bool | None = None, rate_check: bool = True,
+                 feedforward: list | None = None, feedforward_on: bool = False) -> None:
         self.cfg = cfg
         self.port = port
         self.n = int(port.n_mounts)
@@ -55,9 +58,13 @@ class Loop:
         self.clock = clock if clock is not None else MonotonicClock()
         if getattr(self.clock, "spin_ns", 0) is None:      # a real clock whose wait was not chosen: [loop]
             self.clock.spin_ns = int(round(cfg.loop.spin_us * 1e3))
+        sf = cfg.safety
         self.sched = Scheduler(self.clock, rate_hz or cfg.loop.rate_hz, overrun_policy or cfg.loop.overrun_policy,
-                               cfg.safety.watchdog_s, keep_timing,
-                               self.clock.is_real if watchdog_thread is None else watchdog_thread)
+                               sf.watchdog_s, keep_timing,
+                               self.clock.is_real if watchdog_thread is None else watchdog_thread,
+                               lag_limit_s=sf.lag_limit_s, missed_limit=sf.missed_limit,
+                               missed_window_s=sf.missed_window_s, period_budget=sf.period_budget,
+                               rate_check=rate_check)
         self.rate_hz, self.period_ns, self.policy = self.sched.rate_hz, self.sched.period_ns, self.sched.policy
         self.dt = self.period_ns * 1e-9
         self.names = names or mount_names(self.n)
@@ -71,6 +78,7 @@ class Loop:
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
                                   stop_on_fault=stop_on_fault, feedforward=feedforward_on)
         self.gate.bind_recorder = self.tap.bind
+        self.gate.loop_time_s = lambda: self._t_s(self.gate.t_ns)
         self.check, self.limiter, self.states = self.kernel.check, self.kernel.limiter, self.kernel.states
         self._commands = Commands([0.0] * self.n)          # the port must copy, not keep, the list
         self.recorder = recorder
@@ -88,14 +96,27 @@ class Loop:
         gate.t_ns = t_ns
         if gate.pending:
             gate.apply_requests()
+        self._susp_count -= 1
+        if self._susp_count <= 0:           # 10 Hz: suspension events; the recorder's writer alive
+            self._susp_count = self._susp_every
+            self._watch_suspension()
+            if tap.recorder is not None:
+                self._watch_recorder()
         try:
             m = self.port.read(t_ns)
         except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
             gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
             return
         self.last_meas = m
+        wd = self.sched.wd
+        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
+            gate.fault(wd.tripped)          # held up inside this period: the watchdog's line, not the aftermath
         if m.device_fault and gate.lc.state is not _FAULT:
             gate.fault(f"device fault: {m.device_fault}")
+        if m.accel_older and len(m.accel_older) > OLDER_CAP and gate.lc.state is not _FAULT:
+            gate.fault(f"the loop fell {len(m.accel_older)} conversions behind the accelerometer module (it "
+                       f"replays at most {OLDER_CAP}): held up for about {len(m.accel_older) * self.dt * 1e3:.0f} ms")
+            m = dataclasses.replace(m, accel_older=())      # recorded as the fault period, newest only
         st = gate.lc.state
         recording = tap.recorder is not None
         if recording:
@@ -130,16 +151,14 @@ class Loop:
                 tap.flags(gate.lc.state, gate.isolation, self.sched.overruns, self.sched.skipped)
         if recording:
             tap.close(copied=code == 0 and slot >= 0 and not faulted)
-        self._susp_count -= 1
-        if self._susp_count <= 0:
-            self._susp_count = self._susp_every
-            self._watch_suspension()
 
     def _reason(self, code: int, m, t_ns: int) -> str:
         if code - code % 100 == CHECK_FLOOR:
             return floor_reason(code, self.names, m.floor_accel_mps2, self.kernel.floor_range)
         if code < LIMIT_NAN:
             return self.check.reason(code, self.kernel.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
+        if code >= LIMIT_OSC:
+            return self.kernel.osc.reason(code, self.kernel.osc_state)
         return self.limiter.reason(code)
 
     def _t_s(self, t_ns: int) -> float:
@@ -158,6 +177,19 @@ class Loop:
                         f"recovery, centring alone)" if s else f"{self.names[i]}: isolation resumed")
                 (log.warning if s else log.info)(text)
                 self._event(text)
+
+    @property
+    def suspended_mounts(self) -> list[str]:
+        """Mounts whose isolation the saturation recovery holds off (as last seen, at 10 Hz)."""
+        return [m for m, s in zip(self.names, self._susp) if s]
+
+    def _watch_recorder(self) -> None:
+        """The recorder's writer gone while recording: FAULT now (the rows it had not flushed are lost; the
+        ring would fill and drop every row after them)."""
+        died = getattr(self.tap.recorder, "writer_died", None)
+        text = died() if died is not None else None
+        if text and self.gate.lc.state is not _FAULT:
+            self.gate.fault(f"recorder: {text}")
 
     # ---- the run --------------------------------------------------------------------------------------
     def configure(self) -> None:
@@ -199,9 +231,13 @@ class Loop:
     def toggle_isolation(self) -> None:
         self.gate.toggle_isolation()
 
-    def request_mode(self, mode: str) -> None:
+    def request_isolation_mode(self, mode: str) -> None:
         """Thread/signal-safe: off / feedback / feedback_feedforward at the next period boundary (bumpless)."""
-        self.gate.request_mode(mode)
+        self.gate.request_isolation_mode(mode)
+
+    def request_mode(self, mount: int, request) -> None:
+        """Thread/signal-safe: an operating mode for one mount at the next period boundary (bumpless)."""
+        self.gate.request_mode(mount, request)
 
     def stop(self, reason: str) -> None:
         """Thread/signal-safe: leave the loop at the next period boundary, then stop safely."""
@@ -233,7 +269,7 @@ class Loop:
     lc = property(lambda self: self.gate.lc)
     state = property(lambda self: self.gate.lc.state)
     isolation = property(lambda self: self.gate.isolation)
-    mode = property(lambda self: self.gate.mode)
+    isolation_mode = property(lambda self: self.gate.isolation_mode)
     stop_reason = property(lambda self: self.gate.stop_reason,
                            lambda self, v: setattr(self.gate, "stop_reason", v))
     stop_on_fault = property(lambda self: self.gate.stop_on_fault,

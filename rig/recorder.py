@@ -7,6 +7,9 @@ an attribute, and flushes the file every flush_s (<= 0.1 s): a kill -9 loses at 
 interval and the file still opens. A full ring drops the row and counts it (`dropped_rows`), never waits.
 
 The writer is a thread of its own process (`python -m rig.recorder WRITER`), the ring a shared memory map.
+In real-time runs it raises itself to SCHED_FIFO `priority` (WRITER_PRIORITY: below the loop and the drivers,
+above everything else), so a loaded machine does not leave rows in the ring for long: what a kill -9 of the
+whole process group loses is what is not yet flushed.
 Why not a thread of the loop's process: h5py holds the GIL for each call, and a GIL-holding writer delays the
 loop's wake-up by up to the interpreter's switch interval.
 If the loop's process dies (even by kill -9) the writer sees its command pipe close, drains what is in the
@@ -48,11 +51,13 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import RecordingError
+from rig.rt import raise_priority
 
 log = logging.getLogger("rig.recorder")
 
 _HDR = 64                        # ring header: head (int64 @0), tail (int64 @8)
 _Q = struct.Struct("<q")
+WRITER_PRIORITY = 20             # SCHED_FIFO of the writer in real-time runs (loop 80, drivers 55, HIL devices 50)
 COMPRESSION = ("gzip", None)     # gzip: shuffle + deflate level 1 (see the module docstring); None: raw
 _GZIP_LEVEL = 1                  # higher levels gain little on float data for much more CPU (rig bench recorder)
 
@@ -69,7 +74,7 @@ class Channel:
 class Recorder:
     def __init__(self, path: str | Path, channels: list[Channel], *, rate_hz: float, flush_s: float = 0.05,
                  ring_s: float = 2.0, chunk_rows: int = 1024, attrs: dict | None = None,
-                 compression: str | None = "gzip", wait_when_full: bool = False) -> None:
+                 compression: str | None = "gzip", wait_when_full: bool = False, priority: int = 0) -> None:
         if not channels:
             raise ValueError("a recording needs at least one channel")
         if compression not in COMPRESSION:
@@ -82,6 +87,7 @@ class Recorder:
         self.channels = list(channels)
         self.ncols = sum(c.width for c in self.channels)
         self.rate_hz = float(rate_hz)
+        self.priority = int(priority)
         self.flush_s = min(float(flush_s), 0.1)
         self.chunk_rows = int(chunk_rows)
         self.attrs = {k: _jsonable(v) for k, v in (attrs or {}).items()}
@@ -97,6 +103,7 @@ class Recorder:
         self._mm: mmap.mmap | None = None
         self._ring: np.ndarray | None = None     # ring_rows() view
         self._final_attrs: dict = {}
+        self._death_reported = False         # writer_died() said so: close() does not raise it again
 
     # ---- as a context manager: started on entry, closed (with the final attributes) on exit -------------
     def __enter__(self) -> "Recorder":
@@ -121,7 +128,7 @@ class Recorder:
         spec = {"path": str(self.path), "ring": ring_path, "cap": self._cap, "ncols": self.ncols,
                 "channels": [asdict(c) for c in self.channels], "rate_hz": self.rate_hz,
                 "flush_s": self.flush_s, "chunk_rows": self.chunk_rows, "attrs": self.attrs,
-                "compression": self.compression}
+                "compression": self.compression, "priority": self.priority}
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", "rig.recorder"], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, text=True, bufsize=1,
@@ -167,7 +174,7 @@ class Recorder:
             except BufferError:                # a ring_rows() view is still held: unmapped with it
                 pass
             self._mm = None
-        if self.error:
+        if self.error and not self._death_reported:
             raise RecordingError(f"{self.path}: recording failed: {self.error}")
 
     def _kill(self) -> None:
@@ -247,6 +254,27 @@ class Recorder:
     def free_rows(self) -> int:
         """Rows the ring can take now without dropping (for producers that may wait, not the loop)."""
         return self._cap - (self._head - _Q.unpack_from(self._mm, 8)[0])
+
+    @property
+    def rows_committed(self) -> int:
+        """Rows the producer has committed to the ring so far."""
+        return self._head
+
+    @property
+    def pid(self) -> int | None:
+        """The writer process's pid (None when not started)."""
+        return self._proc.pid if self._proc is not None else None
+
+    def writer_died(self) -> str | None:
+        """None while the writer runs (or before start / after close); else, once reported, what happened.
+        A waitpid without blocking: the loop asks at 10 Hz."""
+        if self._proc is None or self._proc.poll() is None:
+            return None
+        self._death_reported = True
+        rc = self._proc.returncode
+        how = f"killed by signal {-rc}" if rc < 0 else f"exit code {rc}"
+        return (f"the writer process of {self.path} ended ({how}) while recording: the rows it had not flushed "
+                f"are lost, the file keeps the ones before")
 
     def written(self) -> int:
         """Rows the writer has taken from the ring so far."""
@@ -422,6 +450,7 @@ def _writer_main() -> int:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     stdin = sys.stdin
     spec = json.loads(stdin.readline())
+    raise_priority(spec.get("priority", 0))
     try:
         w = _Writer(spec)
     except Exception as e:   # noqa: BLE001 - one line back to the loop's process

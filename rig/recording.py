@@ -8,6 +8,12 @@ Formats (all carry the same four signals, sampled uniformly at fs_hz):
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
   A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
+  An operated run of the stand layout (`rig run --layout prototype`, datasets mode, reference_m,
+  tracking_error_m) is read over its longest stretch in `track` mode while ACTIVE: closed-loop data
+  (Recording.closed_loop, with the reference the loop followed in Recording.reference_m).
+  Any other `rig run` / `rig hil` recording (isolation_on and lifecycle_state beside the signals) is closed
+  loop with no external excitation: its valve command was computed from the measured signals alone;
+  `closed_loop` says so and reference_m is None (identification refuses it).
 - MATLAB .mat: variables of the same names (row or column vectors); v5/v7 with scipy.io.loadmat, v7.3 (HDF5
   with a 512-byte MATLAB header) with h5py.
 
@@ -18,7 +24,7 @@ from __future__ import annotations
 import gzip
 import io
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +48,12 @@ class Recording:
     accel_mps2: np.ndarray
     fs_hz: float
     source: str = "<memory>"
+    meta: dict = field(default_factory=dict)     # the file's attributes (HDF5: e.g. command = "rig run")
+    # why the valve command depends on the measurement (feedback), "" if open loop. In an operated track run
+    # the position's noise and disturbances reach the command too; reference_m is the external excitation the
+    # loop followed (None: feedback alone, nothing to identify from)
+    closed_loop: str = ""
+    reference_m: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -100,6 +112,15 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
     off = np.abs(dt - step) > UNIFORM_TOL * step
     if off.any():
         k = int(np.argmax(off)) + 1
+        if dt[k - 1] > step:
+            # a gap: one line naming the first one (segments are not stitched: the plant's state across the gap
+            # is unknown, so each side would need its own start transient)
+            missing = int(round(dt[k - 1] / step)) - 1
+            more = int(off.sum()) - 1
+            raise RecordingError(
+                f"{source}: time_s not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after t = {t[k - 1]:.6g} s "
+                f"(about {missing} samples missing, expected steps of {step:.6g} s"
+                f"{f'; {more} more irregular steps after it' if more else ''}): split the recording at the gap")
         raise RecordingError(f"{source}: time_s not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
                              f"expected {step:.6g} s")
     # the sample rate from the whole span (robust to per-step rounding of printed times)
@@ -108,6 +129,22 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
         raise RecordingError(f"{source}: cannot determine a sample rate from time_s")
     return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
                      accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
+
+
+# Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
+# beyond them is a wrong unit or a corrupt file.
+PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
+
+
+def check_plausible(rec: Recording) -> None:
+    """One clear line for a value no sensor or command of a rig can have (e.g. 1e300 from a corrupt export)."""
+    for name, lim in PLAUSIBLE_ABS.items():
+        a = getattr(rec, name)
+        bad = np.abs(a) > lim
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RecordingError(f"{rec.source}: {name} is {a[k]:.6g} at sample {k} (t = {rec.t_s[k]:.6g} s): not a "
+                                 f"plausible value (expected |{name}| < {lim:g}); check the column's units")
 
 
 # ---- readers ----------------------------------------------------------------------------------------
@@ -204,11 +241,72 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
+            meta = {}
+            for k, v in f.attrs.items():
+                if isinstance(v, bytes):
+                    v = v.decode(errors="replace")
+                if isinstance(v, (str, int, float, bool, np.integer, np.floating, np.bool_)):
+                    meta[str(k)] = v.item() if hasattr(v, "item") else v
+                elif isinstance(v, np.ndarray) and v.ndim == 1 and v.size <= 64:
+                    meta[str(k)] = [x.decode(errors="replace") if isinstance(x, bytes) else
+                                    (x.item() if hasattr(x, "item") else x) for x in v]
+            track = _track_rows(g, mount, source) if "mode" in g and "reference_m" in g else None
+            if track is not None:
+                sel, ref = track
+                cols = {c: a[sel] for c, a in cols.items()}
+            closed = _feedback_rows(g, f.attrs.get("command", "the loop"))
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 recording ({type(e).__name__}: {e})"[:300]) from None
-    return _validated(cols, source)
+    rec = _validated(cols, source)
+    rec.meta = meta
+    rec.closed_loop = closed
+    if track is not None:
+        rec.closed_loop, rec.reference_m = "an operated run in track mode", ref
+    return rec
+
+
+def _feedback_rows(g, command) -> str:
+    """Why the valve command of a loop recording is closed loop: rows ACTIVE under a feedback controller (the
+    isolation law or the stroke centring: the valve follows the measured accel and stroke). '' otherwise."""
+    if "lifecycle_state" not in g or "isolation_on" not in g:
+        return ""                                   # a chirp (playback) or a foreign file: open loop
+    active = np.asarray(g["lifecycle_state"][()]).ravel() == 2      # rig.lifecycle.State.ACTIVE
+    if not active.any():
+        return ""
+    return (f"recorded by {command} with the feedback controller driving the valves in {int(active.sum())} of "
+            f"{active.size} rows")
+
+
+TRACK_MODE = 2            # controllers/modes.py: off, hold, track, isolate
+CLOSED_LOOP_NOTE = (
+    "closed-loop data (an operated run in track mode): the valve command was computed from the measured "
+    "position, so the transducer's noise and any disturbance reach the command as well as the position. The "
+    "valve -> position response estimated from command and position is the actuator's only where the "
+    "reference's excitation dominates them (the reference's band, where the coherence is high); where it does "
+    "not, the estimate drifts towards minus the inverse of the controller. Excite the band of interest with "
+    "the reference (a chirp), and read the fit over that band only. The command recorded in a period acts "
+    "from the next one (the loop's computation), which the fit sees as one period of transport delay.")
+
+
+def _track_rows(g, mount, source):
+    """An operated run: (slice of the longest stretch in track mode while ACTIVE, its reference)."""
+    def col(name):
+        a = np.asarray(g[name][()], dtype=float)
+        return a[:, _mount_index(g[name], mount, source)] if a.ndim == 2 and a.shape[1] > 1 else a.ravel()
+    mode = col("mode")
+    ok = mode == TRACK_MODE
+    if "lifecycle_state" in g:
+        ok &= np.asarray(g["lifecycle_state"][()]).ravel()[:len(ok)] == 2
+    if not ok.any():
+        raise RecordingError(f"{source}: an operated run without a stretch in track mode (identification needs "
+                             f"the valve driven: record a track run, e.g. a chirp reference)")
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], ok.astype(np.int8), [0]))))
+    starts, ends = edges[::2], edges[1::2]
+    k = int(np.argmax(ends - starts))
+    sel = slice(int(starts[k]), int(ends[k]))
+    return sel, col("reference_m")[sel]
 
 
 def _mount_index(ds, mount, source) -> int:

@@ -2,9 +2,20 @@
 (`limit_commands`), compiled (numba) and called by the period kernel (rig/kernel.py); plus a watchdog thread
 that sends the valve to null if the loop itself stops.
 
-SensorCheck and CommandLimiter are the rules' builders: their limits from the config, their named state
-(initial values; the kernel owns the memory), and the one-line fault texts (off the hot path). A rule returns
-0 or a code that names the rule and the mount (CHECK_* + mount, LIMIT_NAN + mount, LIMIT_LATCHED).
+SensorCheck, CommandLimiter and OscillationRule are the rules' builders: their limits from the config, their
+named state (initial values; the kernel owns the memory), and the one-line fault texts (off the hot path). A
+rule returns 0 or a code that names the rule and the mount (CHECK_* + mount, LIMIT_NAN + mount,
+LIMIT_LATCHED, LIMIT_OSC + mount).
+
+The oscillation rule (`check_oscillation`) catches a limit cycle in the valve command: the latched-saturation
+limit needs saturation_s of *continuous* clamping, and the controllers' own saturation recovery suspends
+isolation after sat_reset_s of it, but an unstable loop (a gain far too high, a notch near Nyquist) cycles
+through the clamp at a few hundred Hz and is never held there. A swing is the limited command passing from
+beyond +level to beyond -level or back (level = oscillation_level of the clamp: the command's energy is near
+the clamp); swings at oscillation_hz or faster over oscillation_window_s are a FAULT, not a suspension: the
+cycle comes from the loop itself (its design or its gains), so resuming would only start it again, and the
+operator has to change the configuration. The floor's band (1-50 Hz) moves the command far less than the clamp
+(README: command rms about 1 V); open-loop playback (a chirp) is not checked.
 """
 from __future__ import annotations
 
@@ -17,21 +28,29 @@ import numba
 import numpy as np
 
 from rig.config import Config, mount_names
+from rig.rt import raise_priority
 
 log = logging.getLogger("rig.safety")
 
 CHECK_IMPLAUSIBLE, CHECK_STUCK_ACCEL, CHECK_STUCK_STROKE = 100, 200, 300
-LIMIT_NAN, LIMIT_LATCHED = 400, 500
+LIMIT_NAN, LIMIT_LATCHED, LIMIT_OSC = 400, 500, 600
 CHECK_FLOOR = 900                     # + mount: a floor accelerometer NaN or out of its range
 
-# Named limits (one float64 array, the kernel's): the check's, then the limiter's
-LIMITS = ("accel_range_mps2", "stroke_bound_m", "stale_ns", "stuck_n", "max_V", "step_V", "sat_n")
-_L_AR, _L_XB, _L_STALE, _L_STUCK, _L_MAX, _L_STEP, _L_SAT = range(7)
+# Named limits (one float64 array, the kernel's): the check's, the limiter's, the oscillation rule's
+LIMITS = ("accel_range_mps2", "stroke_bound_m", "stale_ns", "stuck_n", "max_V", "step_V", "sat_n",
+          "osc_level_V", "osc_window_ns", "osc_swings")
+_L_AR, _L_XB, _L_STALE, _L_STUCK, _L_MAX, _L_STEP, _L_SAT, _L_OSC_LEVEL, _L_OSC_WIN, _L_OSC_N = range(10)
 # Named state of the check (rows of a (5, n) array) and of the limiter (last command per mount, then flags)
 CHECK_STATE = ("last_sample_t_ns", "last_accel_mps2", "last_stroke_m", "same_accel_count", "same_stroke_count")
 _C_TS, _C_A, _C_X, _C_SA, _C_SX = range(5)
 LIMITER_FLAGS = ("sat_run", "clamped", "limited")
 _F_SATRUN, _F_CLAMPED, _F_LIMITED = range(3)
+# Named state of the oscillation rule, per mount (a row of (n, len(OSC_STATE) + osc_swings)): whether the rule
+# checks this mount, the side of the last excursion beyond the level (-1, 0, +1), the next slot of the ring
+# of swing times that follows
+OSC_STATE = ("checked", "side", "next")
+_O_ON, _O_SIDE, _O_NEXT = range(3)
+_NO_SWING = -1e30          # an empty slot of the ring: no swing ever
 
 
 @numba.njit(cache=True)
@@ -121,6 +140,39 @@ def limit_commands(last, flags, lim, raw, out):
     return 0
 
 
+@numba.njit(cache=True)
+def check_oscillation(osc, lim, cmd, t_ns):
+    """Limit cycle in the limited commands `cmd` of this period: per checked mount, a swing is a change of
+    side beyond +-osc_level_V; osc_swings of them within osc_window_ns is a cycle at osc_swings / (2 window)
+    or faster. 0 or LIMIT_OSC + mount. Nothing to do in a period without a swing but two compares."""
+    level = lim[_L_OSC_LEVEL]
+    nsw = int(lim[_L_OSC_N])
+    for i in range(cmd.shape[0]):
+        if osc[i, _O_ON] == 0.0:
+            continue
+        u = cmd[i]
+        if u >= level:
+            side = 1.0
+        elif u <= -level:
+            side = -1.0
+        else:
+            continue
+        prev = osc[i, _O_SIDE]
+        if side == prev:
+            continue
+        osc[i, _O_SIDE] = side
+        if prev == 0.0:                  # the first excursion is not a swing
+            continue
+        k = int(osc[i, _O_NEXT])
+        j = len(OSC_STATE) + k
+        oldest = osc[i, j]               # the swing nsw swings before this one
+        osc[i, j] = t_ns
+        osc[i, _O_NEXT] = (k + 1) % nsw
+        if t_ns - oldest <= lim[_L_OSC_WIN]:
+            return LIMIT_OSC + i
+    return 0
+
+
 class SensorCheck:
     """Builder of the sensor check: limits from [safety], the named state's initial values, the fault texts."""
 
@@ -203,13 +255,57 @@ class CommandLimiter:
         return f"controller {code - LIMIT_NAN}: valve command is NaN"
 
 
+class OscillationRule:
+    """Builder of the oscillation rule: level, window and swing count from [safety], the per-mount state
+    (`checked` for the feedback kinds only: open-loop playback is exempt) and the fault text."""
+
+    def __init__(self, cfg: Config, n_mounts: int, names: tuple[str, ...] | None = None) -> None:
+        s = cfg.safety
+        self.n = n_mounts
+        self.names = names or mount_names(n_mounts)
+        self.level_V = s.oscillation_level * s.valve_limit_V
+        self.window_s = s.oscillation_window_s
+        self.min_hz = s.oscillation_hz
+        self.swings = max(2, math.ceil(2 * s.oscillation_hz * s.oscillation_window_s - 1e-9))
+
+    @property
+    def width(self) -> int:
+        """Columns of one mount's row of state."""
+        return len(OSC_STATE) + self.swings
+
+    def limits(self) -> tuple:
+        return (self.level_V, self.window_s * 1e9, float(self.swings))
+
+    def initial_state(self, checked) -> np.ndarray:
+        """The state with no swing seen; checked: per mount, whether the rule applies to it."""
+        st = np.full((self.n, self.width), _NO_SWING)
+        st[:, _O_ON] = [1.0 if c else 0.0 for c in checked]
+        st[:, _O_SIDE] = 0.0
+        st[:, _O_NEXT] = 0.0
+        return st
+
+    def reason(self, code: int, state) -> str:
+        i = code - LIMIT_OSC
+        ring = state[i, len(OSC_STATE):]
+        newest = ring[(int(state[i, _O_NEXT]) - 1) % self.swings]
+        oldest = ring[int(state[i, _O_NEXT])]          # swings - 1 swings before the newest
+        span_s = (newest - oldest) * 1e-9 if oldest > _NO_SWING else math.nan
+        f = (self.swings - 1) / (2 * span_s) if span_s > 0 else math.nan
+        return (f"{self.names[i]}: valve command oscillating at about {f:.0f} Hz between +-{self.level_V:g} V "
+                f"({self.swings} swings within {self.window_s * 1e3:g} ms; limit oscillation_hz = "
+                f"{self.min_hz:g} Hz): the loop is unstable, valves to null")
+
+
 class Watchdog:
     """A thread that sends the valve to null when the loop has not kicked it for timeout_s (a hung
     controller or driver call). It trips once; the loop sees `tripped` and enters FAULT.
-    Real clock only: in simulated time the loop's own gap check does this job."""
+    Real clock only: in simulated time the loop's own gap check does this job.
+    With `priority` (real-time runs: above the loop) it runs at SCHED_FIFO: at normal priority on a busy
+    machine it waited 150 ms for a CPU while a 50 ms limit was long past."""
 
-    def __init__(self, timeout_s: float, on_trip) -> None:
+    def __init__(self, timeout_s: float, on_trip, priority: int = 0) -> None:
         self.timeout_s = timeout_s
+        self.priority = priority
         self._on_trip = on_trip
         self.beat = 0
         self.tripped: str | None = None
@@ -224,6 +320,7 @@ class Watchdog:
         self.beat += 1
 
     def _run(self) -> None:
+        raise_priority(self.priority)
         last_beat = self.beat
         last_change = time.monotonic()
         poll = max(self.timeout_s / 4, 0.001)

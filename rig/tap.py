@@ -101,3 +101,6 @@ class _ColumnsRecorder:
 
     def event(self, t_s: float, text: str) -> None:
         self.rec.event(t_s, text)
+
+    def writer_died(self) -> str | None:
+        return self.rec.writer_died()

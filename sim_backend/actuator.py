@@ -17,6 +17,11 @@ Effects (all off by default; names and keys as in docs/MODEL.md):
   base_resonance    frequency_hz, damping_ratio, mass_kg   the stand under the housing as a mass-spring mode
   periodic_disturbance frequency_hz, force_n, phase_rad    a force on the piston unrelated to the command
   sensor noise      position_noise_m, accel_noise_mps2     white, Gaussian, rms
+  base_motion       the floor under the stand moving by x_g (StandPlant.step's `ground`; StandBank draws it):
+                    the housing follows it (through k_b, c_b with the base mode on), the transducer reads the
+                    piston against the floor frame, x_p - x_g, and the accelerometer the piston's absolute motion
+
+`stand_state_space` is the same physics, linear (effects off, base mode optional), for the loop analyses.
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ from dataclasses import dataclass, field, asdict
 import numpy as np
 import numba
 
-from sim_backend.linear import ActuatorParams
+from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 
 FRICTION_V_SCALE = 2e-5     # m/s, the tanh smoothing of sign(v) used by the recordings' simulator
 
@@ -46,6 +51,7 @@ class Effects:
     position_noise_m: float = 0.0
     accel_noise_mps2: float = 0.0
     seed: int = 0
+    base_motion_rms_m: float = 0.0            # the floor under the stand (StandBank), 0 = still
 
     @classmethod
     def from_catalogue(cls, effects: dict, **extra) -> "Effects":
@@ -94,8 +100,8 @@ def inner_step_s(p: ActuatorParams, fx: Effects) -> float:
 
 
 @numba.njit(cache=True, fastmath=False)
-def _deriv(y, i_cmd, f_dist, prm, out):
-    # prm: M A_p C V_t K_L K_Q K_C w_nv zeta beta sat dead fric base_on m_b k_b c_b
+def _deriv(y, i_cmd, f_dist, xg, vg, prm, out):
+    # prm: M A_p C V_t K_L K_Q K_C w_nv zeta beta sat dead fric base_on m_b k_b c_b; xg, vg: the floor
     M = prm[0]; A_p = prm[1]; C = prm[2]; V_t = prm[3]; K_L = prm[4]; K_Q = prm[5]; K_C = prm[6]
     w_nv = prm[7]; zeta = prm[8]; beta = prm[9]; dead = prm[11]; fric = prm[12]
     base_on = prm[13]; m_b = prm[14]; k_b = prm[15]; c_b = prm[16]
@@ -113,8 +119,12 @@ def _deriv(y, i_cmd, f_dist, prm, out):
             xe = 0.0
     else:
         xe = xv
-    y_rel = xp - xb
-    v_rel = vp - vb
+    if base_on > 0.0:
+        y_rel = xp - xb
+        v_rel = vp - vb
+    else:                                   # the housing rigid on the floor
+        y_rel = xp - xg
+        v_rel = vp - vg
     # Eqs. 3, 6: Q_L = K_Q x_v - K_C P_L = A_p dy/dt + V_t/(4 beta) dP_L/dt
     out[2] = (K_Q * xe - K_C * PL - A_p * v_rel) * 4.0 * beta / V_t
     # Eq. 7 on the piston: A_p P_L = M a + C v + K_L y (+ friction, disturbance)
@@ -125,7 +135,7 @@ def _deriv(y, i_cmd, f_dist, prm, out):
     out[4] = (f_act + f_dist) / M
     if base_on > 0.0:
         out[5] = vb
-        out[6] = (-f_act - k_b * xb - c_b * vb) / m_b      # reaction of the actuator force on the stand
+        out[6] = (-f_act - k_b * (xb - xg) - c_b * (vb - vg)) / m_b   # the actuator's reaction on the stand
     else:
         out[5] = 0.0
         out[6] = 0.0
@@ -136,12 +146,14 @@ def _simulate(cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph,
     """The whole record: sample the outputs at t_k, then integrate [t_k, t_k+1) with `_advance_stand`
     (the command array itself serves as the command history)."""
     y = np.zeros(7)
-    out = np.zeros(2)
+    out = np.zeros(3)
     work = np.zeros((5, 7))
+    ground = np.zeros(4)
     for k in range(cmd_V.shape[0]):
         pos_out[k] = y[3]          # transducer: absolute piston position (see module docstring)
         spool_out[k] = y[0]
-        _advance_stand(y, k, cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out, work)
+        _advance_stand(y, k, cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, ground, out,
+                       work)
         acc_out[k] = out[0]
 
 
@@ -182,10 +194,13 @@ def linear_chirp(fs: float, duration_s: float, f0_hz: float = 0.1, f1_hz: float 
 
 
 @numba.njit(cache=True)
-def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, out, work):
-    """Advance the stand one sample period [t_k, t_k+1) with commands from the ring `hist` (index mod len).
+def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, ground, out, work):
+    """Advance the stand one sample period [t_k, t_k+1) with commands from the ring `hist` (index mod len);
+    ground = (x_g, v_g at t_k, x_g, v_g at t_k+1), interpolated linearly in between (the floor moves
+    continuously).
 
-    out[0] = acceleration at t_k (before advancing), out[1] = piston position x_p at t_k+1."""
+    out[0] = acceleration at t_k (before advancing), out[1] = piston position x_p at t_k+1, out[2] = the
+    acceleration at t_k+1 (the command's spool does not enter it directly)."""
     L = hist.shape[0]
     h = 1.0 / (fs * n_sub)
     k1 = work[0]; k2 = work[1]; k3 = work[2]; k4 = work[3]; yt = work[4]     # RK4 scratch, (5, 7)
@@ -212,25 +227,32 @@ def _advance_stand(y, k, hist, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F
                 elif i_cmd < -sat:
                     i_cmd = -sat
             f_d = dist_F * math.sin(w_d * ts + dist_ph) if dist_F != 0.0 else 0.0
+            fr = (ts - t0) * fs
+            xg = ground[0] + fr * (ground[2] - ground[0])
+            vg = ground[1] + fr * (ground[3] - ground[1])
             if stage == 0:
-                _deriv(y, i_cmd, f_d, prm, k1)
+                _deriv(y, i_cmd, f_d, xg, vg, prm, k1)
                 if j == 0:
                     out[0] = k1[4]
                 for q in range(7):
                     yt[q] = y[q] + 0.5 * h * k1[q]
             elif stage == 1:
-                _deriv(yt, i_cmd, f_d, prm, k2)
+                _deriv(yt, i_cmd, f_d, xg, vg, prm, k2)
                 for q in range(7):
                     yt[q] = y[q] + 0.5 * h * k2[q]
             elif stage == 2:
-                _deriv(yt, i_cmd, f_d, prm, k3)
+                _deriv(yt, i_cmd, f_d, xg, vg, prm, k3)
                 for q in range(7):
                     yt[q] = y[q] + h * k3[q]
             else:
-                _deriv(yt, i_cmd, f_d, prm, k4)
+                _deriv(yt, i_cmd, f_d, xg, vg, prm, k4)
         for q in range(7):
             y[q] += h / 6.0 * (k1[q] + 2.0 * k2[q] + 2.0 * k3[q] + k4[q])
     out[1] = y[3]
+    t1 = (k + 1) / fs
+    f_d = dist_F * math.sin(w_d * t1 + dist_ph) if dist_F != 0.0 else 0.0
+    _deriv(y, 0.0, f_d, ground[2], ground[3], prm, k1)
+    out[2] = k1[4]
 
 
 class StandPlant:
@@ -238,13 +260,27 @@ class StandPlant:
 
     Same physics and effects as `simulate_stand` (a test checks they agree). `step(cmd_V)` holds cmd_V over
     one period; afterwards `position_m` is the transducer value at the new instant and `accel_mps2` the
-    acceleration at the start of the period (as sampled by the ADC at t_k), both with sensor noise."""
+    acceleration at the start of the period (as sampled by the ADC at t_k), both with sensor noise;
+    `accel_now_mps2` is the acceleration at the new instant (with noise), `x_abs_m` the piston's true
+    absolute position. `ground` = (x_g, v_g at t_k, x_g, v_g at t_k+1): the floor under the stand.
+
+    Linear effects only (no delay, saturation, deadband, friction or disturbance): the period is stepped
+    exactly (stand_state_space discretised, command held, floor interpolated: one matrix product), else by
+    RK4; a test holds the two against each other."""
 
     n_mounts = 1
 
     def __init__(self, p: ActuatorParams, fx: Effects = Effects(), fs: float = 1000.0, *,
                  inner_step: float | None = None):
         self.p, self.fx, self.fs = p, fx, float(fs)
+        self.linear = not (fx.delay_s or fx.saturation_limit_ma or fx.deadband_width_ma or fx.friction_force_n
+                           or (fx.disturbance_frequency_hz and fx.disturbance_force_n))
+        if self.linear:
+            A, B, C, D = stand_state_space(p, fx)
+            self._Ad, Bu, G0, G1 = discretize_zoh_foh(A, B[:, :1], B[:, 1:], 1.0 / self.fs)
+            self._Bu = np.ascontiguousarray(Bu[:, 0])
+            self._G = np.ascontiguousarray(np.hstack([G0, G1]))      # times (x_g, v_g at t_k, at t_k+1)
+            self._ca, self._da = np.ascontiguousarray(C[1]), np.ascontiguousarray(D[1, 1:])
         h = inner_step or inner_step_s(p, fx)
         self.n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
         m_b = fx.base_mass_kg
@@ -256,29 +292,248 @@ class StandPlant:
         self.hist = np.zeros(int(math.ceil(fx.delay_s * fs)) + 4)
         self.y = np.zeros(7)
         self.k = 0
-        self._out = np.zeros(2)
+        self._out = np.zeros(3)
         self._work = np.zeros((5, 7))
+        self._still = np.zeros(4)
         self.rng = np.random.default_rng(fx.seed)
         self.position_m = self._noisy_pos(0.0)
         self.accel_mps2 = 0.0
+        self.accel_now_mps2 = 0.0
+        self.x_abs_m = 0.0
         self.t_s = 0.0
         # compile (or load) the step now: a first compile inside a running loop stalls it past its watchdog
         _advance_stand(np.zeros(7), 0, np.zeros_like(self.hist), self.fs, 1, fx.delay_s, p.K_v, 0.0, self.prm,
-                       0.0, 0.0, 0.0, np.zeros(2), np.zeros((5, 7)))
+                       0.0, 0.0, 0.0, np.zeros(4), np.zeros(3), np.zeros((5, 7)))
+        if self.linear:
+            _step_linear(self._Ad, self._Bu, self._G, self._ca, self._da, np.zeros(7), 0.0, self._still,
+                         np.zeros(3))
 
     def _noisy_pos(self, x):
         return x + (self.fx.position_noise_m * self.rng.standard_normal() if self.fx.position_noise_m else 0.0)
 
-    def step(self, cmd_V: float) -> tuple[float, float]:
+    def _noisy_acc(self, a):
+        return a + (self.fx.accel_noise_mps2 * self.rng.standard_normal() if self.fx.accel_noise_mps2 else 0.0)
+
+    def step(self, cmd_V: float, ground=None) -> tuple[float, float]:
         fx = self.fx
-        self.hist[self.k % len(self.hist)] = cmd_V
-        _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
-                       fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
-                       fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
-                       fx.disturbance_phase_rad, self._out, self._work)
+        g = self._still if ground is None else ground
+        if self.linear:
+            _step_linear(self._Ad, self._Bu, self._G, self._ca, self._da, self.y, float(cmd_V), g, self._out)
+        else:
+            self.hist[self.k % len(self.hist)] = cmd_V
+            _advance_stand(self.y, self.k, self.hist, self.fs, self.n_sub, fx.delay_s, self.p.K_v,
+                           fx.saturation_limit_ma, self.prm, fx.disturbance_frequency_hz,
+                           fx.disturbance_force_n if fx.disturbance_frequency_hz > 0 else 0.0,
+                           fx.disturbance_phase_rad, g, self._out, self._work)
         self.k += 1
         self.t_s = self.k / self.fs
-        self.accel_mps2 = float(self._out[0]) + (fx.accel_noise_mps2 * self.rng.standard_normal()
-                                                 if fx.accel_noise_mps2 else 0.0)
-        self.position_m = self._noisy_pos(float(self._out[1]))
+        self.accel_mps2 = self._noisy_acc(float(self._out[0]))
+        self.x_abs_m = float(self._out[1])
+        self.position_m = self._noisy_pos(self.x_abs_m - float(g[2]))      # against the floor frame
+        if ground is not None:
+            self.accel_now_mps2 = self._noisy_acc(float(self._out[2]))
         return self.position_m, self.accel_mps2
+
+
+@numba.njit(cache=True)
+def _step_linear(Ad, Bu, G, ca, da, y, u, g, out):
+    """One exact period of the linear stand: out as _advance_stand's (accel at t_k, x_p and accel at t_k+1)."""
+    n = Ad.shape[0]
+    x = y[:n]
+    out[0] = ca @ x + da[0] * g[0] + da[1] * g[1]
+    xn = Ad @ x + Bu * u + G[:, 0] * g[0] + G[:, 1] * g[1] + G[:, 2] * g[2] + G[:, 3] * g[3]
+    y[:n] = xn
+    out[1] = xn[3]
+    out[2] = ca @ xn + da[0] * g[2] + da[1] * g[3]
+
+
+class StandBank:
+    """n actuators, each alone on its test stand, on one floor: the plant of the `stand` layout (one mount is
+    the prototype). After `step(valve_cmd_V)` the attributes hold the values at the new instant, as the
+    four-mount plant's do: accel_mps2 (absolute, the load's accelerometer) and stroke_m (the transducer,
+    piston against the floor frame), with sensor noise; table_m the loads' true absolute positions (the
+    isolation figure), floor_m the floor. floor: a FloorMotion over n mounts (base_motion), or None.
+
+    When every stand is linear (StandPlant.linear) the bank steps them all in one exact matrix product, with
+    the floor and the sensor noise drawn in blocks (the loop's simulated port reads it every period);
+    otherwise each stand by its own RK4."""
+
+    BLOCK = 256
+
+    def __init__(self, stands, floor=None) -> None:
+        self.stands = list(stands)
+        self.n_mounts = n = len(self.stands)
+        self.floor = floor
+        self.accel_mps2 = [0.0] * n
+        self.stroke_m = [float(s.position_m) for s in self.stands]
+        self.table_m = [0.0] * n
+        self.t_s = 0.0
+        self.k = 0
+        self._g = np.zeros((n, 4))
+        self._block = np.zeros((0, 2 * n))
+        self._j = 0
+        self.exact = all(s.linear for s in self.stands)
+        if self.exact:
+            self._build_exact()
+
+    def _build_exact(self) -> None:
+        """One block-diagonal system: X <- Ad X + B w, w = (u (n), floor at t_k (2n), at t_k+1 (2n));
+        Y = (accel, x_p at t_k+1) = C X + D w."""
+        n = self.n_mounts
+        sizes = [s._Ad.shape[0] for s in self.stands]
+        N = sum(sizes)
+        Ad, B = np.zeros((N, N)), np.zeros((N, 5 * n))
+        C, D = np.zeros((2 * n, N)), np.zeros((2 * n, 5 * n))
+        o = 0
+        for i, (s, k) in enumerate(zip(self.stands, sizes)):
+            Ad[o:o + k, o:o + k] = s._Ad
+            B[o:o + k, i] = s._Bu
+            for j, col in enumerate((n + 2 * i, n + 2 * i + 1, 3 * n + 2 * i, 3 * n + 2 * i + 1)):
+                B[o:o + k, col] = s._G[:, j]
+            C[i, o:o + k] = s._ca
+            D[i, 3 * n + 2 * i:3 * n + 2 * i + 2] = s._da
+            C[n + i, o + 3] = 1.0
+            o += k
+        self._X, self._w, self._y = np.zeros(N), np.zeros(5 * n), np.zeros(3 * n)
+        self._M = np.ascontiguousarray(np.vstack([np.hstack([Ad, B]), np.hstack([C, D])]))   # one array to hand over
+        fx = self.stands[0].fx
+        self._sd = np.array([s.fx.accel_noise_mps2 for s in self.stands] + [s.fx.position_noise_m for s in self.stands])
+        self._rng = np.random.default_rng(fx.seed)
+        self._noise = np.zeros((0, 2 * n))
+        self._nj = 0
+        # compile (or load) the bank's step now, not in the loop's first period (the watchdog)
+        _bank_step(self._M, np.zeros(N), np.zeros(5 * n), np.zeros((n, 4)), np.zeros(2 * n), self.floor is not None,
+                   np.zeros(2 * n), np.zeros(3 * n))
+
+    def _floor_step(self) -> None:
+        g = self._g
+        if self.floor is not None:
+            if self._j >= len(self._block):             # floor motion drawn in blocks (a draw costs ~20 us)
+                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+            b = self._block[self._j]                    # x_g (n), v_g (n) at the new instant
+            self._j += 1
+            n = self.n_mounts
+            g[:, 0:2] = g[:, 2:4]
+            g[:, 2] = b[:n]
+            g[:, 3] = b[n:2 * n]
+
+    def step(self, valve_cmd_V) -> None:
+        n = self.n_mounts
+        g = self._g
+        if self.exact:
+            w = self._w
+            w[:n] = valve_cmd_V
+            if self._nj >= len(self._noise):
+                self._noise, self._nj = self._rng.standard_normal((self.BLOCK, 2 * n)) * self._sd, 0
+            if self.floor is not None and self._j >= len(self._block):
+                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+            y = self._y
+            _bank_step(self._M, self._X, w, g, self._block[self._j] if self.floor is not None else self._noise[0],
+                       self.floor is not None, self._noise[self._nj], y)
+            self._nj += 1
+            self._j += 1
+            self.accel_mps2 = y[:n].tolist()             # fresh lists (never edited in place)
+            self.stroke_m = y[n:2 * n].tolist()
+            self.table_m = y[2 * n:].tolist()
+            self.k += 1
+            self.t_s = self.k / self.stands[0].fs
+        else:
+            self._floor_step()
+            acc, xs, tab = [0.0] * n, [0.0] * n, [0.0] * n
+            for i, s in enumerate(self.stands):
+                s.step(float(valve_cmd_V[i]), g[i])
+                acc[i], xs[i], tab[i] = s.accel_now_mps2, s.position_m, s.x_abs_m
+            self.accel_mps2, self.stroke_m, self.table_m = acc, xs, tab
+            self.t_s = self.stands[0].t_s
+
+    @property
+    def floor_m(self) -> list:
+        """The floor under each stand at the last instant."""
+        return self._g[:, 2].tolist()
+
+
+@numba.njit(cache=True)
+def _bank_step(M, X, w, g, b, moving, noise, y):
+    """The stand bank's exact period: the floor g moves on to b (x_g, v_g at t_k+1) if moving; w = (u, floor
+    at t_k, at t_k+1); X <- Ad X + B w; y = (accel + noise, x_p - x_g + noise, x_p) at t_k+1 from C X + D w.
+    M = [[Ad, B], [C, D]]."""
+    N = X.shape[0]
+    n = g.shape[0]
+    if moving:
+        for i in range(n):
+            g[i, 0] = g[i, 2]
+            g[i, 1] = g[i, 3]
+            g[i, 2] = b[i]
+            g[i, 3] = b[n + i]
+    for i in range(n):
+        w[n + 2 * i] = g[i, 0]
+        w[n + 2 * i + 1] = g[i, 1]
+        w[3 * n + 2 * i] = g[i, 2]
+        w[3 * n + 2 * i + 1] = g[i, 3]
+    nw = w.shape[0]
+    Xn = np.empty(N)
+    for r in range(N):
+        acc = 0.0
+        for c in range(N):
+            acc += M[r, c] * X[c]
+        for c in range(nw):
+            acc += M[r, N + c] * w[c]
+        Xn[r] = acc
+    X[:] = Xn
+    for r in range(2 * n):
+        acc = 0.0
+        for c in range(N):
+            acc += M[N + r, c] * X[c]
+        for c in range(nw):
+            acc += M[N + r, N + c] * w[c]
+        if r < n:
+            y[r] = acc + noise[r]                      # accelerometer
+        else:
+            y[n + r] = acc                             # the load's true x_p
+            y[r] = acc - g[r - n, 2] + noise[r]        # transducer, against the floor frame
+
+
+def stand_state_space(p: ActuatorParams, fx: Effects = Effects()):
+    """The stand's physics, linear (Eqs. 1, 3, 6, 7; base mode as configured, other effects off), as
+    continuous (A, B, C, D): states x_v, dx_v/dt, P_L, x_p, v_p (+ x_b, v_b with the base mode); inputs u [V],
+    x_g, v_g (the floor); outputs position_m (transducer, x_p - x_g), accel_mps2 (absolute), x_p (absolute)."""
+    base = fx.base_frequency_hz > 0
+    n = 7 if base else 5
+    A = np.zeros((n, n))
+    B = np.zeros((n, 3))
+    g = 4 * p.beta / p.V_t
+    A[0, 1] = 1.0                                             # Eq. 1
+    A[1, 0] = -p.w_nv ** 2
+    A[1, 1] = -2 * p.zeta * p.w_nv
+    B[1, 0] = p.w_nv ** 2 * p.K_v
+    A[2, 0] = g * p.K_Q                                       # Eqs. 3, 6
+    A[2, 2] = -g * p.K_C
+    A[3, 4] = 1.0
+    rel = np.zeros((2, n + 2))     # (y_rel, v_rel) as rows over [states, x_g, v_g]
+    rel[0, 3] = rel[1, 4] = 1.0
+    if base:
+        rel[0, 5] = rel[1, 6] = -1.0
+    else:
+        rel[0, n] = rel[1, n + 1] = -1.0
+    f_act = p.A_p * np.eye(1, n + 2, 2)[0] - p.K_L * rel[0] - p.C * rel[1]     # Eq. 7: A_p P_L - K_L y - C v
+    A[2] += -g * p.A_p * rel[1, :n]
+    B[2, 1:] = -g * p.A_p * rel[1, n:]
+    A[4] += f_act[:n] / p.M
+    B[4, 1:] = f_act[n:] / p.M
+    if base:
+        m_b = fx.base_mass_kg
+        w_b = 2 * math.pi * fx.base_frequency_hz
+        k_b, c_b = m_b * w_b ** 2, 2 * fx.base_damping_ratio * m_b * w_b
+        A[5, 6] = 1.0
+        A[6] += -f_act[:n] / m_b
+        A[6, 5] -= k_b / m_b
+        A[6, 6] -= c_b / m_b
+        B[6, 1:] = -f_act[n:] / m_b + np.array([k_b, c_b]) / m_b
+    C = np.zeros((3, n))
+    D = np.zeros((3, 3))
+    C[0, 3] = 1.0
+    D[0, 1] = -1.0
+    C[1] = A[4]
+    D[1] = B[4]
+    C[2, 3] = 1.0
+    return A, B, C, D

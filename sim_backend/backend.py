@@ -10,7 +10,8 @@ Plants (any object with these):
   .accel_mps2, .stroke_m           sensor values after the step (lists, one per mount; new list objects
                                    every step, never edited in place: read() hands them on without a copy)
   .floor_sensors, .floor_accel_mps2 optional: the floor accelerometers ([sensors] floor_accel)
-Four mounts: sim_backend.rig_plant.RigPlant. One actuator on its stand: StandPlant wrapped by `StandAdapter`
+Four mounts: sim_backend.rig_plant.RigPlant. Actuators alone on their stands (the `stand` layout, one mount
+the prototype): sim_backend.actuator.StandBank. One stand for a chirp: StandPlant wrapped by `StandAdapter`
 (n_mounts = 1; stroke_m is the stand's position_m).
 
 Fault knobs (`inject`), each from time at_s on (ns resolution), per mount:
@@ -25,13 +26,14 @@ Fault knobs (`inject`), each from time at_s on (ns resolution), per mount:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rig.errors import RigError
 from rig.port import Commands, Measurements, PortContext
-from sim_backend.actuator import Effects, StandPlant
+from rig.config import layout_mounts
+from sim_backend.actuator import Effects, StandBank, StandPlant
 from sim_backend.linear import ActuatorParams
 from sim_backend.rig_plant import FloorMotion, RigPlant
 
@@ -251,10 +253,26 @@ class SimBackend(PortContext):
                     self.clock.spend(f.extra_ns)
 
 
-def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | None = None,
+def stand_bank(cfg, dt: float, *, n: int | None = None, effects: Effects | None = None, floor=True) -> StandBank:
+    """The `stand` layout's plant: one actuator on its stand per mount ([layout] load_kg on each piston,
+    the [stand] effects and sensor noise, seeds apart per stand), on a floor moving with [stand]
+    base_motion_rms_m (band, spectrum and seed of [vibration]; floor=False: still, or a FloorMotion)."""
+    n = len(layout_mounts(cfg)) if n is None else n
+    p = ActuatorParams.from_config(cfg, loaded_mass_kg=cfg.actuator.M + cfg.layout.load_kg)
+    fx = effects or Effects.from_config(cfg)
+    if floor is True:
+        v = cfg.vibration
+        floor = (FloorMotion(dt, band_hz=(v.band_lo_hz, v.band_hi_hz), rms_m=fx.base_motion_rms_m, seed=v.seed,
+                             spectrum=v.spectrum, n_mounts=n) if fx.base_motion_rms_m > 0 else None)
+    return StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt) for i in range(n)], floor or None)
+
+
+def make_sim_port(cfg, dt: float, *, mode: str | None = None, clock=None, seed: int | None = None,
                   stand_params=None, stand_effects=None, floor=True, **kw) -> SimBackend:
     """The simulated backend for a config: mode "rig" (four mounts, RigPlant under the [vibration] floor
-    motion; floor=False for none, or a FloorMotion) or "stand" (one actuator, StandPlant).
+    motion; floor=False for none, or a FloorMotion), "stands" (the stand layout: StandBank, one actuator on
+    its stand per mount, the floor of [stand] base_motion_rms_m, commands applied one period after they are
+    written as in rig mode) or "stand" (one actuator, StandPlant, for a chirp); default: the [layout]'s.
 
     The plants add their own sensor noise, so the backend adds none unless asked (accel_noise_mps2=...,
     stroke_noise_m=...), except a 1e-10 m / 1e-6 m/s^2 floor on a noiseless stand (the stuck check).
@@ -264,8 +282,18 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
     it at once, as
     simulate_stand does, so a chirp recording matches the stand model without an extra delay."""
     seed = cfg.vibration.seed if seed is None else seed
+    if mode is None:
+        mode = "rig" if cfg.layout.plant == "machine" else "stands"
     kw.setdefault("accel_noise_mps2", 0.0)
     kw.setdefault("stroke_noise_m", 0.0)
+    if mode == "stands":
+        plant = stand_bank(cfg, dt, effects=stand_effects, floor=floor)
+        kw.setdefault("cmd_delay_periods", 1)
+        if plant.stands[0].fx.position_noise_m == 0:
+            kw["stroke_noise_m"] = kw["stroke_noise_m"] or 1e-10   # never bit-exact (stuck check)
+        if plant.stands[0].fx.accel_noise_mps2 == 0:
+            kw["accel_noise_mps2"] = kw["accel_noise_mps2"] or 1e-6
+        return SimBackend(plant, dt, n_mounts=plant.n_mounts, clock=clock, seed=seed, **kw)
     if mode == "rig":
         if floor is True:
             floor = FloorMotion.from_config(cfg, dt)
@@ -282,4 +310,4 @@ def make_sim_port(cfg, dt: float, *, mode: str = "rig", clock=None, seed: int | 
             kw["accel_noise_mps2"] = kw["accel_noise_mps2"] or 1e-6
         plant = StandAdapter(StandPlant(p, fx, 1.0 / dt))
         return SimBackend(plant, dt, n_mounts=1, clock=clock, seed=seed, **kw)
-    raise RigError(f"sim backend: mode {mode!r} (expected rig or stand)")
+    raise RigError(f"sim backend: mode {mode!r} (expected rig, stands or stand)")

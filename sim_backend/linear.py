@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, asdict, replace
 
 import numpy as np
+import scipy.linalg
 
 from rig.config import ActuatorConfig, Config, FluidConfig, ValveConfig
 
@@ -159,3 +160,20 @@ def model_figures(p: ActuatorParams, machine_mass_kg: float, n_mounts: int = 4) 
         "hydraulic_stiffness_N_per_m": p.K_h,
         "mount_stiffness_N_per_m": p.K_L + p.K_h,
     }
+
+
+def discretize_zoh_foh(A: np.ndarray, Bu: np.ndarray, Bg: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
+    """Exact discretisation of x' = A x + Bu u + Bg g with u held over the period (ZOH) and g interpolated
+    linearly between samples (first-order hold, the floor moves continuously):
+    x[k+1] = Ad x[k] + Bud u[k] + G0 g[k] + G1 g[k+1]. Returns (Ad, Bud, G0, G1)."""
+    n, nu, m = A.shape[0], Bu.shape[1], Bg.shape[1]
+    big = np.zeros((n + nu + 2 * m, n + nu + 2 * m))
+    big[:n, :n] = A * dt
+    big[:n, n:n + nu] = Bu * dt
+    big[:n, n + nu:n + nu + m] = Bg * dt
+    big[n + nu:n + nu + m, n + nu + m:] = np.eye(m)
+    e = scipy.linalg.expm(big)
+    gam0 = e[:n, n + nu:n + nu + m]        # int_0^T e^{A s} ds B_g
+    gam1 = e[:n, n + nu + m:]              # (1/T) int_0^T e^{A (T - s)} s ds B_g
+    return (np.ascontiguousarray(e[:n, :n]), np.ascontiguousarray(e[:n, n:n + nu]),
+            np.ascontiguousarray(gam0 - gam1), np.ascontiguousarray(gam1))

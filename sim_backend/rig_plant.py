@@ -25,7 +25,7 @@ import scipy.linalg
 import scipy.signal
 
 from rig.config import MOUNTS, Config
-from sim_backend.linear import ActuatorParams
+from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 from sim_backend.machine import ModalModel, modal_model_from_config
 
 OUTPUTS = tuple([f"accel_{m}" for m in MOUNTS] + [f"stroke_{m}" for m in MOUNTS] + [f"x_{m}" for m in MOUNTS]
@@ -126,20 +126,7 @@ def discretize_foh_ground(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, ...
 
     Holding the ground instead would put a spurious K_L/m (x_g[k+1] - x_g[k]) into the accelerometer at
     the next sample, larger than the true acceleration below ~1.5 Hz: the floor moves continuously."""
-    n = ss.A.shape[0]
-    m = 8
-    big = np.zeros((n + 4 + 2 * m, n + 4 + 2 * m))
-    big[:n, :n] = ss.A * dt
-    big[:n, n:n + 4] = ss.B[:, 0:4] * dt
-    big[:n, n + 4:n + 4 + m] = ss.B[:, 4:12] * dt
-    big[n + 4:n + 4 + m, n + 4 + m:] = np.eye(m)
-    e = scipy.linalg.expm(big)
-    Ad = e[:n, :n]
-    Bu = e[:n, n:n + 4]
-    Gam0 = e[:n, n + 4:n + 4 + m]        # int_0^T e^{A s} ds B_g
-    Gam1 = e[:n, n + 4 + m:]             # (1/T) int_0^T e^{A (T - s)} s ds B_g
-    return (np.ascontiguousarray(Ad), np.ascontiguousarray(Bu), np.ascontiguousarray(Gam0 - Gam1),
-            np.ascontiguousarray(Gam1))
+    return discretize_zoh_foh(ss.A, ss.B[:, 0:4], ss.B[:, 4:12], dt)
 
 
 @numba.njit(cache=True)
@@ -176,7 +163,7 @@ def _modal_form(Ad, Bd, C):
 
 
 class FloorMotion:
-    """Broadband vertical floor motion at the four mounts, streamed in blocks.
+    """Broadband vertical floor motion at the mounts (four unless n_mounts says), streamed in blocks.
 
     White noise through a 4th-order Butterworth band-pass (paper: 1-50 Hz, 1-50 um). With spectrum
     "velocity_flat" (default) a first-order low-pass at the lower band edge makes the displacement fall as 1/f
@@ -185,8 +172,9 @@ class FloorMotion:
     rocks. Velocity is the derivative of the band-limited displacement (central difference)."""
 
     def __init__(self, dt: float, band_hz=(1.0, 50.0), rms_m: float = 10e-6, seed: int = 1, rho: float = 0.5,
-                 block: int = 256, spectrum: str = "velocity_flat"):
+                 block: int = 256, spectrum: str = "velocity_flat", n_mounts: int = 4):
         self.dt = dt
+        self.n = n = int(n_mounts)
         self.rms_m = rms_m
         self.rho = rho
         self.rng = np.random.default_rng(seed)
@@ -196,13 +184,13 @@ class FloorMotion:
         elif spectrum != "displacement_flat":
             raise ValueError(f"floor spectrum {spectrum!r}: expected velocity_flat or displacement_flat")
         self.sos = sos
-        self.zi = np.zeros((5, self.sos.shape[0], 2))     # 4 mounts + common component
+        self.zi = np.zeros((n + 1, self.sos.shape[0], 2))     # the mounts + common component
         # noise gain of the filter, so rms_m is the displacement rms at every mount
         w, h = scipy.signal.sosfreqz(self.sos, worN=1 << 15, fs=1.0 / dt)
         self.gain = math.sqrt(np.mean(np.abs(h) ** 2))
         self.block = block
-        self._x = np.zeros((0, 4))
-        self._prev = np.zeros(4)
+        self._x = np.zeros((0, n))
+        self._prev = np.zeros(n)
         self._i = 0
 
     @classmethod
@@ -214,16 +202,17 @@ class FloorMotion:
     def _more(self):
         # small blocks through a compiled filter: a stepped plant refills every `block` periods inside the
         # control period (8192 samples through scipy took 2.5-3.5 ms: an overrun at 5 kHz each time)
-        white = self.rng.standard_normal((5, self.block))
+        n = self.n
+        white = self.rng.standard_normal((n + 1, self.block))
         out = np.empty_like(white)
         _sosfilt_rows(self.sos, white, self.zi, out)
         out *= self.rms_m / self.gain
-        x = (math.sqrt(1 - self.rho) * out[:4] + math.sqrt(self.rho) * out[4]).T
+        x = (math.sqrt(1 - self.rho) * out[:n] + math.sqrt(self.rho) * out[n]).T
         self._x = np.concatenate([self._x[self._i:], x])
         self._i = 0
 
     def next_block(self, n: int) -> np.ndarray:
-        """The next n periods as an (n, 12) array: x_g (4), v_g (4), then a_g (4), the floor acceleration
+        """The next n periods as an (n, 3 n_mounts) array: x_g, v_g, then a_g per mount, the floor acceleration
         (what a floor accelerometer at the mount reads, before its noise)."""
         while self._i + n + 1 > len(self._x):
             self._more()
@@ -237,7 +226,7 @@ class FloorMotion:
 
     def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         g = self.next_block(n)
-        return g[:, :4], g[:, 4:8]
+        return g[:, :self.n], g[:, self.n:2 * self.n]
 
 
 def plant_config(cfg: Config) -> Config:

@@ -4,13 +4,23 @@
                                                   real clock, real-time hygiene where allowed, recording on
   rig bench loop --empty ...                      the same deadlines and wait with nothing in the period:
                                                   what the machine itself allows (same JSON)
+  rig bench loop --layout prototype ...           the prototype instead: one mount on its stand, tracking a
+                                                  sine (the isolation filters stepped alongside)
+  rig bench loop --layout both ...                four mounts and one, alternately in one run (three rounds
+                                                  each of --seconds / 6): {"machine", "prototype",
+                                                  "compute_p99_ratio"} (prototype / machine, per round), and
+                                                  "kernel_us": the compiled period alone, per layout (the
+                                                  least of 5 x 20000 back-to-back calls: the code's cost
+                                                  without the shared host's noise)
   rig bench loop --feedforward [--rounds R] ...   the feedback-only loop and the loop with the floor
                                                   accelerometers and feedforward, alternating in one run
   rig bench loop --console ...                    blocks without and with the operator console and a browser
                                                   on its page, alternating (rig/console/bench.py)
-  rig bench sim ...                               simulation speed of the plant
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
                                                   hour, gzip against none (rig/commands/bench_recorder.py)
+  rig bench sim ...                               simulation speed of the plant
+  rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
+                                                  in simulated time (rig/commands/prototype_bench.py)
 
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
@@ -35,6 +45,7 @@ import math
 import os
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -67,6 +78,9 @@ def add_arguments(p) -> None:
     lp.add_argument("--empty", action="store_true",
                     help="the same clock, real-time set-up and deadlines with nothing to do in the period: the "
                          "machine's own floor under these figures (same JSON)")
+    lp.add_argument("--layout", choices=("machine", "prototype", "both"), default="machine",
+                    help="machine: four mounts (default); prototype: one mount on its stand, tracking; both: "
+                         "alternately in one run, with the ratio of their compute p99")
     lp.add_argument("--feedforward", action="store_true",
                     help="compare the feedback-only loop with the loop with floor feedforward, alternating runs")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
@@ -74,6 +88,11 @@ def add_arguments(p) -> None:
     sp = sub.add_parser("sim", help="simulation speed of the plant")
     _config_arg(sp)
     add_sim_arguments(sp)
+    pp = sub.add_parser("prototype", help="the prototype's tracking targets on the simulated stand")
+    _config_arg(pp)
+    pp.add_argument("--switches", type=cliargs.count(1, 100000), default=100, metavar="N", help="random mode switches (default 100)")
+    pp.add_argument("--seed", type=cliargs.seed(), default=18, metavar="N", help="seed of the switches (default 18)")
+    pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
     rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
@@ -94,9 +113,19 @@ def run(args) -> int:
         return bench_loop(args)
     if what == "sim":
         return bench_sim(args)
+    if what == "prototype":
+        from rig.commands import prototype_bench
+        from rig.commands.run import LAYOUTS
+        cfg = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
+        if cfg.layout.plant != "stand":
+            raise RigError(f"bench prototype: {cfg.source} is not a stand layout ([layout] plant = \"stand\")")
+        res = prototype_bench.run(cfg, switch_count=args.switches, seed=args.seed,
+                                  progress=lambda m: print(f"rig bench prototype: {m}", file=sys.stderr))
+        print(json.dumps(res, indent=1) if args.json else prototype_bench.text(res))
+        return 0
     if what == "recorder":
         return bench_recorder(args)
-    raise RigError("bench: expected a benchmark: loop or sim (see rig bench --help)")
+    raise RigError("bench: expected a benchmark: loop, sim, recorder or prototype (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
@@ -168,8 +197,13 @@ def bench_loop(args) -> int:
     clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
+    layout = getattr(args, "layout", "machine")
+    if args.feedforward and layout != "machine":
+        raise RigError("--feedforward: the machine's loop (the stand layouts have no floor accelerometers)")
     if args.feedforward:
         return _feedforward_ab(cfg, args, rate)
+    if layout != "machine":
+        return _bench_layouts(cfg, args, rate, layout)
     if args.console:
         return console_bench.bench_console(args, cfg, rate, clock)
     path, tmp = args.record, None
@@ -179,7 +213,8 @@ def bench_loop(args) -> int:
         path = tmp
     realtime = cfg.loop.realtime and not args.no_realtime
     session = Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy,
-                      keep_timing=int(math.ceil(args.seconds * rate)) + 16, stop_on_fault=False, record=path,
+                      keep_timing=int(math.ceil(args.seconds * rate)) + 16, stop_on_fault=False, rate_check=False,
+                      record=path,
                       record_attrs={"command": "rig bench loop"}, realtime=realtime)
     try:
         with session:
@@ -252,7 +287,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
                 print(f"rig bench loop: note: {path}: the simulated rig faulted: {loop.lc.fault_reason}",
                       file=sys.stderr)
             print(f"rig bench loop --feedforward: round {r + 1}/{args.rounds} {path}: compute p99 "
-                  f"{per_round[path][-1]:.2f} us (mode {loop.mode})", file=sys.stderr)
+                  f"{per_round[path][-1]:.2f} us (mode {loop.isolation_mode})", file=sys.stderr)
 
     def pct(a):
         return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2),
@@ -350,3 +385,82 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
     _print_host_stalls(wake, period, steal0, cpu_steal_ms(rt.cpu if rt else None), rt.cpu if rt else None)
     _print_loop_figures(out, args.json, 0)
     return 0
+
+
+PROTOTYPE_BENCH_MODE = "track sine:amp=10um,freq=5"
+
+
+def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
+    """One timed run on the simulated backend (cfg's layout; mode: the stand's operating mode), recording to a
+    temporary file: the loop figures."""
+    fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+    os.close(fd)
+    realtime = cfg.loop.realtime and not args.no_realtime
+    clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
+    try:
+        with Session(cfg, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy, mode=mode,
+                     keep_timing=int(math.ceil(seconds * rate)) + 16, stop_on_fault=False, record=tmp,
+                     record_attrs={"command": "rig bench loop"}, realtime=realtime) as session:
+            loop = session.loop
+            loop.activate()
+            session.run(seconds=seconds)
+    finally:
+        os.unlink(tmp)
+    tm = loop.timing_us()
+    return {"mounts": loop.n, "rate_hz": rate, "iterations": loop.iterations,
+            "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
+            "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
+            "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
+
+
+def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
+    """The prototype alone, or both layouts alternately (machine, prototype, machine, prototype) in one run."""
+    from rig.commands.run import LAYOUTS
+    proto = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
+    if proto.layout.plant != "stand":
+        raise RigError(f"--layout {layout}: {proto.source} is not a stand layout")
+    order = [("prototype", proto)] if layout == "prototype" else [("machine", cfg), ("prototype", proto)] * 3
+    seconds = args.seconds if layout == "prototype" else args.seconds / 6
+    runs: dict = {}
+    for name, c in order:
+        print(f"rig bench loop: {name} ({len(c.layout.mounts) or 4} mount(s)) at {rate:g} Hz for {seconds:g} s"
+              f"{', ' + PROTOTYPE_BENCH_MODE if name == 'prototype' else ''}", file=sys.stderr)
+        runs.setdefault(name, []).append(_bench_once(c, args, rate, seconds,
+                                                     PROTOTYPE_BENCH_MODE if name == "prototype" else None))
+    if layout == "prototype":
+        _print_loop_figures(runs["prototype"][0], args.json, 0)
+        return 0
+    ratios = [p["compute_us"]["p99"] / m["compute_us"]["p99"] for m, p in zip(runs["machine"], runs["prototype"])]
+    kern = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
+    out = {"machine": runs["machine"], "prototype": runs["prototype"], "compute_p99_ratio": [round(r, 3) for r in ratios],
+           "kernel_us": kern}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    for name in ("machine", "prototype"):
+        for r in runs[name]:
+            c, w = r["compute_us"], r["wake_latency_us"]
+            print(f"{name:9s} {r['mounts']} mount(s): compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us"
+                  f" | wake p99 {w['p99']:7.1f} us | overruns {r['overruns']}")
+    print(f"compute p99, prototype / machine, per round: {', '.join(f'{r:.2f}' for r in ratios)}")
+    print(f"the compiled period alone: machine {kern['machine']:.3f} us, prototype {kern['prototype']:.3f} us "
+          f"({kern['prototype'] / kern['machine']:.2f}x)")
+    return 0
+
+
+def _kernel_us(cfg, mode) -> float:
+    """The compiled period's own cost on the layout's controllers after a short run in simulated time: the
+    least of five means over 20000 back-to-back calls with the last measurement (ACTIVE, no recorder)."""
+    from rig.clock import SimClock
+    from rig.kernel import MODE_ACTIVE
+    with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
+        s.run(seconds=0.1, activate_after_s=0.01)
+        k, m = s.loop.kernel, s.loop.last_meas
+        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
+        best = math.inf
+        for _ in range(5):
+            t = time.perf_counter_ns()
+            for _ in range(20000):
+                k.call(k.mem, k.no_ring, -1, *args)
+            best = min(best, (time.perf_counter_ns() - t) / 20000 / 1e3)
+    return round(best, 4)

@@ -4,6 +4,8 @@ The actuator alone on its test stand, open loop: the valve command follows a lin
 duration, paper: 0.1 -> 100 Hz in 100 s). Each loop period reads the sensors, writes the chirp sample (through
 the safety limiter) and records time_s, valve_cmd_V, position_m, accel_mps2 of the chirped mount. Position is
 sampled at t_k before the command of period k acts (ZOH), as the shared recordings and rig.identify assume.
+`--levels` plays the same sweep at several amplitudes back to back, `--multisine` an odd random-phase multisine
+(rig/excitation.py); both are recorded the same way, with the signal's description in the file's attributes.
 
 Backends: sim (one StandPlant with the configured Table 1 parameters and sensor noise; simulated time by
 default; effects and sensor noise from the config's [stand] section), hil (the real drivers against the emulated devices, each mount an actuator alone on its stand; real
@@ -23,17 +25,17 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from controllers.playback import SignalPlayback
-from rig import cliargs
+from rig import cliargs, excitation
 from rig.backends import BACKENDS
 from rig.clock import MonotonicClock, SimClock
-from rig.config import MOUNTS, hil_run_config, load_config
+from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
 from rig.lifecycle import State
 from rig.recorder import Channel
 from rig.recording import load_recording, save_recording_csv
 from rig.session import Session
 from rig.tap import Columns
-from sim_backend.actuator import Effects, StandPlant
+from sim_backend.actuator import Effects, StandBank, StandPlant
 from sim_backend.linear import ActuatorParams
 
 
@@ -50,8 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="chirp length, s (default 100)")
     p.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
                    help="loop (and recording) rate, Hz (default: [loop] rate_hz; hil: [hil] rate_hz)")
-    p.add_argument("--mount", default="front_left", choices=MOUNTS,
-                   help="mount whose valve is chirped (hil/hardware)")
+    p.add_argument("--mount", default="front_left",
+                   help="mount whose valve is chirped (hil/hardware; a name of the config's layout)")
     p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=0.05, metavar="S",
                    help="seconds INACTIVE (valve at null, sensors checked) before the chirp (default 0.05)")
     p.add_argument("--realtime", action="store_true", help="sim backend: pace on the wall clock (default: "
@@ -61,6 +63,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.output_arg(p, "--out", metavar="REC", required=True,
                    help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
     p.add_argument("--csv", action="store_true", help="write the shared CSV format instead of HDF5")
+    p.add_argument("--levels", type=level_list, default=None, metavar="V,V,...",
+                   help="the same sweep at several amplitudes back to back, e.g. 0.5,1.5,3.0 (each --duration "
+                        "long; rig diagnose then shows gain by level: saturation, deadband, linear)")
+    p.add_argument("--multisine", action="store_true",
+                   help="an odd random-phase multisine over f0..f1 instead of the chirp (--period per period, "
+                        "--duration rounded to whole periods); its empty lines detect nonlinearity")
+    p.add_argument("--period", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S), default=10.0, metavar="S",
+                   help="multisine period, s (default 10: 0.1 Hz line spacing)")
+
+
+_LEVEL = cliargs.Number(gt=0, le=50, unit="V")
+
+
+def level_list(text: str) -> list[float]:
+    """`--levels 0.5,1.5,3.0` (argparse type): at least two amplitudes, each > 0 and <= 50 V."""
+    levels = [_LEVEL(x.strip()) for x in text.split(",") if x.strip()]
+    if len(levels) < 2:
+        raise argparse.ArgumentTypeError(f"expected at least two levels like 0.5,1.5,3.0, got {text!r}")
+    return levels
 
 
 def chirp_samples(amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float, dt: float) -> list[float]:
@@ -85,23 +106,6 @@ def chirp_columns(mount: int) -> Columns:
                     (Channel("accel_mps2", "m/s^2", description="accelerometer at t_k"), "accel_mps2", mount)])
 
 
-class _StandBank:
-    """Four actuators alone on their stands as a four-mount plant (for the HIL emulator)."""
-
-    def __init__(self, stands) -> None:
-        self.stands = stands
-        self.accel_mps2 = [0.0] * len(stands)
-        self.stroke_m = [0.0] * len(stands)
-        self.table_m = self.stroke_m
-        self.t_s = 0.0
-
-    def step(self, valve_cmd_V) -> None:
-        for i, s in enumerate(self.stands):
-            x, a = s.step(float(valve_cmd_V[i]))
-            self.stroke_m[i], self.accel_mps2[i] = float(x), float(a)
-        self.t_s = self.stands[0].t_s
-
-
 def _sim_effects(cfg, seed: int | None):
     """The [stand] section: effect switches and sensor noise (real sensors are never bit-exact constant, and
     the loop's stuck check relies on that)."""
@@ -118,22 +122,14 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
     if backend == "sim":
         return dict(mode="stand", seed=seed or 0, stand_params=p, stand_effects=fx)
     if backend == "hil":
-        return dict(plant=_StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt) for i in range(4)]))
+        return dict(plant=StandBank([StandPlant(p, replace(fx, seed=fx.seed + i), 1.0 / dt)
+                                     for i in range(len(layout_mounts(cfg)))]))
     return {}
 
 
-def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
-              duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
-              mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
-              stand_params=None, stand_effects=None, progress=None, on_session=None) -> dict:
-    """Run the chirp through rig.loop and write the recording. Returns a summary dict.
-    progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
-    callable(session) once the session is built (a console stops it safely from another thread)."""
-    rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
-    cliargs.check_rate(cfg, rate, sections=("stand",))
-    if backend == "hil":
-        # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
-        cfg = hil_run_config(cfg, rate)
+def _check_signal(cfg, rate: float, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float,
+                  slew_V_per_s: float) -> None:
+    """The signal within the safety limits and below Nyquist (one line naming the option otherwise)."""
     if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
         raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
                        f"got {amplitude_V:g}")
@@ -141,10 +137,32 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
         raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
     if duration_s <= 0:
         raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
-    slew = 2 * math.pi * f1_hz * amplitude_V
-    if slew > cfg.safety.slew_V_per_s:
-        raise RigError(f"--amplitude/--f1: the chirp slews {slew:.0f} V/s, above safety.slew_V_per_s = "
+    if slew_V_per_s > cfg.safety.slew_V_per_s:
+        raise RigError(f"--amplitude/--f1: the chirp slews {slew_V_per_s:.0f} V/s, above safety.slew_V_per_s = "
                        f"{cfg.safety.slew_V_per_s:g}")
+
+
+def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
+              duration_s: float = 100.0, rate_hz: float | None = None, out: Path, csv: bool = False,
+              mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
+              stand_params=None, stand_effects=None, progress=None, on_session=None, levels_V=None,
+              multisine: bool = False, period_s: float = 10.0) -> dict:
+    """Run the chirp through rig.loop and write the recording. Returns a summary dict.
+    levels_V: the same chirp at each level back to back; multisine: an odd random-phase multisine instead
+    (both from rig.excitation, played back sample by sample).
+    progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
+    callable(session) once the session is built (a console stops it safely from another thread)."""
+    rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+    cliargs.check_rate(cfg, rate, sections=("stand",))
+    if backend == "hil":
+        # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate
+        cfg = hil_run_config(cfg, rate)
+    signal = excitation.for_chirp_run(rate, duration_s, f0_hz, f1_hz, amplitude_V, levels_V=levels_V,
+                                      multisine=multisine, period_s=period_s, seed=seed or 0)
+    if signal is not None:
+        amplitude_V, duration_s = signal.peak_V, signal.duration_s
+    _check_signal(cfg, rate, amplitude_V, f0_hz, f1_hz, duration_s,
+                  2 * math.pi * f1_hz * amplitude_V if signal is None else signal.slew_V_per_s)
     sim_time = (backend == "sim") if sim_time is None else sim_time
     if sim_time and backend != "sim":
         raise RigError("simulated time only with --backend sim")
@@ -152,14 +170,17 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     out = Path(out)
     if out.is_dir():
         raise RigError(f"--out {out}: is a folder, expected a recording file name")
-    n = 1 if backend == "sim" else len(MOUNTS)
-    if n == 1:
+    mounts = layout_mounts(cfg)
+    n = 1 if backend == "sim" else len(mounts)
+    if backend == "sim":
         m_idx, names = 0, ("stand",)
     else:
-        if mount not in MOUNTS:
-            raise RigError(f"--mount: expected one of {', '.join(MOUNTS)}, got {mount!r}")
-        m_idx, names = MOUNTS.index(mount), None
-    samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt)
+        if n == 1 and mount == "front_left":          # the default names the machine's first mount
+            mount = mounts[0]
+        if mount not in mounts:
+            raise RigError(f"--mount: expected one of {', '.join(mounts)}, got {mount!r}")
+        m_idx, names = mounts.index(mount), mounts
+    samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt) if signal is None else signal.cmd_V
     ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(n)]
     h5_path = out if not csv else out.with_name(out.name + ".part.h5")
     total = settle_s + duration_s + 0.05        # a short null tail after the chirp
@@ -168,9 +189,11 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                       port_options=chirp_port_options(cfg, backend, dt, seed=seed, stand_params=stand_params,
                                                       stand_effects=stand_effects),
                       record=h5_path, columns=chirp_columns(m_idx),
-                      record_attrs={"command": "rig chirp", "mount": names[0] if n == 1 else mount,
+                      record_attrs={"command": "rig chirp", "mount": names[m_idx],
                                     "amplitude_V": amplitude_V, "f0_hz": f0_hz, "f1_hz": f1_hz,
-                                    "duration_s": duration_s, "chirp": "linear", "fs_hz": rate, "settle_s": settle_s})
+                                    "duration_s": duration_s, "fs_hz": rate, "settle_s": settle_s,
+                                    "chirp": "linear" if signal is None else signal.kind,
+                                    **({} if signal is None else signal.attrs())})
     done = threading.Event()
     wall0 = time.perf_counter()
     with session:
@@ -225,10 +248,12 @@ def run(args) -> int:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
                       duration_s=args.duration, rate_hz=args.rate, out=args.out, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
-                      progress=progress)
+                      progress=progress, levels_V=args.levels, multisine=args.multisine, period_s=args.period)
     finally:
         bar.stop()
-    print(f"chirp {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
+    what = ("chirp at levels " + ",".join(f"{v:g}" for v in args.levels) + " V" if args.levels
+            else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
+    print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
           f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
           f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}", file=sys.stderr)
     if s["skipped_periods"]:

@@ -30,7 +30,7 @@ from rig import cliargs
 from rig.clock import SimClock
 from rig.config import load_config
 from rig.errors import RigError
-from rig.gate import MODES
+from rig.gate import ISOLATION_MODES as MODES
 from rig.lifecycle import State
 from rig.session import Session
 

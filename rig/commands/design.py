@@ -13,6 +13,9 @@ plant's actuator parameters +-10 % off its model. A linear prediction of `rig de
 (controllers/tune.py) first and analyse the tuned design (written to DIR/controller.toml with --out).
 The analysis evaluates the very controller objects the runtime steps (controllers/isolation.py,
 controllers/feedforward.py), with the ZOH and one period of computation delay (controllers/analysis.py).
+
+On a stand layout (`--layout prototype`, [layout] plant = "stand") the report is the prototype's two loops
+(rig/commands/prototype_design.py): tracking and isolation on the stand, with --identified and --tune.
 """
 from __future__ import annotations
 
@@ -47,11 +50,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="design on the actuator identified by `rig identify --out DIR` (DIR/identify.json) "
                         "instead of the configured one")
     p.add_argument("--tune", action="store_true",
-                   help="retune the feedback first (structured optimiser, controllers/tune.py; ~1-2 min)")
+                   help="retune the feedback first (structured optimiser, controllers/tune.py; ~1-2 min; "
+                        "--layout prototype: both stand loops, controllers/prototype.py)")
     p.add_argument("--starts", type=cliargs.count(1, 200), default=8, metavar="N",
                    help="optimiser starts with --tune (default 8)")
     p.add_argument("--robust", type=cliargs.count(0, 100000), default=100, metavar="N",
                    help="random plants in the robustness check, besides its 48 corners (default 100)")
+    p.add_argument("--layout", choices=("machine", "prototype"), default=None,
+                   help="prototype: the actuator on its stand, tracking and isolation (rig/commands/prototype_design.py;"
+                        " --identified and --tune apply to it too)")
 
 
 def _clean(v):
@@ -91,8 +98,8 @@ def load_identified(cfg, folder: Path):
 
 def run(args) -> int:
     import dataclasses
-    from rig.config import load_config
-    cfg = load_config(args.config)
+    from rig.commands.run import layout_config
+    cfg = layout_config(args)
     dt = 1.0 / cfg.loop.rate_hz
     log = (lambda s: print(f"rig design: {s}", file=sys.stderr, flush=True))
     if args.starts < 1:
@@ -104,6 +111,9 @@ def run(args) -> int:
         cfg, vals, src = load_identified(cfg, args.identified)
         model = {"actuator": f"identified ({src})", "parameters": vals}
         log(f"actuator from {src}: " + ", ".join(f"{k} {v:.4g}" for k, v in vals.items()))
+    if cfg.layout.plant == "stand":                      # the prototype's loops (its own module)
+        from rig.commands import prototype_design
+        return prototype_design.run(args, cfg, model)
     from controllers.analysis import (ACTUATOR_KEYS, DiscreteRig, design_report, model_error_check, predicted_rms,
                                       robust_check, sensitivity_integral, with_actuator)
     from controllers.feedforward import feedforward_params_from_config, make_feedforward_filters

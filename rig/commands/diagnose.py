@@ -23,12 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from rig.config import load_config
-    from rig.recording import load_recording
+    from rig.recording import check_plausible, load_recording
     from sim_backend.linear import ActuatorParams
 
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     rec = load_recording(args.recording)                      # RecordingError: one line, exit 2
+    check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
         raise RigError(f"--out {args.out}: exists and is not a folder")
 
@@ -42,6 +43,9 @@ def run(args) -> int:
 
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
              f"{'Table 1' if cfg is None else cfg.source}")
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
     diag = diagnose(rec, p0, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:

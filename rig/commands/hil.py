@@ -19,34 +19,44 @@ the figures also carry the floor's own variation; "transmissibility_db" (table r
 takes the floor's level out.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "recording"} on stdout; progress
-goes to stderr. Exit 1 after a fault.
+goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no isolation figure
+and exits 130.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
+  rig hil --seconds 4 --inject silence:*:accel@2
+
+  rig hil --layout prototype [--seconds N] ...  the prototype on its stand (drivers/devicemaps/prototype_hil.toml
+                                                without --config) in three thirds: hold, track a 10 um 5 Hz
+                                                sine, isolate; the tracking error (rms, % of the amplitude)
+                                                and the load's true motion isolating against holding
+                                                (isolation_reduction_db); --json adds "tracking"
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import math
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
-import drivers
 from drivers.protocol import dta as proto
-from rig import cliargs
-from rig.backends import make_port
+from rig import cliargs, inject, operated
+from rig.backends import default_config, make_port
+from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
-from rig.gate import MODES
+from rig.gate import ISOLATION_MODES
 from rig.port import Commands
 from rig.rt import raise_priority
 from rig.session import Session
 
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
-HIL_DEFAULT_CONFIG = Path(drivers.__file__).resolve().parent / "devicemaps" / "hil.toml"
+HIL_DEFAULT_CONFIG = default_config("hil")
+CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
 
 def add_arguments(p) -> None:
@@ -60,6 +70,13 @@ def add_arguments(p) -> None:
     p.add_argument("--bench", action="store_true", help="driver round-trip benchmark only")
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
+    p.add_argument("--force", action="store_true",
+                   help="run isolation controllers that `rig design` calls unstable at the HIL rate")
+    p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
+                   help="fault rehearsal on the emulated devices at loop time T s, e.g. silence:*:accel@2 "
+                        "(repeatable; see rig run --help)")
+    p.add_argument("--layout", choices=("machine", "prototype"), default=None,
+                   help="prototype: the actuator on its stand (hold, track a sine, isolate)")
 
 
 def hil_config(cfg, rate_hz: float | None = None):
@@ -84,7 +101,7 @@ class _Phases(threading.Thread):
     table motion of each after settle_s."""
 
     def __init__(self, loop, rig, seconds: float, settle_s: float, quiet: bool, priority: int = 0,
-                 modes=MODES[:2]):
+                 modes=ISOLATION_MODES[:2]):
         super().__init__(name="hil-phases", daemon=True)
         self.priority = priority
         self.modes = tuple(modes)
@@ -107,13 +124,13 @@ class _Phases(threading.Thread):
                 k += 1
                 metering = False
                 self.rig.phase(None)
-                self.loop.request_mode(self.modes[k])
+                self.loop.request_isolation_mode(self.modes[k])
             elif not metering and t >= k * self.share + self.settle:
                 metering = True
                 self.rig.phase(self.modes[k])
             if not self.quiet and t - last_note >= 1.0:
                 last_note = t
-                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} mode {self.loop.mode} "
+                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} isolation mode {self.loop.isolation_mode} "
                       f"overruns {self.loop.overruns}", file=sys.stderr)
 
     def stop(self) -> None:
@@ -126,18 +143,35 @@ def run(args) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig hil: %(message)s", stream=sys.stderr)
     logging.getLogger("canopen").setLevel(logging.WARNING)
-    cfg = hil_config(load_config(args.config if args.config else HIL_DEFAULT_CONFIG), args.rate)
+    if args.layout == "prototype" or (args.config and load_config(args.config).layout.plant == "stand"):
+        cfg = hil_config(layout_config(argparse.Namespace(config=args.config, layout="prototype"), "hil"), args.rate)
+    else:
+        cfg = hil_config(load_config(args.config if args.config else HIL_DEFAULT_CONFIG), args.rate)
     seconds = args.seconds if args.seconds is not None else cfg.hil.seconds
     if not 0 < seconds <= 3600:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
+    injections = [inject.parse(x) for x in getattr(args, "inject", [])]
+    for inj in injections:
+        inject.check(inj, "hil")
     if args.bench:
         return bench(cfg, seconds, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
+    if not args.json:
+        print(f"rig hil: config {cfg.source}", file=sys.stderr)
+    if cfg.layout.plant == "stand":
+        return _prototype(cfg, seconds, args)
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
-                  quiet=args.json)
+                  quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db",
                                "recording")}
+    if res["stop_reason"] in ("SIGINT", "SIGTERM"):
+        print(f"rig hil: interrupted ({res['stop_reason']}) at t = {res['t_s']:.1f} s of {seconds:g} s: the run "
+              f"did not finish, no isolation figure; {out['samples_recorded']} samples recorded to "
+              f"{out['recording']}", file=sys.stderr)
+        if args.json:
+            print(json.dumps(dict(out, isolation_reduction_db=None, feedforward_reduction_db=None)))
+        return 130
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)
@@ -162,7 +196,7 @@ def run(args) -> int:
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
-            port_options: dict | None = None) -> dict:
+            port_options: dict | None = None, injections=(), stability_check: bool = True) -> dict:
     """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more)."""
     rate = cfg.loop.rate_hz
     if record is None:
@@ -170,13 +204,14 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     if not quiet:
         print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
               f"at {rate:g} Hz", file=sys.stderr)
-    modes = MODES if cfg.sensors.floor_accel else MODES[:2]
+    modes = ISOLATION_MODES if cfg.sensors.floor_accel else ISOLATION_MODES[:2]
     session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
                       keep_timing=int(seconds * rate) + 16, record=record,
                       record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial",
                                     "modes": ",".join(modes)},
-                      realtime=realtime, signals=True)
+                      realtime=realtime, signals=True, stability_check=stability_check)
     phases = None
+    reason = None
     with session:
         port, loop = session.port, session.loop
         rig = port.rig
@@ -185,7 +220,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / (2 * len(modes))), quiet,
                              cfg.hil.device_priority, modes)
             phases.start()
-            session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+            with inject.Armed(session, injections):
+                reason = session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
         finally:
             if phases is not None:
                 phases.stop()
@@ -203,11 +239,13 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     return {"transports": ["canopen", "modbus_tcp", "serial"],
             "faults": 1 if loop.lc.fault_reason else 0, "overruns": loop.overruns, "iterations": loop.iterations,
             "samples_recorded": rec.rows_written if rec is not None else 0,
-            "isolation_reduction_db": reduction("feedback"), "feedforward_reduction_db": reduction(MODES[2]),
+            "isolation_reduction_db": reduction("feedback"),
+            "feedforward_reduction_db": reduction(ISOLATION_MODES[2]),
             "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
             "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": table,
             "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
-            "lost_conversions": lost}
+            "lost_conversions": lost, "stop_reason": reason,
+            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
 
 
 def _raw_round_trips(port, n: int) -> dict:
@@ -296,3 +334,74 @@ def bench(cfg, seconds: float, as_json: bool) -> int:
         if faults:
             print(f"first device fault: {faults[0]}")
     return 0
+
+
+PROTOTYPE_SINE = "sine:amp=10um,freq=5"
+
+
+def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtime: bool = True,
+                      quiet: bool = False) -> dict:
+    """The prototype through the drivers on the emulated stand: hold, track PROTOTYPE_SINE, isolate (a third
+    each, [hil] settle_s of each not metered). Returns the figures (tracking per segment, true load motion)."""
+    if record is None:
+        record = time.strftime("hil-prototype-%Y%m%d-%H%M%S.h5")
+    q = seconds / 3
+    settle = min(cfg.hil.settle_s, q / 3)
+    holder = {}
+
+    def phase(name):
+        return lambda: holder["rig"].phase(name)
+    script = [(settle, phase("hold")), (q, phase(None)), (q, f"track {PROTOTYPE_SINE}"), (2 * q, "isolate"),
+              (2 * q + settle, phase("isolate"))]
+    session = Session(cfg, "hil", isolation=False, keep_timing=int(seconds * cfg.loop.rate_hz) + 16, record=record,
+                      record_attrs={"command": "rig hil --layout prototype", "transports": "canopen,modbus_tcp,serial"},
+                      realtime=realtime, signals=True, script=[(t, w) for t, w in script if isinstance(w, str)])
+    if not quiet:
+        print(f"rig hil: the prototype on its emulated stand at {cfg.loop.rate_hz:g} Hz: hold, track {PROTOTYPE_SINE}"
+              f", isolate ({q:.1f} s each)", file=sys.stderr)
+    with session:
+        port, loop = session.port, session.loop
+        holder["rig"] = port.rig
+        for t, action in script:
+            if not isinstance(action, str):
+                loop.gate.schedule(t, action)
+        time.sleep(0.2)              # driver threads refresh their samples after the set-up pause
+        session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+        port.rig.phase(None)
+        rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
+    rig = port.rig
+    hold, iso = (rig.table_rms_m(k) if k in rig.meter else math.nan for k in ("hold", "isolate"))
+    red = 20 * math.log10(hold / iso) if hold > 0 and iso > 0 else math.nan
+    figs = operated.figures(operated.load_operated(record))
+    track = next((d for d in figs if d["mode"] == "track"), {})
+    return {"transports": ["canopen", "modbus_tcp", "serial"], "faults": 1 if loop.lc.fault_reason else 0,
+            "overruns": loop.overruns, "iterations": loop.iterations,
+            "samples_recorded": session.recorder.rows_written if session.recorder is not None else 0,
+            "tracking": {k: track.get(k) for k in ("request", "rms_error_um", "rms_error_pct", "max_error_um",
+                                                   "peak_command_V")},
+            "isolation_reduction_db": None if math.isnan(red) else round(red, 2), "load_rms_hold_um": hold * 1e6,
+            "load_rms_isolate_um": iso * 1e6, "recording": str(record), "fault_reason": loop.lc.fault_reason,
+            "round_trip_us": rtt, "segments": figs}
+
+
+def _prototype(cfg, seconds: float, args) -> int:
+    res = run_hil_prototype(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
+                            quiet=args.json)
+    if res["fault_reason"]:
+        print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
+    out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded", "tracking",
+                               "isolation_reduction_db", "recording")}
+    if args.json:
+        print(json.dumps(out))
+        return 1 if res["faults"] else 0
+    print(operated.figures_text(res["segments"]))
+    tr = res["tracking"]
+    red = res["isolation_reduction_db"]
+    print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at {cfg.loop.rate_hz:g} Hz, "
+          f"{out['faults']} faults, {out['overruns']} overruns, recorded to {out['recording']}")
+    if tr.get("rms_error_um") is not None:
+        print(f"tracking {tr['request']}: rms error {tr['rms_error_um']:.3f} um = {tr['rms_error_pct']:.2f} % of the "
+              f"amplitude (max {tr['max_error_um']:.3f} um)")
+    print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} um "
+          f"isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
+    return 1 if res["faults"] else 0

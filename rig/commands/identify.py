@@ -134,7 +134,7 @@ def write_outputs(res, out: Path) -> dict[str, Path]:
 def run(args) -> int:
     from rig.config import load_config
     from rig.identify import identify
-    from rig.recording import load_recording
+    from rig.recording import check_plausible, load_recording
     from sim_backend.linear import ActuatorParams
 
     if args.starts < 1:
@@ -143,13 +143,25 @@ def run(args) -> int:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
     rec = load_recording(args.recording)                 # RecordingError: one line, exit 2
+    check_plausible(rec)
+    if rec.closed_loop and rec.reference_m is None:
+        # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
+        # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.
+        # A track run has its reference as external excitation: identified, with CLOSED_LOOP_NOTE below
+        raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
+                       "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
 
     def progress(stage: str, frac: float) -> None:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)
 
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
+    if rec.closed_loop:
+        from rig.recording import CLOSED_LOOP_NOTE
+        print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)
+    if res.fit.get("closed_loop", {}).get("closed_loop"):
+        print(f"WARNING: {res.fit['warning']}", file=sys.stderr)
     if args.repeat > 1:
         import numpy as np
         runs = [res.timing_s]

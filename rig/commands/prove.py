@@ -15,8 +15,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="grade the recordings of DIR against its answers.json (default: simulate blind cases)")
     p.add_argument("--seed", type=cliargs.seed(), default=1, help="seed of the blind cases (default 1)")
     p.add_argument("--n", type=cliargs.count(1, 10000), default=30, help="number of blind cases (default 30)")
-    p.add_argument("--duration", type=cliargs.seconds(ge=1, le=1000), default=100.0, metavar="S",
-                   help="chirp length of the blind cases, 0.1 -> 100 Hz (default 100 s, as the paper)")
+    p.add_argument("--duration", type=cliargs.seconds(ge=1, le=1000), default=None, metavar="S",
+                   help="chirp length of the blind cases, 0.1 -> 100 Hz (default 100 s, as the paper); with "
+                        "--habits the longest a case may be (lengths are drawn from 20 s up; default 200 s)")
+    p.add_argument("--habits", action="store_true",
+                   help="every blind case also carries the habits of real recordings, with random sizes: sensor "
+                        "offset, drift and wander, mains pickup, quantisation, coloured noise, mid-run starts, "
+                        "any excitation type, sample rates 500 Hz - 10 kHz, lengths 20-200 s")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                    help="write the table, confusion matrix and score as DIR/proof.md and DIR/proof.json")
@@ -32,8 +37,14 @@ def run(args) -> int:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     if args.workers < 1:
         raise RigError(f"--workers: expected at least 1, got {args.workers}")
+    given = args.duration is not None
+    if not given:
+        args.duration = 200.0 if args.habits else 100.0
     if not 1.0 <= args.duration <= 1000.0:
         raise RigError(f"--duration: expected 1 to 1000 s, got {args.duration}")
+    if args.habits and args.duration < 20.0:
+        raise RigError(f"--duration: with --habits expected at least 20 s (cases are 20 s and longer), "
+                       f"got {args.duration:g}")
 
     def progress(done: int, total: int, label: str) -> None:
         print(f"[{done}/{total}] diagnosed {label}", file=sys.stderr, flush=True)
@@ -47,12 +58,15 @@ def run(args) -> int:
         rows = prove.prove_folder(args.cases, p0, seed=args.seed, workers=args.workers, progress=progress)
     else:
         title = f"rig prove --n {args.n} --seed {args.seed}"
-        if args.duration != 100.0:
+        if given:
             title += f" --duration {args.duration:g}"
-        print(f"rig prove: {args.n} blind cases from seed {args.seed} ({args.duration:g} s chirps) "
+        if args.habits:
+            title += " --habits"
+        what = "cases with the habits of real recordings" if args.habits else f"{args.duration:g} s chirps"
+        print(f"rig prove: {args.n} blind cases from seed {args.seed} ({what}) "
               f"on {args.workers} processes", file=sys.stderr, flush=True)
         cases, rows = prove.prove_generated(args.n, args.seed, p0, duration_s=args.duration,
-                                            workers=args.workers, progress=progress)
+                                            workers=args.workers, progress=progress, habits=args.habits)
 
     result = prove.report_json(rows, title, cases)
     if args.out is not None:
@@ -68,6 +82,10 @@ def run(args) -> int:
         print(prove.table_markdown(rows))
         print("confusion matrix (rows: truth, columns: named)\n")
         print(prove.confusion_markdown(result["confusion"]))
+        hab = prove.habits_markdown(result["score"])
+        if hab:
+            print("by habit\n")
+            print(hab)
         print(prove.score_text(result["score"]))
         if args.out is not None:
             print(f"\nwritten: {args.out / 'proof.md'}, {args.out / 'proof.json'}")

@@ -12,26 +12,64 @@ Switching isolation while running (bumpless; stroke centring stays on):
   kill -USR1 <pid>                 toggles isolation on/off
   --control FILE                   the file is polled every 0.1 s; write one word into it:
                                    `on` / `off` (isolation), `stop` (safe stop)
+Only changes of the control file after the start count; its folder must exist.
   `feedback` / `feedback_feedforward`  the isolation mode (with floor accelerometers, [sensors] floor_accel)
-The status line on stderr shows state, isolation, loop timing, overruns, strokes and commands. With --record
-the run ends with the recording's vibration-criterion classes per mode (rig report REC: the curves).
-Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error.
+The status line on stderr shows state, isolation (SUSPENDED and the mounts while the saturation recovery
+holds it off), loop timing, overruns, strokes and commands. With --record the machine's run ends with the
+recording's vibration-criterion classes per isolation mode (rig report REC: the curves).
+
+Without --config the sim and hardware backends run the Table 1 defaults and the hil backend its own design
+(drivers/devicemaps/hil.toml: the HIL rate and the controller tuned for it). At start-up `rig run` refuses
+isolation controllers that `rig design` calls unstable on the configured plant (--force runs them), and a
+rate the loop cannot hold on this machine (measured over the first periods). While running, the loop faults
+when it falls lag_limit_s behind real time, misses more than missed_limit of its deadlines over
+missed_window_s, when a valve command limit-cycles ([safety] oscillation_*), or when the recording's writer
+dies.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T (repeatable; rig/inject.py lists the knobs), e.g.
+  rig run --seconds 3 --inject nan:front_left:accel@1.5
+One process per rig: a second one driving the same devices is refused, naming the first (rig/lock.py).
+
+The prototype (`--layout prototype`: drivers/devicemaps/prototype.toml, or prototype_hil.toml on the hil
+backend; any config with [layout] plant = "stand"): the actuator alone on its stand, operated in modes
+(controllers/modes.py), switchable while live and bumpless:
+  --mode off|hold|track|isolate    the mode at activation (default hold: the piston held where it is)
+  --position POS                   hold there (e.g. 5um)
+  --reference REF                  track it: setpoint:x=5um, step:amp=2um, sine:amp=10um,freq=5,
+                                   chirp:amp=1um,f0=1,f1=100,duration=20, csv:profile.csv (time_s,position_m)
+  --control FILE                   write `hold 5um`, `track sine:amp=10um,freq=5`, `isolate`, `off`, `stop`
+  --script FILE                    timed control words, one per line: `<loop time s> <word>`
+  kill -USR1 / -USR2 <pid>         isolate <-> hold / off <-> hold
+A reference the actuator cannot follow (outside the stroke limit or the static range of about +-24 um that
+leakage leaves at 90 % of the valve clamp, faster than the rate limit, more volts than the clamp allows) is
+refused with one line, never clamped. After the run: the tracking figures per segment (with --record), and
+--plot PNG draws reference, position and error.
+Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 130 after
+Ctrl-C during the start-up.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
+import tempfile
+from pathlib import Path
 
-from rig import cliargs, report
-from rig.backends import BACKENDS
+import drivers
+from rig import cliargs, inject, operated, report
+from rig.backends import BACKENDS, default_config
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
 from rig.errors import RecordingError, RigError
 from rig.lifecycle import State
 from rig.session import Session
 
+DEVICEMAPS = Path(drivers.__file__).resolve().parent / "devicemaps"
+LAYOUTS = {"prototype": {"hil": DEVICEMAPS / "prototype_hil.toml", None: DEVICEMAPS / "prototype.toml"}}
+
 log = logging.getLogger("rig.run")
+CONFIG_HELP = ("TOML configuration (default: the paper's Table 1 values; with --backend hil the HIL design, "
+               "drivers/devicemaps/hil.toml)")
 
 
 def warmup_s(ctrls) -> float:
@@ -63,12 +101,89 @@ def add_arguments(p) -> None:
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
     p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument("--force", action="store_true",
+                   help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
+                        "faults a limit cycle)")
+    p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
+                   help="fault rehearsal: drive a fault knob at loop time T s, e.g. nan:front_left:accel@2 "
+                        "(repeatable; kinds: sim nan, range, stuck, stale, drop, device; hil silence, exception, "
+                        "garbage, stale, fragment, range, nan, fault, hold; both overrun, stall, recorder)")
     p.add_argument("--console", action="store_true",
                    help="serve the operator console (a live web page) on 127.0.0.1; its address, with a random "
                         "access token, is printed at start")
     p.add_argument("--port", type=cliargs.Number(ge=0, le=65535, integer=True), default=None, metavar="N",
                    help="console port (default: the first free one from 8765; 0: any free port)")
     p.add_argument("--read-only", action="store_true", help="console shows everything and accepts no command")
+    p.add_argument("--layout", choices=("machine", "prototype"), default=None,
+                   help="machine: the config's (default); prototype: the actuator on its stand "
+                        "(drivers/devicemaps/prototype.toml, prototype_hil.toml on hil) unless --config names one")
+    p.add_argument("--mode", choices=("off", "hold", "track", "isolate"), default=None,
+                   help="stand layout: the mode at activation (default hold)")
+    p.add_argument("--position", default=None, metavar="POS", help="hold mode: the position, e.g. 5um")
+    p.add_argument("--reference", default=None, metavar="REF",
+                   help="track mode: setpoint:x=POS, step:amp=DX, sine:amp=A,freq=F[,offset=POS][,seconds=S], "
+                        "chirp:amp=A,f0=F0,f1=F1,duration=T, csv:FILE")
+    p.add_argument("--script", metavar="FILE", default=None,
+                   help="timed control words, one per line: `<loop time s> <word>` (# comments)")
+    cliargs.output_arg(p, "--plot", metavar="PNG", default=None, suffix=".png",
+                       help="stand layout: plot reference, position and tracking error after the run")
+
+
+def layout_config(args, backend: str | None = None):
+    """The config of --config / --layout: --layout prototype without --config is the bundled prototype file
+    (the HIL one on the hil backend), no --config at all the backend's default (rig.backends.default_config);
+    with --config and --layout the file must describe that layout."""
+    layout = getattr(args, "layout", None)
+    if layout == "prototype" and not args.config:
+        files = LAYOUTS["prototype"]
+        return load_config(files.get(backend, files[None]))
+    cfg = load_config(args.config)
+    if args.config is None and default_config(backend or cfg.backend.name) is not None:
+        cfg = load_config(default_config(backend or cfg.backend.name))   # hil: its own design, not Table 1's
+    if layout is not None and (cfg.layout.plant == "stand") != (layout == "prototype"):
+        raise RigError(f"--layout {layout}: {cfg.source} has [layout] plant = {cfg.layout.plant!r}")
+    return cfg
+
+
+def start_request(args) -> str | None:
+    """The start mode's text from --mode / --position / --reference (None: the layout's default)."""
+    mode, pos, ref = args.mode, args.position, args.reference
+    if pos is not None and ref is not None:
+        raise RigError("--position and --reference: give one (hold a position, or track a reference)")
+    if mode is None:
+        mode = "track" if ref is not None else ("hold" if pos is not None else None)
+    if mode is None:
+        return None
+    if mode == "track" and ref is None:
+        raise RigError("--mode track: needs --reference (e.g. sine:amp=10um,freq=5)")
+    if mode != "track" and ref is not None:
+        raise RigError(f"--reference: only with --mode track (got --mode {mode})")
+    if pos is not None and mode != "hold":
+        raise RigError(f"--position: only with --mode hold (got --mode {mode})")
+    return {"track": f"track {ref}", "hold": f"hold {pos}" if pos is not None else "hold"}.get(mode, mode)
+
+
+def read_script(path) -> list[tuple[float, str]]:
+    """`<loop time s> <control word>` per line; RigError naming the file and line."""
+    p = Path(path)
+    try:
+        lines = p.read_text().splitlines()
+    except OSError as e:
+        raise RigError(f"--script {p}: cannot read ({e.strerror or e})") from None
+    out = []
+    for i, ln in enumerate(lines, 1):
+        ln = ln.split("#", 1)[0].strip()
+        if not ln:
+            continue
+        t, _, word = ln.partition(" ")
+        try:
+            at = float(t)
+        except ValueError:
+            raise RigError(f"--script {p}: line {i}: expected `<loop time s> <word>`, got {ln[:60]!r}") from None
+        if at < 0 or not word.strip():
+            raise RigError(f"--script {p}: line {i}: expected a time >= 0 and a control word, got {ln[:60]!r}")
+        out.append((at, word.strip()))
+    return out
 
 
 def run(args) -> int:
@@ -76,8 +191,12 @@ def run(args) -> int:
         # our own INFO lines (lifecycle, start/stop); libraries (canopen, pymodbus) only from WARNING
         logging.basicConfig(level=logging.WARNING, format="rig run: %(message)s", stream=sys.stderr)
         logging.getLogger("rig").setLevel(logging.INFO)
-    cfg = load_config(args.config)
-    backend = args.backend or cfg.backend.name
+    backend = args.backend
+    cfg = layout_config(args, backend)
+    backend = backend or cfg.backend.name
+    injections = [inject.parse(x) for x in args.inject]
+    for inj in injections:
+        inject.check(inj, backend)
     if args.seconds is not None and args.seconds <= 0:
         raise RigError(f"--seconds: expected > 0, got {args.seconds}")
     if args.settle is not None and not 0 <= args.settle <= 3600:
@@ -92,23 +211,44 @@ def run(args) -> int:
         cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
     if (args.port is not None or args.read_only) and not args.console:
         raise RigError("--port/--read-only: only with --console")
+    if injections and args.console:
+        raise RigError("--inject: not with --console (rehearse faults on a run without it)")
     clock = SimClock() if args.sim_time else MonotonicClock()
+    stand = cfg.layout.plant == "stand"
+    start = start_request(args)
+    if start is not None and not stand:
+        raise RigError("--mode/--position/--reference: operating modes are for the stand layout (--layout prototype)")
+    record, tmp = args.record, None
+    if args.plot and not stand:
+        raise RigError("--plot: for the stand layout (--layout prototype)")
+    if args.plot and record is None:
+        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
+        os.close(fd)
+        record = tmp
+    attrs = {"command": "rig run", "isolation_at_start": args.isolation,
+             "overrun_policy": args.policy or cfg.loop.overrun_policy, "layout": cfg.layout.plant}
+    if stand:
+        attrs["mode_at_start"] = start or "hold"
+    script = read_script(args.script) if args.script else None
 
-    def new_session(record=args.record) -> Session:
+    def new_session(record=record) -> Session:
         # with the console a fault keeps the loop running in FAULT (valves safe, sensors read) for the operator
         return Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
-                       record=record, record_attrs={"command": "rig run", "isolation_at_start": args.isolation,
-                                                    "overrun_policy": args.policy or cfg.loop.overrun_policy},
-                       realtime=cfg.loop.realtime and not args.no_realtime, signals=True,
-                       status=not args.quiet, control_file=args.control, stop_on_fault=not args.console,
-                       feedforward=args.feedforward)
+                       record=record, record_attrs=attrs, realtime=cfg.loop.realtime and not args.no_realtime,
+                       signals=True, status=not args.quiet, control_file=args.control, mode=start, script=script,
+                       stop_on_fault=not args.console, stability_check=not args.force, feedforward=args.feedforward)
 
     def started(session) -> float:
         """Log the start; the settle time before activation."""
         loop = session.loop
-        log.info("backend %s, %d mounts at %g Hz, isolation %s, pid %d (SIGUSR1 toggles isolation%s)",
-                 backend, loop.n, loop.rate_hz, args.isolation, os.getpid(),
-                 f", control file {args.control}" if args.control else "")
+        if stand:
+            log.info("backend %s, %s on the stand at %g Hz, mode %s, config %s, pid %d (SIGUSR1 isolate <-> hold, "
+                     "SIGUSR2 off <-> hold%s)", backend, ", ".join(loop.names), loop.rate_hz, start or "hold",
+                     cfg.source, os.getpid(), f", control file {args.control}" if args.control else "")
+        else:
+            log.info("backend %s, %d mounts at %g Hz, isolation %s, config %s, pid %d (SIGUSR1 toggles "
+                     "isolation%s)", backend, loop.n, loop.rate_hz, args.isolation, cfg.source, os.getpid(),
+                     f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
         cliargs.check_settle(settle, args.seconds, default="the default --settle")
         if settle > 1.0:
@@ -121,13 +261,23 @@ def run(args) -> int:
     else:
         with new_session() as session:
             loop = session.loop
-            reason = session.run(seconds=args.seconds, activate_after_s=started(session))
+            settle = started(session)
+            with inject.Armed(session, injections) as armed:
+                reason = session.run(seconds=args.seconds, activate_after_s=settle)
+            for spec, t in armed.applied.items():
+                log.info("injected %s at t = %.3f s", spec, t)
     tm = loop.timing_us()
     log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
              "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
              100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
              f", recorded to {args.record}" if args.record else "")
-    if args.record:
+    if stand and record is not None:
+        try:
+            _report(record, args.plot, loop.names, title=None if tmp is None else "rig run")
+        finally:
+            if tmp:
+                os.unlink(tmp)
+    elif args.record:
         _vc_summary(args.record)
     if loop.lc.state is State.FAULT:
         return 1                          # the reason was logged once, when it happened
@@ -140,3 +290,17 @@ def _vc_summary(path) -> None:
         log.info("%s (curves: rig report %s)", report.summary(report.vc_of_recording(path)), path)
     except RecordingError as e:
         log.info("no VC report: %s", e)
+
+
+def _report(record, png, names, title: str | None = None) -> None:
+    """The operated run's figures per segment on stdout, per mount (and the first mount's plot, titled with
+    the recording's name, or `title` for a recording of its own that is not kept)."""
+    for i, name in enumerate(names):
+        run = operated.load_operated(record, name)
+        if title:
+            run = dataclasses.replace(run, source=title)
+        figs = operated.figures(run)
+        print(f"{name}:\n{operated.figures_text(figs)}" if len(names) > 1 else operated.figures_text(figs))
+        if png and i == 0:
+            operated.plot(run, png, figs)
+            log.info("plot: %s", png)

@@ -431,6 +431,12 @@ class Console:
         note = "" if s.loop.state is State.ACTIVE else f" (takes effect on activation: {s.loop.state.name})"
         return True, f"isolation {'on' if on else 'off'} requested{note}"
 
+    def _cmd_mode(self, request: str):
+        s = self._need_run()
+        req = s.request_mode(s.parse(request, "console"))
+        note = "" if s.loop.state is State.ACTIVE else f" (takes effect on activation: {s.loop.state.name})"
+        return True, f"mode {req} requested{note}"
+
     def _cmd_activate(self):
         s = self._need_run()
         st = s.loop.state

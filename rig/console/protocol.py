@@ -26,6 +26,8 @@ COMMANDS = {
     "safe_stop": ({}, "end the run safely: valves to null, safe state, recording closed"),
     "record_start": ({"path": str}, "record the loop's rows to an HDF5 file"),
     "record_stop": ({}, "stop and close the recording"),
+    "mode": ({"request": str}, "operating mode of a stand layout: `hold [POS]`, `track REF`, `isolate`, `off` "
+                               "(bumpless; a reference the actuator cannot follow is refused, never clamped)"),
     "chirp": ({"amplitude_V": float, "f0_hz": float, "f1_hz": float, "duration_s": float, "mount": str},
               "stop the run, chirp one valve, identify the six actuator parameters, resume the run"),
 }

@@ -1,39 +1,12 @@
 """Where and how the recording differs from a model: FRF bands beyond the coherence-based uncertainty, time
-windows, regimes (command magnitude, velocity sign), harmonics of the instantaneous chirp frequency, and
-spectral lines not correlated with the command.
+windows, regimes (command magnitude, velocity sign), harmonics of a sweep's instantaneous phase (read from the
+command by rig.diagnose.command), and spectral lines not correlated with the command.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.signal import hilbert
-
-
-def noise_rms(resid: np.ndarray, fs: float) -> float:
-    """White position noise from the residual periodogram's median in the top of the band (robust to lines)."""
-    n = len(resid)
-    w = np.hanning(n)                                  # no leakage from strong low-frequency lines
-    P = np.abs(np.fft.rfft((resid - resid.mean()) * w)) ** 2 / np.sum(w ** 2)
-    f = np.fft.rfftfreq(n, 1.0 / fs)
-    sel = (f > 0.6 * fs / 2) & (f < 0.95 * fs / 2)
-    return float(math.sqrt(np.median(P[sel]) / math.log(2)))
-
-
-def chirp_phase(cmd_V: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """Instantaneous phase [rad] and frequency [Hz] of the command (analytic signal)."""
-    ph = np.unwrap(np.angle(hilbert(cmd_V - np.mean(cmd_V))))
-    f = np.gradient(ph) * fs / (2 * math.pi)
-    return ph, f
-
-
-def chirp_band(f_inst: np.ndarray, fs: float) -> tuple[float, float]:
-    from scipy.ndimage import median_filter
-    n = len(f_inst)
-    m = n // 200                                       # the analytic signal is unreliable at the very ends
-    core = np.clip(median_filter(f_inst, size=max(3, int(fs) | 1), mode="nearest")[m: n - m], 0.0, fs / 2)
-    lo, hi = np.percentile(core, [0.5, 99.5])
-    return max(float(lo), 3.0 * fs / n), min(float(hi), 0.45 * fs)
 
 
 def _merge(mask: np.ndarray, edges_lo: np.ndarray, edges_hi: np.ndarray) -> list[list[float]]:
@@ -53,7 +26,10 @@ def frf_bands(cmd_V, meas_m, models: dict[str, np.ndarray], fs: float, f_lo: flo
     n = len(cmd_V)
     U = np.fft.rfft(cmd_V); Y = np.fft.rfft(meas_m)
     f = np.fft.rfftfreq(n, 1.0 / fs)
-    edges = np.geomspace(max(f_lo, 2 * fs / n), f_hi, n_bands + 1)
+    f_lo = max(f_lo, 2 * fs / n)
+    if not f_hi > 1.01 * f_lo:
+        f_hi = max(0.45 * fs, 1.02 * f_lo)
+    edges = np.geomspace(f_lo, f_hi, n_bands + 1)
     idx = np.searchsorted(f, edges)
     Ms = {k: np.fft.rfft(v) for k, v in models.items()}
     fc, H, coh, sig = [], [], [], []
@@ -78,9 +54,11 @@ def frf_bands(cmd_V, meas_m, models: dict[str, np.ndarray], fs: float, f_lo: flo
 
 def mismatch_bands(frf: dict, model_key: str, k_sigma: float = 3.0) -> list[list[float]]:
     """Bands where |H_meas - H_model| exceeds k_sigma times the coherence-based uncertainty."""
+    fc = frf["freqs_hz"]
+    if len(fc) == 0:                                   # no band holds two frequency bins (short or slow recording)
+        return []
     err = np.abs(frf["measured"] - frf[model_key])
     bad = err > k_sigma * np.maximum(frf["sigma"], 1e-300)
-    fc = frf["freqs_hz"]
     # band edges: geometric midpoints between centres
     lo = np.r_[fc[0] / 1.05, np.sqrt(fc[:-1] * fc[1:])]
     hi = np.r_[np.sqrt(fc[:-1] * fc[1:]), fc[-1] * 1.05]
@@ -102,8 +80,10 @@ def mismatch_windows(resid: np.ndarray, fs: float, noise: float, win_s: float = 
     return wins, worst_w, rms
 
 
-def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float, noise: float) -> dict:
-    """Residual rms / noise by command magnitude tercile and by piston velocity sign (reversals apart)."""
+def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float, noise: float,
+            use: np.ndarray | None = None) -> dict:
+    """Residual rms / noise by command magnitude tercile and by piston velocity sign (reversals apart), over the
+    samples in use."""
     a = np.abs(cmd_V); peak = float(np.max(a)) or 1.0
     v = np.gradient(meas_m) * fs
     k = max(1, int(fs / 200))
@@ -117,6 +97,8 @@ def regimes(cmd_V: np.ndarray, meas_m: np.ndarray, resid: np.ndarray, fs: float,
     }
     out = {}
     for name, m in sel.items():
+        if use is not None:
+            m = m & use
         if m.sum() > 10:
             out[name] = {"fraction": round(float(m.mean()), 4),
                          "rms_over_noise": round(float(np.sqrt(np.mean(resid[m] ** 2)) / noise), 3)}
@@ -188,13 +170,59 @@ def spectral_lines(resid: np.ndarray, fs: float, noise: float, f_lo: float = 1.0
 
 
 def refine_line(resid: np.ndarray, fs: float, f0: float) -> float:
-    """Frequency of a stationary sinusoid near f0 maximising its projected power (sub-bin golden search)."""
+    """Frequency of a stationary sinusoid near f0 maximising its projected power: parabolic steps on the log
+    power at f and f +- a quarter bin (three projections per step, converges in a few steps to ~1e-4 bin)."""
     n = len(resid)
     t = np.arange(n) / fs
-    def power(fq):
-        z = np.exp(-2j * math.pi * fq * t)
-        return -abs(np.dot(resid, z)) ** 2
-    from scipy.optimize import minimize_scalar
     d = fs / n
-    r = minimize_scalar(power, bounds=(f0 - 1.5 * d, f0 + 1.5 * d), method="bounded", options={"xatol": d * 1e-3})
-    return float(r.x)
+
+    def logpow(fq):
+        return math.log(abs(np.dot(resid, np.exp(-2j * math.pi * fq * t))) ** 2 + 1e-300)
+    f = float(f0)
+    h = 0.25 * d
+    for _ in range(4):
+        a, b, c = logpow(f - h), logpow(f), logpow(f + h)
+        den = a - 2 * b + c
+        step = 0.5 * h * (a - c) / den if den < 0 else (h if c > a else -h)
+        step = max(-1.5 * d, min(1.5 * d, step))
+        f += step
+        if abs(step) < 1e-3 * d:
+            break
+        h = max(0.05 * d, min(h, 2 * abs(step)))
+    return float(min(max(f, f0 - 1.5 * d), f0 + 1.5 * d))
+
+
+def multisine_lines(cmd, y: np.ndarray, use: np.ndarray, noise_psd, skip_hz: list[float]) -> dict:
+    """Nonlinear distortion detector of an odd multisine: the measured position averaged over whole periods at
+    the unexcited odd and the even lines of the band, rms over the noise expected there."""
+    P = cmd.period
+    start = int(np.argmax(use)) if use.any() else 0
+    first = int(math.ceil(start / P)) * P
+    k = (len(y) - first) // P
+    if k < 1 or cmd.excited_lines is None:
+        return {}
+    seg = (y[first:first + k * P] - np.mean(y[first:first + k * P])).reshape(k, P)
+    Y = np.fft.rfft(seg.mean(axis=0)) * 2.0 / P                  # line amplitudes, m
+    fs = cmd.fs_hz
+    freqs = np.arange(len(Y)) * fs / P
+    exc = set(int(i) for i in cmd.excited_lines)
+    kmin, kmax = int(min(exc)), int(max(exc))
+    span = np.arange(max(1, kmin), min(len(Y) - 1, 3 * kmax) + 1)
+    span = np.array([i for i in span if all(abs(freqs[i] - f) > 1.5 * fs / P for f in skip_hz)], int)
+    odd = np.array([i for i in span if i % 2 == 1 and i not in exc], int)
+    even = np.array([i for i in span if i % 2 == 0], int)
+    # noise of PSD S (variance S fs/2 per sample) gives E|Y|^2 = 4 (S fs/2) / (P k) on a line averaged over k periods
+    S = np.interp(freqs, noise_psd.freqs_hz, noise_psd.psd)
+    sig = np.sqrt(2.0 * S * fs / (P * k))
+
+    def ratio(idx):
+        return np.abs(Y[idx]) ** 2 / np.maximum(sig[idx] ** 2, 1e-300)
+
+    def over(idx):          # rms line amplitude over the noise's (1 for noise alone)
+        return float(np.sqrt(np.mean(ratio(idx)))) if len(idx) else None
+
+    def z(idx):             # how many standard errors the mean power ratio stands above 1 (noise alone: ~N(0,1))
+        return float((np.mean(ratio(idx)) - 1.0) * math.sqrt(len(idx))) if len(idx) else None
+    return {"odd_over_noise": over(odd), "even_over_noise": over(even), "odd_z": z(odd), "even_z": z(even),
+            "periods": int(k), "odd_lines": int(len(odd)), "even_lines": int(len(even)),
+            "line_spacing_hz": fs / P}

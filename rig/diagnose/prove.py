@@ -3,7 +3,7 @@
 Cases are drawn from a seed: the paper's Table 1 model with its six identified parameters moved +-15 %, zero,
 one or two effects from the catalogue (rig/diagnose/effects.py) with physically plausible parameters,
 and the recordings' sensor noise. They are simulated with sim_backend.actuator.simulate_stand (the physics that
-reproduces the shared recordings), diagnosed without the truth, and graded:
+matches the reference recordings), diagnosed without the truth, and graded:
   right  = the named set of effects is exactly the true set ("none" when both are empty)
   errors = relative parameter error of each true effect that was named (targets: delay 20 %, frequency 5 %).
 """
@@ -21,9 +21,13 @@ from typing import Callable
 
 import numpy as np
 
+from rig import excitation as ex
+from rig.diagnose.engine import diagnose
 from rig.errors import RigError
+from rig.recording import Recording, load_recording
 from sim_backend.actuator import Effects, linear_chirp, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
+from sim_backend.sensors import Line, SensorHabits
 
 CATALOGUE = ("transport_delay", "base_resonance", "valve_saturation", "valve_deadband", "coulomb_friction",
              "periodic_disturbance")
@@ -45,14 +49,36 @@ class Case:
     amplitude_V: float = 2.0
     seed: int = 0
     hidden: dict = field(default_factory=dict)   # simulator-only parameters (base mass, disturbance force/phase)
+    excitation: dict = field(default_factory=dict)   # {"kind": ..., generator keywords}; empty: the paper's chirp
+    sensor: dict = field(default_factory=dict)       # sim_backend.sensors.SensorHabits fields; empty: white noise
+    pre_s: float = 0.0                  # the recording starts this long after the excitation did (mid-run start)
+    habits: list[str] = field(default_factory=list)  # short tags of the habits drawn (for the score by habit)
+
+    def noise_m(self) -> float:
+        """The position noise the recording really carries (converter step included)."""
+        if not self.sensor:
+            return POSITION_NOISE_M
+        q = self.sensor.get("quant_step_m", 0.0)
+        return math.sqrt(self.sensor.get("position_noise_m", POSITION_NOISE_M) ** 2 + q * q / 12.0)
+
+    def pickup_lines_hz(self) -> list[float]:
+        return [l["frequency_hz"] for l in self.sensor.get("position_lines", [])]
+
+    def pickup_lines_m(self) -> list[float]:
+        return [l["amplitude"] for l in self.sensor.get("position_lines", [])]
 
 
 # ---- case generation ---------------------------------------------------------------------------------
-def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float) -> float:
-    """Force giving a position line of amplitude_m at f_hz: scale a short simulated 1 N response."""
+def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float, base: dict | None = None) -> float:
+    """Force giving a position line of amplitude_m at f_hz: scale a short simulated 1 N response (with the stand
+    mode when the case has one: a soft stand lets the force move piston and housing together)."""
     fs = 2000.0
     n = int(fs * max(1.0, 40.0 / f_hz))
-    y = simulate_stand(p, np.zeros(n), fs, Effects(disturbance_frequency_hz=f_hz, disturbance_force_n=1.0))
+    if base:
+        n = max(n, int(fs * 8.0 / (base["damping_ratio"] * base["frequency_hz"])))    # past its ring-down
+    fx = Effects.from_catalogue({"base_resonance": base} if base else {},
+                                disturbance_frequency_hz=f_hz, disturbance_force_n=1.0)
+    y = simulate_stand(p, np.zeros(n), fs, fx)
     tail = y["position_m"][n // 2:]                    # past the start transient
     t = np.arange(n)[n // 2:] / fs
     X = np.c_[np.sin(2 * np.pi * f_hz * t), np.cos(2 * np.pi * f_hz * t), np.ones_like(t)]
@@ -60,8 +86,8 @@ def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float) -> 
     return amplitude_m / max(float(np.hypot(c[0], c[1])), 1e-15)
 
 
-def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float
-                 ) -> tuple[dict, dict]:
+def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float,
+                 base: dict | None = None) -> tuple[dict, dict]:
     """Plausible parameters for one effect: (catalogue parameters, simulator-only extras)."""
     if name == "transport_delay":
         return {"delay_s": round(float(rng.uniform(0.5e-3, 3.0e-3)), 5)}, {}
@@ -79,13 +105,92 @@ def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitu
     if name == "periodic_disturbance":
         f = round(float(rng.uniform(10.0, 90.0)), 2)
         line_m = float(rng.uniform(3.0, 6.0)) * POSITION_NOISE_M     # clearly above the noise
-        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m), 1),
+        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m, base), 1),
                                      "phase_rad": round(float(rng.uniform(-math.pi, math.pi)), 3)}
     raise ValueError(f"unknown effect {name!r}")
 
 
-def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorParams | None = None) -> list[Case]:
-    """n blind cases from seed: >= 25 % clean, the rest one or two effects, every catalogue effect used."""
+EXCITATIONS = ("linear_chirp", "log_sweep", "multilevel_chirp", "odd_multisine", "band_noise", "steps")
+RATES_HZ = (500.0, 1000.0, 2000.0, 5000.0, 10000.0)
+RATE_WEIGHTS = (0.15, 0.3, 0.3, 0.15, 0.1)
+
+
+def _draw_excitation(rng: np.random.Generator, duration_s: float) -> tuple[dict, float]:
+    """One of the excitation types with plausible settings; returns (keywords for rig.excitation, peak V)."""
+    kind = str(rng.choice(EXCITATIONS))
+    a = round(float(rng.uniform(1.8, 2.5)), 2)
+    if kind == "linear_chirp":
+        return {"kind": kind, "f0_hz": 0.1, "f1_hz": 100.0, "amplitude_V": a}, a
+    if kind == "log_sweep":
+        return {"kind": kind, "f0_hz": round(float(rng.uniform(0.1, 0.5)), 3), "f1_hz": 100.0, "amplitude_V": a}, a
+    if kind == "multilevel_chirp":
+        top = round(float(rng.uniform(2.5, 3.3)), 2)
+        levels = [round(top * r, 3) for r in (1 / 6, 0.5, 1.0)]
+        return {"kind": kind, "f0_hz": 0.1, "f1_hz": 100.0, "levels_V": levels}, top
+    if kind == "odd_multisine":
+        per = float(rng.choice([5.0, 10.0]))
+        return {"kind": kind, "f0_hz": 0.1, "f1_hz": 100.0, "amplitude_V": a, "period_s": per,
+                "seed": int(rng.integers(2 ** 31))}, a
+    if kind == "band_noise":
+        a = round(float(rng.uniform(2.0, 3.0)), 2)
+        return {"kind": kind, "f0_hz": 0.1, "f1_hz": 100.0, "amplitude_V": a, "seed": int(rng.integers(2 ** 31))}, a
+    return {"kind": "steps", "amplitude_V": a, "seed": int(rng.integers(2 ** 31))}, a
+
+
+def _draw_sensor(rng: np.random.Generator, fs: float) -> tuple[dict, list[str]]:
+    """The habits of a rig's sensors with random sizes (sim_backend.sensors.SensorHabits fields) and their tags.
+    Varied the way another simulator might: noise colour and level, a filter before the converter, the step,
+    line amplitudes and phases, the drift's shape."""
+    tags = []
+    noise = float(rng.uniform(1e-8, 4e-8))
+    colour = str(rng.choice(["white", "white", "lowpass", "pink"]))
+    corner = float(rng.uniform(0.1, 0.4) * fs) if colour == "lowpass" else float(rng.uniform(0.5, 5.0))
+    hab = {"position_noise_m": noise, "accel_noise_mps2": float(rng.uniform(1e-4, 5e-4)), "noise_colour": colour,
+           "noise_corner_hz": corner if colour != "white" else 0.0,
+           "offset_m": float(rng.choice([-1, 1]) * rng.uniform(0.5e-6, 20e-6)),
+           "drift_m_per_s": float(rng.choice([-1, 1]) * rng.uniform(5e-9, 80e-9)),
+           "drift_shape": str(rng.choice(["linear", "exponential", "wander"])),
+           "drift_tau_s": float(rng.uniform(20.0, 120.0)),
+           "accel_offset_mps2": float(rng.uniform(-0.1, 0.1)), "seed": int(rng.integers(2 ** 31))}
+    if hab["drift_shape"] == "wander":
+        hab["wander_m"] = float(rng.uniform(1.0, 5.0) * noise)
+    tags.append("offset")
+    tags.append(f"drift:{hab['drift_shape']}")
+    if colour != "white":
+        tags.append(f"noise:{colour}")
+    if rng.random() < 0.3:
+        hab["adc_filter_hz"] = float(rng.uniform(0.3, 0.45) * fs)
+        tags.append("adc-filter")
+    if rng.random() < 0.6:
+        mains = float(rng.choice([50.0, 60.0])) * (1 + float(rng.uniform(-0.002, 0.002)))
+        lines = [{"frequency_hz": mains, "amplitude": float(rng.uniform(0.5, 8.0) * noise),
+                  "phase_rad": float(rng.uniform(-math.pi, math.pi))}]
+        for k in range(2, 6):
+            if k * mains < 0.45 * fs and rng.random() < 0.5:
+                lines.append({"frequency_hz": k * mains,
+                              "amplitude": lines[0]["amplitude"] * float(rng.uniform(0.1, 0.5)),
+                              "phase_rad": float(rng.uniform(-math.pi, math.pi))})
+        hab["position_lines"] = lines
+        tags.append(f"pickup:{mains:.0f}Hz" + (f"x{len(lines)}" if len(lines) > 1 else ""))
+    if rng.random() < 0.2:
+        mains = float(rng.choice([50.0, 60.0]))
+        hab["accel_lines"] = [{"frequency_hz": mains,
+                               "amplitude": float(rng.uniform(5.0, 30.0) * hab["accel_noise_mps2"]),
+                               "phase_rad": float(rng.uniform(-math.pi, math.pi))}]
+        tags.append("accel-pickup")
+    if rng.random() < 0.4:
+        hab["quant_step_m"] = float(rng.uniform(0.3, 4.0) * noise)
+        tags.append("quantised")
+    return hab, tags
+
+
+def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorParams | None = None,
+               habits: bool = False) -> list[Case]:
+    """n blind cases from seed: >= 25 % clean, the rest one or two effects, every catalogue effect used.
+
+    habits: every case also carries the habits of real recordings (sensor offset, drift, pickup, quantisation,
+    coloured noise, mid-run starts, any excitation type, sample rates 500 Hz - 10 kHz, lengths 20-200 s);
+    duration_s is then the longest a case may be."""
     if n < 1:
         raise RigError(f"--n: expected at least 1 case, got {n}")
     p0 = p0 or ActuatorParams()
@@ -107,28 +212,70 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorPara
         p = p0.with_(**lin)
         amplitude = round(float(rng.uniform(1.8, 2.5)), 2)
         fs = float(rng.choice([1000.0, 2000.0]))
+        dur, exc, sens, pre, tags = duration_s, {}, {}, 0.0, []
+        if habits:
+            fs = float(rng.choice(RATES_HZ, p=RATE_WEIGHTS))
+            longest = min(duration_s, 200.0, 6e5 / fs)          # at most 600 k samples: prove stays affordable
+            dur = round(float(np.exp(rng.uniform(math.log(20.0), math.log(max(20.0, longest))))), 1)
+            exc, amplitude = _draw_excitation(rng, dur)
+            sens, tags = _draw_sensor(rng, fs)
+            span = "20-50s" if dur < 50 else ("50-100s" if dur < 100 else "100-200s")
+            tags = [exc["kind"], f"fs{fs:g}", span] + tags
+            if rng.random() < 0.35:
+                pre = round(float(rng.uniform(2.0, 0.3 * dur)), 2)
+                tags.append("mid-run")
         effects, hidden = {}, {}
         for name in sorted(names):
-            effects[name], extra = _draw_effect(name, rng, p, amplitude)
+            base = {**effects["base_resonance"], **hidden.get("base_resonance", {})} \
+                if "base_resonance" in effects else None
+            for _ in range(20):        # a force line apart from the pickup lines (mixed lines are out of scope)
+                effects[name], extra = _draw_effect(name, rng, p, amplitude, base)
+                f_d = effects[name].get("frequency_hz") if name == "periodic_disturbance" else None
+                if f_d is None or all(abs(f_d - l["frequency_hz"]) > 2.0 for l in sens.get("position_lines", [])):
+                    break
             if extra:
                 hidden[name] = extra
         tag = "+".join(effects) or "nominal"
         cases.append(Case(name=f"c{i + 1:02d}_{tag}", effects=effects, linear=lin, fs_hz=fs,
-                          duration_s=duration_s, amplitude_V=amplitude, seed=int(rng.integers(2 ** 31)),
-                          hidden=hidden))
+                          duration_s=dur, amplitude_V=amplitude, seed=int(rng.integers(2 ** 31)),
+                          hidden=hidden, excitation=exc, sensor=sens, pre_s=pre, habits=tags))
     return cases
 
 
+def excitation_of(case: Case):
+    """The command of a case (rig.excitation), pre_s longer than the recording for a mid-run start."""
+    if not case.excitation:
+        return ex.linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
+    kw = dict(case.excitation)
+    kind = kw.pop("kind")
+    total = case.duration_s + case.pre_s
+    if kind == "multilevel_chirp":
+        n_lv = len(kw["levels_V"])
+        return ex.multilevel_chirp(case.fs_hz, (total - 0.5 * (n_lv - 1)) / n_lv, **kw)
+    return getattr(ex, kind)(case.fs_hz, total, **kw)
+
+
 def simulate_case(case: Case, p0: ActuatorParams | None = None):
-    """The recording of a case (chirp 0.1 -> 100 Hz, zero-order hold, sensor noise) as a Recording."""
-    from rig.recording import Recording
+    """The recording of a case (zero-order hold, the plant on its stand, the sensors) as a Recording."""
     p = (p0 or ActuatorParams()).with_(**case.linear)
-    t, cmd = linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
     full = {name: {**prm, **case.hidden.get(name, {})} for name, prm in case.effects.items()}
-    fx = Effects.from_catalogue(full, position_noise_m=POSITION_NOISE_M, accel_noise_mps2=ACCEL_NOISE_MPS2,
-                                seed=case.seed)
-    y = simulate_stand(p, cmd, case.fs_hz, fx)
-    return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=case.fs_hz, source=case.name)
+    if not case.excitation and not case.sensor and not case.pre_s:
+        t, cmd = linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
+        fx = Effects.from_catalogue(full, position_noise_m=POSITION_NOISE_M, accel_noise_mps2=ACCEL_NOISE_MPS2,
+                                    seed=case.seed)
+        y = simulate_stand(p, cmd, case.fs_hz, fx)
+        return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=case.fs_hz, source=case.name)
+    cmd = excitation_of(case).cmd_V
+    y = simulate_stand(p, cmd, case.fs_hz, Effects.from_catalogue(full))
+    kw = dict(case.sensor)
+    for key in ("position_lines", "accel_lines"):
+        kw[key] = tuple(Line(**l) for l in kw.get(key, []))
+    kw.setdefault("position_noise_m", POSITION_NOISE_M)
+    kw.setdefault("accel_noise_mps2", ACCEL_NOISE_MPS2)
+    kw.setdefault("seed", case.seed)
+    pos, acc = SensorHabits(**kw).apply(y["position_m"], y["accel_mps2"], case.fs_hz)
+    k0 = int(round(case.pre_s * case.fs_hz))
+    return Recording.from_signals(cmd[k0:], pos[k0:], acc[k0:], fs_hz=case.fs_hz, source=case.name)
 
 
 # ---- grading -----------------------------------------------------------------------------------------
@@ -137,7 +284,28 @@ def _fit_figure(fit: dict, model: str, key: str) -> float | None:
     return None if v is None else float(v)
 
 
-def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elapsed_s: float = 0.0) -> dict:
+LINE_FOUND = 0.05               # a reported line within 5 % of a true one is that line; none: the line was missed
+
+
+def _line_grades(true_hz: list[float], diag, true_m: list[float] | None = None) -> dict:
+    """Each true pickup line: reported among the sensor's position lines, and within 1 % of its frequency?
+    errors: relative frequency error of the nearest reported line (None when none is within 5 %: missed)."""
+    rep = [l.frequency_hz for l in getattr(getattr(diag, "sensor", None), "lines", []) if l.channel == "position_m"]
+    errs = []
+    for f in true_hz:
+        near = min((abs(r - f) / f for r in rep), default=None)
+        errs.append(near if near is not None and near <= LINE_FOUND else None)
+    missed = [{"frequency_hz": f, "amplitude_m": a} for f, a, e in zip(true_hz, true_m or [None] * len(true_hz), errs)
+              if e is None]
+    return {"true_hz": list(true_hz), "reported_hz": rep, "errors": errs, "n": len(true_hz),
+            "found": sum(e is not None for e in errs), "within": sum(e is not None and e <= 0.01 for e in errs),
+            "missed": missed}
+
+
+def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elapsed_s: float = 0.0,
+          cpu_s: float | None = None, noise_m: float | None = None, pickup_hz: list[float] | None = None,
+          pickup_m: list[float] | None = None, habits: list[str] | None = None, duration_s: float | None = None,
+          fs_hz: float | None = None) -> dict:
     """One row of the proof table from the true effects (answers.json style) and a Diagnosis."""
     named = {e["name"]: dict(e.get("parameters", {})) for e in diag.effects}
     errors = {}
@@ -155,8 +323,11 @@ def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elap
                 if k in diag.params_refit and v]
         lin_err = max(errs) if errs else None
     fit = diag.fit or {}
+    aug_rms = _fit_figure(fit, "augmented", "residual_rms_m")
+    verdict = getattr(diag, "verdict", None)
     return {
         "case": name,
+        "habits": list(habits or []),
         "truth": sorted(truth),
         "named": sorted(named),
         "right": set(truth) == set(named),
@@ -168,8 +339,15 @@ def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elap
         "nrmse": {m: _fit_figure(fit, m, "nrmse") for m in ("nominal", "refit", "augmented")},
         "residual_over_noise": {m: _fit_figure(fit, m, "residual_over_noise")
                                 for m in ("nominal", "refit", "augmented")},
+        "true_noise_m": noise_m,
+        "residual_over_true_noise": (aug_rms / noise_m) if (aug_rms is not None and noise_m) else None,
         "holdout_nrmse": {m: _fit_figure(fit, m, "nrmse_holdout") for m in ("nominal", "refit", "augmented")},
+        "pickup_lines": _line_grades(pickup_hz or [], diag, pickup_m),
+        "verdict": verdict.status if verdict is not None else None,
         "elapsed_s": elapsed_s,
+        "cpu_s": cpu_s,
+        "duration_s": duration_s,
+        "fs_hz": fs_hz,
         "summary": diag.summary,
     }
 
@@ -200,8 +378,14 @@ def confusion(rows: list[dict]) -> dict[str, dict[str, int]]:
     return m
 
 
+def _resid(r: dict) -> float | None:
+    """Augmented residual over the noise: the true noise when the case knows it, else the engine's estimate."""
+    v = r.get("residual_over_true_noise")
+    return v if v is not None else r["residual_over_noise"]["augmented"]
+
+
 def score(rows: list[dict]) -> dict:
-    """Overall figures of the proof against the issue's targets."""
+    """Overall figures of the proof against the issues' targets."""
     n = len(rows)
     right = sum(r["right"] for r in rows)
     clean = [r for r in rows if not r["truth"]]
@@ -210,9 +394,15 @@ def score(rows: list[dict]) -> dict:
         errs = [e for r in rows for k, e in r["parameter_errors"].items() if k.endswith(suffix)]
         return {"n": len(errs), "within": sum(e <= tol for e in errs), "tolerance": tol,
                 "worst": max(errs) if errs else None}
-    ron = [r["residual_over_noise"]["augmented"] for r in rows if r["residual_over_noise"]["augmented"] is not None]
+    ron = [_resid(r) for r in rows if _resid(r) is not None]
     times = [r["elapsed_s"] for r in rows]
-    return {
+    at2k = [r for r in rows if (r.get("duration_s") or 0) >= 50.0 and r.get("fs_hz") == 2000.0]
+    per100 = [r["elapsed_s"] * 100.0 / r["duration_s"] for r in at2k]     # the issue's budget: 100 s at 2 kHz
+    cpu100 = [r["cpu_s"] * 100.0 / r["duration_s"] for r in at2k if r.get("cpu_s") is not None]
+    with_habits = [r for r in rows if r.get("habits")]
+    lines = [r.get("pickup_lines") or {"n": 0, "within": 0, "errors": []} for r in rows]
+    line_errs = [e for g in lines for e in g["errors"] if e is not None]
+    out = {
         "cases": n, "right": right, "fraction_right": right / n if n else 0.0,
         "clean_cases": len(clean), "invented_on_clean": invented_clean,
         "delays": within(".delay_s", TARGETS["delay_s"]),
@@ -220,8 +410,44 @@ def score(rows: list[dict]) -> dict:
         "residual_within_1.3_noise": {"n": len(ron), "within": sum(v <= 1.3 for v in ron),
                                       "worst": max(ron) if ron else None},
         "seconds_per_case": {"mean": float(np.mean(times)) if times else None,
+                             "median": float(np.median(times)) if times else None,
                              "max": float(np.max(times)) if times else None},
+        "seconds_per_100s_at_2khz": {"median": float(np.median(per100)) if per100 else None,
+                                     "max": float(np.max(per100)) if per100 else None,
+                                     "n": len(per100),
+                                     "cpu_median": float(np.median(cpu100)) if cpu100 else None,
+                                     "cpu_max": float(np.max(cpu100)) if cpu100 else None,
+                                     "note": "cases at 2 kHz of 50 s or more, wall and CPU time scaled to 100 s"},
     }
+    if with_habits:
+        out["habit_cases"] = len(with_habits)
+        out["sensor_named_as_physics"] = sum(1 for r in with_habits if set(r["named"]) - set(r["truth"]))
+        out["mains_lines"] = {"n": sum(g["n"] for g in lines), "found": sum(g.get("found", 0) for g in lines),
+                              "within_1pct": sum(g["within"] for g in lines),
+                              "worst": max(line_errs) if line_errs else None,
+                              "missed": [{"case": r["case"], **m} for r in rows
+                                         for m in (r.get("pickup_lines") or {}).get("missed", [])]}
+        out["by_habit"] = by_habit(rows)
+    return out
+
+
+def _habit_key(tag: str) -> str:
+    return tag.split(":")[0] if tag.startswith(("pickup", "drift")) else tag
+
+
+def by_habit(rows: list[dict]) -> dict[str, dict]:
+    """Per habit tag: cases, named right, invented effects, residual within 1.3 x the true noise."""
+    out: dict[str, dict] = {}
+    for r in rows:
+        for tag in r.get("habits") or []:
+            for key in {tag, _habit_key(tag)}:
+                d = out.setdefault(key, {"cases": 0, "right": 0, "invented": 0, "residual_ok": 0})
+                d["cases"] += 1
+                d["right"] += int(r["right"])
+                d["invented"] += int(bool(set(r["named"]) - set(r["truth"])))
+                v = _resid(r)
+                d["residual_ok"] += int(v is not None and v <= 1.3)
+    return dict(sorted(out.items()))
 
 
 # ---- running -----------------------------------------------------------------------------------------
@@ -230,31 +456,33 @@ def _p0_from(p0_dict: dict) -> ActuatorParams:
 
 
 def _run_generated(case: Case, p0_dict: dict, seed: int) -> dict:
-    from rig.diagnose.engine import diagnose
     p0 = _p0_from(p0_dict)
     rec = simulate_case(case, p0)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     diag = diagnose(rec, p0, seed=seed)
-    return grade(case.name, case.effects, diag, true_linear=case.linear, elapsed_s=time.perf_counter() - t0)
+    return grade(case.name, case.effects, diag, true_linear=case.linear, elapsed_s=time.perf_counter() - t0,
+                 cpu_s=time.process_time() - c0, noise_m=case.noise_m(), pickup_hz=case.pickup_lines_hz(),
+                 pickup_m=case.pickup_lines_m(), habits=case.habits, duration_s=rec.duration_s, fs_hz=rec.fs_hz)
 
 
-def _run_file(path: str, truth: dict, true_linear: dict | None, p0_dict: dict, seed: int) -> dict:
-    from rig.diagnose.engine import diagnose
-    from rig.recording import load_recording
+def _run_file(path: str, truth: dict, true_linear: dict | None, p0_dict: dict, seed: int,
+              noise_m: float | None = None) -> dict:
     rec = load_recording(path)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     diag = diagnose(rec, _p0_from(p0_dict), seed=seed)
-    return grade(Path(path).name, truth, diag, true_linear=true_linear, elapsed_s=time.perf_counter() - t0)
+    return grade(Path(path).name, truth, diag, true_linear=true_linear, elapsed_s=time.perf_counter() - t0,
+                 cpu_s=time.process_time() - c0, noise_m=noise_m, duration_s=rec.duration_s, fs_hz=rec.fs_hz)
 
 
-def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None]]:
-    """(recording path, true effects, true linear parameters) from a folder with answers.json."""
+def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None, float | None]]:
+    """(recording path, true effects, true linear parameters, position noise rms) from a folder with
+    answers.json."""
     ans_path = cases_dir / "answers.json"
     if not cases_dir.is_dir():
         raise RigError(f"--cases {cases_dir}: not a folder")
     if not ans_path.is_file():
-        raise RigError(f"--cases {cases_dir}: no answers.json in the folder (expected one like "
-                       "../shared/recordings/answers.json)")
+        raise RigError(f"--cases {cases_dir}: no answers.json in the folder (expected "
+                       "{\"recording file\": {\"effects\": {...}, \"true_linear_parameters\": {...}}})")
     try:
         answers = json.loads(ans_path.read_text())
     except (OSError, ValueError) as e:
@@ -272,7 +500,7 @@ def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None]]:
         path = cases_dir / fname
         if not path.is_file():
             raise RigError(f"{ans_path}: recording {fname!r} listed but not found in {cases_dir}")
-        out.append((path, entry["effects"], entry.get("true_linear_parameters")))
+        out.append((path, entry["effects"], entry.get("true_linear_parameters"), entry.get("position_noise_m_rms")))
     return out
 
 
@@ -314,8 +542,8 @@ def run_jobs(jobs: list[tuple[Callable, tuple, str]], workers: int,
 
 
 def prove_generated(n: int, seed: int, p0: ActuatorParams, *, duration_s: float = 100.0, workers: int = 2,
-                    progress=None) -> tuple[list[Case], list[dict]]:
-    cases = draw_cases(n, seed, duration_s=duration_s, p0=p0)
+                    progress=None, habits: bool = False) -> tuple[list[Case], list[dict]]:
+    cases = draw_cases(n, seed, duration_s=duration_s, p0=p0, habits=habits)
     jobs = [(_run_generated, (c, p0.as_dict(), seed), c.name) for c in cases]
     return cases, run_jobs(jobs, workers, progress)
 
@@ -323,7 +551,8 @@ def prove_generated(n: int, seed: int, p0: ActuatorParams, *, duration_s: float 
 def prove_folder(cases_dir: Path, p0: ActuatorParams, *, seed: int = 0, workers: int = 2,
                  progress=None) -> list[dict]:
     entries = read_answers(Path(cases_dir))
-    jobs = [(_run_file, (str(path), truth, lin, p0.as_dict(), seed), path.name) for path, truth, lin in entries]
+    jobs = [(_run_file, (str(path), truth, lin, p0.as_dict(), seed, noise), path.name)
+            for path, truth, lin, noise in entries]
     return run_jobs(jobs, workers, progress)
 
 
@@ -343,18 +572,32 @@ def _short_key(k: str) -> str:
     return f"{short}.{key.replace('_hz', '').replace('_s', '').replace('_ma', '').replace('_n', '')}"
 
 
+def _habits_cell(r: dict) -> str:
+    return ", ".join(r.get("habits") or []) or "-"
+
+
 def table_markdown(rows: list[dict]) -> str:
-    head = ("| case | truth | named | ok | parameter errors | NRMSE nominal -> refit -> augmented "
-            "| resid/noise aug | s |\n|---|---|---|---|---|---|---|---|\n")
+    head = ("| case | habits | truth | named | ok | parameter errors | NRMSE nominal -> refit -> augmented "
+            "| resid/noise aug | s |\n|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         errs = ", ".join(f"{_short_key(k)} {100 * e:.1f}%" for k, e in sorted(r["parameter_errors"].items())) or "-"
         nr = r["nrmse"]
-        lines.append(f"| {r['case']} | {_names(r['truth'])} | {_names(r['named'])} | "
+        lines.append(f"| {r['case']} | {_habits_cell(r)} | {_names(r['truth'])} | {_names(r['named'])} | "
                      f"{'yes' if r['right'] else 'NO'} | {errs} | {_fmt(nr['nominal'])} -> {_fmt(nr['refit'])} -> "
-                     f"{_fmt(nr['augmented'])} | {_fmt(r['residual_over_noise']['augmented'], '.2f')} | "
+                     f"{_fmt(nr['augmented'])} | {_fmt(_resid(r), '.2f')} | "
                      f"{r['elapsed_s']:.1f} |")
     return head + "\n".join(lines) + "\n"
+
+
+def habits_markdown(s: dict) -> str:
+    """The summary by habit: how the diagnosis fared on the cases that carried each habit."""
+    bh = s.get("by_habit") or {}
+    if not bh:
+        return ""
+    head = "| habit | cases | named right | invented effect | residual <= 1.3 x noise |\n|---|---|---|---|---|\n"
+    return head + "\n".join(f"| {k} | {v['cases']} | {v['right']} | {v['invented']} | {v['residual_ok']} |"
+                             for k, v in bh.items()) + "\n"
 
 
 def confusion_markdown(m: dict[str, dict[str, int]]) -> str:
@@ -367,21 +610,38 @@ def confusion_markdown(m: dict[str, dict[str, int]]) -> str:
 
 def score_text(s: dict) -> str:
     d, f, r = s["delays"], s["frequencies"], s["residual_within_1.3_noise"]
-    return "\n".join([
+    sp, sp100 = s["seconds_per_case"], s.get("seconds_per_100s_at_2khz") or {}
+    out = [
         f"score: {s['right']}/{s['cases']} named right ({100 * s['fraction_right']:.0f} %, target 95 %); "
         f"invented on clean cases: {s['invented_on_clean']}/{s['clean_cases']} (target 0)",
         f"delays within 20 %: {d['within']}/{d['n']} (worst {_fmt(d['worst'] and 100 * d['worst'], '.1f')} %); "
         f"frequencies within 5 %: {f['within']}/{f['n']} (worst {_fmt(f['worst'] and 100 * f['worst'], '.1f')} %)",
         f"augmented residual <= 1.3 x noise: {r['within']}/{r['n']} (worst {_fmt(r['worst'], '.2f')}); "
-        f"diagnosis time per case: mean {_fmt(s['seconds_per_case']['mean'], '.1f')} s, "
-        f"max {_fmt(s['seconds_per_case']['max'], '.1f')} s",
-    ])
+        f"diagnosis time per case: median {_fmt(sp.get('median'), '.1f')} s, mean {_fmt(sp['mean'], '.1f')} s, "
+        f"max {_fmt(sp['max'], '.1f')} s" + (f"; per 100 s at 2 kHz ({sp100['n']} cases): median "
+                                            f"{_fmt(sp100.get('median'), '.1f')} s, max {_fmt(sp100.get('max'), '.1f')} s "
+                                            f"wall, CPU median {_fmt(sp100.get('cpu_median'), '.1f')} s, max "
+                                            f"{_fmt(sp100.get('cpu_max'), '.1f')} s" if sp100.get("n") else ""),
+    ]
+    if "habit_cases" in s:
+        ml = s["mains_lines"]
+        missed = "; ".join(f"{m['case']} {m['frequency_hz']:.2f} Hz"
+                           + (f" ({m['amplitude_m'] * 1e9:.2g} nm)" if m.get("amplitude_m") else "")
+                           for m in ml.get("missed", []))
+        out.append(f"habits in {s['habit_cases']} cases: sensor artefact named as physics in "
+                   f"{s['sensor_named_as_physics']} (target 0); pickup lines found {ml.get('found', ml['n'])}/"
+                   f"{ml['n']}, reported within 1 % of their frequency: {ml['within_1pct']}/{ml.get('found', ml['n'])}"
+                   f" (worst {_fmt(ml['worst'] and 100 * ml['worst'], '.2f')} %)"
+                   + (f"; missed: {missed}" if missed else ""))
+    return "\n".join(out)
 
 
 def report_markdown(rows: list[dict], title: str) -> str:
     s = score(rows)
+    hab = habits_markdown(s)
     return (f"# {title}\n\n{table_markdown(rows)}\n## Confusion matrix (effects)\n\n"
-            f"{confusion_markdown(confusion(rows))}\n## Score\n\n" + score_text(s).replace("\n", "\n\n") + "\n")
+            f"{confusion_markdown(confusion(rows))}\n" + (f"## By habit\n\n{hab}\n" if hab else "")
+            + "## Score\n\n" + score_text(s).replace("\n", "\n\n") + "\n")
 
 
 def report_json(rows: list[dict], title: str, cases: list[Case] | None = None) -> dict:

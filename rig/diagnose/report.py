@@ -1,10 +1,16 @@
-"""Outputs of a diagnosis (issue 7): DIR/diagnosis.json, DIR/fit.csv, DIR/report.md with its PNGs, and the
-readable summary (where the mismatch is, what physics was left out, how much better the fit gets).
+"""Outputs of a diagnosis (issues 7 and 12): DIR/diagnosis.json, DIR/fit.csv, DIR/report.md with its PNGs, and
+the readable summary (where the mismatch is, what physics was left out, what the sensors added, how much better
+the fit gets).
 
-The engine (rig.diagnose.engine) decides; this module only writes what it decided, in the issue's schema:
+The engine (rig.diagnose.engine) decides; this module only writes what it decided, in the issues' schema:
   {"effects": [{"name", "parameters": {...}, "evidence": "...", "score": ...}],
    "mismatch": {"bands_hz": [[lo, hi], ...], "windows_s": [[t0, t1], ...], ...},
-   "fit": {"nominal": {"nrmse", ...}, "refit": {...}, "augmented": {...}}, "summary": "..."}
+   "fit": {"nominal": {"nrmse", ...}, "refit": {...}, "augmented": {...}}, "summary": "...",
+   "sensor": {"offset_m", "drift_m_per_s", "lines": [{"frequency_hz", "amplitude_m", ...}], ...},
+   "verdict": {"status": explained | partly | not_described | no_claim, "text", "suggestions"},
+   "command": {"kind", "description", "band_hz", ...}}
+fit.csv models the measurement as recorded: each model column is physics plus that model's fitted sensor terms, so
+measured_m - augmented_m is the noise where used = 1 (used = 0: clipped or start-transient samples, left out).
 """
 from __future__ import annotations
 
@@ -15,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 MODELS = ("nominal", "refit", "augmented")
-FIT_COLUMNS = ("time_s", "measured_m", "nominal_m", "refit_m", "augmented_m")
+FIT_COLUMNS = ("time_s", "measured_m", "nominal_m", "refit_m", "augmented_m", "augmented_sensor_m", "used")
 COLORS = {"measured": "k", "nominal": "tab:red", "refit": "tab:orange", "augmented": "tab:blue"}
 
 
@@ -55,6 +61,23 @@ def diagnosis_dict(diag, rec=None) -> dict:
            "groups": [list(g) for g in (diag.group or [])], "params_refit": dict(diag.params_refit or {}),
            "noise_m": diag.noise_m, "timing_s": getattr(diag, "timing_s", None),
            "candidates": list(getattr(diag, "candidates", None) or [])}     # every test the engine ran
+    sensor = getattr(diag, "sensor", None)
+    if sensor is not None:
+        doc["sensor"] = sensor.as_dict()
+    verdict = getattr(diag, "verdict", None)
+    if verdict is not None:
+        doc["verdict"] = verdict.as_dict()
+    cmd = getattr(diag, "command", None)
+    if cmd is not None:
+        doc["command"] = {"kind": cmd.kind, "description": cmd.describe(), "band_hz": list(cmd.band_hz),
+                          "peak_V": cmd.peak_V, "levels_V": [sg.peak_V for sg in cmd.segments] if cmd.multilevel
+                          else None, "period_s": cmd.period / cmd.fs_hz if cmd.period else None}
+    ev = getattr(diag, "evidence", None) or {}
+    if ev:
+        doc["evidence"] = {"effects": {k: v.get("finding", "") for k, v in ev.get("effects", {}).items()},
+                           "sensor": {k: v.get("finding", "") for k, v in ev.get("sensor", {}).items()}}
+        if "levels" in ev:
+            doc["evidence"]["gain_by_level"] = ev["levels"]["rows"]
     if rec is not None:
         doc["recording"] = {"source": rec.source, "fs_hz": rec.fs_hz, "samples": rec.n,
                             "duration_s": rec.duration_s}
@@ -63,23 +86,28 @@ def diagnosis_dict(diag, rec=None) -> dict:
 
 # ---- fit.csv -----------------------------------------------------------------------------------------
 def fit_columns(diag, rec) -> np.ndarray:
-    """(n, 5) array time_s, measured_m, nominal_m, refit_m, augmented_m for every recorded instant."""
+    """(n, 7) array of FIT_COLUMNS for every recorded instant."""
     cols = [np.asarray(rec.t_s, float), np.asarray(rec.position_m, float)]
-    for m in MODELS:
+    for m in MODELS + ("augmented_sensor",):
         s = (diag.series or {}).get(f"{m}_m")
         if s is None:
-            raise RuntimeError(f"diagnosis has no {m}_m series")
+            if m == "augmented_sensor":
+                s = np.zeros(rec.n)
+            else:
+                raise RuntimeError(f"diagnosis has no {m}_m series")
         s = np.asarray(s, float)
         if s.shape != (rec.n,):
             raise RuntimeError(f"diagnosis {m}_m series has {s.shape} samples, the recording {rec.n}")
         cols.append(s)
+    used = getattr(diag, "used", None)
+    cols.append(np.ones(rec.n) if used is None else np.asarray(used, float))
     return np.column_stack(cols)
 
 
 def write_fit_csv(path: Path, diag, rec) -> Path:
     data = fit_columns(diag, rec)
     np.savetxt(path, data, delimiter=",", header=",".join(FIT_COLUMNS), comments="",
-               fmt=["%.9f", "%.9g", "%.9g", "%.9g", "%.9g"])
+               fmt=["%.9f", "%.9g", "%.9g", "%.9g", "%.9g", "%.9g", "%d"])
     return path
 
 
@@ -193,9 +221,18 @@ def summary_text(diag, rec=None) -> str:
     for key in ("regimes", "harmonics", "uncorrelated"):
         if key in mm:
             lines.append(f"  {key + ':':16} {_DESCRIBE[key](mm[key])}")
+    cmd = getattr(diag, "command", None)
+    if cmd is not None:
+        lines.insert(1 if rec is not None else 0, f"command: {cmd.describe()}")
+    for note in (diag.mismatch or {}).get("notes", [])[1:]:
+        lines.append(f"  note: {note}")
     lines.append("WHAT physics the linear model leaves out (after refitting its six parameters):")
+    verdict = getattr(diag, "verdict", None)
     if not diag.effects:
-        lines.append("  none: the refit linear model explains the recording")
+        if verdict is not None and verdict.status != "explained":
+            lines.append(f"  none named: {verdict.text}")
+        else:
+            lines.append("  none: the refit linear model explains the recording")
     for e in diag.effects:
         sc = e.get("score")
         sc_s = f" [score {sc:.4g}]" if isinstance(sc, (int, float)) else ""
@@ -204,6 +241,10 @@ def summary_text(diag, rec=None) -> str:
             lines.append(f"    evidence: {e['evidence']}")
     for g in diag.group or []:
         lines.append(f"  confounded (cannot be told apart here): {', '.join(g)}")
+    sensor = getattr(diag, "sensor", None)
+    if sensor is not None:
+        lines.append("SENSOR terms (fitted in every model, not physics):")
+        lines += [f"  {t}" for t in sensor_lines(sensor)]
     lines.append("HOW MUCH BETTER (NRMSE of position; residual rms / noise rms):")
     lines.append(f"  {'model':10} {'NRMSE':>8} {'fit seg':>8} {'held-out':>8} {'resid/noise':>11}")
     for m in MODELS:
@@ -213,9 +254,39 @@ def summary_text(diag, rec=None) -> str:
     nom, aug = _fit_row(diag.fit, "nominal").get("nrmse"), _fit_row(diag.fit, "augmented").get("nrmse")
     if nom and aug is not None and aug > 0:
         lines.append(f"  NRMSE {nom:.4f} -> {aug:.4f} ({nom / aug:.1f}x better than nominal)")
+    if verdict is not None:
+        lines.append(f"VERDICT: {verdict.text}")
+        for sg in verdict.suggestions:
+            lines.append(f"  {sg}")
     if diag.summary:
         lines.append(f"summary: {diag.summary}")
     return "\n".join(lines)
+
+
+def sensor_lines(sensor) -> list[str]:
+    """The sensor terms as readable lines (stdout and report.md)."""
+    out = [f"position offset {sensor.offset_m * 1e6:.4g} um at t = 0, drift {sensor.drift_m_per_s * 1e9:.4g} nm/s"
+           + (f", slow wander {sensor.wander_rms_m * 1e9:.3g} nm rms ({sensor.wander_terms} cosines)"
+              if sensor.wander_terms else "")]
+    for l in sensor.lines:
+        amp = f"{l.amplitude * 1e9:.3g} nm" if l.channel == "position_m" else f"{l.amplitude:.3g} m/s^2"
+        out.append(f"{l.source} line on {l.channel} at {l.frequency_hz:.3f} Hz, {amp}: {l.evidence}")
+    if sensor.quantisation_step_m:
+        out.append(f"position quantised in steps of {sensor.quantisation_step_m:.3g} m (floor "
+                   f"{sensor.quantisation_step_m / math.sqrt(12):.3g} m rms)")
+    if sensor.accel_quantisation_step_mps2:
+        out.append(f"acceleration quantised in steps of {sensor.accel_quantisation_step_mps2:.3g} m/s^2")
+    if sensor.accel_offset_mps2 is not None:
+        out.append(f"accelerometer offset {sensor.accel_offset_mps2:.4g} m/s^2")
+    if sensor.accel is not None and sensor.accel.note:
+        out.append(sensor.accel.note)
+    for c in sensor.clipped:
+        lvl = c.high if c.high is not None else c.low
+        out.append(f"{c.channel} clipped at {lvl:.4g} ({c.samples} samples from {c.first_s:.3f} s): left out of "
+                   "the fit")
+    if sensor.start_transient_s:
+        out.append(f"mid-run start: the first {sensor.start_transient_s:g} s are left out (start transient)")
+    return out
 
 
 # ---- figures -----------------------------------------------------------------------------------------
@@ -365,13 +436,189 @@ def plot_windows(path: Path, diag, rec, windows) -> Path:
     return path
 
 
+# ---- evidence plots: one per named effect and per sensor term ------------------------------------------
+def _plot_levels(ax, d: dict) -> None:
+    rows = d.get("rows") or []
+    lv = [r["peak_V"] for r in rows]
+    ax.plot(lv, [r["gain_measured"] for r in rows], "ko-", label="measured")
+    ax.plot(lv, [r["gain_augmented"] for r in rows], "s--", color=COLORS["augmented"], label="augmented model")
+    ax.axhline(1.0, color=COLORS["refit"], lw=1, label="linear refit (same at every level)")
+    g = [r["gain_measured"] for r in rows] + [r["gain_augmented"] for r in rows]
+    ax.set_ylim(min(0.98, min(g) - 0.005), max(1.02, max(g) + 0.005))        # a 2 % window at least
+    ax.ticklabel_format(axis="y", useOffset=False)
+    ax.set_xlabel("command level (peak V)")
+    ax.set_ylabel("gain relative to the linear refit")
+    ax.legend(fontsize=8)
+
+
+def _plot_command(ax, d: dict) -> None:
+    ax.plot(d["command_V"], np.asarray(d["refit_rms_m"]) * 1e9, "o-", color=COLORS["refit"], label="refit residual")
+    ax.plot(d["command_V"], np.asarray(d["augmented_rms_m"]) * 1e9, "s-", color=COLORS["augmented"],
+            label="augmented residual")
+    ax.axhline(d["noise_m"] * 1e9, color="0.4", ls="--", lw=1, label="noise")
+    ax.set_xlabel("|command| (V)")
+    ax.set_ylabel("residual rms (nm)")
+    ax.legend(fontsize=8)
+
+
+def _plot_harmonics(ax, d: dict) -> None:
+    x = np.arange(len(d["labels"]))
+    ax.bar(x - 0.2, d["refit"], width=0.4, color=COLORS["refit"], label="refit residual")
+    ax.bar(x + 0.2, d["augmented"], width=0.4, color=COLORS["augmented"], label="augmented residual")
+    ax.axhline(1.0, color="0.4", ls="--", lw=1, label="noise")
+    ax.set_xticks(x, d["labels"])
+    ax.set_ylabel("rms over the noise")
+    ax.legend(fontsize=8)
+
+
+def _plot_velocity(ax, d: dict) -> None:
+    v = np.asarray(d["velocity_mps"]) * 1e3
+    ax.plot(v, np.asarray(d["refit_mean_m"]) * 1e9, "o-", color=COLORS["refit"], label="refit residual (mean)")
+    ax.plot(v, np.asarray(d["augmented_mean_m"]) * 1e9, "s-", color=COLORS["augmented"],
+            label="augmented residual (mean)")
+    ax.axvline(0.0, color="0.5", lw=0.8)
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xlabel("piston velocity (mm/s)")
+    ax.set_ylabel("mean residual (nm)")
+    ax.legend(fontsize=8)
+
+
+def _plot_frf_ratio(fig, d: dict) -> None:
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    f = np.asarray(d["freqs_hz"])
+    m, a = _complex(d["measured"]), _complex(d["augmented"])
+    ax1.semilogx(f, np.abs(m), "k.", label="measured / model without the effect")
+    ax1.semilogx(f, np.abs(a), color=COLORS["augmented"], label="augmented / model without the effect")
+    ax1.set_ylabel("magnitude ratio")
+    ax2.semilogx(f, np.degrees(np.angle(m)), "k.")
+    ax2.semilogx(f, np.degrees(np.angle(a)), color=COLORS["augmented"])
+    ax2.set_ylabel("phase (deg)")
+    ax2.set_xlabel("frequency (Hz)")
+    ax1.legend(fontsize=8)
+
+
+def _plot_line(fig, d: dict) -> None:
+    f = np.asarray(d["freqs_hz"])
+    has_acc = d.get("accel_mps2") is not None
+    axes = fig.subplots(2 if has_acc else 1, 1, sharex=True, squeeze=False)[:, 0]
+    axes[0].semilogy(f, np.maximum(np.asarray(d["position_m"]), 1e-15), color="k", lw=0.8)
+    axes[0].set_ylabel("position (m)")
+    if has_acc:
+        axes[1].semilogy(f, np.maximum(np.asarray(d["accel_mps2"]), 1e-12), color="k", lw=0.8, label="measured")
+        axes[1].semilogy(f, np.maximum(np.asarray(d["force_prediction_mps2"]), 1e-12), color="tab:red", lw=1.0,
+                         ls="--", label="what a force would show: (2 pi f)^2 x position")
+        axes[1].set_ylabel("acceleration (m/s^2)")
+        axes[1].legend(fontsize=8)
+    for ax in axes:
+        ax.axvline(d["line_hz"], color="0.6", lw=0.8)
+    axes[-1].set_xlabel("frequency (Hz)")
+
+
+def _plot_zero(ax, d: dict) -> None:
+    ax.plot(d["t_s"], np.asarray(d["measured_minus_physics_m"]) * 1e6, ".", color="0.3", ms=2,
+            label="measured - physics (0.5 s means)")
+    ax.plot(d["t_fit_s"], np.asarray(d["zero_m"]) * 1e6, color="tab:green", lw=1.5, label="fitted zero")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("position (um)")
+    ax.legend(fontsize=8)
+
+
+def _plot_quantisation(ax, d: dict) -> None:
+    e = np.asarray(d["edges_m"]) * 1e9
+    ax.bar(0.5 * (e[:-1] + e[1:]), d["counts"], width=np.diff(e), color="0.6", label="augmented residual")
+    q = d["step_m"] * 1e9
+    ax.axvspan(-q / 2, q / 2, color="tab:orange", alpha=0.15, label=f"one converter step ({q:.3g} nm)")
+    ax.set_xlabel("residual (nm)")
+    ax.set_ylabel("samples")
+    ax.legend(fontsize=8)
+
+
+def _plot_accel(fig, d: dict) -> None:
+    ax1, ax2 = fig.subplots(2, 1)
+    ax1.plot(d["t_s"], np.asarray(d["accel_minus_model_mps2"]) * 1e3, ".", color="0.3", ms=2,
+             label="accelerometer - model acceleration (0.5 s means)")
+    if d.get("offset_mps2") is not None:
+        ax1.axhline(d["offset_mps2"] * 1e3, color="tab:green", label="fitted offset")
+    ax1.set_xlabel("time (s)")
+    ax1.set_ylabel("mm/s^2")
+    ax1.legend(fontsize=8)
+    ax2.semilogx(d["freqs_hz"], d["ratio"], "k.", ms=3, label="|accel / position| / (2 pi f)^2")
+    ax2.axhline(1.0, color="tab:red", lw=1, label="a true second derivative")
+    ax2.set_xlabel("frequency (Hz)")
+    ax2.set_ylabel("ratio")
+    ax2.legend(fontsize=8)
+
+
+def _plot_clip(ax, d: dict) -> None:
+    ax.plot(d["t_s"], np.asarray(d["measured_m"]) * 1e6, "k", lw=0.8, label="measured")
+    ax.plot(d["t_s"], np.asarray(d["model_m"]) * 1e6, color=COLORS["augmented"], lw=1.0, label="model")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("position (um)")
+    ax.legend(fontsize=8)
+
+
+_EVIDENCE_TITLES = {
+    "levels": "gain by command level", "command": "residual by command magnitude",
+    "velocity": "residual by piston velocity", "frf": "frequency response over the model without the effect",
+    "line": "the line in position and in acceleration", "zero": "the transducer's zero (offset, drift, wander)",
+    "quantisation": "residual against the converter step", "clip": "clipped samples",
+    "accel": "the accelerometer against the position's second derivative",
+    "harmonics": "nonlinear distortion the command's own structure shows",
+}
+
+
+def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
+    """One PNG per named effect and sensor term; returns (title, file name, one-line finding)."""
+    from matplotlib.figure import Figure
+    ev = getattr(diag, "evidence", None) or {}
+    out = []
+    items = [(f"effect: {k}", k, v) for k, v in ev.get("effects", {}).items()]
+    if ev.get("levels") and not any(v.get("kind") == "levels" for v in ev.get("effects", {}).values()):
+        items.append(("command levels", "levels", {"kind": "levels", **ev["levels"]}))
+    items += [(f"sensor: {k}", k, v) for k, v in ev.get("sensor", {}).items()]
+    for label, key, d in items:
+        kind = d.get("kind") or key
+        if kind not in _EVIDENCE_TITLES or (kind == "levels" and not d.get("rows")) or \
+                (kind in ("command", "velocity", "frf", "harmonics") and len(d) <= 2):
+            if d.get("finding"):
+                out.append((label, "", d["finding"]))
+            continue
+        fig = Figure(figsize=(7.5, 4.2 if kind not in ("frf", "line", "accel") else 5.2), layout="constrained")
+        if kind == "frf":
+            _plot_frf_ratio(fig, d)
+        elif kind == "line":
+            _plot_line(fig, d)
+        elif kind == "accel":
+            _plot_accel(fig, d)
+        else:
+            ax = fig.subplots()
+            {"levels": _plot_levels, "command": _plot_command, "velocity": _plot_velocity, "zero": _plot_zero,
+             "quantisation": _plot_quantisation, "clip": _plot_clip, "harmonics": _plot_harmonics}[kind](ax, d)
+        for ax in fig.axes:
+            ax.grid(True, alpha=0.3)
+        fig.suptitle(f"{label}: {_EVIDENCE_TITLES[kind]}", fontsize=10)
+        name = "evidence_" + "_".join("".join(c if c.isalnum() or c == "." else " " for c in label).split()) + ".png"
+        fig.savefig(Path(out_dir) / name, dpi=100)
+        out.append((label, name, d.get("finding", "")))
+    return out
+
+
 # ---- report.md ---------------------------------------------------------------------------------------
-def report_markdown(diag, rec, figures: dict[str, str], windows) -> str:
+def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) -> str:
     mm = diag.mismatch or {}
+    verdict = getattr(diag, "verdict", None)
+    cmd = getattr(diag, "command", None)
     out = [f"# Diagnosis of {rec.source}", "",
            f"{rec.n} samples at {rec.fs_hz:g} Hz ({rec.duration_s:g} s). Position noise estimate: "
-           f"{_figure(diag.noise_m, '.3g')} m rms.", "", f"**Summary:** {diag.summary or '-'}", "",
-           "## Where the model and the recording differ", "",
+           f"{_figure(diag.noise_m, '.3g')} m rms.", ""]
+    if verdict is not None:
+        out += [f"**Verdict ({verdict.status.replace('_', ' ')}):** {verdict.text}", ""]
+        out += [f"- {sg}" for sg in verdict.suggestions] + ([""] if verdict.suggestions else [])
+    if cmd is not None:
+        out += [f"Command: {cmd.describe()}.", ""]
+    for note in mm.get("notes", [])[1:]:
+        out += [f"Note: {note}.", ""]
+    out += [f"**Summary:** {diag.summary or '-'}", "", "## Where the model and the recording differ", "",
            f"- Frequency bands (FRF error above its coherence-based uncertainty): {_spans(mm.get('bands_hz'), 'Hz', 20)}",
            f"- Time windows: {_spans(mm.get('windows_s'), 's', 20)}"]
     after = (mm.get("after_refit") or {}).get("bands_hz")
@@ -392,9 +639,24 @@ def report_markdown(diag, rec, figures: dict[str, str], windows) -> str:
                        f"{_figure(sc, '.4g') if isinstance(sc, (int, float)) else '-'} | "
                        f"{str(e.get('evidence', '')).replace('|', '/')} |")
     else:
-        out.append("None: the refit linear model explains the recording.")
+        if verdict is not None and verdict.status != "explained":
+            out.append(f"None named. {verdict.text}")
+            for nc in mm.get("not_claimed", []):
+                out.append(f"- best candidate, not claimed: {nc['name']} ({format_parameters(nc['parameters'])})")
+        else:
+            out.append("None: the refit linear model explains the recording.")
     for g in diag.group or []:
         out.append(f"\nConfounded, cannot be told apart on this recording: {', '.join(g)}.")
+    sensor = getattr(diag, "sensor", None)
+    if sensor is not None:
+        out += ["", "## Sensor terms (fitted in every model, never named as effects)", ""]
+        out += [f"- {t}" for t in sensor_lines(sensor)]
+    if evidence:
+        out += ["", "## Evidence: what convinced the tool", ""]
+        for label, name, finding in evidence:
+            out += [f"### {label}", "", f"{finding[:1].upper() + finding[1:] if finding else '-'}", ""]
+            if name:
+                out += [f"![{label}]({name})", ""]
     out += ["", "## Fit", "", "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise |",
             "|---|---|---|---|---|---|"]
     for m in MODELS:
@@ -413,7 +675,9 @@ def report_markdown(diag, rec, figures: dict[str, str], windows) -> str:
                            + " (residual before = refit, after = augmented)"}
     for key, name in figures.items():
         out += [f"### {captions.get(key, key)}", "", f"![{key}]({name})", ""]
-    out += ["Data: `diagnosis.json`, `fit.csv` (time_s, measured_m, nominal_m, refit_m, augmented_m).", ""]
+    out += ["Data: `diagnosis.json`, `fit.csv` (time_s, measured_m, nominal_m, refit_m, augmented_m, "
+            "augmented_sensor_m, used): each model column is the measurement as the model has it, physics plus "
+            "its sensor terms, so measured_m - augmented_m is the noise where used = 1.", ""]
     return "\n".join(out)
 
 
@@ -432,7 +696,11 @@ def write_outputs(out_dir: Path, diag, rec) -> dict[str, Path]:
     windows = worst_windows(diag, rec)
     plot_windows(out_dir / "worst_windows.png", diag, rec, windows)
     figures["windows"] = "worst_windows.png"
-    paths["report"].write_text(report_markdown(diag, rec, figures, windows))
+    evidence = plot_evidence(out_dir, diag)
+    paths["report"].write_text(report_markdown(diag, rec, figures, windows, evidence))
     for key, name in figures.items():
         paths[key] = out_dir / name
+    for label, name, _ in evidence:
+        if name:
+            paths[name[:-4]] = out_dir / name
     return paths

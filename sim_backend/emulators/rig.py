@@ -52,7 +52,7 @@ class EmulatedRig:
         self._procs: list[tuple[subprocess.Popen, str]] = []
         self._t0: float | None = None
         self._steps = 0
-        self.last_cmd_V = [0.0] * 4
+        self.last_cmd_V = [0.0] * len(self.node_ids)
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._keeper: threading.Thread | None = None

@@ -75,19 +75,22 @@ class SharedFile:
 
 def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None, floor_mps2=None) -> None:
     """A new plant state; count = conversions so far (default: one more than before); floor_mps2: the floor
-    accelerometers (default none: 0)."""
+    accelerometers (default none: 0). A plant of fewer mounts (the prototype: one) leaves the devices' other
+    channels at zero."""
     seq = arr[SEQ] + 1.0
     arr[SEQ] = seq                          # odd: writing
     arr[T_S] = t_s
     count = int(arr[COUNT]) + 1 if count is None else int(count)
     arr[COUNT] = float(count)
-    acc = [float(a) for a in accel_mps2]
-    fl = [float(a) for a in floor_mps2] if floor_mps2 is not None else [0.0] * N_MOUNTS
+    pad = [0.0] * (N_MOUNTS - len(accel_mps2))
+    acc = [float(a) for a in accel_mps2] + pad
+    fl = [float(a) for a in floor_mps2] + [0.0] * (N_MOUNTS - len(floor_mps2)) if floor_mps2 is not None \
+        else [0.0] * N_MOUNTS
     arr[ACCEL:ACCEL + N_MOUNTS] = acc
     arr[FLOOR:FLOOR + N_MOUNTS] = fl
     base = FIFO + FIFO_WIDTH * (count % FIFO_SLOTS)
     arr[base:base + FIFO_WIDTH] = [float(count)] + acc + fl
-    arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m]
+    arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m] + pad
     arr[SEQ] = seq + 1.0                    # even: consistent
 
 

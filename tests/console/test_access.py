@@ -112,3 +112,25 @@ def test_the_only_listening_socket_is_on_loopback(run):
                  if c.status == psutil.CONN_LISTEN or (c.type == 2 and c.laddr)]    # TCP listen, bound UDP
     assert any(a.port == console.port for _, a in listening)                 # the check sees the console
     assert all(a.ip == "127.0.0.1" for _, a in listening), listening
+
+
+def test_the_mode_command_switches_a_stand_and_refuses_what_it_cannot_hold():
+    """The console's `mode` command on the prototype: a track request reaches the compiled law through the
+    session's request (bumpless, logged); one the actuator cannot hold is refused with the session's one line
+    and the mode stays; on the machine the command is refused (no operating modes there)."""
+    import dataclasses
+    from rig.commands.run import LAYOUTS
+    from rig.config import load_config
+    cfg = load_config(LAYOUTS["prototype"][None])
+    cfg = cfg.replace(safety=dataclasses.replace(cfg.safety, watchdog_s=1.0))
+    with live_run(cfg=cfg) as (s, console):
+        assert s.modes() == ["hold"]
+        code, reply = command(console, "mode", request="track sine:amp=5um,freq=2")
+        assert code == 200 and reply["ok"] and reply["text"].startswith("mode track sine"), reply
+        wait(lambda: s.modes() == ["track"], "track on the stand")
+        code, reply = command(console, "mode", request="hold 30um")
+        assert code == 409 and not reply["ok"] and "outside what the actuator can hold" in reply["text"], reply
+        assert s.modes() == ["track"]
+    with live_run() as (s, console):
+        code, reply = command(console, "mode", request="hold")
+        assert code == 409 and not reply["ok"] and "no operating modes" in reply["text"], reply

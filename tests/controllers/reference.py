@@ -2,6 +2,9 @@
 the plain way, as the first versions were, so property tests can hold the compiled ones against them."""
 from __future__ import annotations
 
+import math
+
+from controllers import tracking as T
 from controllers.isolation import _A, _B, _C, _I, _K, _ON, _S, _SUS, _U, _V
 
 
@@ -106,3 +109,124 @@ def feedforward_step(f, state: list, g: float) -> float:
     gain = state[o + 1] + (state[o] - state[o + 1]) * f.fade
     state[o] = gain
     return gain * y
+
+
+def track_step(c, state: list, x: float, cf=None) -> float:
+    """TrackingPID c, one period, the plain way (the reference generator, its feedforward, the PID);
+    state (a list, c.state_names) updated in place; cf: where a profile table was written (default none).
+    Returns the command."""
+    dt = c.dt
+    cf = c.coefficients() if cf is None else cf
+    st = state
+    tgt, o, do = st[T._TGT], st[T._O], st[T._OV]
+    # hold position towards its target: speed <= rate, change <= accel per period, able to stop at the target
+    if o != tgt or do != 0.0:
+        amax, vmax = c.ref.accel_m_per_s2, c.ref.rate_m_per_s
+        if amax * dt > 1e30:
+            o, do = tgt, 0.0
+        else:
+            d = tgt - o
+            s = math.sqrt(2.0 * amax * abs(d) + (amax * dt) ** 2) - amax * dt
+            vd = math.copysign(min(vmax, s, abs(d) / dt), d)
+            do += min(max(vd - do, -amax * dt), amax * dt)
+            o += do * dt
+            if abs(tgt - o) <= 0.5 * amax * dt * dt and abs(do) <= amax * dt:
+                o, do = tgt, 0.0
+    w = wd = 0.0
+    if st[T._WAVE] > 0.5:
+        tw = st[T._WT]
+        if tw < 0.0 and o == tgt and do == 0.0:
+            tw = 0.0
+        if tw >= 0.0:
+            w, wd, done = _wave(st, cf, tw, dt)
+            if done:
+                o, do = o + w, do + wd
+                st[T._TGT] = o
+                w = wd = 0.0
+                st[T._WAVE] = 0.0
+                tw = 0.0
+            else:
+                tw += dt
+        st[T._WT] = tw
+    st[T._O], st[T._OV] = o, do
+    lead = o + w
+    st[T._LEAD], st[T._LV] = lead, do + wd
+    ff = c.ff_V_per_mps * (do + wd + c.ref.lag_rad_s * lead)
+    ring = T._RING
+    n = c.preview + 1
+    at = int(st[T._AT])
+    st[ring + at] = lead
+    at = (at + 1) % n
+    st[T._AT] = at
+    r = st[ring + at]
+    e = r - x
+    if x == st[T._XP] and st[T._HELD] < max(1, int(round(T.HOLD_MAX_S / dt))):   # no new sample: hold
+        st[T._HELD] += 1.0
+        u = st[T._FB] + ff
+        if u > c.p.limit_V:
+            u = c.p.limit_V
+        elif u < -c.p.limit_V:
+            u = -c.p.limit_V
+        up = st[T._U]
+        if u - up > c.slew:
+            u = up + c.slew
+        elif up - u > c.slew:
+            u = up - c.slew
+        st[T._U], st[T._R], st[T._FF] = u, r, ff
+        return u
+    d_i = c.hi * (e + st[T._E])
+    integ = st[T._I] + d_i
+    d = c.ad * st[T._D] + c.bd * (e - st[T._E])
+    u = c.p.kp_V_per_m * e + integ + d + ff
+    sat = 0.0
+    if u > c.p.limit_V:
+        u, sat = c.p.limit_V, 1.0
+    elif u < -c.p.limit_V:
+        u, sat = -c.p.limit_V, -1.0
+    up = st[T._U]
+    if u - up > c.slew:
+        u, sat = up + c.slew, 1.0
+    elif up - u > c.slew:
+        u, sat = up - c.slew, -1.0
+    fb = c.p.kp_V_per_m * e + integ + d
+    if sat * d_i > 0.0:
+        integ -= d_i
+        fb -= d_i
+    st[T._I], st[T._E], st[T._D], st[T._U], st[T._R], st[T._FF] = integ, e, d, u, r, ff
+    st[T._XP], st[T._FB], st[T._HELD] = x, fb, 0.0
+    return u
+
+
+def _wave(st, cf, tw, dt):
+    kind, amp = int(st[T._WAVE]), st[T._AMP]
+
+    def env(t, ramp, span):
+        if ramp > 0 and t < ramp:
+            return 0.5 - 0.5 * math.cos(math.pi * t / ramp), 0.5 * math.pi / ramp * math.sin(math.pi * t / ramp)
+        if ramp > 0 and span > 0 and span - t < ramp:
+            return (0.5 - 0.5 * math.cos(math.pi * (span - t) / ramp),
+                    -0.5 * math.pi / ramp * math.sin(math.pi * (span - t) / ramp))
+        return 1.0, 0.0
+    if kind == T.WAVE_SINE:
+        span = st[T._SPAN]
+        if span > 0 and tw >= span:
+            return 0.0, 0.0, True
+        om = 2 * math.pi * st[T._F0]
+        e, de = env(tw, 1.0 / st[T._F0], span)
+        return amp * e * math.sin(om * tw), amp * (de * math.sin(om * tw) + e * om * math.cos(om * tw)), False
+    if kind == T.WAVE_CHIRP:
+        f0, f1, span = st[T._F0], st[T._F1], st[T._SPAN]
+        t = min(tw, span)
+        ph = 2 * math.pi * (f0 * t + 0.5 * (f1 - f0) / span * t * t)
+        e, de = env(t, min(1.0 / f0, 0.1 * span), 0.0)
+        if tw >= span:
+            return amp * math.sin(ph), 0.0, True
+        dph = 2 * math.pi * (f0 + (f1 - f0) * t / span)
+        return amp * e * math.sin(ph), amp * (de * math.sin(ph) + e * dph * math.cos(ph)), False
+    n = int(st[T._SPAN])
+    tab = cf[len(T.COEFFICIENTS):]
+    xk = tw / dt
+    k = int(xk + 1e-6)
+    if k >= n - 1:
+        return tab[n - 1] - tab[0], 0.0, True
+    return tab[k] + (xk - k) * (tab[k + 1] - tab[k]) - tab[0], (tab[k + 1] - tab[k]) / dt, False

@@ -48,7 +48,8 @@ def test_json_schema_and_clean_run(hil_run):
         n = f["time_s"].shape[0] if "time_s" in f else None
         assert n is None or n == res["iterations"]
         on, floor = f["feedforward_on"][()], f["floor_accel_mps2"][()]
-    assert 0 < on.mean() < 0.5 and on[-1] == 1.0          # the last third, switched on live
+    # the last third, switched on live; the run ends through one INACTIVE period (valves null, feedforward off)
+    assert 0 < on.mean() < 0.5 and on[-2] == 1.0 and on[-1] == 0.0
     assert floor.shape[1] == 4 and 1e-3 < floor.std() < 1.0  # the floor accelerometers came over Modbus
 
 

@@ -137,3 +137,36 @@ class RefCommandLimiter:
         else:
             self.sat_run = 0
         return None
+
+
+class RefOscillation:
+    """Limit cycle in the valve command: per checked mount, a swing is the command passing from beyond
+    +level to beyond -level or back; `swings` swings within `window_ns` are a cycle (a fault naming the
+    mount). The first excursion beyond the level is not a swing."""
+
+    def __init__(self, level_V: float, window_ns: float, swings: int, checked) -> None:
+        self.level, self.window, self.swings = level_V, window_ns, swings
+        self.checked = list(checked)
+        self.reset()
+
+    def reset(self) -> None:
+        n = len(self.checked)
+        self.side = [0] * n
+        self.times = [[] for _ in range(n)]         # the swing times of each mount, newest last
+
+    def check(self, cmd, t_ns) -> int | None:
+        """None, or the index of the mount that cycles."""
+        for i, u in enumerate(cmd):
+            if not self.checked[i]:
+                continue
+            side = 1 if u >= self.level else -1 if u <= -self.level else 0
+            if side == 0 or side == self.side[i]:
+                continue
+            first = self.side[i] == 0
+            self.side[i] = side
+            if first:
+                continue
+            self.times[i].append(t_ns)
+            if len(self.times[i]) > self.swings and t_ns - self.times[i][-1 - self.swings] <= self.window:
+                return i
+        return None

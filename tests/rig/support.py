@@ -4,10 +4,15 @@ TinyPlant: per mount a valve-driven first-order actuator (stroke lag to the valv
 like Table 1's DC gain, 7.43 Hz corner) with a load offset (stroke off-centre at null) under a sinusoidal
 floor; accel = machine acceleration.
 CentringP: proportional stroke centring (a compiled controller kind of the loop's kernel).
+Command: a `rig` command as a background process, its stderr followed line by line.
 """
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import threading
+import time
 
 from controllers.tracking import PIDParams, TrackingPID
 
@@ -41,3 +46,46 @@ def CentringP(kp_V_per_m: float = 2e4, dt: float = 2e-4) -> TrackingPID:
     """Proportional stroke centring, valve = -kp * stroke: the tracking PID (a kernel controller kind) with
     reference 0, no integral, no derivative and no limits of its own (the loop's limiter does the limiting)."""
     return TrackingPID(PIDParams(kp_V_per_m, 0.0, 0.0, 1000.0, math.inf, math.inf), dt)
+
+
+class Command:
+    """A `rig` command in the background (a real process), its stderr collected line by line; waits for a
+    line."""
+
+    def __init__(self, *args, env=None):
+        self.proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, env=env)
+        self.lines: list[str] = []
+        self._closed = False
+        self._seen = threading.Condition()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self):
+        for line in self.proc.stderr:
+            with self._seen:
+                self.lines.append(line)
+                self._seen.notify_all()
+        with self._seen:
+            self._closed = True
+            self._seen.notify_all()
+
+    def wait_for(self, text: str, timeout=120.0) -> bool:
+        """True once a line containing `text` came; False after timeout s or when stderr closed without it."""
+        end = time.monotonic() + timeout
+        with self._seen:
+            while not any(text in ln for ln in self.lines):
+                if self._closed or time.monotonic() > end:
+                    return False
+                self._seen.wait(0.2)
+        return True
+
+    def finish(self, timeout=120) -> int:
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+
+    @property
+    def text(self) -> str:
+        return "".join(self.lines)

@@ -126,10 +126,18 @@ def test_model(capsys, case):
     _check(capsys, *case)
 
 
+# fault rehearsal specs: valid ones for the sim backend (acting within the short runs drawn), a hil-only kind,
+# and malformed ones (the bad values drawn beside them too)
+INJECTIONS = ["nan:front_left:accel@0.02", "stuck:1:stroke@0", "device:3:-@0.01", "drop:rear_right:stroke@0.04",
+              "recorder:*:-@0.02", "overrun:*:-@0.01", "silence:*:accel@0.01", "nan:front_left:accel",
+              "nan:9:accel@0.1", "frob:*:-@1", "nan:front_left:accel@-1", "nan:front_left:accel@nan"]
+
+
 @_settings(100)
 @given(argv_for("run", ["--sim-time", "--no-realtime", "--quiet"],
                 {"--seconds": ["0.05", "0.1", "0.5"], "--settle": ["0", "0.02", "0.05", "0.5"], "--isolation": ["on", "off"],
-                 "--policy": ["skip", "catch_up"]}, {"--record": FILE_KINDS}, ["--overwrite"]))
+                 "--policy": ["skip", "catch_up"], "--inject": INJECTIONS}, {"--record": FILE_KINDS},
+                ["--overwrite", "--force"]))
 def test_run(capsys, case):
     ws, argv = case
     if "--seconds" not in argv:
@@ -226,6 +234,22 @@ def test_report(capsys, case):
 @given(argv_for("design", [], {}, {"--out": ["old", "folder"]}, ["--json"]))
 def test_design_outputs(capsys, case):
     assert _check(capsys, *case) == 2        # an existing file or a folder with files: refused before analysis
+
+
+def _matches_a_drill_case(word: str) -> bool:
+    from rig.commands.drill import HIL_CASES, SIM_CASES
+    return bool(word.strip()) and any(word.lower() in c.name.lower() for c in SIM_CASES + HIL_CASES)
+
+
+@_settings(60)
+@given(st.lists(st.one_of(st.sampled_from(BAD), st.text(max_size=8)).filter(lambda w: not _matches_a_drill_case(w)),
+                min_size=1, max_size=3),
+       st.sampled_from(["sim", "hil", "both", "frob", ""]), st.booleans())
+def test_drill_refuses_words_of_no_case(capsys, words, backend, as_json):
+    """`rig drill --only` with words of no case (or an empty one, which would match every case) is refused
+    before any case runs: never a drill nobody asked for."""
+    argv = ["drill", "--no-realtime", "--backend", backend, *(["--json"] if as_json else []), "--only", *words]
+    assert _check(capsys, Workspace(), argv) == 2
 
 
 @pytest.mark.parametrize("argv", [[], ["--help"], ["frob"], ["run", "--frob"], ["bench"], ["bench", "frob"]])

@@ -114,7 +114,7 @@ def _numeric_fields():
     for sec, cls in SECTIONS.items():
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
-            if hints[f.name] in (bool, str):
+            if hints[f.name] in (bool, str, tuple[str, ...]):        # flags, names, lists of names
                 continue
             yield sec, f, hints[f.name]
 

@@ -17,7 +17,7 @@ from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from rig.clock import SimClock
 from rig.config import MOUNTS, Config, config_from_dict
-from rig.errors import ConfigError
+from rig.errors import ConfigError, RigError
 from rig.kernel import MODE_ACTIVE, PeriodKernel
 from rig.lifecycle import State
 from rig.port import Measurements
@@ -105,18 +105,18 @@ def test_a_bad_floor_accelerometer_faults_naming_it():
 def test_modes_switch_through_the_gate_without_a_jump_and_are_recorded(tmp_path):
     """off -> feedback -> feedback_feedforward -> feedback -> off, requested from the gate: the feedforward's
     command fades in and out (no step larger than the fade allows), the recording has the switch, the floor
-    input, the feedforward's part and the mode events."""
+    input, the feedforward's part and the isolation mode events."""
     path = tmp_path / "modes.h5"
     with Session(FLOOR, "sim", clock=SimClock(), isolation=False, record=path) as s:
         lp = s.loop
         lp.activate()
         p = 0
         for mode in ("off", "feedback", "feedback_feedforward", "feedback", "off"):
-            s.request_mode(mode)
+            s.request_isolation_mode(mode)
             for _ in range(2500):
                 lp.cycle(p * lp.period_ns)
                 p += 1
-            assert lp.mode == mode and s.snapshot()["mode"] == mode
+            assert lp.isolation_mode == mode and s.snapshot()["isolation_mode"] == mode
     r = read_recording(path)
     on, ff = r["feedforward_on"], r["ff_cmd_V"]
     assert on[:5000].max() == 0 and on[5000:7500].min() == 1 and on[7500:].max() == 0
@@ -129,8 +129,9 @@ def test_modes_switch_through_the_gate_without_a_jump_and_are_recorded(tmp_path)
     assert np.abs(ff[-1]).max() < 1e-4 * steady                              # e^-10 after 10 fade_s
     assert np.abs(r["floor_accel_mps2"]).max() > 1e-3
     events = [text for _, text in r["events"]]
-    assert [e for e in events if e.startswith("mode")] == ["mode feedback", "mode feedback_feedforward",
-                                                          "mode feedback", "mode off"]
+    assert [e for e in events if e.startswith("isolation mode")] == [
+        "isolation mode feedback", "isolation mode feedback_feedforward", "isolation mode feedback",
+        "isolation mode off"]
 
 
 def test_feedforward_needs_floor_accelerometers():
@@ -139,9 +140,29 @@ def test_feedforward_needs_floor_accelerometers():
     with Session(Config(), "sim", clock=SimClock()) as s:
         assert "floor_accel_mps2" not in s.loop.kernel.layout          # the loop as without the feedforward
         with pytest.raises(ValueError, match="no floor feedforward"):
-            s.request_mode("feedback_feedforward")
+            s.request_isolation_mode("feedback_feedforward")
         with pytest.raises(ValueError, match="expected one of off, feedback, feedback_feedforward"):
-            s.request_mode("on")
+            s.request_isolation_mode("on")
+
+
+def test_isolation_mode_and_operating_modes_are_separate_requests():
+    """The machine's isolation mode (request_isolation_mode, control words feedback / feedback_feedforward) and
+    a stand's operating modes (request_mode): each refused where it does not apply, neither taken for the other."""
+    with Session(FLOOR, "sim", clock=SimClock(), isolation=False) as s:
+        lp = s.loop
+        lp.activate()
+        assert s.control("feedback_feedforward", "test")
+        lp.cycle(0)
+        assert lp.isolation_mode == "feedback_feedforward" and lp.kernel.feedforward_enabled()
+        with pytest.raises(RigError, match="no operating modes"):
+            s.request_mode("hold")
+        assert not s.control("hold 5um", "test")                    # refused, in one line
+    stand = config_from_dict({"layout": {"plant": "stand"}})
+    with Session(stand, "sim", clock=SimClock()) as s:
+        assert s.loop.kernel.nf == 0
+        with pytest.raises(ValueError, match="no floor feedforward"):
+            s.request_isolation_mode("feedback_feedforward")
+        assert not s.control("feedback_feedforward", "test")        # a stand reads it as a mode request: refused
 
 
 def test_sensors_config_errors_are_one_line():

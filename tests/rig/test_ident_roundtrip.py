@@ -156,3 +156,21 @@ def test_constant_command_is_refused(tmp_path):
     rec = Recording.from_signals(np.zeros(n), np.zeros(n), fs_hz=1000.0, source="flat")
     with pytest.raises(RecordingError, match="flat: the valve command is constant"):
         identify(rec, DESIGN)
+
+
+def test_a_closed_loop_run_recording_is_refused_and_a_chirp_is_not(tmp_path, capsys):
+    """Issue 17: `rig identify` on a `rig run` recording (the valve command computed from the measured stroke and
+    accel) returned confident parameters without a word. Refused in one line naming the file and why; a
+    `rig chirp` recording of the same rig is identified."""
+    from rig.cli import main
+    run = tmp_path / "run.h5"
+    assert main(["run", "--sim-time", "--seconds", "1", "--quiet", "--record", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(run) in err[0] and "closed-loop recording (recorded by rig run" in err[0], err
+    chirp = tmp_path / "chirp.h5"
+    assert main(["chirp", "--duration", "3", "--f1", "20", "--out", str(chirp)]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(chirp), "--json", "--starts", "1", "--no-refine"]) == 0
+    assert set(json.loads(capsys.readouterr().out)["parameters"]) >= {"K_L", "K_Q", "K_C"}

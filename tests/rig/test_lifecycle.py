@@ -74,8 +74,9 @@ def test_activation_ramps_and_centres_without_jump():
     # activation after 10 periods; from then on each write moves at most one slew step from the last
     step = cfg.safety.slew_V_per_s * DT
     cmds = [u for _, u in port.log]
-    assert len(cmds) == 21 and cmds[-1] == [0.0] * 4    # 20 periods, then the stop writes null
-    cmds = cmds[:20]
+    # 20 periods, the last the stop's: null written by the deactivation at its start and by the INACTIVE period
+    assert len(cmds) == 21 and cmds[-1] == cmds[-2] == [0.0] * 4
+    cmds = cmds[:19]
     assert cmds[9] == [0.0] * 4 and any(abs(v) > 0 for v in cmds[12])
     for a, b in zip(cmds[9:], cmds[10:]):
         assert max(abs(x - y) for x, y in zip(a, b)) <= step + 1e-12

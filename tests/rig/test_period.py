@@ -217,5 +217,6 @@ def test_kernel_writes_the_ring_after_a_first_period_recorded_by_the_loop(tmp_pa
     assert loop.tap._ring is not None                  # the ring is bound for the kernel
     rec.close()
     r = read_recording(path)
-    assert len(r["time_s"]) == 505 and r["fault"][:5].tolist() == [1.0] * 5 and r["lifecycle_state"][-1] == 2
+    assert len(r["time_s"]) == 505 and r["fault"][:5].tolist() == [1.0] * 5 and r["lifecycle_state"][-2] == 2
+    assert r["lifecycle_state"][-1] == 1 and np.all(r["valve_cmd_V"][-1] == 0.0)     # the stop period
     assert len(copies) == 500

@@ -29,7 +29,7 @@ def three_modes(tmp_path_factory):
         lp.activate()
         p = 0
         for mode in report.MODES:
-            s.request_mode(mode)
+            s.request_isolation_mode(mode)
             for _ in range(17500):
                 lp.cycle(p * lp.period_ns)
                 p += 1

@@ -377,6 +377,7 @@
     command("record_start", {path: p});
   });
   $("rec-stop").addEventListener("click", () => command("record_stop"));
+  $("mode-set").addEventListener("click", () => command("mode", {request: $("mode-text").value.trim()}));
   $("chirp-run").addEventListener("click", () => command("chirp", {
     amplitude_V: +$("chirp-amp").value, f0_hz: +$("chirp-f0").value, f1_hz: +$("chirp-f1").value,
     duration_s: +$("chirp-dur").value, mount: $("chirp-mount").value || "front_left"}));

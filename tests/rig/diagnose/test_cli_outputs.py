@@ -78,9 +78,10 @@ def test_fit_csv_every_instant(delayed):
     rec = load_recording(delayed["path"])
     with open(delayed["out"] / "fit.csv", newline="") as fh:
         rows = list(csv.reader(fh))
-    assert rows[0] == ["time_s", "measured_m", "nominal_m", "refit_m", "augmented_m"]
+    assert rows[0] == ["time_s", "measured_m", "nominal_m", "refit_m", "augmented_m", "augmented_sensor_m", "used"]
     data = np.array(rows[1:], dtype=float)
-    assert data.shape == (rec.n, 5)
+    assert data.shape == (rec.n, 7)
+    assert set(np.unique(data[:, 6])) <= {0.0, 1.0} and data[:, 6].mean() > 0.99
     np.testing.assert_allclose(data[:, 0], rec.t_s, atol=1e-9)
     np.testing.assert_allclose(data[:, 1], rec.position_m, rtol=1e-8, atol=1e-15)
     # the augmented column explains the measurement to the noise (2e-8 m rms), the nominal one does not
@@ -114,3 +115,33 @@ def test_bad_recording_one_line_nonzero(tmp_path, content, expected):
     assert len(lines) == 1 and str(path) in lines[0] and expected in lines[0], res.stderr
     assert "Traceback" not in res.stderr and res.stdout == ""
     assert not (out / "diagnosis.json").exists()
+
+
+def _csv(path, t, u, y):
+    np.savetxt(path, np.c_[t, u, y, 0 * t], delimiter=",", header="time_s,valve_cmd_V,position_m,accel_mps2",
+               comments="")
+    return path
+
+
+def test_a_recording_diagnosis_cannot_use_is_one_line_not_a_traceback(tmp_path):
+    """Issue 17: a recording with 1e300 values ended in a traceback."""
+    fs = 1000.0
+    t = np.arange(int(fs * 10)) / fs
+    path = _csv(tmp_path / "bad.csv", t, 1e300 * np.sin(2 * np.pi * 5 * t), 1e-6 * np.sin(2 * np.pi * 5 * t - 0.3))
+    res = _rig("diagnose", path, "--out", tmp_path / "out")
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    errs = [ln for ln in res.stderr.splitlines() if ": error: " in ln]
+    assert len(errs) == 1 and str(path) in errs[0] and "not a plausible value (expected |valve_cmd_V| < 10000)" in errs[0], res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_one_second_of_a_sine_gets_no_claim_not_a_traceback(tmp_path):
+    """Issue 17's 1 s of a 5 Hz sine: issue 12 asks for an answer, not an error: too short and too poorly excited
+    for a claim, nothing named."""
+    fs = 1000.0
+    t = np.arange(int(fs * 1)) / fs
+    path = _csv(tmp_path / "sine.csv", t, np.sin(2 * np.pi * 5 * t), 1e-6 * np.sin(2 * np.pi * 5 * t - 0.3))
+    res = _rig("diagnose", path, "--out", tmp_path / "out", "--json")
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["verdict"]["status"] == "no_claim" and doc["effects"] == [], doc["verdict"]

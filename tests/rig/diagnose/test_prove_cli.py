@@ -37,7 +37,7 @@ def test_prove_small_blind_set(tmp_path):
     assert s["cases"] == 3 and s["right"] == sum(r["right"] for r in rows) and s["clean_cases"] == 1
     assert sum(sum(v.values()) for v in doc["confusion"].values()) >= 3
     assert (out / "proof.md").is_file() and json.loads((out / "proof.json").read_text())["score"] == s
-    assert "| case | truth | named |" in (out / "proof.md").read_text()
+    assert "| case | habits | truth | named |" in (out / "proof.md").read_text()
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +60,8 @@ def test_prove_grades_folder(folder, tmp_path):
     res = _rig("prove", "--cases", folder, "--workers", 1, "--out", tmp_path / "o")
     assert res.returncode == 0, res.stderr
     text = res.stdout
-    assert "| q01_nominal.csv.gz | none | none | yes |" in text
-    assert "| q02_delay.csv | transport_delay | transport_delay | yes | delay.delay" in text
+    assert "| q01_nominal.csv.gz | - | none | none | yes |" in text
+    assert "| q02_delay.csv | - | transport_delay | transport_delay | yes | delay.delay" in text
     assert "confusion matrix" in text and "score: 2/2 named right" in text
     doc = json.loads((tmp_path / "o" / "proof.json").read_text())
     err = doc["rows"][1]["parameter_errors"]["transport_delay.delay_s"]

@@ -1,0 +1,188 @@
+"""Recordings of operated runs (the stand layout's modes): the mode, reference and tracking error channels,
+read back per segment, with the figures an operator asks for and the plot of reference, position and error.
+
+A segment starts at each mode request the run recorded (events `<mount>: mode ...`) and at activation; its
+figures skip the first `settle_s` (the move to the reference's offset, a waveform's fade-in) and say:
+  every mode     peak valve command, share of periods the limiter acted, rms of the load's acceleration,
+                 and the load's motion in 1-100 Hz from it (the accelerometer on the moving part, its spectrum
+                 divided by (2 pi f)^4: compare isolate with hold under the same floor)
+  track / hold   rms and max tracking error, the reference's amplitude (half its peak-to-peak) and the rms
+                 error in % of it
+  isolate / off  rms of the transducer (isolating: the stroke the loop moved against the floor)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.signal
+
+from rig.errors import RecordingError
+
+LOAD_BAND_HZ = (1.0, 100.0)
+
+MODE_NAMES = ("off", "hold", "track", "isolate")
+
+
+@dataclass
+class OperatedRun:
+    """One mount of an operated recording (arrays per period) and the run's events."""
+    source: str
+    mount: str
+    t_s: np.ndarray
+    mode: np.ndarray
+    reference_m: np.ndarray
+    error_m: np.ndarray
+    position_m: np.ndarray
+    accel_mps2: np.ndarray
+    valve_cmd_V: np.ndarray
+    limited: np.ndarray
+    active: np.ndarray
+    events: list = field(default_factory=list)      # (t_s, text)
+
+
+def load_operated(path, mount: int | str = 0) -> OperatedRun:
+    """Read an operated run (rig run on the stand layout) from its HDF5 recording; RecordingError (one line)
+    when the file is not one."""
+    import h5py
+    p = Path(path)
+    try:
+        with h5py.File(p, "r") as f:
+            if "mode" not in f or "tracking_error_m" not in f:
+                raise RecordingError(f"{p}: not an operated run (no mode / tracking_error_m datasets: record a "
+                                     f"run on the stand layout)")
+            labels = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(f["mode"].attrs.get(
+                "labels", ["mount0"]))]
+            m = labels.index(mount) if isinstance(mount, str) and mount in labels else mount
+            if not isinstance(m, int) or not 0 <= m < len(labels):
+                raise RecordingError(f"{p}: mount {mount!r} not recorded (have {', '.join(labels)})")
+
+            def col(name):
+                a = np.asarray(f[name][()], dtype=float)
+                return a[:, m] if a.ndim == 2 else a
+            n = min(len(f[k]) for k in ("time_s", "mode", "stroke_m", "valve_cmd_V"))
+            ev = []
+            if "events" in f:
+                ev = [(float(t), x.decode() if isinstance(x, bytes) else str(x))
+                      for t, x in zip(f["events/time_s"][()], f["events/text"][()])]
+            run = OperatedRun(str(p), labels[m], col("time_s")[:n], col("mode")[:n], col("reference_m")[:n],
+                              col("tracking_error_m")[:n], col("stroke_m")[:n], col("accel_mps2")[:n],
+                              col("valve_cmd_V")[:n], col("cmd_limited")[:n], col("lifecycle_state")[:n] == 2, ev)
+    except RecordingError:
+        raise
+    except (OSError, KeyError, ValueError) as e:
+        raise RecordingError(f"{p}: not a readable operated run ({type(e).__name__}: {e})"[:300]) from None
+    return run
+
+
+def segments(run: OperatedRun) -> list[tuple[float, float, str]]:
+    """(start s, end s, what) for each stretch between this mount's mode requests while ACTIVE."""
+    act = np.flatnonzero(run.active)
+    if not len(act):
+        return []
+    t0, t1 = float(run.t_s[act[0]]), float(run.t_s[act[-1]])
+    marks = [(t0, _mode_at(run, t0))]
+    for t, text in run.events:
+        if text.startswith(f"{run.mount}: mode ") and t0 < t < t1:
+            marks.append((t, text.split(": mode ", 1)[1]))
+    ends = [t for t, _ in marks[1:]] + [t1]
+    return [(a, b, w) for (a, w), b in zip(marks, ends) if b > a]
+
+
+def _mode_at(run: OperatedRun, t: float) -> str:
+    k = min(int(np.searchsorted(run.t_s, t)), len(run.t_s) - 1)
+    return MODE_NAMES[int(run.mode[k])] if math.isfinite(run.mode[k]) else "?"
+
+
+def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
+    """The figures of each segment (module docstring), skipping its first settle_s."""
+    out = []
+    for a, b, what in segments(run):
+        skip = min(settle_s, 0.5 * (b - a))
+        sel = (run.t_s >= a + skip) & (run.t_s < b) & run.active
+        mode = _mode_at(run, a + 1e-9 + skip)
+        d = {"from_s": round(a, 4), "to_s": round(b, 4), "request": what, "mode": mode, "periods": int(sel.sum())}
+        if sel.sum() < 2:
+            out.append(d)
+            continue
+        u = run.valve_cmd_V[sel]
+        d["peak_command_V"] = float(np.max(np.abs(u)))
+        d["accel_rms_mps2"] = float(np.std(run.accel_mps2[sel]))
+        d["load_motion_um"] = load_motion_m(run.accel_mps2[sel], 1.0 / float(np.median(np.diff(run.t_s)))) * 1e6
+        d["limited_pct"] = float(100 * np.mean(run.limited[sel] > 0))
+        if mode in ("hold", "track"):
+            e = run.error_m[sel]
+            r = run.reference_m[sel]
+            amp = 0.5 * float(np.max(r) - np.min(r))
+            rms = float(np.sqrt(np.mean(e ** 2)))
+            d.update(rms_error_um=rms * 1e6, max_error_um=float(np.max(np.abs(e))) * 1e6,
+                     reference_amplitude_um=amp * 1e6,
+                     rms_error_pct=100 * rms / amp if amp > 1e-9 else None)
+        else:
+            d.update(position_rms_um=float(np.std(run.position_m[sel])) * 1e6)
+        out.append(d)
+    return out
+
+
+def load_motion_m(accel_mps2, fs_hz: float, band_hz=LOAD_BAND_HZ) -> float:
+    """The load's displacement rms in band_hz from its absolute acceleration: Welch spectrum / (2 pi f)^4."""
+    a = np.asarray(accel_mps2, dtype=float)
+    f, p = scipy.signal.welch(a - a.mean(), fs=fs_hz, nperseg=min(len(a), int(2 * fs_hz)))
+    sel = (f >= band_hz[0]) & (f <= band_hz[1])
+    return math.sqrt(float(np.trapezoid(p[sel] / (2 * np.pi * f[sel]) ** 4, f[sel]))) if sel.sum() > 1 else math.nan
+
+
+def figures_text(figs: list[dict]) -> str:
+    """One line per segment."""
+    lines = []
+    for d in figs:
+        head = f"{d['from_s']:7.2f}-{d['to_s']:7.2f} s  {d['request']:<36s}"
+        if "rms_error_um" in d:
+            pct = f" ({d['rms_error_pct']:.2f} % of {d['reference_amplitude_um']:.2f} um)" \
+                if d.get("rms_error_pct") is not None else ""
+            lines.append(f"{head} tracking error rms {d['rms_error_um']:.4f} um{pct}, max {d['max_error_um']:.3f} um, "
+                         f"command peak {d['peak_command_V']:.2f} V, limited {d['limited_pct']:.1f} %, load "
+                         f"{d['load_motion_um']:.3f} um rms in 1-100 Hz")
+        elif "position_rms_um" in d:
+            lines.append(f"{head} load {d['load_motion_um']:.3f} um rms in 1-100 Hz (from the accelerometer), "
+                         f"transducer rms {d['position_rms_um']:.3f} um, command peak {d['peak_command_V']:.2f} V")
+        else:
+            lines.append(f"{head} (too short)")
+    return "\n".join(lines)
+
+
+def plot(run: OperatedRun, png, figs: list[dict] | None = None) -> Path:
+    """Reference and position, the tracking error and the valve command over the run, the segments marked,
+    the error figures in the title lines."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    figs = figures(run) if figs is None else figs
+    t = run.t_s
+    fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(10, 8), sharex=True, gridspec_kw={"height_ratios": [3, 2, 1.5]})
+    a1.plot(t, run.position_m * 1e6, color="tab:blue", lw=0.8, label="position (transducer)")
+    a1.plot(t, run.reference_m * 1e6, color="tab:orange", lw=1.0, ls="--", label="reference")
+    a1.set_ylabel("position [um]")
+    a1.legend(loc="upper right", fontsize=8)
+    a2.plot(t, run.error_m * 1e6, color="tab:red", lw=0.8)
+    a2.set_ylabel("tracking error [um]")
+    a3.plot(t, run.valve_cmd_V, color="0.3", lw=0.6)
+    a3.set_ylabel("valve [V]")
+    a3.set_xlabel("time [s]")
+    for i, d in enumerate(figs):
+        for a in (a1, a2, a3):
+            a.axvline(d["from_s"], color="0.6", lw=0.6, ls=":")
+        # two rows of labels: a short segment's label does not run into the next one's
+        a1.text(d["from_s"], 1.0 + 0.05 * (i % 2), f" {d['request']}", transform=a1.get_xaxis_transform(),
+                fontsize=7, va="bottom", rotation=0)
+    lines = [f"{d['request']}: rms error {d['rms_error_um']:.3f} um = {d['rms_error_pct']:.2f} %"
+             for d in figs if d.get("rms_error_pct") is not None]
+    fig.suptitle("\n".join([f"{Path(run.source).name} ({run.mount})"] + lines[:3]), fontsize=9)
+    for a in (a1, a2, a3):
+        a.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return Path(png)
