@@ -34,6 +34,7 @@ test: install browser
 bench: install
 	$(BIN)/rig bench sim --seconds 100 --rate 5000
 	$(BIN)/rig bench loop --rate 5000 --seconds 10
+	$(BIN)/rig bench loop --feedforward --rate 5000 --seconds 5 --rounds 4
 
 bench-console: install browser
 	$(BIN)/rig bench loop --console --rate 5000

@@ -606,6 +606,39 @@ def floor_psd(floor, f_hz: np.ndarray) -> np.ndarray:
     return (floor.rms_m / floor.gain) ** 2 * np.abs(h) ** 2 / (0.5 * fs)
 
 
+def floor_response_psd(S: np.ndarray, rho: float, tr: np.ndarray) -> np.ndarray:
+    """PSD of one output under the floor motion of FloorMotion (PSD S at every mount, a part rho of it common
+    to all four): tr (nf, 4) the output's responses to the ground at each mount."""
+    return S * (rho * np.abs(tr.sum(1)) ** 2 + (1 - rho) * np.sum(np.abs(tr) ** 2, 1))
+
+
+def worst_model_error(cfg, dt: float, ctrls, ffs, *, tol: float = 0.1, band_hz=(1.0, 100.0), n_f: int = 120,
+                      delay: int = 1, log=None) -> tuple[dict, float]:
+    """The corner of the six actuator parameters (K_L, C, w_nv, zeta, K_Q, K_C, each moved by +-tol) where the
+    linear prediction of `rig demo`'s figure is lowest: the table's rms in band_hz from the floor motion, all
+    four loops and the feedforward closed (designed on cfg), over the plant with those parameters.
+    (factors by key, the predicted reduction in dB there)."""
+    import itertools
+    from sim_backend.rig_plant import FloorMotion
+    f = np.geomspace(band_hz[0], band_hz[1], n_f)
+    floor = FloorMotion.from_config(cfg, dt)
+    S, rho, o = floor_psd(floor, f), floor.rho, I_TABLE + 1
+    keys = list(ACTUATOR_KEYS)
+    base = {k: getattr(cfg.actuator if ACTUATOR_KEYS[k] == "actuator" else cfg.valve, k) for k in keys}
+    worst, worst_db = None, math.inf
+    for n, fac in enumerate(itertools.product((1 - tol, 1 + tol), repeat=len(keys))):
+        rig = DiscreteRig(with_actuator(cfg, **{k: base[k] * x for k, x in zip(keys, fac)}), dt, f)
+        mm = mimo(rig, ctrls, delay, ffs=ffs, check_stability=False)
+        ratio = (np.trapezoid(floor_response_psd(S, rho, rig.Gg[:, o, :]), f)
+                 / np.trapezoid(floor_response_psd(S, rho, mm["tr_controlled"][:, o, :]), f))
+        db = 10 * math.log10(ratio)
+        if db < worst_db:
+            worst, worst_db = dict(zip(keys, (float(x) for x in fac))), db
+        if log and (n + 1) % 16 == 0:
+            log(f"model error: {n + 1}/{2 ** len(keys)} corners")
+    return worst, worst_db
+
+
 def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None = None, *,
                         accel_noise_density: float | None = None, stroke_noise_m: float | None = None,
                         floor_accel_noise_density: float | None = None, delay: int = 1) -> dict:
@@ -628,7 +661,7 @@ def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None
     sx = 2e-8 if stroke_noise_m is None else stroke_noise_m
 
     def from_floor(tr):                                              # tr: (nf, 4 ground inputs)
-        return S * (rho * np.abs(tr.sum(1)) ** 2 + (1 - rho) * np.sum(np.abs(tr) ** 2, 1))
+        return floor_response_psd(S, rho, tr)
     out = {"f_hz": f, "passive": from_floor(rig.Gg[:, o, :])}
     if ctrls is None and ffs is None:
         return out

@@ -6,8 +6,8 @@ bilinear (Tustin) map prewarped at one frequency: Tustin keeps a stable factor s
 j-axis onto the unit circle without aliasing, and prewarping makes the discrete response exact at the
 frequency that matters most (the loop's crossover). python-control does the mapping (`sample_system`).
 
-The same coefficients are run by the compiled laws (controllers/isolation.py) and evaluated by `sos_frf`
-(analysis).
+The same coefficients are run by the compiled laws (controllers/isolation.py, feedforward.py: `sections_step`)
+and evaluated by `sos_frf` (analysis).
 """
 from __future__ import annotations
 
@@ -70,21 +70,21 @@ def sos_tf(sections, dt: float):
     return g
 
 
-@numba.njit(cache=True)
-def sos_step_array(coef: np.ndarray, state: np.ndarray, i0: int, x: float) -> float:
-    """One sample through the cascade: coef (n, 5) rows (b0, b1, b2, a1, a2), state[i0 : i0 + 2 n] updated in
-    place (transposed direct form II).
+@numba.njit(cache=True, inline="always")
+def sections_step(st, cf, i, c, count, x):
+    """One sample x through `count` sections in series (transposed direct form II): their states from st[i]
+    (two each), their coefficients (b0, b1, b2, a1, a2) from cf[c]; returns (output, next i, next c).
 
-    Compiled (numba), so a compiled period can call it, and so can any function of plain arrays that numba
-    compiles (controllers.feedforward.feedforward_step); Python calls it through the same dispatcher."""
-    i = i0
-    for k in range(coef.shape[0]):
-        y = coef[k, 0] * x + state[i]
-        state[i] = coef[k, 1] * x - coef[k, 3] * y + state[i + 1]
-        state[i + 1] = coef[k, 2] * x - coef[k, 4] * y
-        x = y
+    The one cascade step of the compiled laws (controllers/isolation.py, feedforward.py) on flat float arrays:
+    inlined into the law, over the law's own state and coefficient arrays (views cost more than the sums)."""
+    for _ in range(count):
+        yk = cf[c] * x + st[i]
+        st[i] = cf[c + 1] * x - cf[c + 3] * yk + st[i + 1]
+        st[i + 1] = cf[c + 2] * x - cf[c + 4] * yk
+        x = yk
         i += 2
-    return x
+        c += 5
+    return x, i, c
 
 
 def section_dc(sec: Section) -> float:

@@ -31,17 +31,19 @@ phase error phi (2 sin(phi/2) for phi alone), so a 10 % gain error alone limits 
 that is why `rig design --identified DIR` designs it on the identified actuator rather than Table 1.
 
 The law takes the actuator figures it needs as parameters (FeedforwardParams; from the config or from an
-identification), not the simulator. The step is a plain function of float arrays (feedforward_step) that numba
-can compile for a compiled period; FeedforwardFilter wraps it with the same interface as the controllers.
+identification), not the simulator. The step is a compiled function of float arrays (feedforward_step) that the
+runtime's period calls per mount (rig/kernel.py); FeedforwardFilter is its builder (coefficients, state,
+switching) with the same interface as the controllers.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
-from controllers.discrete import sos_frf, sos_step_array, tustin_section
+from controllers.discrete import sections_step, sos_frf, tustin_section
 from rig.config import MOUNTS
 
 # state after the sections: output gain (fades between 0 and 1 when switched), switch request
@@ -142,7 +144,7 @@ class FeedforwardFilter:
             ([k * w2 * c for c in first], [1.0, zl[2] * wlp, w2]),                       # actuator root / LP
         ] + [([w2], [1.0, z * wlp, w2]) for z in zl[3:]]                                # rest of the roll-off
         self.sections = tuple(tustin_section(n, d, dt, p.prewarp_hz) for n, d in self.continuous)
-        self.coef = np.array(self.sections, dtype=float)
+        self.coef = np.ravel(np.array(self.sections, dtype=float))      # (b0, b1, b2, a1, a2) per section
         self.fade = math.exp(-dt / p.fade_s)
         self._o = 2 * len(self.sections)
 
@@ -176,17 +178,21 @@ class FeedforwardFilter:
         return g
 
 
+@numba.njit(cache=True)
 def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_floor_mps2: float) -> float:
-    """One period: the sections on the floor acceleration, times the output gain, which moves towards the
-    switch request (0 or 1) with factor `fade` per period. Plain float arrays only (numba-compilable)."""
-    o = 2 * coef.shape[0]
-    y = sos_step_array(coef, state, 0, accel_floor_mps2)
+    """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain,
+    which moves towards the switch request (0 or 1) with factor `fade` per period. Compiled (numba): the runtime's
+    period (rig/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
+    n = coef.shape[0] // 5
+    o = 2 * n
+    y, _, _ = sections_step(state, coef, 0, 0, n, accel_floor_mps2)
     g = state[o + 1] + (state[o] - state[o + 1]) * fade
     state[o] = g
     return g * y
 
 
-def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None) -> list[FeedforwardFilter]:
-    """One filter per mount (rig.config.MOUNTS order)."""
+def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None,
+                             names: tuple[str, ...] | None = None) -> list[FeedforwardFilter]:
+    """One filter per mount (rig.config.MOUNTS order, or `names`)."""
     p = params or feedforward_params_from_config(cfg)
-    return [FeedforwardFilter(p, dt, name=m) for m in MOUNTS]
+    return [FeedforwardFilter(p, dt, name=m) for m in (names or MOUNTS)]

@@ -57,6 +57,7 @@ from dataclasses import dataclass, fields, replace
 import numba
 import numpy as np
 
+from controllers.discrete import sections_step as _sections
 from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
 from controllers.limits import clamp, slew
@@ -332,19 +333,6 @@ class IsolationController:
 
 
 # ---- the law (compiled; the one implementation) ---------------------------------------------------------
-@numba.njit(cache=True, inline="always")
-def _sections(st, cf, i, c, count, x):
-    """count biquads in series (transposed direct form II): states from st[i], coefficients from cf[c]."""
-    for _ in range(count):
-        yk = cf[c] * x + st[i]
-        st[i] = cf[c + 1] * x - cf[c + 3] * yk + st[i + 1]
-        st[i + 1] = cf[c + 2] * x - cf[c + 4] * yk
-        x = yk
-        i += 2
-        c += 5
-    return x, i, c
-
-
 @numba.njit(cache=True)
 def isolation_step(st, cf, a, s):
     """One mount, one period: acceleration a [m/s^2] and stroke s [m] -> valve command [V]. st: the named

@@ -4,8 +4,9 @@ criteria users judge isolation by (Ungar & Gordon; IEST-RP-CC012), and the class
 - Bands: base-10 one-third octaves (IEC 61260), exact centres 10^(n/10) Hz, edges centre x 10^(+-1/20),
   labelled by their nominal centres (1, 1.25, 1.6, 2, 2.5, 3.15, 4, 5, 6.3, 8, 10, ..., 80, 100 Hz).
 - Band rms velocity: the Welch PSD of the velocity (Hann window, linear detrend; a displacement record is
-  differentiated in the frequency domain, |V| = 2 pi f |X|) integrated over the frequency bins whose centre
-  falls in the band. Brick-wall bands, so a sine at a band's centre gives exactly its rms in that band.
+  differentiated in the frequency domain, |V| = 2 pi f |X|, an acceleration record integrated,
+  |V| = |A| / (2 pi f)) integrated over the frequency bins whose centre falls in the band. Brick-wall bands, so
+  a sine at a band's centre gives exactly its rms in that band.
 - Criteria (rms velocity per one-third octave band):
     ISO lines (ISO 2631-2 base curve for vertical vibration, times 1 / 2 / 4 / 8 for operating theatre /
     residential (day) / office / workshop): 100 um/s from 8 Hz up; below 8 Hz constant acceleration
@@ -59,11 +60,12 @@ def band_velocity_rms(x, fs_hz: float, *, kind: str = "displacement", f_lo_hz: f
                       f_hi_hz: float = 100.0, segment_s: float | None = None):
     """(nominal band centres Hz, rms velocity per band m/s) of a record x sampled at fs_hz.
 
-    kind: "displacement" (m) or "velocity" (m/s). segment_s: Welch segment length (default: the whole record,
-    which resolves the 1 Hz band best; it needs at least ~5 s for 1 Hz)."""
+    kind: "displacement" (m), "velocity" (m/s) or "acceleration" (m/s^2, e.g. an accelerometer's record).
+    segment_s: Welch segment length (default: the whole record, which resolves the 1 Hz band best; it needs
+    at least ~5 s for 1 Hz)."""
     import scipy.signal
-    if kind not in ("displacement", "velocity"):
-        raise ValueError(f"kind {kind!r}: expected displacement or velocity")
+    if kind not in ("displacement", "velocity", "acceleration"):
+        raise ValueError(f"kind {kind!r}: expected displacement, velocity or acceleration")
     x = np.asarray(x, dtype=float)
     if x.ndim != 1 or len(x) < 16:
         raise ValueError(f"expected a 1-D record of at least 16 samples, got shape {x.shape}")
@@ -71,6 +73,8 @@ def band_velocity_rms(x, fs_hz: float, *, kind: str = "displacement", f_lo_hz: f
     f, S = scipy.signal.welch(x, fs=fs_hz, window="hann", nperseg=nper, detrend="linear", scaling="density")
     if kind == "displacement":
         S = S * (2 * np.pi * f) ** 2
+    elif kind == "acceleration":
+        S = np.divide(S, (2 * np.pi * f) ** 2, out=np.zeros_like(S), where=f > 0)
     df = f[1] - f[0]
     nominal, _, lo, hi = third_octave_bands(f_lo_hz, f_hi_hz)
     rms = np.array([math.sqrt(float(np.sum(S[(f >= a) & (f < b)])) * df) for a, b in zip(lo, hi)])
@@ -115,7 +119,7 @@ def plot_vc(ax, report: dict, title: str = "", criteria=None):
         y = criterion_um_s(name, ff)
         ax.loglog(ff, y, color="0.6", lw=0.8, ls="--")
         ax.text(ff[-1], y[-1], " " + name, fontsize=7, color="0.4", va="center")
-    styles = ("k-o", "b-s", "g-^", "r-d", "m-v")
+    styles = ("k-o", "b-s", "g-^", "r-d", "m-v", "c-x", "y-*", "k:.")
     for (label, v), st in zip(curves.items(), styles):
         ax.loglog(fc, v, st, ms=3, lw=1.2, label=f"{label}: {report['vc_class'][label]}")
     ax.set_xlabel("one-third octave band centre [Hz]")

@@ -12,7 +12,8 @@ from drivers.port import DriverPort
 from rig.config import layout_mounts
 from rig.errors import ConfigError
 
-MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 of the I/O module (ch4-5 spare)
+MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 of the I/O module
+# AI ch0-3 = the mount accelerometers, layout order; ch4-7: the floor accelerometers, [sensors] floor_channels
 
 
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
@@ -22,7 +23,8 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     """The three drivers as one port for the layout's mounts (nothing is opened here; the hardware libraries
     load here). Mount i (rig.config.layout_mounts order): valve node valve_node_id_base + i, accelerometer AI
     ch i, transducer channel i + 1 (drivers/devicemaps/: the four-mount map in README.md, the prototype's
-    in prototype.md)."""
+    in prototype.md). With floor accelerometers ([sensors] floor_accel) the analog module also reads
+    [sensors] floor_channels, one per mount."""
     from drivers.canopen_valves import CanopenValves           # lazy: loads canopen and python-can
     from drivers.modbus_io import ModbusAnalogIO               # lazy: loads pymodbus
     from drivers.serial_dta import DisplacementAmplifier       # lazy: loads pyserial
@@ -37,12 +39,16 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     valves = CanopenValves(interface=can_interface, channel=can_channel, bitrate=d.can_bitrate,
                            node_ids=[d.valve_node_id_base + i for i in range(len(names))], names=names,
                            max_V=cfg.valve.max_V, stale_s=stale_s, priority=prio)
-    accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit, channels=list(range(len(names))),
-                           names=names, V_per_mps2=d.accel_V_per_mps2, timeout_s=d.modbus_timeout_s,
-                           watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll, priority=prio,
-                           fifo=fifo)
+    s = cfg.sensors
+    floor = list(s.floor_channels)[:len(names)] if s.floor_accel else []
+    accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit,
+                           channels=list(range(len(names))) + floor,
+                           names=names + [f"floor {m}" for m in names][:len(floor)],
+                           V_per_mps2=[d.accel_V_per_mps2] * len(names) + [s.floor_V_per_mps2] * len(floor),
+                           timeout_s=d.modbus_timeout_s, watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll,
+                           priority=prio, fifo=fifo)
     stroke = DisplacementAmplifier(port=serial_port, baud=d.serial_baud, names=names, channels=list(range(len(names))),
                                    stale_s=serial_stale_s if serial_stale_s is not None else stale_s, poll_s=poll,
                                    priority=prio)
     return DriverPort(name, valves, accel, stroke, n_mounts=len(names), on_close=on_close,
-                      sample_driven=fifo)
+                      sample_driven=fifo, floor_sensors=bool(floor))

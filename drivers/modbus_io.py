@@ -1,6 +1,9 @@
-"""Modbus TCP analog input module (ADAM-6024 style) carrying the four accelerometers, on pymodbus.
+"""Modbus TCP analog input module (ADAM-6024-style registers, eight AI channels) carrying the four mount
+accelerometers (AI ch0-3) and, when fitted ([sensors] floor_accel), the four floor accelerometers (ch4-7), on
+pymodbus. All channels of one conversion are sampled together, so the floor and the mount values share one
+time stamp and one conversion counter.
 
-Request/response never runs inside the control period: a driver-owned thread polls AI ch0-5 + the conversion
+Request/response never runs inside the control period: a driver-owned thread polls AI ch0-7 + the conversion
 counter (one read of 40001-40010) every poll period and keeps the latest sample with its time stamp. The loop
 only picks that sample up. A sample is new when the module's conversion counter moved; no new sample for
 stale_s (silence, exceptions, garbage, frozen module) is a fault naming the module and the last error.
@@ -20,21 +23,22 @@ from rig.errors import DeviceError
 
 N_READ = 10                     # 40001-40010 in one request
 # Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): each poll reads 40001-40010 and the
-# newest FIFO_FIRST entries in one request (104 registers; FC 3 allows 125); after a stall it reads further
-# entries, FIFO_CHUNK at a time, until nothing is missing (or the FIFO ends)
-FIFO_FIRST, FIFO_CHUNK = 16, 24
+# newest FIFO_FIRST entries in one request (123 registers; FC 3 allows 125); after a stall it reads further
+# entries, FIFO_CHUNK at a time (117 registers), until nothing is missing (or the FIFO ends)
+FIFO_FIRST, FIFO_CHUNK = 11, 13
 N_READ_FIFO = REG_FIFO + FIFO_FIRST * FIFO_WIDTH
 KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
 
 
 class ModbusAnalogIO(TriggeredPoller):
     def __init__(self, *, host: str, port: int, unit: int, channels: list[int], names: list[str],
-                 V_per_mps2: float, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
+                 V_per_mps2, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
                  priority: int = 0, keep_latency: int = 1 << 16, fifo: bool = False):
         self.host, self.port, self.unit = host, port, unit
         self.channels = list(channels)
         self.names = list(names)
-        self.k = V_per_mps2
+        # sensitivity per channel (one number: the same for all)
+        self.k = tuple(V_per_mps2) if isinstance(V_per_mps2, (list, tuple)) else (float(V_per_mps2),) * len(channels)
         self.timeout_s = timeout_s
         self.watchdog_s = watchdog_s
         self.stale_ns = int(stale_s * 1e9)
@@ -130,10 +134,9 @@ class ModbusAnalogIO(TriggeredPoller):
         self.last_error = ""
         self.asked_ns = 0
         raw = tuple(regs[REG_AI + ch] for ch in self.channels)
-        k = self.k
         if self.fifo:
             self._take_fifo(regs)
-        self.sample = (tuple(raw_to_volts(x) / k for x in raw), t1, raw)
+        self.sample = (tuple(raw_to_volts(x) / k for x, k in zip(raw, self.k)), t1, raw)
         return True
 
     def _take_fifo(self, regs) -> None:
@@ -170,7 +173,7 @@ class ModbusAnalogIO(TriggeredPoller):
             if ((newest - c) & 0xFFFF) >= FIFO_DEPTH:    # an entry not filled yet
                 continue
             if c not in conv:
-                conv[c] = tuple(raw_to_volts(regs[b + 1 + j]) / k for j in ch)
+                conv[c] = tuple(raw_to_volts(regs[b + 1 + j]) / kj for j, kj in zip(ch, k))
             if ((newest - c) & 0xFFFF) > ((newest - oldest) & 0xFFFF):
                 oldest = c
         return have >= 0 and 1 < ((oldest - have) & 0xFFFF) < 0x8000     # a gap after `have`

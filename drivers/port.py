@@ -13,6 +13,10 @@ machine Modbus replies come late in a few per cent of the periods, and a slip a 
 isolation; tests/rig/test_sample_driven.py). read() therefore reports
 how many conversions the module made since the last read (Measurements.new_samples; 0 = none yet) and hands
 over the ones before the newest (accel_older), so the loop steps the controllers once per conversion, in order.
+
+Floor accelerometers (floor_sensors): the same module's further channels, after the mount accelerometers in
+each sample and conversion; read() splits them off into Measurements.floor_accel_mps2 (the older conversions
+keep them, after the mount values, as the kernel takes them).
 """
 from __future__ import annotations
 
@@ -25,8 +29,9 @@ class DriverPort(PortContext):
     transports = ("canopen", "modbus_tcp", "serial")
 
     def __init__(self, name: str, valves, accel, stroke, *, n_mounts: int = 4, on_close=None,
-                 sample_driven: bool = False):
+                 sample_driven: bool = False, floor_sensors: bool = False):
         self.name = name
+        self.floor_sensors = bool(floor_sensors)
         self.sample_driven = sample_driven and getattr(accel, "fifo", False)
         self._last_conv = -1
         self.n_mounts = n_mounts
@@ -62,13 +67,15 @@ class DriverPort(PortContext):
         # the time stamp is the accelerometer sample's (the control signal); the slower serial transducer
         # is checked for staleness by its own driver, against its own limit
         n = self.n_mounts
+        fl = n if self.floor_sensors else 0
         if not self.sample_driven:
-            return Measurements(t_ns=t_ns, accel_mps2=list(acc), stroke_m=list(pos), sample_t_ns=[ta] * n,
-                                spool_actual=list(v.actual), device_fault=fault)
+            return Measurements(t_ns=t_ns, accel_mps2=list(acc[:n]), stroke_m=list(pos), sample_t_ns=[ta] * n,
+                                spool_actual=list(v.actual), device_fault=fault,
+                                floor_accel_mps2=list(acc[n:n + fl]))
         new, self._last_conv, acc, older = self.accel.conversions_since(self._last_conv)
-        return Measurements(t_ns=t_ns, accel_mps2=list(acc), stroke_m=list(pos), sample_t_ns=[ta] * n,
+        return Measurements(t_ns=t_ns, accel_mps2=list(acc[:n]), stroke_m=list(pos), sample_t_ns=[ta] * n,
                             spool_actual=list(v.actual), device_fault=fault, new_samples=new,
-                            accel_older=tuple(older))
+                            accel_older=tuple(older), floor_accel_mps2=list(acc[n:n + fl]))
 
     def write(self, t_ns: int, commands: Commands) -> None:
         self.valves.write(commands.valve_cmd_V)

@@ -96,7 +96,8 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     d = cfg.drivers
     emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
                       node_ids=[d.valve_node_id_base + i for i in range(len(layout_mounts(cfg)))],
-                      priority=cfg.hil.device_priority if priority is None else priority).start()
+                      priority=cfg.hil.device_priority if priority is None else priority,
+                      floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels).start()
     try:
         port = build_driver_port(cfg, "hil", can_interface="virtual", can_channel=emu.channel,
                                  modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,

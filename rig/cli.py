@@ -21,6 +21,7 @@ COMMANDS = {
     "identify": ("rig.commands.identify", "identify the six actuator parameters from a chirp recording"),
     "diagnose": ("rig.commands.diagnose", "find and model the physics a recording shows but the model lacks"),
     "prove": ("rig.commands.prove", "blind proof of diagnosis on simulated or given recordings"),
+    "report": ("rig.commands.report", "vibration-criterion (VC) report of a run recording, per isolation mode"),
     "drill": ("rig.commands.drill", "fault drill: each fault rehearsed, what the rig does, time to FAULT"),
 }
 

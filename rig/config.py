@@ -262,6 +262,32 @@ class ControllerConfig:
 
 
 @dataclass(frozen=True)
+class SensorsConfig:
+    """Optional sensors beyond the paper's: a floor accelerometer at each mount, the input of the floor-motion
+    feedforward (controllers/feedforward.py). On the hardware it sits on further channels of the analog input
+    module (drivers/devicemaps/adam6024_modbus.md); the simulated rig gives it its own noise."""
+    floor_accel: bool = _f(False, "")                         # fitted (the loop reads and checks it)
+    floor_V_per_mps2: float = _f(2.0, "V/(m/s^2)", ge=1e-3, le=1e3)   # sensitivity with its conditioner
+    floor_range_mps2: float = _f(5.0, "m/s^2", gt=0, le=1e3)         # plausible range; beyond (or NaN) = fault
+    # white noise of the simulated sensor (a seismic accelerometer, ~0.1 ug/sqrt(Hz))
+    floor_noise_mps2_per_rthz: float = _f(1e-6, "m/s^2/sqrt(Hz)", ge=0, le=1.0)
+    floor_channels: tuple[int, ...] = _f((4, 5, 6, 7), "", ge=4, le=7, n=len(MOUNTS))   # AI channels, MOUNTS order
+
+
+@dataclass(frozen=True)
+class PlantErrorConfig:
+    """The simulated rig's actuators as factors on the configured model (1 = as modelled): the plant the
+    controllers and the feedforward meet when their model is wrong (Eq. 11's x_d). Simulated plants only.
+    Within a factor of two: further off is another actuator, not a model error."""
+    K_L: float = _f(1.0, "", ge=0.5, le=2.0)
+    C: float = _f(1.0, "", ge=0.5, le=2.0)
+    w_nv: float = _f(1.0, "", ge=0.5, le=2.0)
+    zeta: float = _f(1.0, "", ge=0.5, le=2.0)
+    K_Q: float = _f(1.0, "", ge=0.5, le=2.0)
+    K_C: float = _f(1.0, "", ge=0.5, le=2.0)
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -276,6 +302,8 @@ class Config:
     drivers: DriversConfig = field(default_factory=DriversConfig)
     hil: HilConfig = field(default_factory=HilConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    plant_error: PlantErrorConfig = field(default_factory=PlantErrorConfig)
     layout: LayoutConfig = field(default_factory=LayoutConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
@@ -301,6 +329,10 @@ def _check_value(where: str, name: str, ftype, meta, value):
     elif ftype is str or ftype == "str":
         if not isinstance(value, str):
             raise ConfigError(f"{where}.{name}: expected a string, got {value!r}")
+    elif origin is tuple and typing.get_args(ftype)[:1] == (int,):
+        if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+            raise ConfigError(f"{where}.{name}: expected a list of integers, got {value!r}")
+        value = tuple(value)
     elif origin in (list, tuple) and typing.get_args(ftype)[:1] == (str,):
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise ConfigError(f"{where}.{name}: expected a list of names, got {value!r}")
@@ -312,6 +344,7 @@ def _check_value(where: str, name: str, ftype, meta, value):
         value = tuple(float(v) for v in value)
         if not all(math.isfinite(v) for v in value):
             raise ConfigError(f"{where}.{name}: expected finite numbers, got {list(value)!r}")
+    if isinstance(value, tuple):
         if meta.get("n") is not None and len(value) != meta["n"]:
             raise ConfigError(f"{where}.{name}: expected a list of {meta['n']} numbers (one per mount: "
                               f"{', '.join(MOUNTS)}), got {len(value)}: {list(value)!r}")
@@ -371,6 +404,7 @@ def _check_cross(cfg: Config) -> None:
     if cfg.safety.stroke_limit_m > cfg.actuator.stroke_m:
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= actuator.stroke_m "
                           f"({cfg.actuator.stroke_m} m), got {cfg.safety.stroke_limit_m}")
+    _check_sensors(cfg)
     if cfg.safety.stroke_limit_m > cfg.safety.stroke_range_m:      # a limit the transducer cannot see
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= safety.stroke_range_m "
                           f"({cfg.safety.stroke_range_m} m), got {cfg.safety.stroke_limit_m}")
@@ -382,6 +416,20 @@ def _check_cross(cfg: Config) -> None:
             p = Path(cfg.source).parent / p
         if not p.is_file():
             raise ConfigError(f"{cfg.source}: machine.modal_model: file not found: {p}")
+
+
+def _check_sensors(cfg: Config) -> None:
+    """The floor accelerometers: one analog channel each (ch4-7: ch0-3 are the mount accelerometers); the
+    range within the module's +-10 V."""
+    s = cfg.sensors
+    ch = s.floor_channels
+    if len(set(ch)) != len(ch):
+        raise ConfigError(f"{cfg.source}: sensors.floor_channels: expected {len(MOUNTS)} distinct analog input "
+                          f"channels (one per mount), got {list(ch)}")
+    if s.floor_range_mps2 * s.floor_V_per_mps2 > 10.0:
+        raise ConfigError(f"{cfg.source}: sensors.floor_range_mps2: expected <= 10 V / floor_V_per_mps2 "
+                          f"({10.0 / s.floor_V_per_mps2:g} m/s^2, the module's input range), "
+                          f"got {s.floor_range_mps2}")
 
 
 def _check_layout(cfg: Config) -> None:

@@ -8,6 +8,10 @@ the controllers switch isolation on their own bumpless way and the limiter ramps
 held, so (re-)activation never jumps. Operating-mode requests (a mount's mode and reference, controllers/
 modes.py) are applied the same way, each mount's latest one, and so are timed requests (`schedule`: a script
 of requests at given loop times, applied at the first period boundary at or after their time).
+
+The isolation mode (not an operating mode): off, feedback, or feedback_feedforward (the floor feedforward
+added, when the loop has it). `isolation` and `feedforward` are the two switches behind it; the feedforward
+acts only while isolation is on.
 """
 from __future__ import annotations
 
@@ -18,9 +22,12 @@ from rig.port import Commands
 
 log = logging.getLogger("rig.loop")
 
+ISOLATION_MODES = ("off", "feedback", "feedback_feedforward")
+
 
 class LifecycleGate:
-    def __init__(self, kernel, port, event, *, isolation: bool, stop_on_fault: bool) -> None:
+    def __init__(self, kernel, port, event, *, isolation: bool, stop_on_fault: bool,
+                 feedforward: bool = False) -> None:
         self.kernel = kernel
         self.port = port
         self._event = event                  # event(text): the recording's event list
@@ -32,6 +39,8 @@ class LifecycleGate:
         self.t_ns = 0                        # the period being run (fault times, events)
         self._active_request: bool | None = None
         self._iso_request: bool | None = None
+        self.feedforward = bool(feedforward) and bool(getattr(kernel, "nf", 0))
+        self._ff_request: bool | None = None
         self._reset_request = False
         self.pending = False                 # any request below is waiting (a plain flag: one load per period)
         self._recorder_request = None        # (recorder,) to record into from the next period
@@ -53,6 +62,23 @@ class LifecycleGate:
     def request_isolation(self, on: bool) -> None:
         self._iso_request = bool(on)
         self.pending = True
+
+    def request_isolation_mode(self, mode: str) -> None:
+        """off / feedback / feedback_feedforward (ValueError for another word, or feedforward without floor
+        sensors): isolation and the feedforward switched together at the next period boundary."""
+        if mode not in ISOLATION_MODES:
+            raise ValueError(f"isolation mode {mode!r}: expected one of {', '.join(ISOLATION_MODES)}")
+        if mode == "feedback_feedforward" and not getattr(self.kernel, "nf", 0):
+            raise ValueError("isolation mode feedback_feedforward: the loop has no floor feedforward "
+                             "([sensors] floor_accel = false)")
+        self._ff_request = mode == "feedback_feedforward"
+        self._iso_request = mode != "off"
+        self.pending = True
+
+    @property
+    def isolation_mode(self) -> str:
+        M = ISOLATION_MODES
+        return M[0] if not self.isolation else M[2] if self.feedforward else M[1]
 
     def toggle_isolation(self) -> None:
         self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
@@ -110,14 +136,22 @@ class LifecycleGate:
             for m, req in reqs.items():
                 self.kernel.switch(m, req, lc.state is State.ACTIVE)
                 self._event(f"{self.kernel.names[m]}: mode {req}")
-        if self._iso_request is not None:
+        if self._iso_request is not None or self._ff_request is not None:
+            before = self.isolation_mode
             on, self._iso_request = self._iso_request, None
-            if on != self.isolation:
+            if on is not None and on != self.isolation:
                 self.isolation = on
                 if lc.state is State.ACTIVE:
                     self.kernel.set_enabled(on)
                 log.info("isolation %s", "on" if on else "off")
                 self._event(f"isolation {'on' if on else 'off'}")
+            ff, self._ff_request = self._ff_request, None
+            if ff is not None:
+                self.feedforward = ff
+            self._apply_feedforward()
+            if self.isolation_mode != before and self.kernel.nf:
+                log.info("isolation mode %s", self.isolation_mode)
+                self._event(f"isolation mode {self.isolation_mode}")
 
     # ---- transitions (the loop's thread) ----------------------------------------------------------------
     def configure(self) -> None:
@@ -129,6 +163,7 @@ class LifecycleGate:
         """INACTIVE -> ACTIVE: warm states, isolation switched on bumplessly, the limiter from null."""
         self.lc.activate()
         self.kernel.set_enabled(self.isolation)
+        self._apply_feedforward()
         self.kernel.activated()
         self.kernel.reset_limiter()
         self._event("ACTIVE")
@@ -138,10 +173,16 @@ class LifecycleGate:
         if self.lc.state is State.ACTIVE:
             self.lc.deactivate()
             self.kernel.set_enabled(False)
+            self._apply_feedforward()
             self.kernel.reset_limiter()
             self.kernel.null_commands()
             self.write_null()
             self._event("INACTIVE")
+
+    def _apply_feedforward(self) -> None:
+        """The kernel's feedforward switch from the mode and the lifecycle: on only while ACTIVE and isolating."""
+        if self.kernel.nf:
+            self.kernel.set_feedforward(self.isolation and self.feedforward and self.lc.state is State.ACTIVE)
 
     def reset_fault(self) -> None:
         """FAULT -> INACTIVE after the cause is cleared (explicit acknowledgement); fresh controller states."""

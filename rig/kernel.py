@@ -10,6 +10,11 @@ error); the row gets one channel per published name, one column per mount (NaN w
 interpolated from the last period's to this one's: holding it would leave the double integration of
 acceleration a velocity error), and a sample-driven port's older conversions are stepped here, in order.
 
+With floor accelerometers ([sensors] floor_accel) the kernel takes a fourth per-mount input, floor_accel, checks
+it (check_floor) and runs each mount's floor feedforward (controllers/feedforward.py feedforward_step) beside
+its controller, whatever the controller's kind: the feedforward's command is added to the controller's before
+the limits. Its filters always run; switching it (set_feedforward) fades its output in or out.
+
 The block (`mem`), its parts named by the header below: the inputs of the period (packed by
 PeriodKernel.period in one struct call), the older conversions, the previous measurement, the safety limits
 and states, the mount table (kind, coefficients, state per mount), the coefficients, the controller states
@@ -24,6 +29,7 @@ import numba
 import numpy as np
 
 from controllers import isolation, modes, playback, tracking
+from controllers.feedforward import feedforward_step
 from controllers.isolation import isolation_step
 from controllers.modes import modes_step
 from controllers.playback import playback_step
@@ -33,7 +39,7 @@ from rig.errors import ConfigError
 from rig.layout import RowLayout, loop_channels
 from rig.recorder import Channel
 from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
-                        _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_oscillation, check_sensors,
+                        _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_floor, check_oscillation, check_sensors,
                         limit_commands)
 
 KIND_OFF = 0
@@ -43,17 +49,20 @@ _ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.
 OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
-INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step")   # then accel, stroke, t
+INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step")   # then MOUNT_INPUTS
+MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
 (_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP) = range(len(INPUTS))
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
-          "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc")
+          "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
+          "r_ff_on")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
- _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB,
- _H_RPUB) = range(len(HEADER) - 1)
-_H_OSC = HEADER.index("osc")           # the oscillation rule's state (rig/safety.py OSC_STATE + swing ring)
+ _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO) = range(len(HEADER))
 _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
+# The feedforward part of the block: the floor range, then per mount FF_TABLE
+FF_TABLE = ("coef", "n_sections", "state", "fade")
 
 
 @numba.njit(cache=True, inline="always")
@@ -76,11 +85,22 @@ def _step_mount(mem, m, a, x):
     return 0.0
 
 
+@numba.njit(cache=True, inline="always")
+def _ff_mount(mem, m, g):
+    """Mount m's floor feedforward, one period, on the floor acceleration g [m/s^2]; its command [V]."""
+    b = int(mem[_H_FF]) + 1 + m * 4
+    co = int(mem[b])
+    ns = int(mem[b + 1])
+    so = int(mem[b + 2])
+    return feedforward_step(mem[co:co + 5 * ns], mem[b + 3], mem[so:so + 2 * ns + 2], g)
+
+
 @numba.njit(cache=True)
-def _catch_up(mem, n, acc, xs, miss, n_older):
+def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
     """The periods the controllers did not see: `miss` skipped ones replayed (at most max_held, the latest),
     inputs interpolated from the previous period's measurement to this one's; or a sample-driven port's
-    n_older conversions before the newest, with this period's stroke. Outputs are not written."""
+    n_older conversions before the newest (mount accelerations, then floor ones), with this period's stroke.
+    The feedforward (nf > 0) steps with them. Outputs are not written."""
     prev = int(mem[_H_PREV])
     for j in range(max(0, miss - int(mem[_H_MAXHELD])), miss):
         f = (j + 1) / (miss + 1)
@@ -88,10 +108,16 @@ def _catch_up(mem, n, acc, xs, miss, n_older):
             pa = mem[prev + m]
             px = mem[prev + n + m]
             _step_mount(mem, m, pa + f * (acc[m] - pa), px + f * (xs[m] - px))
+            if nf:
+                pg = mem[prev + 2 * n + m]
+                _ff_mount(mem, m, pg + f * (fl[m] - pg))
     older = int(mem[_H_OLDER])
+    w = n + nf
     for k in range(n_older):
         for m in range(n):
-            _step_mount(mem, m, mem[older + k * n + m], xs[m])
+            _step_mount(mem, m, mem[older + k * w + m], xs[m])
+            if nf:
+                _ff_mount(mem, m, mem[older + k * w + n + m])
 
 
 @numba.njit(cache=True)
@@ -106,10 +132,15 @@ def run_period(mem, ring, slot):
     m0 = i + len(INPUTS)
     acc = mem[m0:m0 + n]
     xs = mem[m0 + n:m0 + 2 * n]
+    nf = int(mem[_H_NFL])
+    fl = mem[m0 + 3 * n:m0 + 3 * n + nf]
     row = mem[int(mem[_H_ROW]):int(mem[_H_ROW]) + int(mem[_H_NROW])]
     ra, rx, rc, rr = int(mem[_H_RA]), int(mem[_H_RX]), int(mem[_H_RC]), int(mem[_H_RR])
     row[ra:ra + n] = acc
     row[rx:rx + n] = xs
+    if nf:
+        rg = int(mem[_H_RG])
+        row[rg:rg + nf] = fl
     flags = mem[int(mem[_H_FLAGS]):int(mem[_H_FLAGS]) + 3]
     code = 0
     if mode == MODE_FAULT:
@@ -118,14 +149,24 @@ def run_period(mem, ring, slot):
         lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
         chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
         code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
+        if code == 0 and nf:
+            code = check_floor(fl, mem[int(mem[_H_FF])])
         if code == 0:
             if mem[i + _IN_STEP] > 0.5:
-                _catch_up(mem, n, acc, xs, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
-                for m in range(n):
-                    row[rr + m] = _step_mount(mem, m, acc[m], xs[m])
+                _catch_up(mem, n, acc, xs, fl, nf, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
+                if nf:
+                    rf = int(mem[_H_RF])
+                    for m in range(n):
+                        uf = _ff_mount(mem, m, fl[m])
+                        row[rf + m] = uf
+                        row[rr + m] = _step_mount(mem, m, acc[m], xs[m]) + uf
+                else:
+                    for m in range(n):
+                        row[rr + m] = _step_mount(mem, m, acc[m], xs[m])
             prev = int(mem[_H_PREV])
             mem[prev:prev + n] = acc
             mem[prev + n:prev + 2 * n] = xs
+            mem[prev + 2 * n:prev + 2 * n + nf] = fl
             if mode == MODE_ACTIVE:
                 last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
                 code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
@@ -151,6 +192,9 @@ def run_period(mem, ring, slot):
     row[int(mem[_H_RT])] = mem[i + _IN_T_S]
     row[int(mem[_H_RW])] = mem[i + _IN_WAKE]
     row[int(mem[_H_RP])] = mem[i + _IN_COMP]
+    if nf:          # the switch request of the first mount's feedforward (they switch together)
+        b = int(mem[_H_FF]) + 1
+        row[int(mem[_H_RO])] = mem[int(mem[b + 2]) + 2 * int(mem[b + 1]) + 1]
     if code == 0 and slot >= 0:
         ring[slot, :] = row
     return code
@@ -159,22 +203,26 @@ def run_period(mem, ring, slot):
 _ENTRIES: dict = {}
 
 
-def period_entry(n: int):
-    """The period's entry for n mounts: the inputs (INPUTS, then accelerations, strokes and sample times) as
-    float64 scalars, stored into the block, then run_period. Scalars are the cheapest arguments to hand over
-    (about as cheap as packing them into the block in Python, without the second call), so the entry is
-    generated per mount count, once per process, with exactly that signature."""
-    if n not in _ENTRIES:
+def period_entry(n: int, floor: bool = False):
+    """The period's entry for n mounts: the inputs (INPUTS, then accelerations, strokes, sample times and,
+    with floor sensors, floor accelerations) as float64 scalars, stored into the block, then run_period.
+    Scalars are the cheapest arguments to hand over (about as cheap as packing them into the block in Python,
+    without the second call), so the entry is generated per mount count (and floor input), once per process,
+    with exactly that signature: a loop without floor sensors hands over nothing more than before."""
+    key = (n, bool(floor))
+    if key not in _ENTRIES:
         meas = [f"a{i}" for i in range(n)] + [f"x{i}" for i in range(n)] + [f"ts{i}" for i in range(n)]
+        meas += [f"g{i}" for i in range(n)] if floor else []
         args = list(INPUTS) + meas
-        src = (f"def period_{n}(mem, ring, slot, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
+        name = f"period_{n}{'_floor' if floor else ''}"
+        src = (f"def {name}(mem, ring, slot, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
                + "".join(f"    mem[i + {k}] = {a}\n" for k, a in enumerate(args))
                + "    return run_period(mem, ring, slot)\n")
         scope = {"run_period": run_period}
         exec(src, scope)
         sig = f"int64(float64[::1], float64[:, ::1], int64, {', '.join(['float64'] * len(args))})"
-        _ENTRIES[n] = native_entry(numba.njit(sig)(scope[f"period_{n}"]))
-    return _ENTRIES[n]
+        _ENTRIES[key] = native_entry(numba.njit(sig)(scope[name]))
+    return _ENTRIES[key]
 
 
 def native_entry(dispatcher):
@@ -197,30 +245,41 @@ def ring_ok(ring) -> bool:
 
 class PeriodKernel:
     """Owns the block: builds it from the controllers (one per mount; their builders give kind, coefficients,
-    named state and dt) and the safety builders, and runs one period per `period` call."""
+    named state and dt), the floor feedforward filters if any (one per mount: controllers/feedforward.py
+    FeedforwardFilter; the loop then takes the floor accelerometers) and the safety builders, and runs one
+    period per `period` call."""
 
     def __init__(self, cfg: Config, controllers: list, names: tuple[str, ...], dt: float,
-                 max_held_steps: int) -> None:
+                 max_held_steps: int, feedforward: list | None = None) -> None:
         n = len(controllers)
         if not 1 <= n <= MAX_MOUNTS:
             raise ConfigError(f"loop: {n} mounts; the period kernel takes 1 to {MAX_MOUNTS}")
         for name, c in zip(names, controllers):
             _check_controller(name, c, dt)
+        ffs = list(feedforward) if feedforward else []
+        _check_feedforward(names, ffs, dt)
+        nf = n if ffs else 0
         self.n, self.ctrls, self.names = n, list(controllers), tuple(names)
+        self.ffs, self.nf = ffs, nf
+        self.floor_range = cfg.sensors.floor_range_mps2
         self.state_labels = tuple(f"{m}.{s}" for m, c in zip(names, controllers) for s in c.state_names)
         self.published = _published(controllers)      # name -> (unit, description)
         self.layout = RowLayout(loop_channels(self.names, self.state_labels,
-                                              [Channel(k, u, n, self.names, d) for k, (u, d) in self.published.items()]))
+                                              [Channel(k, u, n, self.names, d) for k, (u, d) in self.published.items()],
+                                              floor=bool(nf)))
         self.check = SensorCheck(cfg, n, self.names)
         self.limiter = CommandLimiter(cfg, n, dt)
         self.osc = OscillationRule(cfg, n, self.names)
         coefs = [np.ascontiguousarray(c.coefficients(), dtype=np.float64) for c in controllers]
         nst = [len(c.state_names) for c in controllers]
-        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n, "older": OLDER_CAP * n, "prev": 2 * n,
-                 "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
+        ff_coefs = [np.asarray(f.coef, dtype=np.float64) for f in ffs]
+        ff_nst = [len(f.initial_state()) for f in ffs]
+        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n + nf, "older": OLDER_CAP * (n + nf),
+                 "prev": 2 * n + nf, "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
                  "pub": len(self.published) * n, "coefs": sum(len(c) for c in coefs), "osc": n * self.osc.width,
-                 "row": self.layout.ncols}
+                 "ff": 1 + len(FF_TABLE) * nf if nf else 0, "ff_coefs": sum(len(c) for c in ff_coefs),
+                 "ff_states": sum(ff_nst), "row": self.layout.ncols}
         at, off = 0, {}
         for part, size in parts.items():
             off[part] = at
@@ -233,7 +292,10 @@ class PeriodKernel:
                              lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
                              lay["controller_state"] if "controller_state" in lay else lay.ncols,
                              lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], len(self.published),
-                             off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"])
+                             off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
+                             nf, off["ff"],
+                             *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
+                               else (lay.ncols,) * 3))
         mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
                                                           + self.osc.limits())
         self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
@@ -251,6 +313,16 @@ class PeriodKernel:
                 mem[off["pub"] + list(self.published).index(name) * n + m] = so + idx
             co += len(cf)
             so += nst[m]
+        self.ff_states = []
+        if nf:
+            mem[off["ff"]] = self.floor_range
+            co, so = off["ff_coefs"], off["ff_states"]
+            for m, (f, cf) in enumerate(zip(ffs, ff_coefs)):
+                mem[off["ff"] + 1 + 4 * m:off["ff"] + 5 + 4 * m] = (co, len(f.sections), so, f.fade)
+                mem[co:co + len(cf)] = cf
+                self.ff_states.append(mem[so:so + ff_nst[m]])
+                co += len(cf)
+                so += ff_nst[m]
         self.check_state = mem[off["check"]:off["check"] + len(CHECK_STATE) * n].reshape(len(CHECK_STATE), n)
         self.last_cmd = mem[off["last_cmd"]:off["last_cmd"] + n]
         self.flags = mem[off["flags"]:off["flags"] + len(LIMITER_FLAGS)]
@@ -258,14 +330,15 @@ class PeriodKernel:
         self.row = mem[off["row"]:]
         self.no_ring = np.zeros((1, lay.ncols))       # stands in for the ring without a recorder (slot -1)
         self._older_bytes = 8 * off["older"]
-        self._pack_older = struct.Struct(f"<{n}d").pack_into
+        self._older_width = n + nf                  # a conversion: mount accelerations, then floor ones
+        self._pack_older = struct.Struct(f"<{n + nf}d").pack_into
         self._cmd = struct.Struct(f"<{n}d").unpack_from
         self._prev_x = off["prev"] + n                  # the last checked stroke per mount
         self._cmd_bytes = 8 * (off["row"] + lay["valve_cmd_V"])
         self._raw_bytes = 8 * (off["row"] + lay["valve_cmd_raw_V"])
         self.reset_check()
         self.fresh_states()
-        self.call = period_entry(n)          # compiled (or loaded) now, not in the first period
+        self.call = period_entry(n, bool(nf))          # compiled (or loaded) now, not in the first period
 
     # ---- the period -----------------------------------------------------------------------------------
     def pack_older(self, older) -> int:
@@ -273,7 +346,7 @@ class PeriodKernel:
         if len(older) > OLDER_CAP:
             raise ValueError(f"{len(older)} older conversions in one read (at most {OLDER_CAP})")
         for k, a in enumerate(older):
-            self._pack_older(self.mem, self._older_bytes + 8 * self.n * k, *a)
+            self._pack_older(self.mem, self._older_bytes + 8 * self._older_width * k, *a[:self._older_width])
         return len(older)
 
     def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
@@ -283,7 +356,7 @@ class PeriodKernel:
         ns = m.new_samples
         return self.call(self.mem, ring, slot, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
                          self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns)
+                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
 
     def commands(self) -> tuple:
         """The limited commands of the last period (the row's valve_cmd_V)."""
@@ -299,9 +372,20 @@ class PeriodKernel:
 
     # ---- state changes, between periods ---------------------------------------------------------------
     def fresh_states(self) -> None:
-        """Every controller from its initial state, isolation disabled (the loop enables it on activation)."""
+        """Every controller from its initial state, isolation disabled (the loop enables it on activation);
+        the feedforward's filters from rest, switched off."""
         for c, st in zip(self.ctrls, self.states):
             st[:] = c.set_enabled(c.initial_state(), False)
+        for f, st in zip(self.ffs, self.ff_states):
+            st[:] = f.initial_state(on=False)
+
+    def set_feedforward(self, on: bool) -> None:
+        """The floor feedforward on/off (its output fades in or out; the filters keep running)."""
+        for f, st in zip(self.ffs, self.ff_states):
+            f.set_enabled(st, on)
+
+    def feedforward_enabled(self) -> bool:
+        return bool(self.ffs) and self.ffs[0].enabled(self.ff_states[0])
 
     def set_enabled(self, on: bool) -> None:
         """Isolation on/off, each controller's own bumpless way."""
@@ -343,6 +427,20 @@ def _published(controllers) -> dict:
         for name, unit, text, _ in getattr(c, "published", ()):
             out.setdefault(name, (unit, text))
     return out
+
+
+def _check_feedforward(names, ffs: list, dt: float) -> None:
+    """Feedforward filters the kernel can run: none, or one per mount at the loop's period."""
+    if not ffs:
+        return
+    if len(ffs) != len(names):
+        raise ConfigError(f"loop: {len(ffs)} feedforward filters for {len(names)} mounts")
+    for name, f in zip(names, ffs):
+        if not all(hasattr(f, a) for a in ("coef", "fade", "initial_state", "set_enabled", "enabled")):
+            raise ConfigError(f"loop: {name}: {type(f).__name__} is not a feedforward filter "
+                              f"(controllers/feedforward.py FeedforwardFilter)")
+        if abs(f.dt - dt) > 1e-6 * dt:
+            raise ConfigError(f"loop: {name}: feedforward built for dt = {f.dt:g} s, loop period {dt:g} s")
 
 
 def _check_controller(name: str, c, dt: float) -> None:

@@ -20,16 +20,23 @@ FLAG_CHANNELS = (
 )
 
 
-def loop_channels(names: tuple[str, ...], state_labels: tuple[str, ...] = (), published=()) -> list[Channel]:
+def loop_channels(names: tuple[str, ...], state_labels: tuple[str, ...] = (), published=(),
+                  floor: bool = False) -> list[Channel]:
     """The channels of a loop run over mounts `names`; state_labels name the controller-state columns
     (`mount.state`, mount-major), none: no controller_state channel; published: the channels of the
-    controllers' published state (one column per mount, e.g. the operating mode and the reference)."""
+    controllers' published state (one column per mount, e.g. the operating mode and the reference).
+    floor: the floor accelerometers and the feedforward path (controllers/feedforward.py) are in the loop."""
     n = len(names)
     ch = [Channel("time_s", "s", description="loop time of the period (deadline) since start"),
           Channel("accel_mps2", "m/s^2", n, names, "absolute vertical acceleration at the mount"),
           Channel("stroke_m", "m", n, names, "displacement transducer, piston relative to housing"),
           Channel("valve_cmd_V", "V", n, names, "valve command written to the port (after limits)"),
           Channel("valve_cmd_raw_V", "V", n, names, "controller output before clamp and slew limit")]
+    if floor:
+        ch += [Channel("floor_accel_mps2", "m/s^2", n, names, "floor accelerometer at the mount"),
+               Channel("ff_cmd_V", "V", n, names, "floor feedforward's part of valve_cmd_raw_V"),
+               Channel("feedforward_on", "", description="1 while the feedforward is switched on (its output "
+                                                        "fades in and out over its fade_s)")]
     if state_labels:
         ch.append(Channel("controller_state", "", len(state_labels), tuple(state_labels),
                           "controller states by name (mount.state), mount-major"))

@@ -15,7 +15,9 @@ watchdog anyway). Any exception of the port is a fault, never a silent death. Th
 recovery suspending or resuming a mount's isolation is logged and recorded as an event once per change
 (checked at 10 Hz, off the per-period path), and so is the recorder's writer process: if it dies while the
 loop records, the run faults at once (valves to null) and says so. A run stops through one INACTIVE period
-(rig/scheduler.py): its last recorded row has the valve at null.
+(rig/scheduler.py): its last recorded row has the valve at null. With floor feedforward filters (one per
+mount) the loop takes the port's floor accelerometers (Measurements.floor_accel_mps2) and the isolation mode
+(off / feedback / feedback_feedforward) is switched through the gate's requests.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from rig.gate import LifecycleGate
 from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
 from rig.lifecycle import State
 from rig.port import Commands
-from rig.safety import LIMIT_NAN, LIMIT_OSC
+from rig.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
 from rig.scheduler import Scheduler
 from rig.tap import RecordingTap
 
@@ -45,7 +47,8 @@ class Loop:
     def __init__(self, cfg: Config, port, controllers: list, *, clock=None, recorder=None,
                  rate_hz: float | None = None, overrun_policy: str | None = None, isolation: bool = True,
                  keep_timing: int = 1 << 15, names: tuple[str, ...] | None = None,
-                 stop_on_fault: bool = True, watchdog_thread: bool | None = None, rate_check: bool = True) -> None:
+                 stop_on_fault: bool = True, watchdog_thread: bool | None = None, rate_check: bool = True,
+                 feedforward: list | None = None, feedforward_on: bool = False) -> None:
         self.cfg = cfg
         self.port = port
         self.n = int(port.n_mounts)
@@ -65,11 +68,15 @@ class Loop:
         self.rate_hz, self.period_ns, self.policy = self.sched.rate_hz, self.sched.period_ns, self.sched.policy
         self.dt = self.period_ns * 1e-9
         self.names = names or mount_names(self.n)
-        self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS)
+        if feedforward and not getattr(port, "floor_sensors", False):
+            raise ConfigError(f"loop: the floor feedforward needs floor accelerometers, and the {port.name} port "
+                              f"has none ([sensors] floor_accel)")
+        self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS, feedforward)
         self.channels = self.kernel.layout.channels         # the recording layout of this loop
+        self._floor = bool(self.kernel.nf)                   # the kernel takes the floor accelerometers
         self.tap = RecordingTap(self.kernel)
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
-                                  stop_on_fault=stop_on_fault)
+                                  stop_on_fault=stop_on_fault, feedforward=feedforward_on)
         self.gate.bind_recorder = self.tap.bind
         self.gate.loop_time_s = lambda: self._t_s(self.gate.t_ns)
         self.check, self.limiter, self.states = self.kernel.check, self.kernel.limiter, self.kernel.states
@@ -118,11 +125,12 @@ class Loop:
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = self.sched.t0_ns
+        fl = m.floor_accel_mps2 if self._floor else ()
         try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
             code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns)
+                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
         except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
             gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
             code = -1
@@ -145,6 +153,8 @@ class Loop:
             tap.close(copied=code == 0 and slot >= 0 and not faulted)
 
     def _reason(self, code: int, m, t_ns: int) -> str:
+        if code - code % 100 == CHECK_FLOOR:
+            return floor_reason(code, self.names, m.floor_accel_mps2, self.kernel.floor_range)
         if code < LIMIT_NAN:
             return self.check.reason(code, self.kernel.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
         if code >= LIMIT_OSC:
@@ -221,6 +231,10 @@ class Loop:
     def toggle_isolation(self) -> None:
         self.gate.toggle_isolation()
 
+    def request_isolation_mode(self, mode: str) -> None:
+        """Thread/signal-safe: off / feedback / feedback_feedforward at the next period boundary (bumpless)."""
+        self.gate.request_isolation_mode(mode)
+
     def request_mode(self, mount: int, request) -> None:
         """Thread/signal-safe: an operating mode for one mount at the next period boundary (bumpless)."""
         self.gate.request_mode(mount, request)
@@ -255,6 +269,7 @@ class Loop:
     lc = property(lambda self: self.gate.lc)
     state = property(lambda self: self.gate.lc.state)
     isolation = property(lambda self: self.gate.isolation)
+    isolation_mode = property(lambda self: self.gate.isolation_mode)
     stop_reason = property(lambda self: self.gate.stop_reason,
                            lambda self, v: setattr(self.gate, "stop_reason", v))
     stop_on_fault = property(lambda self: self.gate.stop_on_fault,

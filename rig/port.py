@@ -23,6 +23,10 @@ class Measurements:
     # conversions before the newest, oldest first. None: one new sample per read (period-driven).
     new_samples: int | None = None
     accel_older: tuple = ()
+    # Floor accelerometers (ports with floor_sensors = True: [sensors] floor_accel), one per mount, read with
+    # the mount accelerometers (same conversion); the older conversions in accel_older then carry them too,
+    # after the mount accelerations. Empty: no floor sensors.
+    floor_accel_mps2: list[float] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -51,6 +55,7 @@ class Port(Protocol):
 
     n_mounts: int
     name: str
+    # optional: floor_sensors = True when read() fills Measurements.floor_accel_mps2 (the feedforward's input)
 
     def open(self) -> None: ...
 

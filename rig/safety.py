@@ -34,6 +34,7 @@ log = logging.getLogger("rig.safety")
 
 CHECK_IMPLAUSIBLE, CHECK_STUCK_ACCEL, CHECK_STUCK_STROKE = 100, 200, 300
 LIMIT_NAN, LIMIT_LATCHED, LIMIT_OSC = 400, 500, 600
+CHECK_FLOOR = 900                     # + mount: a floor accelerometer NaN or out of its range
 
 # Named limits (one float64 array, the kernel's): the check's, the limiter's, the oscillation rule's
 LIMITS = ("accel_range_mps2", "stroke_bound_m", "stale_ns", "stuck_n", "max_V", "step_V", "sat_n",
@@ -74,6 +75,18 @@ def check_sensors(cs, lim, acc, xs, ts, t_ns):
                 return CHECK_STUCK_ACCEL + i
             if _stuck(cs, _C_X, _C_SX, i, x, stuck_n):
                 return CHECK_STUCK_STROKE + i
+    return 0
+
+
+@numba.njit(cache=True)
+def check_floor(floor, range_mps2):
+    """The floor accelerometers (the feedforward's input): NaN/inf or beyond +-range_mps2 -> CHECK_FLOOR +
+    mount. Their time stamp is the mount accelerometers' (one conversion of the same module): staleness is
+    check_sensors'."""
+    for i in range(floor.shape[0]):
+        g = floor[i]
+        if not (-range_mps2 <= g <= range_mps2):
+            return CHECK_FLOOR + i
     return 0
 
 
@@ -201,6 +214,13 @@ class SensorCheck:
             return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
         age = t_ns - ts[i]
         return f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old (limit {self.stale_ns / 1e6:g} ms)"
+
+
+def floor_reason(code: int, names, floor, range_mps2: float) -> str:
+    """The one-line fault text of a check_floor code."""
+    i = code - CHECK_FLOOR
+    return (f"{names[i]}: floor accelerometer implausible: {floor[i]!r} m/s^2 (NaN or outside "
+            f"+-{range_mps2:g} m/s^2, [sensors] floor_range_mps2)")
 
 
 class CommandLimiter:

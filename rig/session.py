@@ -19,13 +19,17 @@ import sys
 import threading
 import time
 
+from controllers import isolation as _isolation
 from controllers.analysis import unstable_loops
+from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from controllers.modes import MODES, ModeRequest, make_operating_controllers, parse_request
 from rig.backends import devices, make_port
 from rig.clock import MonotonicClock
-from rig.config import Config, layout_mounts
+from rig.config import Config, layout_mounts, mount_names
 from rig.errors import ConfigError, RigError
+from rig.gate import ISOLATION_MODES
+from rig.kernel import period_entry
 from rig.lock import RigLock
 from rig.loop import Loop
 from rig.recorder import WRITER_PRIORITY, Recorder
@@ -49,7 +53,11 @@ class Session:
     period boundaries; stability_check: refuse isolation controllers `rig design` calls unstable; rate_check:
     refuse a rate the loop cannot hold (measured over its first periods, rig/scheduler.py). The devices the
     backend drives are locked for the session (rig/lock.py): a second process driving them is refused,
-    naming the holder."""
+    naming the holder.
+    Floor feedforward ([sensors] floor_accel, isolation controllers on every mount): built into the loop's
+    period (controllers/feedforward.py, [controller] ff_*), off at the start unless feedforward=True; the
+    isolation mode (off / feedback / feedback_feedforward, not an operating mode) switches live
+    (request_isolation_mode). feedforward=True without floor sensors raises ConfigError."""
 
     def __init__(self, cfg: Config, backend: str = "sim", *, controllers=None, clock=None,
                  rate_hz: float | None = None, port_options: dict | None = None, isolation: bool = True,
@@ -58,7 +66,7 @@ class Session:
                  rate_check: bool = True, stability_check: bool = False, record=None,
                  record_attrs: dict | None = None, columns: "Columns | None" = None,
                  realtime: bool = False, signals: bool = False, status: bool = False,
-                 control_file: str | None = None, mode=None, script=None) -> None:
+                 control_file: str | None = None, mode=None, script=None, feedforward: bool = False) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clock = clock if clock is not None else MonotonicClock()
@@ -69,7 +77,10 @@ class Session:
         self._port_options = dict(port_options or {})
         self._loop_kw = dict(isolation=isolation, overrun_policy=overrun_policy, names=names,
                              keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread,
-                             rate_check=rate_check)
+                             rate_check=rate_check, feedforward_on=bool(feedforward))
+        if feedforward and not cfg.sensors.floor_accel:
+            raise ConfigError(f"{cfg.source}: the floor feedforward needs floor accelerometers: "
+                              f"sensors.floor_accel = true")
         self.record = record
         self._record_attrs = dict(record_attrs or {})
         self.columns = columns
@@ -98,25 +109,17 @@ class Session:
             if self._signals:
                 self._install_signals(stack)
             stack.enter_context(RigLock(devices(self.cfg, self.backend)))
+            ctrls = self._make_controllers()
+            ffs = self._feedforward(ctrls)
+            # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
+            # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
+            period_entry(len(ctrls), bool(ffs))
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
-            ctrls = self._controllers
-            if ctrls is None and self.cfg.layout.plant == "stand":
-                ctrls = make_operating_controllers(self.cfg, self.dt, self._mode)
-            elif ctrls is None:
-                if self._mode is not None:
-                    raise ConfigError(f"{self.cfg.source}: operating modes run on the stand layout "
-                                      f"([layout] plant = \"stand\"); the machine runs isolation")
-                ctrls = make_isolation_controllers(self.cfg, self.dt)
-                if self._stability_check:
-                    check_stable(self.cfg, ctrls, self.dt)
-            elif callable(ctrls):
-                ctrls = ctrls(self.cfg, self.dt)
-            ctrls = list(ctrls)
             kw = dict(self._loop_kw)
-            if kw["names"] is None and len(ctrls) == len(layout_mounts(self.cfg)):
-                kw["names"] = layout_mounts(self.cfg)
-            self.loop = Loop(self.cfg, self.port, ctrls, clock=self.clock, rate_hz=self.rate_hz, **kw)
+            kw["names"] = self._names(ctrls)
+            self.loop = Loop(self.cfg, self.port, ctrls, clock=self.clock, rate_hz=self.rate_hz,
+                             feedforward=ffs, **kw)
             if self.realtime:     # the safety net preempts the loop it watches (a hung loop, a busy machine)
                 self.loop.sched.watchdog_priority = min(99, self.cfg.loop.rt_priority + 10)
             for t, word in self._script:
@@ -152,6 +155,40 @@ class Session:
         stack.callback(lambda: rec.set_final_attrs(**self.final_attrs()))
         loop.recorder = self.columns.adapter(rec, loop.kernel.layout) if self.columns is not None else rec
         return rec
+
+    def _make_controllers(self) -> list:
+        """The controllers, one per mount: as given, from the callable, or the layout's (operating modes on
+        stands, the isolation controllers of cfg.controller on the machine)."""
+        ctrls = self._controllers
+        if ctrls is None and self.cfg.layout.plant == "stand":
+            ctrls = make_operating_controllers(self.cfg, self.dt, self._mode)
+        elif ctrls is None:
+            if self._mode is not None:
+                raise ConfigError(f"{self.cfg.source}: operating modes run on the stand layout "
+                                  f"([layout] plant = \"stand\"); the machine runs isolation")
+            ctrls = make_isolation_controllers(self.cfg, self.dt)
+            if self._stability_check:
+                check_stable(self.cfg, ctrls, self.dt)
+        elif callable(ctrls):
+            ctrls = ctrls(self.cfg, self.dt)
+        return list(ctrls)
+
+    def _names(self, ctrls) -> tuple[str, ...] | None:
+        """The mount names: as given, else the layout's when the controllers are one per layout mount."""
+        names = self._loop_kw["names"]
+        if names is None and len(ctrls) == len(layout_mounts(self.cfg)):
+            names = layout_mounts(self.cfg)
+        return names
+
+    def _feedforward(self, ctrls) -> list | None:
+        """The floor feedforward filters, one per mount: with floor accelerometers and isolation controllers
+        on every mount (other kinds run without it)."""
+        if not self.cfg.sensors.floor_accel or not all(getattr(c, "kind", None) == _isolation.KIND for c in ctrls):
+            if self._loop_kw["feedforward_on"]:
+                raise ConfigError("Session: feedforward=True needs isolation controllers on every mount")
+            return None
+        names = self._names(ctrls) or mount_names(len(ctrls))
+        return make_feedforward_filters(self.cfg, self.dt, names=tuple(names))
 
     def __exit__(self, *exc) -> None:
         stack, self._stack = self._stack, None
@@ -231,6 +268,11 @@ class Session:
     def request_active(self, on: bool) -> None:
         self.loop.request_active(on)
 
+    def request_isolation_mode(self, mode: str) -> None:
+        """off / feedback / feedback_feedforward, bumpless, at the next period boundary (rig.gate.ISOLATION_MODES;
+        not an operating mode: request_mode)."""
+        self.loop.request_isolation_mode(mode)
+
     def reset_fault(self) -> None:
         self.loop.gate.request_reset_fault()
 
@@ -269,8 +311,8 @@ class Session:
 
     def control(self, word: str, source: str = "control") -> bool:
         """One control word (control file, script, signals, a console): `stop`; on the machine `on` / `off`
-        (isolation); with operating modes a mode request (`off`, `hold [POS]`, `track REF`, `isolate`,
-        `setpoint POS`). A word refused or not understood is logged (and recorded as an event) in one line;
+        (isolation) and `feedback` / `feedback_feedforward` (the isolation mode); with operating modes a mode
+        request (`off`, `hold [POS]`, `track REF`, `isolate`, `setpoint POS`). A word refused or not understood is logged (and recorded as an event) in one line;
         False then."""
         w = word.strip()
         low = w.lower()
@@ -279,8 +321,14 @@ class Session:
                 self.safe_stop(f"{source}: stop")
             elif not self.operated and low in ("on", "isolation on", "off", "isolation off"):
                 self.request_isolation(low.endswith("on"))
+            elif not self.operated and low in ISOLATION_MODES[1:]:
+                try:
+                    self.request_isolation_mode(low)
+                except ValueError as e:          # feedback_feedforward without the floor feedforward
+                    raise RigError(str(e)) from None
             elif not self.operated:
-                raise RigError(f"unknown control word {w!r} (expected on, off or stop)")
+                raise RigError(f"unknown control word {w!r} (expected on, off, feedback, feedback_feedforward "
+                               f"or stop)")
             else:
                 self.request_mode(self.parse(w, source))
             return True
@@ -317,7 +365,8 @@ class Session:
         lp = self.loop
         m = lp.last_meas
         return {"t_s": (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None else 0.0, "state": lp.state.name,
-                "isolation": lp.isolation, "fault_reason": lp.lc.fault_reason, "iterations": lp.iterations,
+                "isolation": lp.isolation, "isolation_mode": lp.isolation_mode, "fault_reason": lp.lc.fault_reason,
+                "iterations": lp.iterations,
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,
                 "accel_mps2": list(m.accel_mps2) if m is not None else None, "timing_us": lp.timing_us(),
@@ -399,7 +448,7 @@ class _StatusLine(_Helper):
             sys.stderr.flush()
 
 
-_WORDS = ("stop", "on", "off", "isolation on", "isolation off")
+_WORDS = ("stop", "on", "off", "isolation on", "isolation off") + ISOLATION_MODES[1:]
 
 
 class _ControlFile(_Helper):

@@ -9,6 +9,7 @@ Plants (any object with these):
   .step(valve_cmd_V: list[float])  one loop period with the command held
   .accel_mps2, .stroke_m           sensor values after the step (lists, one per mount; new list objects
                                    every step, never edited in place: read() hands them on without a copy)
+  .floor_sensors, .floor_accel_mps2 optional: the floor accelerometers ([sensors] floor_accel)
 Four mounts: sim_backend.rig_plant.RigPlant. Actuators alone on their stands (the `stand` layout, one mount
 the prototype): sim_backend.actuator.StandBank. One stand for a chirp: StandPlant wrapped by `StandAdapter`
 (n_mounts = 1; stroke_m is the stand's position_m).
@@ -16,7 +17,7 @@ the prototype): sim_backend.actuator.StandBank. One stand for a chirp: StandPlan
 Fault knobs (`inject`), each from time at_s on (ns resolution), per mount:
   drop     the sample is no longer refreshed: values and time stamp held        -> stale
   stale    time stamps lag by age_s (a driver delivering old samples)           -> stale
-  nan      the sensor ("accel" or "stroke") reads NaN                           -> implausible
+  nan      the sensor ("accel", "stroke" or "floor") reads NaN                 -> implausible
   stuck    the sensor value freezes while the time stamp stays fresh           -> stuck
   range    the sensor reads `value` (default far outside the range)            -> implausible
   device   the backend reports a device fault text                             -> device fault
@@ -38,6 +39,7 @@ from sim_backend.rig_plant import FloorMotion, RigPlant
 
 KINDS = ("drop", "stale", "nan", "stuck", "range", "device", "overrun")
 _NO_SPOOL = ()                 # Measurements.spool_actual of the simulated backend: no spool feedback
+_NO_FLOOR: list = []           # Measurements.floor_accel_mps2 without floor sensors (never written to)
 
 
 @dataclass
@@ -83,6 +85,7 @@ class SimBackend(PortContext):
         self.dt = float(dt)
         self.dt_ns = int(round(dt * 1e9))
         self.n_mounts = int(n_mounts if n_mounts is not None else len(plant.accel_mps2))
+        self.floor_sensors = bool(getattr(plant, "floor_sensors", False))
         self.clock = clock
         self.cmd_delay_periods = int(cmd_delay_periods)
         n = self.n_mounts
@@ -134,8 +137,9 @@ class SimBackend(PortContext):
     def _step(self) -> None:
         """One plant period with the held command (delayed by cmd_delay_periods)."""
         plant = self.plant
-        if self.sample_driven and self._k > self._k_read:
-            self._older.append(plant.accel_mps2)       # a conversion the loop did not read (a fresh list)
+        if self.sample_driven and self._k > self._k_read:      # a conversion the loop did not read
+            self._older.append(plant.accel_mps2 + plant.floor_accel_mps2 if self.floor_sensors
+                               else plant.accel_mps2)                    # (a fresh list either way)
         if self.cmd_delay_periods:
             self._pipe.append(self._cmd)
             plant.step(self._pipe.pop(0))
@@ -166,10 +170,11 @@ class SimBackend(PortContext):
             else:
                 new, older = None, ()
             self._k_read = self._k
+            fl = plant.floor_accel_mps2 if self.floor_sensors else _NO_FLOOR
             if not self._faults:
                 # the plant publishes fresh lists every step: handed on without a copy
-                return Measurements(t_ns, acc, xs, [t_ns] * n, _NO_SPOOL, None, new, older)
-            meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n, [], None, new, older)
+                return Measurements(t_ns, acc, xs, [t_ns] * n, _NO_SPOOL, None, new, older, fl)
+            meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n, [], None, new, older, list(fl))
             self._apply_faults(t_ns, meas)             # (the knobs edit the lists in place)
             return meas
         self._k_read = self._k
@@ -207,8 +212,9 @@ class SimBackend(PortContext):
             raise RigError(f"sim backend: unknown fault knob {kind!r} (expected one of {', '.join(KINDS)})")
         if not 0 <= mount < self.n_mounts:
             raise RigError(f"sim backend: fault knob mount {mount} outside 0..{self.n_mounts - 1}")
-        if sensor not in ("accel", "stroke"):
-            raise RigError(f"sim backend: fault knob sensor {sensor!r} (expected accel or stroke)")
+        if sensor not in ("accel", "stroke", "floor") or (sensor == "floor" and not self.floor_sensors):
+            raise RigError(f"sim backend: fault knob sensor {sensor!r} (expected accel, stroke"
+                           f"{', floor' if self.floor_sensors else ''})")
         self._faults.append(_Fault(kind, mount, int(round(at_s * 1e9)), sensor, int(round(age_s * 1e9)),
                                    float(value), int(round(extra_s * 1e9)), every, text))
 
@@ -221,7 +227,7 @@ class SimBackend(PortContext):
             if rel < f.at_ns:
                 continue
             i = f.mount
-            field = m.accel_mps2 if f.sensor == "accel" else m.stroke_m
+            field = {"accel": m.accel_mps2, "stroke": m.stroke_m, "floor": m.floor_accel_mps2}[f.sensor]
             k = f.kind
             if k == "drop":
                 if f.held is None:                         # the last delivered sample, before the drop

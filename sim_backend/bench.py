@@ -25,12 +25,12 @@ def bench_sim(cfg: Config, seconds: float = 100.0, rate_hz: float = 5000.0, repe
     floor = FloorMotion.from_config(cfg, dt)
     g = floor.next_block(n)
     cmd = 0.01 * np.random.default_rng(0).standard_normal((n, 4))
-    simulate_rig(cfg, dt, cmd[:16], g[:16, :4], g[:16, 4:])          # compile / warm the cache
+    simulate_rig(cfg, dt, cmd[:16], g[:16, :4], g[:16, 4:8])          # compile / warm the cache
     batch = []
     for r in range(repeats):
         say(f"four-mount batch simulation {r + 1}/{repeats}: {seconds:g} s at {rate_hz:g} Hz")
         t0 = time.perf_counter()
-        simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:])
+        simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:8])
         batch.append(time.perf_counter() - t0)
     say("four-mount stepped plant (one period per call, as the loop's sim backend uses it)")
     plant = RigPlant(cfg, dt, floor=FloorMotion(dt, seed=2))

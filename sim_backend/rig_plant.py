@@ -15,6 +15,7 @@ Inputs: u [V] (4), x_g [m] (4), v_g [m/s] (4). Outputs: see OUTPUTS.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -211,26 +212,42 @@ class FloorMotion:
         self._i = 0
 
     def next_block(self, n: int) -> np.ndarray:
-        """The next n periods as an (n, 2 n_mounts) array: x_g then v_g per mount."""
+        """The next n periods as an (n, 3 n_mounts) array: x_g, v_g, then a_g per mount, the floor acceleration
+        (what a floor accelerometer at the mount reads, before its noise)."""
         while self._i + n + 1 > len(self._x):
             self._more()
         seg = self._x[self._i:self._i + n + 1]
         prev = np.vstack([self._prev[None, :], seg[:-2]]) if n > 1 else self._prev[None, :]
         v = (seg[1:] - prev) / (2 * self.dt)          # central difference, exact for the band-limited signal
+        a = (seg[1:] - 2 * seg[:n] + prev) / (self.dt * self.dt)     # central second difference
         self._prev = seg[n - 1].copy()
         self._i += n
-        return np.ascontiguousarray(np.hstack([seg[:n], v]))
+        return np.ascontiguousarray(np.hstack([seg[:n], v, a]))
 
     def take(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         g = self.next_block(n)
-        return g[:, :self.n], g[:, self.n:]
+        return g[:, :self.n], g[:, self.n:2 * self.n]
+
+
+def plant_config(cfg: Config) -> Config:
+    """The configured model with [plant_error] applied: what the simulated rig's actuators really are (the
+    controllers and the feedforward keep the configured values)."""
+    e = cfg.plant_error
+    if all(getattr(e, k) == 1.0 for k in ("K_L", "C", "w_nv", "zeta", "K_Q", "K_C")):
+        return cfg
+    a, v = cfg.actuator, cfg.valve
+    return cfg.replace(actuator=dataclasses.replace(a, K_L=a.K_L * e.K_L, C=a.C * e.C),
+                       valve=dataclasses.replace(v, w_nv=v.w_nv * e.w_nv, zeta=v.zeta * e.zeta, K_Q=v.K_Q * e.K_Q,
+                                                 K_C=v.K_C * e.K_C))
 
 
 class RigPlant:
     """The four-mount rig stepped one loop period at a time (the simulated hardware behind the port).
 
     After `step(valve_cmd_V)` the attributes hold the values at the new instant: accel_mps2 and stroke_m
-    (with sensor noise), and the true table_m / tool_m (Y), spool and floor_m for evaluation."""
+    (with sensor noise), floor_accel_mps2 (the floor accelerometers, [sensors] floor_accel, with their own
+    noise), and the true table_m / tool_m (Y), spool and floor_m for evaluation. The actuators are the
+    configured ones with [plant_error] applied (plant_config)."""
 
     n_mounts = 4
     BLOCK = 256                     # periods of floor and sensor noise drawn at once (a refill costs ~20 us)
@@ -239,10 +256,11 @@ class RigPlant:
 
     def __init__(self, cfg: Config, dt: float, *, floor: FloorMotion | None = None, seed: int = 0,
                  accel_noise_mps2: float | None = None, stroke_noise_m: float = 2e-8,
-                 modal: ModalModel | None = None):
+                 modal: ModalModel | None = None, floor_accel: bool | None = None,
+                 floor_noise_mps2: float | None = None):
         self.cfg = cfg
         self.dt = dt
-        self.ss = rig_state_space(cfg, modal)
+        self.ss = rig_state_space(plant_config(cfg), modal)
         self.Ad, Bu, G0, G1 = discretize_foh_ground(self.ss, dt)
         self.Bd = np.ascontiguousarray(np.hstack([Bu, G0, G1]))      # inputs: u[k], g[k], g[k+1]
         self.C = np.ascontiguousarray(self.ss.C)
@@ -256,6 +274,14 @@ class RigPlant:
         if accel_noise_mps2 is None:                  # white noise of that density, sampled at 1/dt
             accel_noise_mps2 = self.ACCEL_NOISE_DENSITY * math.sqrt(0.5 / dt)
         self.noise_scale = np.array([accel_noise_mps2] * 4 + [stroke_noise_m] * 4)
+        # floor accelerometers: their noise from a generator of their own, so that fitting them leaves every
+        # other sequence of the simulation as it was
+        self.floor_sensors = cfg.sensors.floor_accel if floor_accel is None else bool(floor_accel)
+        if floor_noise_mps2 is None:
+            floor_noise_mps2 = cfg.sensors.floor_noise_mps2_per_rthz * math.sqrt(0.5 / dt)
+        self.floor_noise_mps2 = floor_noise_mps2
+        self._floor_rng = np.random.default_rng([seed, 0xF100])
+        self.floor_accel_mps2 = [0.0] * 4
         self.t_s = 0.0
         self.k = 0
         self._next = None
@@ -265,12 +291,19 @@ class RigPlant:
         self._publish()
 
     def _draw(self):
-        g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 8))
-        return g, np.ascontiguousarray(self.rng.standard_normal((self.BLOCK, 8)) * self.noise_scale)
+        g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 12))
+        nz = np.ascontiguousarray(self.rng.standard_normal((self.BLOCK, 8)) * self.noise_scale)
+        fa = None
+        if self.floor_sensors:          # a_g plus the sensor's noise (a floor without a_g: noise alone)
+            fa = self._floor_rng.standard_normal((self.BLOCK, 4)) * self.floor_noise_mps2
+            if g.shape[1] >= 12:
+                fa += g[:, 8:12]
+            fa = fa.tolist()
+        return g, nz, fa
 
     def _refill(self):
         nxt, self._next = self._next, None
-        self._g, self._nz = nxt if nxt is not None else self._draw()
+        self._g, self._nz, self._fa = nxt if nxt is not None else self._draw()
         self._gi = 0
 
     def prefetch(self) -> None:
@@ -287,6 +320,8 @@ class RigPlant:
         self.tool_m = y[I_TOOL + 1]
         self.spool = y[I_SPOOL:I_SPOOL + 4]
         self.floor_m = self.w[4:8].tolist()
+        if self._fa is not None:
+            self.floor_accel_mps2 = self._fa[self._gi]
 
     def step(self, valve_cmd_V) -> None:
         """Hold valve_cmd_V (4 volts) over one period and advance; outputs then refer to the new instant."""

@@ -1,15 +1,16 @@
-"""The ADAM-6024-style analog module's Modbus register map (drivers/devicemaps/adam6024_modbus.md): holding
-registers, 0-based address = 4xxxx - 40001, and the raw <-> volts scaling of its converters."""
+"""The analog input module's Modbus register map (drivers/devicemaps/adam6024_modbus.md; ADAM-6024-style
+registers, eight AI channels as an ADAM-6017 has): holding registers, 0-based address = 4xxxx - 40001, and the
+raw <-> volts scaling of its converters."""
 from __future__ import annotations
 
-REG_AI, N_AI = 0, 6               # 40001-40006 AI ch0-5 (ch0-3 the accelerometers of the four mounts)
+REG_AI, N_AI = 0, 8               # 40001-40008 AI ch0-7 (ch0-3 the mount accelerometers, ch4-7 the floor ones)
 REG_COUNT = 8                     # 40009 conversion counter (+1 per ADC conversion, wraps at 65536)
 REG_STATUS = 9                    # 40010 status: bit0 host watchdog tripped (write 0 to clear)
 REG_AO = 10                       # 40011-40012 AO ch0-1
 REG_AO_SAFE = 12                  # 40013-40014 AO safe values, applied when the host watchdog trips
 REG_WDOG = 20                     # 40021 host watchdog timeout in 0.1 s (0 = off)
-# 40025-40344 conversion FIFO, newest first: FIFO_DEPTH entries of [counter, AI ch0-3]
-REG_FIFO, FIFO_DEPTH, FIFO_WIDTH = 24, 64, 5
+# 40025-40600 conversion FIFO, newest first: FIFO_DEPTH entries of [counter, AI ch0-7]
+REG_FIFO, FIFO_DEPTH, FIFO_WIDTH = 24, 64, 1 + N_AI
 N_REGS = REG_FIFO + FIFO_DEPTH * FIFO_WIDTH
 
 

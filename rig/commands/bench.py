@@ -12,6 +12,8 @@
                                                   "kernel_us": the compiled period alone, per layout (the
                                                   least of 5 x 20000 back-to-back calls: the code's cost
                                                   without the shared host's noise)
+  rig bench loop --feedforward [--rounds R] ...   the feedback-only loop and the loop with the floor
+                                                  accelerometers and feedforward, alternating in one run
   rig bench loop --console ...                    blocks without and with the operator console and a browser
                                                   on its page, alternating (rig/console/bench.py)
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
@@ -24,6 +26,15 @@
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
 update + limit + write + record-push within one period; missed_deadline_fraction is
 (overruns + skipped periods) / (iterations + skipped periods).
+
+`loop --feedforward` runs R rounds of two runs of --seconds each, feedback only ([sensors] floor_accel off:
+the loop as without the feedforward) and feedback + feedforward (floor accelerometers read, checked and
+recorded, the feedforward in every period), in the order AB, BA, AB, ... so that a drift of the shared machine
+falls on both alike; its --json prints {"rate_hz", "rounds", "seconds", "feedback": {...}, "feedback_feedforward":
+{...}} (each: "compute_us" and "wake_latency_us" {"p50","p99","max"} over all its periods, "compute_p99_us_by_round",
+"overruns", "iterations"), "compute_p99_difference_us", "compute_p50_difference_us" (feedforward minus
+feedback, pooled) and "compute_p99_paired_difference_us" (the median over rounds of the difference of the two
+runs of a round, which sit next to each other in time: the figure least moved by a drifting shared machine).
 """
 from __future__ import annotations
 
@@ -70,6 +81,8 @@ def add_arguments(p) -> None:
     lp.add_argument("--layout", choices=("machine", "prototype", "both"), default="machine",
                     help="machine: four mounts (default); prototype: one mount on its stand, tracking; both: "
                          "alternately in one run, with the ratio of their compute p99")
+    lp.add_argument("--feedforward", action="store_true",
+                    help="compare the feedback-only loop with the loop with floor feedforward, alternating runs")
     lp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
     console_bench.add_arguments(lp)
     sp = sub.add_parser("sim", help="simulation speed of the plant")
@@ -185,6 +198,10 @@ def bench_loop(args) -> int:
     if args.empty:
         return _empty_loop(cfg, args, rate, clock)
     layout = getattr(args, "layout", "machine")
+    if args.feedforward and layout != "machine":
+        raise RigError("--feedforward: the machine's loop (the stand layouts have no floor accelerometers)")
+    if args.feedforward:
+        return _feedforward_ab(cfg, args, rate)
     if layout != "machine":
         return _bench_layouts(cfg, args, rate, layout)
     if args.console:
@@ -226,6 +243,75 @@ def bench_loop(args) -> int:
     n = min(loop.iterations, loop.keep)
     _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0, steal1, cpu)
     _print_loop_figures(out, args.json, loop.skipped)
+    return 0
+
+
+def _feedforward_ab(cfg, args, rate: float) -> int:
+    """Feedback only and feedback + feedforward, alternating runs (AB BA AB ...), recording on, each run its
+    own session; pooled compute and wake-up figures per path and their difference."""
+    import dataclasses
+    if not 1 <= args.rounds <= 100:              # (--rounds is shared with --console: rig/console/bench.py)
+        raise RigError(f"--rounds: expected 1 to 100, got {args.rounds}")
+    realtime = cfg.loop.realtime and not args.no_realtime
+    paths = ("feedback", "feedback_feedforward")
+    comp, wake = {p: [] for p in paths}, {p: [] for p in paths}
+    out = {"rate_hz": rate, "rounds": args.rounds, "seconds": args.seconds}
+    per_round = {p: [] for p in paths}
+    counts = {p: {"iterations": 0, "overruns": 0} for p in paths}
+    for r in range(args.rounds):
+        for path in (paths if r % 2 == 0 else paths[::-1]):
+            ff = path == paths[1]
+            c = cfg.replace(sensors=dataclasses.replace(cfg.sensors, floor_accel=ff))
+            clock = MonotonicClock(None if args.spin_us is None else int(round(args.spin_us * 1e3)))
+            fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+            os.close(fd)
+            try:
+                session = Session(c, "sim", clock=clock, rate_hz=rate, overrun_policy=args.policy,
+                                  keep_timing=int(math.ceil(args.seconds * rate)) + 16, stop_on_fault=False,
+                                  record=tmp, record_attrs={"command": "rig bench loop --feedforward"},
+                                  realtime=realtime, feedforward=ff)
+                with session:
+                    loop = session.loop
+                    loop.activate()
+                    session.run(seconds=args.seconds)
+            finally:
+                os.unlink(tmp)
+            n = min(loop.iterations, loop.keep)
+            cu = np.frombuffer(loop.compute_ns, dtype="<i8")[:n] * 1e-3
+            comp[path].append(cu)
+            wake[path].append(np.frombuffer(loop.wake_ns, dtype="<i8")[:n] * 1e-3)
+            per_round[path].append(round(float(np.percentile(cu, 99)), 2))
+            counts[path]["iterations"] += loop.iterations
+            counts[path]["overruns"] += loop.overruns
+            if loop.lc.fault_reason:
+                print(f"rig bench loop: note: {path}: the simulated rig faulted: {loop.lc.fault_reason}",
+                      file=sys.stderr)
+            print(f"rig bench loop --feedforward: round {r + 1}/{args.rounds} {path}: compute p99 "
+                  f"{per_round[path][-1]:.2f} us (mode {loop.isolation_mode})", file=sys.stderr)
+
+    def pct(a):
+        return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2),
+                "max": round(float(a.max()), 2)}
+    for p in paths:
+        cu, wu = np.concatenate(comp[p]), np.concatenate(wake[p])
+        out[p] = {"compute_us": pct(cu), "wake_latency_us": pct(wu), "compute_p99_us_by_round": per_round[p],
+                  **counts[p]}
+    for q in ("p99", "p50"):
+        out[f"compute_{q}_difference_us"] = round(out[paths[1]]["compute_us"][q] - out[paths[0]]["compute_us"][q], 2)
+    out["compute_p99_paired_difference_us"] = round(float(np.median(np.subtract(per_round[paths[1]],
+                                                                                per_round[paths[0]]))), 2)
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"{args.rounds} rounds of {args.seconds:g} s per path at {rate:g} Hz, alternating (AB BA ...)")
+    for p in paths:
+        c, w = out[p]["compute_us"], out[p]["wake_latency_us"]
+        print(f"  {p:21s} compute p50 {c['p50']:6.2f} us  p99 {c['p99']:6.2f} us  max {c['max']:8.1f} us | "
+              f"wake p99 {w['p99']:6.1f} us | p99 by round {out[p]['compute_p99_us_by_round']} | "
+              f"overruns {out[p]['overruns']}")
+    print(f"  feedforward - feedback: compute p50 {out['compute_p50_difference_us']:+.2f} us, "
+          f"p99 {out['compute_p99_difference_us']:+.2f} us (pooled); p99 paired by round (median) "
+          f"{out['compute_p99_paired_difference_us']:+.2f} us")
     return 0
 
 

@@ -1,5 +1,6 @@
 """`rig hil`: the control loop through the real drivers (CANopen valves, Modbus TCP accelerometers, serial
-displacement transducers) against the emulated rig under broadband floor vibration; isolation off, then on.
+displacement transducers) against the emulated rig under broadband floor vibration; isolation off, then
+feedback, then (with floor accelerometers, [sensors] floor_accel) feedback + floor feedforward, switched live.
 
   rig hil [--config F] [--seconds N] [--rate HZ] [--record FILE] [--json]
   rig hil --bench [--seconds N] [--json]        driver round trips, p50/p99/max (us): in the loop's pattern
@@ -8,12 +9,18 @@ displacement transducers) against the emulated rig under broadband floor vibrati
 Without --config the run uses drivers/devicemaps/hil.toml (the HIL rate and the isolation controller re-tuned
 for it, see controllers/tune_hil.py); a config of your own should carry a [controller] section
 tuned for [hil] rate_hz. The run uses [hil] rate_hz (Modbus request/response limits the rate) and [hil]
-stale_s as the staleness limit of the drivers and of the loop's sensor check. The first half is isolation off, the second on; [hil] settle_s
-at the start of each half is not metered. isolation_reduction_db = 20 log10(rms table motion off / on), the
-true table motion of the emulated plant under the same floor vibration.
+stale_s as the staleness limit of the drivers and of the loop's sensor check. The run is split evenly into the
+modes, switched live through the loop's mode request (bumpless): off, feedback, and feedback_feedforward when
+the floor accelerometers are fitted (hil.toml fits them: the module's AI ch4-7); [hil] settle_s at the start of
+each mode is not metered. isolation_reduction_db = 20 log10(rms table motion off / feedback),
+feedforward_reduction_db the same for feedback + feedforward (null without floor accelerometers): the true table
+motion of the emulated plant. The modes see successive stretches of the floor motion (one real-time run), so
+the figures also carry the floor's own variation; "transmissibility_db" (table rms over floor rms per mode)
+takes the floor's level out.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "recording"} on stdout; progress goes to stderr. Exit 1 after a fault; stopped
-early (Ctrl-C, SIGTERM) it says so, gives no isolation figure and exits 130.
+"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "recording"} on stdout; progress
+goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no isolation figure
+and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
@@ -41,6 +48,7 @@ from rig.backends import default_config, make_port
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import RigError
+from rig.gate import ISOLATION_MODES
 from rig.port import Commands
 from rig.rt import raise_priority
 from rig.session import Session
@@ -53,7 +61,8 @@ CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/h
 
 def add_arguments(p) -> None:
     p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=None, metavar="N",
-                   help="run length, isolation off then on, half each (default [hil] seconds)")
+                   help="run length, split evenly into the modes: off, feedback (and feedback + feedforward with "
+                        "floor accelerometers) (default [hil] seconds)")
     p.add_argument("--rate", type=cliargs.rate_hz(le=5000), default=None, metavar="HZ",
                    help="loop rate (default [hil] rate_hz)")
     cliargs.output_arg(p, "--record", metavar="FILE", default=None,
@@ -88,12 +97,15 @@ def _pct(xs: list[float]) -> dict:
 
 
 class _Phases(threading.Thread):
-    """Isolation off for the first half, on for the second; meters the table motion after settle_s."""
+    """The modes in turn, an equal share of the run each, switched through the loop's mode request; meters the
+    table motion of each after settle_s."""
 
-    def __init__(self, loop, rig, seconds: float, settle_s: float, quiet: bool, priority: int = 0):
+    def __init__(self, loop, rig, seconds: float, settle_s: float, quiet: bool, priority: int = 0,
+                 modes=ISOLATION_MODES[:2]):
         super().__init__(name="hil-phases", daemon=True)
         self.priority = priority
-        self.loop, self.rig, self.half, self.settle, self.quiet = loop, rig, seconds / 2, settle_s, quiet
+        self.modes = tuple(modes)
+        self.loop, self.rig, self.share, self.settle, self.quiet = loop, rig, seconds / len(modes), settle_s, quiet
         self._halt = threading.Event()
 
     def elapsed(self) -> float:
@@ -104,24 +116,22 @@ class _Phases(threading.Thread):
         # every thread of this process runs SCHED_FIFO where allowed: a normal thread preempted while it
         # holds the GIL would stall the loop and the drivers behind it
         raise_priority(self.priority)
-        stage = 0
+        k, metering = 0, False
         last_note = 0.0
         while not self._halt.wait(0.005):
             t = self.elapsed()
-            if stage == 0 and t >= self.settle:
-                self.rig.phase("off")
-                stage = 1
-            elif stage == 1 and t >= self.half:
+            if k + 1 < len(self.modes) and t >= (k + 1) * self.share:
+                k += 1
+                metering = False
                 self.rig.phase(None)
-                self.loop.request_isolation(True)
-                stage = 2
-            elif stage == 2 and t >= self.half + self.settle:
-                self.rig.phase("on")
-                stage = 3
+                self.loop.request_isolation_mode(self.modes[k])
+            elif not metering and t >= k * self.share + self.settle:
+                metering = True
+                self.rig.phase(self.modes[k])
             if not self.quiet and t - last_note >= 1.0:
                 last_note = t
-                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} isolation "
-                      f"{'on' if self.loop.isolation else 'off'} overruns {self.loop.overruns}", file=sys.stderr)
+                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} isolation mode {self.loop.isolation_mode} "
+                      f"overruns {self.loop.overruns}", file=sys.stderr)
 
     def stop(self) -> None:
         self._halt.set()
@@ -153,13 +163,14 @@ def run(args) -> int:
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
-                               "isolation_reduction_db", "recording")}
+                               "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db",
+                               "recording")}
     if res["stop_reason"] in ("SIGINT", "SIGTERM"):
         print(f"rig hil: interrupted ({res['stop_reason']}) at t = {res['t_s']:.1f} s of {seconds:g} s: the run "
               f"did not finish, no isolation figure; {out['samples_recorded']} samples recorded to "
               f"{out['recording']}", file=sys.stderr)
         if args.json:
-            print(json.dumps(dict(out, isolation_reduction_db=None)))
+            print(json.dumps(dict(out, isolation_reduction_db=None, feedforward_reduction_db=None)))
         return 130
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
@@ -172,9 +183,15 @@ def run(args) -> int:
         print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at "
               f"{cfg.loop.rate_hz:g} Hz, {out['faults']} faults, {out['overruns']} overruns, "
               f"{out['samples_recorded']} samples recorded to {out['recording']}")
-        red = out["isolation_reduction_db"]
-        print(f"isolation reduction of table motion: {'n/a' if red is None else f'{red:.1f} dB'} "
-              f"(rms {res['table_rms_off_m'] * 1e6:.3f} um off -> {res['table_rms_on_m'] * 1e6:.3f} um on)")
+        for key, mode in (("isolation_reduction_db", "feedback"), ("feedforward_reduction_db",
+                                                                  "feedback_feedforward")):
+            if mode not in res["table_rms_m"]:
+                continue
+            red = out[key]
+            print(f"reduction of table motion, {mode.replace('_', ' + ')}: "
+                  f"{'n/a' if red is None else f'{red:.1f} dB'} (rms {res['table_rms_m']['off'] * 1e6:.3f} um off -> "
+                  f"{res['table_rms_m'][mode] * 1e6:.3f} um; table/floor "
+                  f"{out['transmissibility_db'].get('off')} -> {out['transmissibility_db'].get(mode)} dB)")
     return 1 if res["faults"] else 0
 
 
@@ -187,9 +204,11 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     if not quiet:
         print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
               f"at {rate:g} Hz", file=sys.stderr)
+    modes = ISOLATION_MODES if cfg.sensors.floor_accel else ISOLATION_MODES[:2]
     session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
                       keep_timing=int(seconds * rate) + 16, record=record,
-                      record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial"},
+                      record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial",
+                                    "modes": ",".join(modes)},
                       realtime=realtime, signals=True, stability_check=stability_check)
     phases = None
     reason = None
@@ -198,7 +217,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         rig = port.rig
         try:
             time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
-            phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / 4), quiet, cfg.hil.device_priority)
+            phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / (2 * len(modes))), quiet,
+                             cfg.hil.device_priority, modes)
             phases.start()
             with inject.Armed(session, injections):
                 reason = session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
@@ -208,15 +228,22 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
             lost = getattr(port.accel, "lost_conversions", 0)
     rec = session.recorder
-    off = rig.table_rms_m("off") if "off" in rig.meter else math.nan
-    on = rig.table_rms_m("on") if "on" in rig.meter else math.nan
-    red = 20 * math.log10(off / on) if off > 0 and on > 0 else math.nan
+    table = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
+    tr = {m: 20 * math.log10(table[m] / rig.floor_rms_m(m)) if m in rig.meter and table[m] > 0 else math.nan
+          for m in modes}
+
+    def reduction(mode):
+        off, on = table["off"], table.get(mode, math.nan)
+        red = 20 * math.log10(off / on) if off > 0 and on > 0 else math.nan
+        return None if math.isnan(red) else round(red, 2)
     return {"transports": ["canopen", "modbus_tcp", "serial"],
             "faults": 1 if loop.lc.fault_reason else 0, "overruns": loop.overruns, "iterations": loop.iterations,
             "samples_recorded": rec.rows_written if rec is not None else 0,
-            "isolation_reduction_db": None if math.isnan(red) else round(red, 2),
-            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_off_m": off,
-            "table_rms_on_m": on, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
+            "isolation_reduction_db": reduction("feedback"),
+            "feedforward_reduction_db": reduction(ISOLATION_MODES[2]),
+            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
+            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": table,
+            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
             "lost_conversions": lost, "stop_reason": reason,
             "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
 

@@ -13,8 +13,10 @@ Switching isolation while running (bumpless; stroke centring stays on):
   --control FILE                   the file is polled every 0.1 s; write one word into it:
                                    `on` / `off` (isolation), `stop` (safe stop)
 Only changes of the control file after the start count; its folder must exist.
+  `feedback` / `feedback_feedforward`  the isolation mode (with floor accelerometers, [sensors] floor_accel)
 The status line on stderr shows state, isolation (SUSPENDED and the mounts while the saturation recovery
-holds it off), loop timing, overruns, strokes and commands.
+holds it off), loop timing, overruns, strokes and commands. With --record the machine's run ends with the
+recording's vibration-criterion classes per isolation mode (rig report REC: the curves).
 
 Without --config the sim and hardware backends run the Table 1 defaults and the hil backend its own design
 (drivers/devicemaps/hil.toml: the HIL rate and the controller tuned for it). At start-up `rig run` refuses
@@ -54,11 +56,11 @@ import tempfile
 from pathlib import Path
 
 import drivers
-from rig import cliargs, inject, operated
+from rig import cliargs, inject, operated, report
 from rig.backends import BACKENDS, default_config
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
-from rig.errors import RigError
+from rig.errors import RecordingError, RigError
 from rig.lifecycle import State
 from rig.session import Session
 
@@ -84,6 +86,9 @@ def add_arguments(p) -> None:
                    help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
+    p.add_argument("--feedforward", action="store_true",
+                   help="floor feedforward on from the start (needs [sensors] floor_accel = true; switch it while "
+                        "running with the control file's feedback / feedback_feedforward)")
     cliargs.output_arg(p, "--record", metavar="FILE", default=None, help="record the run to this HDF5 file")
     p.add_argument("--control", metavar="FILE", default=None,
                    help="control file polled every 0.1 s: write `on`, `off` or `stop` into it")
@@ -231,7 +236,7 @@ def run(args) -> int:
         return Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
                        record=record, record_attrs=attrs, realtime=cfg.loop.realtime and not args.no_realtime,
                        signals=True, status=not args.quiet, control_file=args.control, mode=start, script=script,
-                       stop_on_fault=not args.console, stability_check=not args.force)
+                       stop_on_fault=not args.console, stability_check=not args.force, feedforward=args.feedforward)
 
     def started(session) -> float:
         """Log the start; the settle time before activation."""
@@ -272,9 +277,19 @@ def run(args) -> int:
         finally:
             if tmp:
                 os.unlink(tmp)
+    elif args.record:
+        _vc_summary(args.record)
     if loop.lc.state is State.FAULT:
         return 1                          # the reason was logged once, when it happened
     return 0
+
+
+def _vc_summary(path) -> None:
+    """The recording's VC classes per isolation mode, one line (rig report REC gives the curves)."""
+    try:
+        log.info("%s (curves: rig report %s)", report.summary(report.vc_of_recording(path)), path)
+    except RecordingError as e:
+        log.info("no VC report: %s", e)
 
 
 def _report(record, png, names, title: str | None = None) -> None:

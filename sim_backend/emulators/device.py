@@ -1,6 +1,8 @@
 """Entry point of an emulated device process: `python -m sim_backend.emulators.device KIND STATE_FILE ...`.
 
-  modbus STATE_FILE V_PER_MPS2 PRIORITY   prints `PORT <n>` once listening on 127.0.0.1:<n>
+  modbus STATE_FILE V_PER_MPS2 PRIORITY [FLOOR_V_PER_MPS2 FLOOR_CHANNELS]
+                                          prints `PORT <n>` once listening on 127.0.0.1:<n>
+                                          (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order)
   serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
 The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
 """
@@ -43,7 +45,9 @@ def main(argv: list[str]) -> int:
     state = SharedFile(path)
     if kind == "modbus":
         from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only (pymodbus)
-        modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]))
+        floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))
+        modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]), floor_V_per_mps2=floor[0],
+                            floor_channels=floor[1])
     elif kind == "serial":
         from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
         serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))

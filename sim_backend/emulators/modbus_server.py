@@ -1,13 +1,15 @@
-"""ADAM-6024-style analog I/O module: a pymodbus TCP server on 127.0.0.1, run in its own process.
+"""ADAM-6024-style analog I/O module with eight AI channels: a pymodbus TCP server on 127.0.0.1, run in its own
+process.
 
 Register map (drivers/devicemaps/adam6024_modbus.md): holding registers, 0-based address = 4xxxx - 40001.
-  0-5   AI ch0-5  (40001-40006)  0..65535 = -10..+10 V; ch0-3 accelerometers of the four mounts
+  0-7   AI ch0-7  (40001-40008)  0..65535 = -10..+10 V; ch0-3 accelerometers of the four mounts, the floor
+                                 accelerometers on their channels (floor_channels; others 0 V)
   8     40009  conversion counter (+1 per ADC conversion, wraps at 65536)
   9     40010  module status: bit0 host watchdog tripped (write 0 to clear)
   10-11 AO ch0-1  (40011-40012)  0..65535 = -10..+10 V
   12-13 40013-40014 AO safe values, applied when the host watchdog trips
   20    40021  host watchdog timeout in 0.1 s (0 = off)
-  24-343 40025-40344  conversion FIFO, newest first: 64 entries of [counter, AI ch0-3] (one conversion per
+  24-599 40025-40600  conversion FIFO, newest first: 64 entries of [counter, AI ch0-7] (one conversion per
                      plant step, i.e. per SYNC; entries not yet filled carry counter = newest + 1)
 The accelerometer voltages come from the shared plant state; fault knobs from the shared MODBUS_MODE.
 """
@@ -20,17 +22,23 @@ import time
 
 from pymodbus.constants import ExcCodes
 
-from drivers.protocol.modbus_map import (N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT, REG_FIFO,
-                                        REG_STATUS, REG_WDOG, volts_to_raw)
+from drivers.protocol.modbus_map import (FIFO_WIDTH, N_AI, N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT,
+                                        REG_FIFO, REG_STATUS, REG_WDOG, volts_to_raw)
 from rig.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 class Module:
-    """The module's behaviour behind the registers (sensitivity: accelerometer V per m/s^2)."""
+    """The module's behaviour behind the registers (sensitivity: accelerometer V per m/s^2; the floor
+    accelerometers' sensitivity and channels: floor_V_per_mps2, floor_channels)."""
 
-    def __init__(self, arr, sensitivity_V_per_mps2: float):
+    def __init__(self, arr, sensitivity_V_per_mps2: float, floor_V_per_mps2: float = 2.0,
+                 floor_channels=(4, 5, 6, 7)):
         self.arr = arr
         self.k = sensitivity_V_per_mps2
+        # per AI channel: (index into the snapshot's 8 values: 4 mount then 4 floor accelerations, V per m/s^2)
+        self.wiring = [(ch, sensitivity_V_per_mps2) if ch < sh.N_MOUNTS else (None, 0.0) for ch in range(N_AI)]
+        for i, ch in enumerate(floor_channels):
+            self.wiring[ch] = (sh.N_MOUNTS + i, floor_V_per_mps2)
         self.last_request = time.monotonic()
         self.frozen: list[int] | None = None
 
@@ -42,6 +50,10 @@ class Module:
             regs[REG_AO:REG_AO + 2] = regs[REG_AO_SAFE:REG_AO_SAFE + 2]
             regs[REG_STATUS] |= 1
         self.last_request = now
+
+    def volts(self, values) -> list[int]:
+        """AI ch0-7 (raw) of one conversion: values = 4 mount then 4 floor accelerations."""
+        return [volts_to_raw(values[i] * k) if i is not None else 32768 for i, k in self.wiring]
 
     async def action(self, func_code, start, address, count, regs, set_values):
         mode = int(self.arr[sh.MODBUS_MODE])
@@ -61,23 +73,23 @@ class Module:
         self.frozen = None
         count_, accel, fifo = sh.snapshot_fifo(self.arr)
         lo, hi = max(address, REG_FIFO), min(address + count, N_REGS)
+        w = FIFO_WIDTH
         if lo < hi:                                 # the FIFO entries asked for: entry e = conversion count_ - e
-            for e in range((lo - REG_FIFO) // 5, (hi - 1 - REG_FIFO) // 5 + 1):
-                base = REG_FIFO + 5 * e
+            for e in range((lo - REG_FIFO) // w, (hi - 1 - REG_FIFO) // w + 1):
+                base = REG_FIFO + w * e
                 c, acc = fifo[(count_ - e) % sh.FIFO_SLOTS]
                 if c == count_ - e >= 0:
                     regs[base] = c & 0xFFFF
-                    regs[base + 1:base + 5] = [volts_to_raw(a * self.k) for a in acc]
+                    regs[base + 1:base + w] = self.volts(acc)
                 else:                               # not converted yet
-                    regs[base:base + 5] = [(count_ + 1) & 0xFFFF, 32768, 32768, 32768, 32768]
-        for ch in range(6):
-            v = accel[ch] * self.k if ch < sh.N_MOUNTS else 0.0
-            regs[REG_AI + ch] = volts_to_raw(v)
+                    regs[base:base + w] = [(count_ + 1) & 0xFFFF] + [32768] * (w - 1)
+        regs[REG_AI:REG_AI + N_AI] = self.volts(accel)
         regs[REG_COUNT] = count_ & 0xFFFF
         return None
 
 
-def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host: str = "127.0.0.1") -> None:
+def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host: str = "127.0.0.1",
+          floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7)) -> None:
     """Process entry: bind an ephemeral port on loopback, report it on port_conn, serve until the parent
     goes away or sends anything on port_conn."""
     from pymodbus.server import ModbusTcpServer
@@ -85,7 +97,7 @@ def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host
 
     raise_priority(priority)
     parent = os.getppid()
-    module = Module(arr, sensitivity_V_per_mps2)
+    module = Module(arr, sensitivity_V_per_mps2, floor_V_per_mps2, floor_channels)
 
     def trace_packet(sending: bool, data: bytes) -> bytes:
         if sending and int(arr[sh.MODBUS_MODE]) == sh.GARBAGE:

@@ -30,12 +30,16 @@ _channels = itertools.count()
 class EmulatedRig:
     def __init__(self, plant, dt: float, *, max_V: float = 10.0, w_spool: float = 524.0,
                  accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), channel: str | None = None,
-                 start_timeout_s: float = 30.0, priority: int = 0):
+                 start_timeout_s: float = 30.0, priority: int = 0, floor_V_per_mps2: float = 2.0,
+                 floor_channels=(4, 5, 6, 7)):
         self.plant = plant
         self.dt = float(dt)
         self.max_V = max_V
         self.w_spool = w_spool
         self.accel_V_per_mps2 = accel_V_per_mps2
+        # floor accelerometers: wired to the module when the plant has them (RigPlant.floor_sensors)
+        self.floor_V_per_mps2, self.floor_channels = floor_V_per_mps2, tuple(floor_channels)
+        self.floor_sensors = bool(getattr(plant, "floor_sensors", False))
         self.node_ids = list(node_ids)
         self.channel = channel or f"rig-hil-{os.getpid()}-{next(_channels)}"
         self.start_timeout_s = start_timeout_s
@@ -63,7 +67,8 @@ class EmulatedRig:
         self._keeper = threading.Thread(target=self._keep_pace, name="hil-plant-keeper", daemon=True)
         self._keeper.start()
         try:
-            self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority)))
+            self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority),
+                                               str(self.floor_V_per_mps2), ",".join(map(str, self.floor_channels))))
             self.serial_path = self._spawn("serial", str(self.priority))
             self.state.unlink()                 # both devices have it mapped: nothing is left behind on a crash
             self.valves = ValveBus(self.channel, self.node_ids, self.w_spool, self.max_V, self,
@@ -158,30 +163,41 @@ class EmulatedRig:
                 plant.step(valve_cmd_V)
                 self._steps += 1
                 if self._phase is not None:
-                    self._meter(plant.table_m)
+                    self._meter(plant.table_m, plant.floor_m)
                 self._publish()                 # every step is a conversion of the devices
 
     def _publish(self) -> None:
         p = self.plant
         # the devices convert at each plant step (the SYNC instants): their counters count plant steps
-        sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m, self._steps)
+        sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m, self._steps,
+                   p.floor_accel_mps2 if self.floor_sensors else None)
 
     # ---- table motion metering (true plant output, for isolation figures) ------------------------------
     def phase(self, name: str | None) -> None:
         with self.lock:
             self._phase = name
             if name is not None:
-                self.meter[name] = [0, 0.0, 0.0]       # n, sum, sum of squares
+                self.meter[name] = [0, 0.0, 0.0, 0.0, 0.0]       # n, sum, sum of squares (table, then floor)
 
-    def _meter(self, table_m) -> None:
+    def _meter(self, table_m, floor_m=()) -> None:
         x = float(table_m) if not isinstance(table_m, (list, tuple)) else math.fsum(table_m) / len(table_m)
+        g = math.fsum(floor_m) / len(floor_m) if floor_m else 0.0        # the floor under the machine (mean)
         m = self.meter[self._phase]
         m[0] += 1
         m[1] += x
         m[2] += x * x
+        m[3] += g
+        m[4] += g * g
 
     def table_rms_m(self, name: str) -> float:
-        n, s, ss = self.meter[name]
+        n, s, ss = self.meter[name][:3]
+        if n < 2:
+            return math.nan
+        return math.sqrt(max(ss / n - (s / n) ** 2, 0.0))
+
+    def floor_rms_m(self, name: str) -> float:
+        """The floor's rms (mean of the four mounts) over the same periods as table_rms_m."""
+        n, s, ss = self.meter[name][0], self.meter[name][3], self.meter[name][4]
         if n < 2:
             return math.nan
         return math.sqrt(max(ss / n - (s / n) ** 2, 0.0))

@@ -21,9 +21,11 @@ STROKE = 7       # 4 x stroke_m
 MODBUS_MODE = 11
 SERIAL_MODE = 12
 SERIAL_CH = 13   # 4 x forced channel status (0 none, 1 UR, 2 OR, 3 NP)
-FIFO = 17        # the last FIFO_SLOTS conversions, slot = counter % FIFO_SLOTS: [counter, 4 x accel_mps2]
+FLOOR = 17       # 4 x floor accel_mps2 (the floor accelerometers; 0 without them)
+FIFO = 21        # the last FIFO_SLOTS conversions, slot = counter % FIFO_SLOTS: FIFO_WIDTH values each
 FIFO_SLOTS = 64
-SIZE = FIFO + 5 * FIFO_SLOTS
+FIFO_WIDTH = 1 + 2 * N_MOUNTS   # [counter, 4 x accel_mps2, 4 x floor accel_mps2]
+SIZE = FIFO + FIFO_WIDTH * FIFO_SLOTS
 
 # fault knob modes (same codes for every emulator)
 OK, SILENCE, EXCEPTION, GARBAGE, STALE, FRAGMENT = 0, 1, 2, 3, 4, 5
@@ -71,9 +73,10 @@ class SharedFile:
         self.unlink()
 
 
-def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None) -> None:
-    """A new plant state; count = conversions so far (default: one more than before). A plant of fewer mounts
-    (the prototype: one) leaves the devices' other channels at zero."""
+def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None, floor_mps2=None) -> None:
+    """A new plant state; count = conversions so far (default: one more than before); floor_mps2: the floor
+    accelerometers (default none: 0). A plant of fewer mounts (the prototype: one) leaves the devices' other
+    channels at zero."""
     seq = arr[SEQ] + 1.0
     arr[SEQ] = seq                          # odd: writing
     arr[T_S] = t_s
@@ -81,9 +84,12 @@ def publish(arr, t_s: float, accel_mps2, stroke_m, count: int | None = None) -> 
     arr[COUNT] = float(count)
     pad = [0.0] * (N_MOUNTS - len(accel_mps2))
     acc = [float(a) for a in accel_mps2] + pad
-    base = FIFO + 5 * (count % FIFO_SLOTS)
-    arr[base:base + 5] = [float(count)] + acc
+    fl = [float(a) for a in floor_mps2] + [0.0] * (N_MOUNTS - len(floor_mps2)) if floor_mps2 is not None \
+        else [0.0] * N_MOUNTS
     arr[ACCEL:ACCEL + N_MOUNTS] = acc
+    arr[FLOOR:FLOOR + N_MOUNTS] = fl
+    base = FIFO + FIFO_WIDTH * (count % FIFO_SLOTS)
+    arr[base:base + FIFO_WIDTH] = [float(count)] + acc + fl
     arr[STROKE:STROKE + N_MOUNTS] = [float(s) for s in stroke_m] + pad
     arr[SEQ] = seq + 1.0                    # even: consistent
 
@@ -100,12 +106,13 @@ def snapshot(arr) -> tuple[int, float, list[float], list[float]]:
 
 
 def snapshot_fifo(arr) -> tuple[int, list[float], list[tuple[int, list[float]]]]:
-    """(counter, accel_mps2[4], FIFO as (counter, accel_mps2[4]) per slot), one consistent copy."""
+    """(counter, accel_mps2[4] + floor accel_mps2[4], FIFO as (counter, the same 8 values) per slot), one
+    consistent copy."""
     for _ in range(1000):
         s0 = arr[SEQ]
         block = arr[COUNT:SIZE]
         if s0 == arr[SEQ] and int(s0) % 2 == 0:
             break
-    f = FIFO - COUNT
-    return (int(block[0]), block[ACCEL - COUNT:ACCEL - COUNT + N_MOUNTS],
-            [(int(block[f + 5 * j]), block[f + 5 * j + 1:f + 5 * j + 5]) for j in range(FIFO_SLOTS)])
+    f, w = FIFO - COUNT, FIFO_WIDTH
+    return (int(block[0]), block[ACCEL - COUNT:ACCEL - COUNT + N_MOUNTS] + block[FLOOR - COUNT:FLOOR - COUNT + N_MOUNTS],
+            [(int(block[f + w * j]), block[f + w * j + 1:f + w * (j + 1)]) for j in range(FIFO_SLOTS)])

@@ -101,6 +101,16 @@ def isolation_step(c, state: list, meas, dt: float):
     return u, state
 
 
+def feedforward_step(f, state: list, g: float) -> float:
+    """FeedforwardFilter f, one period, the plain way: the sections on the floor acceleration g, times the
+    output gain, which moves towards the switch request with factor f.fade (state a list, updated in place)."""
+    o = 2 * len(f.sections)
+    y = _sos_step(f.sections, state, 0, g)
+    gain = state[o + 1] + (state[o] - state[o + 1]) * f.fade
+    state[o] = gain
+    return gain * y
+
+
 def track_step(c, state: list, x: float, cf=None) -> float:
     """TrackingPID c, one period, the plain way (the reference generator, its feedforward, the PID);
     state (a list, c.state_names) updated in place; cf: where a profile table was written (default none).

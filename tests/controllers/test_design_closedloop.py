@@ -166,11 +166,25 @@ def test_rig_design_bad_config_is_one_line(tmp_path, capsys):
 
 
 def test_rig_demo_runs_through_the_loop(tmp_path, capsys):
-    """`rig demo` runs the product loop over the sim backend, off then on, and writes its plot."""
+    """`rig demo` runs the product loop three times over the same floor (isolation off, feedback, feedback +
+    feedforward), reports like with like and writes its plot."""
     from rig.cli import main
-    assert main(["demo", "--seconds", "1", "--settle", "0.2", "--out", str(tmp_path)]) == 0
+    assert main(["demo", "--seconds", "1", "--settle", "0.2", "--model-error", "0", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "table Y rms" in out and "reduction" in out
+    assert "table Y rms" in out and "VC class, table" in out and "the same realisation in all three runs" in out
     res = json.loads((tmp_path / "demo.json").read_text())
-    assert res["valve_rms_V"]["off"] < 0.1 < res["valve_rms_V"]["on"]      # centring only, then isolating
+    assert res["valve_rms_V"]["off"] < 0.1 < res["valve_rms_V"]["feedback"]     # centring only, then isolating
+    assert res["feedforward_rms_V"]["feedback"] == 0.0 < res["feedforward_rms_V"]["feedback_feedforward"]
+    red = res["reduction_db"]["table_1_100hz"]
+    assert red["feedback_feedforward"] > red["feedback"] > 6.0
+    assert set(res["vc_class"]) == {"off", "feedback", "feedback_feedforward"}
+    assert res["plant"]["model_error_pct"] == 0.0 and res["plant"]["chosen"] == "as modelled"
+    assert len(res["band_reduction_db"]["feedback"]) == len(res["vc"]["table"]["band_hz"]) == 21
     assert (tmp_path / "demo.png").stat().st_size > 10000
+
+
+def test_rig_demo_bad_model_error_is_one_line(capsys):
+    from rig.cli import main
+    assert main(["demo", "--model-error", "80"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["rig demo: error: --model-error: expected >= 0 % and <= 50 %, got '80'"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from controllers.analysis import DiscreteRig, attenuation_db, siso
-from controllers.discrete import sos_step_array, tustin_section
+from controllers.discrete import sections_step, tustin_section
 from controllers.feedforward import (FeedforwardFilter, feedforward_params_from_config, feedforward_step,
                                      make_feedforward_filters)
 from controllers.isolation import make_isolation_controllers
@@ -64,9 +64,8 @@ def test_discrete_filter_is_the_continuous_design(ff):
 
 
 def test_step_runs_the_frf_in_python_and_compiled(ff):
-    """A sine of floor acceleration through step(): steady-state amplitude and phase as frf(); numba's
-    compilation of the same function gives the same samples."""
-    import numba
+    """A sine of floor acceleration through step() (the compiled law): steady-state amplitude and phase as
+    frf(); the law's Python source run by the interpreter gives the same samples."""
     f0 = 23.0
     n = int(3.0 / DT)
     t = np.arange(n) * DT
@@ -74,8 +73,7 @@ def test_step_runs_the_frf_in_python_and_compiled(ff):
     s = ff.initial_state(on=True)
     y = np.array([ff.step(s, x, DT)[0] for x in a])
     s2 = ff.initial_state(on=True)
-    jit = numba.njit(feedforward_step)
-    y2 = np.array([jit(ff.coef, ff.fade, s2, x) for x in a])
+    y2 = np.array([feedforward_step.py_func(ff.coef, ff.fade, s2, x) for x in a])
     assert np.allclose(y, y2, rtol=1e-12, atol=1e-15)
     k = t > 2.0
     A = np.column_stack([np.sin(2 * np.pi * f0 * t[k]), np.cos(2 * np.pi * f0 * t[k]), np.ones(k.sum()), t[k]])
@@ -84,15 +82,20 @@ def test_step_runs_the_frf_in_python_and_compiled(ff):
     assert complex(c[0], c[1]) == pytest.approx(H, rel=2e-3)
 
 
-def test_array_step_is_scipys_sosfilt():
-    """The compiled cascade step (controllers/discrete.sos_step_array) is transposed direct form II, as
-    scipy.signal.sosfilt runs it."""
+def test_cascade_step_is_scipys_sosfilt():
+    """The compiled cascade step of the laws (controllers/discrete.sections_step) is transposed direct form II,
+    as scipy.signal.sosfilt runs it."""
+    import numba
     import scipy.signal
     secs = [tustin_section([1.0, 30.0], [1.0, 300.0], DT, 100.0), tustin_section([1e4], [1.0, 140.0, 1e4], DT)]
-    coef = np.array(secs)
+    coef = np.ravel(np.array(secs))
+
+    @numba.njit
+    def step(st, x):
+        return sections_step(st, coef, 0, 0, 2, x)[0]
     x = np.sin(np.arange(400) * 0.1) + 0.3 * np.cos(np.arange(400) * 0.77)
     st = np.zeros(4)
-    y = np.array([sos_step_array(coef, st, 0, v) for v in x])
+    y = np.array([step(st, v) for v in x])
     sos = np.array([[b0, b1, b2, 1.0, a1, a2] for b0, b1, b2, a1, a2 in secs])
     assert np.allclose(y, scipy.signal.sosfilt(sos, x), rtol=1e-12, atol=1e-14)
 

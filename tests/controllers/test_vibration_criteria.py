@@ -34,6 +34,14 @@ def test_sine_displacement_lands_in_its_band(f0, band):
     assert np.all(others < 0.02 * v[k])
 
 
+def test_sine_acceleration_is_integrated():
+    """a = A sin(2 pi f0 t) (an accelerometer's record): rms velocity A / (2 pi f0) / sqrt(2) in its band."""
+    A, f0 = 3e-3, 12.589254
+    t = np.arange(int(100 * FS)) / FS
+    fc, v = band_velocity_rms(A * np.sin(2 * np.pi * f0 * t), FS, kind="acceleration")
+    assert v[list(fc).index(12.5)] == pytest.approx(A / (2 * np.pi * f0) / math.sqrt(2), rel=0.01)
+
+
 def test_white_velocity_noise_gives_the_bandwidth():
     """Velocity white at one-sided PSD S: band rms sqrt(S x bandwidth), statistically."""
     rng = np.random.default_rng(7)
@@ -103,6 +111,6 @@ def test_report_and_plot(tmp_path):
 
 def test_bad_input():
     with pytest.raises(ValueError, match="kind"):
-        band_velocity_rms(np.zeros(100), FS, kind="acceleration")
+        band_velocity_rms(np.zeros(100), FS, kind="jerk")
     with pytest.raises(ValueError, match="1-D"):
         band_velocity_rms(np.zeros((10, 2)), FS)

@@ -146,8 +146,8 @@ def test_register_scaling_and_counter(modbus_alone):
     arr, c = modbus_alone
     r = c.read_holding_registers(0, count=10, device_id=1)
     assert not r.isError()
-    expect = [modbus_io.volts_to_raw(a * 2.0) for a in (1.0, -2.0, 0.5, 4.9)] + [32768, 32768]
-    assert r.registers[:6] == expect
+    expect = [modbus_io.volts_to_raw(a * 2.0) for a in (1.0, -2.0, 0.5, 4.9)] + [32768] * 4   # no floor: 0 V
+    assert r.registers[:8] == expect
     assert r.registers[8] == 1                                 # one conversion published
     assert [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[:4]] == pytest.approx(
         [1.0, -2.0, 0.5, 4.9], abs=20 / 65535)
@@ -167,7 +167,7 @@ def test_exception_knob_gives_exception_response(modbus_alone):
 
 def test_illegal_address_is_an_exception(modbus_alone):
     _arr, c = modbus_alone
-    r = c.read_holding_registers(340, count=10, device_id=1)        # the map ends at 40344
+    r = c.read_holding_registers(596, count=10, device_id=1)        # the map ends at 40600
     assert r.isError() and r.exception_code == 2
 
 
@@ -180,14 +180,16 @@ def test_conversion_fifo_serves_the_last_64_conversions_newest_first(modbus_alon
     regs = r.registers[modbus_io.REG_FIFO:]
     for chunk in range(modbus_io.FIFO_FIRST, modbus_io.FIFO_DEPTH, modbus_io.FIFO_CHUNK):
         n = min(modbus_io.FIFO_CHUNK, modbus_io.FIFO_DEPTH - chunk)
-        r = c.read_holding_registers(modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH * chunk, count=5 * n, device_id=1)
+        w = modbus_io.FIFO_WIDTH
+        r = c.read_holding_registers(modbus_io.REG_FIFO + w * chunk, count=w * n, device_id=1)
         assert not r.isError()
         regs += r.registers
-    counters = [regs[5 * e] for e in range(modbus_io.FIFO_DEPTH)]
+    w = modbus_io.FIFO_WIDTH
+    counters = [regs[w * e] for e in range(modbus_io.FIFO_DEPTH)]
     assert counters == list(range(70, 6, -1))                       # the newest 64, newest first
     for e, k in enumerate(counters):
-        acc = [modbus_io.raw_to_volts(x) / 2.0 for x in regs[5 * e + 1:5 * e + 5]]
-        assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5], abs=20 / 65535)
+        acc = [modbus_io.raw_to_volts(x) / 2.0 for x in regs[w * e + 1:w * e + w]]
+        assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5] + [0.0] * 4, abs=20 / 65535)
 
 
 def _fifo_driver(port):
@@ -219,7 +221,7 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module
     publish(range(2, 7))                                            # five conversions before the next poll
     requests.clear()
     assert drv._poll_once()
-    assert len(requests) == 1                                       # the newest 16 cover them: one request
+    assert len(requests) == 1                                       # the newest entries cover them: one request
     n, last, acc, older = drv.conversions_since(1)
     assert n == 5 and last == 6
     assert [o[0] for o in older] == pytest.approx([0.02, 0.03, 0.04, 0.05], abs=1e-4)
@@ -228,7 +230,7 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone, modbus_module
     publish(range(7, 57))                                           # fifty: beyond the first 16 entries
     requests.clear()
     assert drv._poll_once()
-    assert len(requests) == 3                                       # and two chunks further back
+    assert len(requests) == 1 + -(-(50 - modbus_io.FIFO_FIRST) // modbus_io.FIFO_CHUNK)   # and chunks further back
     n, last, acc, older = drv.conversions_since(6)
     assert n == 50 and last == 56 and len(older) == 49
     assert [o[0] for o in older] == pytest.approx([0.01 * k for k in range(7, 56)], abs=1e-4)
@@ -385,3 +387,31 @@ def test_module_watchdog_trip_is_a_fault():
         assert m.device_fault is not None and "host watchdog tripped" in m.device_fault
     finally:
         p.close()
+
+
+def test_floor_accelerometers_on_ch4_7_in_registers_fifo_and_driver(modbus_alone, modbus_module):
+    """The floor accelerometers ([sensors] floor_accel) on AI ch4-7: in the live registers and in every FIFO
+    entry, with the same conversion counter as the mount accelerometers; the driver reads them with their own
+    sensitivity after the mount values, in the newest sample and in every older conversion."""
+    arr, client = modbus_alone
+    floor = [0.03, -0.07, 0.11, -0.22]
+    for k in range(2, 6):
+        sh.publish(arr, k * 1e-3, [0.01 * k] * 4, [0.0] * 4, floor_mps2=[g * k for g in floor])
+    r = client.read_holding_registers(0, count=modbus_io.N_READ_FIFO, device_id=1)
+    assert not r.isError() and r.registers[8] == 5
+    got = [modbus_io.raw_to_volts(x) / 2.0 for x in r.registers[4:8]]
+    assert got == pytest.approx([g * 5 for g in floor], abs=20 / 65535)
+    entry = r.registers[modbus_io.REG_FIFO + modbus_io.FIFO_WIDTH:modbus_io.REG_FIFO + 2 * modbus_io.FIFO_WIDTH]
+    assert entry[0] == 4 and [modbus_io.raw_to_volts(x) / 2.0 for x in entry[5:9]] == pytest.approx(
+        [g * 4 for g in floor], abs=20 / 65535)
+    drv = modbus_io.ModbusAnalogIO(host="127.0.0.1", port=client.comm_params.port, unit=1,
+                                   channels=[0, 1, 2, 3, 4, 5, 6, 7], names=list("abcdefgh"),
+                                   V_per_mps2=[2.0] * 4 + [2.0] * 4, timeout_s=0.5, watchdog_s=0.0, stale_s=1.0,
+                                   poll_s=0.01, fifo=True)
+    drv.client = client
+    assert drv._poll_once()
+    assert drv.sample[0][4:] == pytest.approx([g * 5 for g in floor], abs=1e-4)
+    n, last, acc, older = drv.conversions_since(2)
+    assert (n, last) == (3, 5) and len(older) == 2
+    for k, o in zip((3, 4), older):
+        assert o == pytest.approx([0.01 * k] * 4 + [g * k for g in floor], abs=1e-4)

@@ -23,6 +23,8 @@ def contract_config() -> Config:
 
 @pytest.fixture(scope="module", params=["sim", "hil"])
 def backend(request):
+    from rig.kernel import period_entry
+    period_entry(4, False)      # compiled before the port runs (cold numba cache: ~20 s the port would queue)
     port = make_port(contract_config(), request.param)
     port.open()
     try:

@@ -31,3 +31,24 @@ def test_bench_loop_bad_rate_is_one_line():
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr.strip().count("\n") == 0 and "--rate" in out.stderr
+
+
+def test_bench_loop_feedforward_ab_json(tmp_path):
+    """`rig bench loop --feedforward`: both paths run alternately (AB BA), each its own figures; the
+    feedforward path really ran the feedforward (its mode on stderr). No timing is asserted."""
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "loop", "--feedforward", "--rounds", "2",
+                          "--rate", "5000", "--seconds", "0.2", "--no-realtime", "--json"], capture_output=True,
+                         text=True, timeout=180)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    assert {"rate_hz", "rounds", "seconds", "feedback", "feedback_feedforward", "compute_p99_difference_us",
+            "compute_p50_difference_us", "compute_p99_paired_difference_us"} == set(res)
+    for path in ("feedback", "feedback_feedforward"):
+        r = res[path]
+        assert len(r["compute_p99_us_by_round"]) == 2 and r["iterations"] >= 1800
+        assert 0 <= r["compute_us"]["p50"] <= r["compute_us"]["p99"] <= r["compute_us"]["max"]
+    assert res["compute_p99_difference_us"] == pytest.approx(
+        res["feedback_feedforward"]["compute_us"]["p99"] - res["feedback"]["compute_us"]["p99"], abs=0.011)
+    order = [line.split()[6] for line in out.stderr.splitlines() if "round" in line and "compute p99" in line]
+    assert order == ["feedback:", "feedback_feedforward:", "feedback_feedforward:", "feedback:"]
+    assert "(mode feedback_feedforward)" in out.stderr and "(mode feedback)" in out.stderr

@@ -180,12 +180,14 @@ def test_bench_sim(capsys, case):
 
 @_settings(25)
 @given(argv_for("demo", [], {"--seconds": ["0.5"], "--settle": ["0", "0.1", "0.5"],
-                                         "--rms-um": ["1", "3", "1000"]},
-                {"--out": DIR_KINDS}, ["--overwrite"]))
+                                         "--rms-um": ["1", "3", "1000"], "--model-error": ["0", "10", "50"]},
+                {"--out": DIR_KINDS}, ["--overwrite", "--json"]))
 def test_demo(capsys, case):
     ws, argv = case
     if "--seconds" not in argv:
         argv += ["--seconds", "0.5"]
+    if "--model-error" not in argv:
+        argv += ["--model-error", "0"]      # the default searches 64 plants first (a few seconds)
     if "--settle" not in argv:
         argv += ["--settle", "0.1"]         # the default (1 s) is longer than the short phases drawn
     _check(capsys, ws, argv)
@@ -219,6 +221,13 @@ def test_prove(capsys, case):
                 ["--json", "--bench", "--overwrite"], force_bad=("--rate",)))
 def test_hil(capsys, case):
     assert _check(capsys, *case) == 2        # a refused --rate: the emulated rig is never started
+
+
+@_settings(60)
+@given(argv_for("report", [], {"--settle": ["0", "1", "3"]}, {"REC": ["garbage", "missing", "empty", "old"],
+                                                              "--out": DIR_KINDS}, ["--json", "--overwrite"]))
+def test_report(capsys, case):
+    assert _check(capsys, *case) == 2        # no loop recording among the draws
 
 
 @_settings(40)

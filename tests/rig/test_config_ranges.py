@@ -60,6 +60,13 @@ def _write(data: dict) -> Path:
     ("controller", "gain_trim", [1.0], "expected a list of 4 numbers"),
     ("controller", "gain_trim", [1.0, 1.0, 1.0, 1.0, 1.0], "expected a list of 4 numbers"),
     ("controller", "gain_trim", [1.0, 1.0, float("nan"), 1.0], "expected finite numbers"),
+    ("sensors", "floor_V_per_mps2", 0.0, "expected >= 0.001 V/(m/s^2)"),
+    ("sensors", "floor_noise_mps2_per_rthz", -1.0, "expected >= 0 m/s^2/sqrt(Hz)"),
+    ("sensors", "floor_channels", [4, 5, 6], "expected a list of 4 numbers"),
+    ("sensors", "floor_channels", [3, 4, 5, 6], "expected >= 4, got 3"),     # ch0-3: the mount accelerometers
+    ("sensors", "floor_range_mps2", 8.0, "expected <= 10 V / floor_V_per_mps2 (5 m/s^2"),
+    ("plant_error", "K_Q", 3.0, "expected <= 2"),
+    ("plant_error", "w_nv", 0.1, "expected >= 0.5"),
 ])
 @pytest.mark.parametrize("command", [["run", "--sim-time", "--seconds", "0.5", "--quiet"], ["model"]])
 def test_questionable_config_value_is_one_line(capsys, section, key, value, expected, command):
@@ -181,7 +188,8 @@ def _in_range(f, hint):
     return st.floats(min_value=lo, max_value=hi, exclude_min=True, exclude_max=True)
 
 
-PHYSICS = ("actuator", "valve", "fluid", "machine", "vibration", "controller", "safety", "stand")
+PHYSICS = ("actuator", "valve", "fluid", "machine", "vibration", "controller", "safety", "stand", "sensors",
+           "plant_error")
 
 
 @st.composite

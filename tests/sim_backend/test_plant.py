@@ -187,7 +187,7 @@ def test_rig_plant_step_equals_batch_and_floor_rms():
         plant.step(cmd[k].tolist())
     g = FloorMotion(dt, rms_m=10e-6, seed=4).next_block(n)
     assert np.allclose(np.array(xg), g[:, :4])
-    Y = simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:], outputs=[I_TABLE + 1])
+    Y = simulate_rig(cfg, dt, cmd, g[:, :4], g[:, 4:8], outputs=[I_TABLE + 1])
     assert np.allclose(table, Y[:, 0], atol=1e-12)
     long = FloorMotion(dt, rms_m=10e-6, seed=5).next_block(50000)
     assert np.std(long[:, :4]) == pytest.approx(10e-6, rel=0.1)
@@ -207,3 +207,53 @@ def test_stepped_stand_equals_batch(fx, f0_hz, f1_hz, amp_V):
         sp.step(v)
         pos.append(sp.position_m)
     assert np.allclose(pos, ref["position_m"], atol=1e-15)
+
+
+def _floor_run(cfg, n, dt, **kw):
+    plant = RigPlant(cfg, dt, floor=FloorMotion.from_config(cfg, dt), seed=3, **kw)
+    rec = {"floor": [], "floor_accel": [], "accel": [], "table": []}
+    u = [0.01, -0.02, 0.0, 0.005]
+    for _ in range(n):
+        plant.step(u)
+        rec["floor"].append(plant.floor_m)
+        rec["floor_accel"].append(plant.floor_accel_mps2)
+        rec["accel"].append(plant.accel_mps2)
+        rec["table"].append(plant.table_m)
+    return {k: np.array(v) for k, v in rec.items()}
+
+
+def test_floor_accelerometer_reads_the_floor_acceleration_with_its_own_noise():
+    """[sensors] floor_accel: the floor accelerometer at each mount reads the second derivative of the floor
+    motion there, in step with it (a fourth-order stencil agrees within 0.5 % rms), plus white noise of its
+    configured density from a generator of its own: fitting the sensors changes nothing else the plant
+    computes."""
+    import dataclasses
+    dt, n = 1 / 5000, 1 << 15
+    base = Config()
+    fitted = base.replace(sensors=dataclasses.replace(base.sensors, floor_accel=True))
+    clean = _floor_run(fitted, n, dt, floor_noise_mps2=0.0)
+    noisy = _floor_run(fitted, n, dt)
+    without = _floor_run(base, n, dt)
+    x = clean["floor"]                          # the second derivative by a fourth-order stencil
+    want = (-x[4:] + 16 * x[3:-1] - 30 * x[2:-2] + 16 * x[1:-3] - x[:-4]) / (12 * dt * dt)
+    got = clean["floor_accel"][2:-2]
+    assert np.std(got - want) < 0.005 * np.std(want)
+    sigma = fitted.sensors.floor_noise_mps2_per_rthz * math.sqrt(0.5 / dt)
+    assert np.std(noisy["floor_accel"] - clean["floor_accel"]) == pytest.approx(sigma, rel=0.05)
+    for key in ("floor", "accel", "table"):
+        assert np.array_equal(noisy[key], without[key])
+    assert np.all(without["floor_accel"] == 0.0)                    # not fitted: nothing read
+
+
+def test_plant_error_moves_the_simulated_actuators_only():
+    """[plant_error]: the simulated rig's actuator parameters are the configured ones times the factors; the
+    model the controllers are designed on (rig_state_space of the config) stays as configured."""
+    import dataclasses
+    cfg = Config()
+    off = cfg.replace(plant_error=dataclasses.replace(cfg.plant_error, K_Q=1.1, K_C=0.9, w_nv=1.1))
+    plant = RigPlant(off, 1 / 5000)
+    assert plant.ss.act.K_Q == pytest.approx(1.1 * cfg.valve.K_Q) and plant.ss.act.K_C == pytest.approx(
+        0.9 * cfg.valve.K_C) and plant.ss.act.w_nv == pytest.approx(1.1 * cfg.valve.w_nv)
+    assert plant.ss.act.K_L == cfg.actuator.K_L and plant.ss.act.zeta == cfg.valve.zeta
+    assert rig_state_space(off).act.K_Q == cfg.valve.K_Q
+    assert np.array_equal(RigPlant(cfg, 1 / 5000).ss.A, rig_state_space(cfg).A)

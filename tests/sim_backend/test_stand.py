@@ -94,5 +94,5 @@ def test_the_bank_exact_path_equals_its_stands_stepped_one_by_one():
 @pytest.mark.parametrize("n", [1, 8])
 def test_floor_motion_for_any_mount_count(n):
     g = FloorMotion(1 / FS, rms_m=1e-6, seed=1, n_mounts=n).next_block(4000)
-    assert g.shape == (4000, 2 * n)
+    assert g.shape == (4000, 3 * n)          # x_g, v_g, a_g per mount
     assert np.std(g[1000:, :n], axis=0) == pytest.approx([1e-6] * n, rel=0.6)

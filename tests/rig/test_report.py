@@ -1,0 +1,79 @@
+"""`rig report REC`: the vibration-criterion report of a run recording, per isolation mode, from what the rig
+measures (mount and floor accelerometers), and its one-line errors."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import h5py
+import pytest
+
+from controllers.vibration_criteria import CRITERIA
+from rig import report
+from rig.clock import SimClock
+from rig.config import Config
+from rig.errors import RecordingError
+from rig.session import Session
+
+RANK = {name: i for i, (name, _, _) in enumerate(CRITERIA)}
+
+
+@pytest.fixture(scope="module")
+def three_modes(tmp_path_factory):
+    """A recording of the simulated rig: 3.5 s in each mode, switched through the session's requests."""
+    path = tmp_path_factory.mktemp("report") / "run.h5"
+    cfg = Config()
+    cfg = cfg.replace(sensors=dataclasses.replace(cfg.sensors, floor_accel=True))
+    with Session(cfg, "sim", clock=SimClock(), isolation=False, record=path) as s:
+        lp = s.loop
+        lp.activate()
+        p = 0
+        for mode in report.MODES:
+            s.request_isolation_mode(mode)
+            for _ in range(17500):
+                lp.cycle(p * lp.period_ns)
+                p += 1
+    return path
+
+
+def test_report_classes_by_mode(three_modes):
+    rep = report.vc_of_recording(three_modes)
+    assert set(rep["segments"]) == set(report.MODES) and rep["skipped_modes"] == {}
+    for mode, seg in rep["segments"].items():
+        assert seg["seconds"] == pytest.approx(2.5, abs=0.01)          # 3.5 s less the settling second
+    c = rep["vc_class"]
+    assert RANK[c["off"]] < RANK[c["feedback"]] < RANK[c["feedback_feedforward"]]
+    assert len(set(rep["vc_class_floor"].values())) == 1                # the floor is the floor in every mode
+    tr = {m: [x for x in v if x is not None] for m, v in rep["transmissibility_db"].items()}   # (bands the
+    tr = {m: sum(v) / len(v) for m, v in tr.items()}                                          # record resolves)
+    assert abs(tr["off"]) < 1.0 and tr["feedback_feedforward"] < tr["feedback"] - 10.0 < -15.0
+    assert set(rep["mounts"]["feedback"]["vc_class_per_mount"]) == {"front_left", "front_right", "rear_left",
+                                                                   "rear_right"}
+    assert "feedback + feedforward" in report.summary(rep)
+
+
+def test_rig_report_cli_json_and_plot(three_modes, tmp_path, capsys):
+    from rig.cli import main
+    assert main(["report", str(three_modes), "--json", "--out", str(tmp_path)]) == 0
+    out = json.loads(capsys.readouterr().out)                           # only JSON on stdout
+    assert out["vc_class"] == json.loads((tmp_path / "report.json").read_text())["vc_class"]
+    assert (tmp_path / "report.png").stat().st_size > 10000
+    assert main(["report", str(three_modes), "--settle", "3.0"]) == 2    # 0.5 s left of each: too short
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no mode lasted 5 s (a VC report needs seconds of one mode" in err[0]
+
+
+def test_not_a_loop_recording_is_one_line(tmp_path, capsys):
+    from rig.cli import main
+    bad = tmp_path / "chirp.h5"
+    with h5py.File(bad, "w") as f:
+        f["time_s"] = [0.0, 1.0]
+    assert main(["report", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"rig report: error: {bad}: no accel_mps2 dataset (expected a recording of rig run or rig hil)"]
+    with pytest.raises(RecordingError, match="no such recording"):
+        report.vc_of_recording(tmp_path / "missing.h5")
+    (tmp_path / "text.h5").write_text("not HDF5")
+    with pytest.raises(RecordingError, match="cannot open recording") as e:
+        report.vc_of_recording(tmp_path / "text.h5")
+    assert "\n" not in str(e.value)
