@@ -135,6 +135,15 @@ def check_outputs(args) -> None:
 
 
 # ---- checks that need the configuration or more than one option -----------------------------------------
+def make_out_dir(path, flag: str = "--out"):
+    """Create an output folder (and its parents); one line naming the option when it cannot be made."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RigError(f"{flag} {path}: cannot create directory ({e})") from None
+    return path
+
+
 def check_settle(settle_s: float, seconds_s: float | None, *, default: str = "") -> None:
     """INACTIVE for settle_s, then ACTIVE: a run shorter than its settle time would never activate."""
     if seconds_s is not None and settle_s >= seconds_s:

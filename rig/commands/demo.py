@@ -89,10 +89,7 @@ def run(args) -> int:
     else:
         _print(res, v)
     if args.out is not None:
-        try:
-            args.out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
+        cliargs.make_out_dir(args.out)
         _plot(args.out / "demo.png", 1.0 / rate, traces, slice(s, n), res)
         (args.out / "demo.json").write_text(json.dumps(res, indent=2))
         _log(f"wrote {args.out / 'demo.png'} and {args.out / 'demo.json'}")

@@ -160,10 +160,7 @@ def run(args) -> int:
     result = _clean(rep)
     _log_summary(log, result)
     if args.out is not None:
-        try:
-            args.out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
+        cliargs.make_out_dir(args.out)
         from controllers import figures
         files = figures.write_all(args.out, cfg, dt, rig, ctrls, data, result, PAPER, log, ffs=ffs)
         full = dict(result, controller={k: getattr(cfg.controller, k) for k in cfg.controller.__dataclass_fields__})

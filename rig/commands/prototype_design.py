@@ -10,7 +10,7 @@ import math
 import sys
 
 from controllers import prototype
-from rig.errors import RigError
+from rig import cliargs
 
 
 def _finite(v):
@@ -56,10 +56,7 @@ def run(args, cfg, model: dict) -> int:
     for ln in lines:
         print(f"rig design: {ln}", file=sys.stderr)
     if args.out is not None:
-        try:
-            args.out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
+        cliargs.make_out_dir(args.out)
         files = prototype.write_figures(rep, args.out, cfg, dt, delay)
         (args.out / "prototype_design.json").write_text(json.dumps(out, indent=2))
         if tuned:

@@ -12,7 +12,6 @@ import json
 import sys
 
 from rig import cliargs, report
-from rig.errors import RigError
 
 
 def add_arguments(p) -> None:
@@ -29,10 +28,7 @@ def run(args) -> int:
     for mode, why in rep["skipped_modes"].items():
         print(f"rig report: {mode}: too short for a VC report ({why})", file=sys.stderr)
     if args.out is not None:
-        try:
-            args.out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot create directory ({e})") from None
+        cliargs.make_out_dir(args.out)
         report.plot(args.out / "report.png", rep)
         (args.out / "report.json").write_text(json.dumps(rep, indent=2))
         print(f"rig report: wrote {args.out / 'report.png'} and {args.out / 'report.json'}", file=sys.stderr)
