@@ -178,6 +178,8 @@ def closed_loop_poles(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay: int = 
             A[:n, ik] += np.outer(Bu[:, i], Ck[0])
             A[:n, :n] += np.outer(Bu[:, i], (Dk @ Cy)[0])
         off += m + delay
+    if not np.all(np.isfinite(A)):      # a controller whose discretised coefficients overflowed
+        return np.full(A.shape[0], np.inf)
     return np.linalg.eigvals(A)
 
 
@@ -213,6 +215,8 @@ def slow_poles_continuous(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3)) -> np.nda
         M[:n, ik] += np.outer(Bu[:, i], Ck[0])
         M[:n, :n] += np.outer(Bu[:, i], (Dk @ Cy)[0])
         off += m
+    if not np.all(np.isfinite(M)):
+        return np.full(1, np.inf)         # overflowed coefficients: judged unstable
     ev = np.linalg.eigvals(M)
     return ev[np.abs(ev) < 2 * np.pi * SLOW_HZ]
 

@@ -27,9 +27,15 @@ def mount_names(n: int) -> tuple[str, ...]:
     return MOUNTS[:n] if n <= len(MOUNTS) else tuple(f"mount{i}" for i in range(n))
 
 
+MIN_HZ = 1e-3                  # the lowest frequency any key may name: a period of about 17 minutes
+
+
 def _f(default, unit="", *, gt=None, ge=None, le=None, lt=None, choices=None, n=None, nyquist=True):
     """A config field with its unit and physical range (for a list: of each value; n = its length).
-    nyquist: a frequency (unit Hz) is also below the Nyquist frequency of the loop (check_nyquist)."""
+    nyquist: a frequency (unit Hz) is also below the Nyquist frequency of the loop (check_nyquist).
+    A frequency stated as > 0 is >= MIN_HZ: a corner at 1e-300 Hz overflows the discretised filters."""
+    if unit == "Hz" and gt == 0 and ge is None:
+        gt, ge = None, MIN_HZ
     return field(default=default, metadata={"unit": unit, "gt": gt, "ge": ge, "le": le, "lt": lt,
                                             "choices": choices, "n": n, "nyquist": nyquist})
 

@@ -67,6 +67,7 @@ def _write(data: dict) -> Path:
     ("sensors", "floor_range_mps2", 8.0, "expected <= 10 V / floor_V_per_mps2 (5 m/s^2"),
     ("plant_error", "K_Q", 3.0, "expected <= 2"),
     ("plant_error", "w_nv", 0.1, "expected >= 0.5"),
+    ("controller", "lead1_pole_hz", 5e-324, "expected >= 0.001 Hz"),   # was a LinAlgError (CI, session 5)
 ])
 @pytest.mark.parametrize("command", [["run", "--sim-time", "--seconds", "0.5", "--quiet"], ["model"]])
 def test_questionable_config_value_is_one_line(capsys, section, key, value, expected, command):
