@@ -54,6 +54,15 @@ class Recording:
     # loop followed (None: feedback alone, nothing to identify from)
     closed_loop: str = ""
     reference_m: np.ndarray | None = None
+    # another rig's recording (a plant file's signal map): the command's unit ("V", "N", "A"); valve_cmd_V
+    # then holds the command in that unit. accel_present False: the file has no accelerometer (accel zeros)
+    command_unit: str = "V"
+    accel_present: bool = True
+
+    @property
+    def command(self) -> np.ndarray:
+        """The plant's input, in command_unit (the valve command in V on this rig)."""
+        return self.valve_cmd_V
 
     @property
     def n(self) -> int:
