@@ -130,8 +130,8 @@ def _validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] 
             missing = int(round(dt[k - 1] / step)) - 1
             more = int(off.sum()) - 1
             raise RecordingError(
-                f"{source}: {lab['time_s']} not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after t = {t[k - 1]:.6g} s "
-                f"(about {missing} samples missing, expected steps of {step:.6g} s"
+                f"{source}: {lab['time_s']} not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after "
+                f"t = {t[k - 1]:.6g} s (about {missing} samples missing, expected steps of {step:.6g} s"
                 f"{f'; {more} more irregular steps after it' if more else ''}): split the recording at the gap")
         raise RecordingError(f"{source}: {lab['time_s']} not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
                              f"expected {step:.6g} s")
@@ -146,12 +146,16 @@ def _validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] 
 # Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
 # beyond them is a wrong unit or a corrupt file.
 PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
+# another rig's command (a plant file's signal map), by its unit: a press's force reaches MN
+PLAUSIBLE_COMMAND = {"V": 1e4, "N": 1e8, "A": 1e4, "N m": 1e7}
 
 
 def check_plausible(rec: Recording) -> None:
     """One clear line for a value no sensor or command of a rig can have (e.g. 1e300 from a corrupt export)."""
     for name, lim in PLAUSIBLE_ABS.items():
         a = getattr(rec, name)
+        if name == "valve_cmd_V":
+            lim = PLAUSIBLE_COMMAND.get(rec.command_unit, lim)
         bad = np.abs(a) > lim
         if bad.any():
             k = int(np.argmax(bad))

@@ -140,8 +140,8 @@ class SignalMap:
                for k in SIGNALS if k in table}
         for key, kind in want.items():
             if key in sig and sig[key].kind != kind:
-                raise ConfigError(f"{where} {key}.unit = {sig[key].unit!r}: {sig[key].kind}, but the position is "
-                                  f"{'an angle' if pos.kind == 'angle' else 'a length'} (expected {kind})")
+                raise ConfigError(f"{where} {key}.unit = {sig[key].unit!r}: a unit of {sig[key].kind}, but the "
+                                  f"position is {'an angle' if pos.kind == 'angle' else 'a length'} (expected {kind})")
         fs = table.get("sample_rate_hz")
         if fs is not None:
             fs = _number(fs, f"{where} sample_rate_hz", lo=RATE_RANGE_HZ[0], hi=RATE_RANGE_HZ[1], unit=" Hz")
@@ -210,7 +210,7 @@ def _signal(key: str, value, where: str, default_unit: str) -> Signal:
     if not isinstance(unit, str) or unit not in UNITS:
         raise ConfigError(f"{what}.unit = {unit!r}: unknown unit (valid for {key}: {_units_of(key)})"[:300])
     if UNITS[unit][0] not in KINDS[key]:
-        raise ConfigError(f"{what}.unit = {unit!r}: {UNITS[unit][0]}, not a unit of the {key} "
+        raise ConfigError(f"{what}.unit = {unit!r}: a unit of {UNITS[unit][0]}, not of the {key} "
                           f"(valid: {_units_of(key)})")
     return Signal(key, name, column, scale, unit)
 
@@ -250,8 +250,8 @@ def _vector(a, sig: Signal, source: str, plant: str) -> np.ndarray:
     what = f"{source}: {sig.label()} of {plant}"
     if a.ndim == 2 and sig.column is not None:
         if not 0 <= sig.column < a.shape[1]:
-            raise RecordingError(f"{what}: column {sig.column} of a {a.shape[0]} x {a.shape[1]} matrix "
-                                 f"(columns are 0-based)")
+            raise RecordingError(f"{what}: no column {sig.column} in a {a.shape[0]} x {a.shape[1]} matrix (columns "
+                                 f"are 0-based: 0 to {a.shape[1] - 1})")
         return a[:, sig.column]
     if sig.column is not None and a.ndim != 2:
         raise RecordingError(f"{what}: a column asked but the variable has shape {a.shape}, not a matrix")
@@ -269,6 +269,10 @@ def _missing(sig: Signal, source: str, plant: str, have: list[str], what: str = 
                           f"{few or 'none'}"[:400])
 
 
+FOUND = {None: "neither HDF5 nor MATLAB", "mat": "a MATLAB v5 file", "mat73": "a MATLAB v7.3 file",
+         "hdf5": "an HDF5 file"}
+
+
 def _format(raw: bytes, path: Path, smap: SignalMap) -> str:
     """csv, mat, mat73 (HDF5 behind MATLAB's 512-byte header) or hdf5: the content's magic, checked against
     [signals] format when given, else the name's suffix."""
@@ -279,7 +283,7 @@ def _format(raw: bytes, path: Path, smap: SignalMap) -> str:
         fits = {"csv": (None,), "mat": (None, "mat", "mat73"), "hdf5": ("hdf5", "mat73")}[smap.format]
         if found not in fits:
             raise RecordingError(f"{path}: not a {smap.format} file ([signals] format = {smap.format!r} of "
-                                 f"{smap.source}); its content is {found or 'not HDF5'}")
+                                 f"{smap.source}): it is {FOUND[found]}")
         return found or smap.format
     if found:
         return found
@@ -316,7 +320,8 @@ def _read_csv(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
     cols = {}
     for sig in smap.signals:
         if sig.name is not None and sig.column is not None:
-            raise ConfigError(f"{plant}: [signals] {sig.key}: a CSV column is named or numbered, not both")
+            raise RecordingError(f"{source}: a CSV file, but {sig.label()} of {plant} names a matrix's column "
+                                 f"(a CSV column is named or numbered, not both)")
         if sig.name is not None:
             if names is None:
                 raise RecordingError(f"{source}: no header row names the columns ([signals] {sig.key} = "
@@ -371,7 +376,8 @@ def _read_mat(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
     out = {}
     for sig in smap.signals:
         if sig.name is None:
-            raise ConfigError(f"{smap.source}: [signals] {sig.key}: a .mat file's signal needs name (a variable)")
+            raise RecordingError(f"{source}: a MATLAB file, but {sig.label()} of {smap.source} has no name (give "
+                                 f"the variable)")
         cur, parts = m, re.split(r"[./]", sig.name.strip("/"))
         for i, part in enumerate(parts):          # a.b: field b of struct a
             fields = list(cur) if isinstance(cur, dict) else list(cur.dtype.names or ())
@@ -389,8 +395,8 @@ def _read_hdf5(path: Path, source: str, smap: SignalMap, matlab: bool) -> dict[s
         with h5py.File(path, "r") as f:
             for sig in smap.signals:
                 if sig.name is None:
-                    raise ConfigError(f"{smap.source}: [signals] {sig.key}: an HDF5 signal needs name (a dataset "
-                                      f"path)")
+                    raise RecordingError(f"{source}: an HDF5 file, but {sig.label()} of {smap.source} has no name "
+                                         f"(give the dataset path)")
                 ds = f.get(sig.name) if sig.name in f else f.get(sig.name.replace(".", "/"))
                 if not isinstance(ds, h5py.Dataset):
                     have = []
@@ -399,7 +405,7 @@ def _read_hdf5(path: Path, source: str, smap: SignalMap, matlab: bool) -> dict[s
                 a = np.asarray(ds[()])
                 # MATLAB v7.3 stores column-major: an n x k matrix is a (k, n) dataset
                 out[sig.key] = _vector(a.T if matlab and a.ndim == 2 else a, sig, source, smap.source)
-    except (RecordingError, ConfigError):
+    except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 file ({type(e).__name__}: {e})"[:300]) from None
@@ -414,8 +420,10 @@ def _window(cols: dict[str, np.ndarray], smap: SignalMap, source: str) -> dict[s
         inside = np.flatnonzero((t >= (smap.start_s if smap.start_s is not None else -np.inf)) &
                                 (t <= (smap.stop_s if smap.stop_s is not None else np.inf)))
     if inside.size == 0:
-        raise RecordingError(f"{source}: no samples between start_s = {smap.start_s} and stop_s = {smap.stop_s} "
-                             f"([signals] of {smap.source}; the time runs {np.nanmin(t):.6g} to {np.nanmax(t):.6g} s)")
+        span = " and ".join(f"{k} = {v:g} s" for k, v in (("start_s", smap.start_s), ("stop_s", smap.stop_s))
+                            if v is not None)
+        raise RecordingError(f"{source}: no samples within {span} ([signals] of {smap.source}); the time runs "
+                             f"{np.nanmin(t):.6g} to {np.nanmax(t):.6g} s")
     sel = slice(int(inside[0]), int(inside[-1]) + 1)
     return {k: (a[sel] if a.shape[:1] == t.shape else a) for k, a in cols.items()}
 
