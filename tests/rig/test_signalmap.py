@@ -3,6 +3,7 @@ files written here for real, read as they are into SI units; every bad map or fi
 and the key; the shipped examples load."""
 from __future__ import annotations
 
+import gzip
 import json
 import math
 from pathlib import Path
@@ -48,11 +49,11 @@ def _map(signals: str, source="p.toml") -> SignalMap:
 
 def test_csv_with_foreign_names_preamble_and_units(tmp_path):
     t, u, x, a, _ = _axis()
-    rows = [f"{1e3 * ti:.4f};{ui / 1e3:.9g};{xi * 1e3:.9g};{ai / 9.80665:.9g};21.5" for ti, ui, xi, ai in
+    rows = [f"{1e3 * ti:.4f};{ui / 1e3:.9g};{xi * 1e3:.9g};{ai / 9.80665:.9g};OK" for ti, ui, xi, ai in
             zip(t, u, x, a)]
-    path = tmp_path / "log.csv"
-    path.write_text("Logger XY export\nchannels: 4\nZeit [ms];F_soll [kN];x_ist [mm];a [g];Temp [C]\n"
-                    + "\n".join(rows) + "\n")
+    text = "Logger XY export\nchannels: 4\nZeit [ms];F_soll [kN];x_ist [mm];a [g];Status\n" + "\n".join(rows) + "\n"
+    path = tmp_path / "log.csv.gz"                 # compressed, and a text column the map does not name
+    path.write_bytes(gzip.compress(text.encode()))
     smap = _map('csv = { delimiter = ";", skip_rows = 2 }\ntime = { name = "Zeit [ms]", unit = "ms" }\n'
                 'command = { name = "F_soll [kN]", unit = "kN" }\nposition = { name = "x_ist [mm]", unit = "mm" }\n'
                 'acceleration = { name = "a [g]", unit = "g" }\n')
