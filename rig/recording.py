@@ -165,16 +165,20 @@ def check_plausible(rec: Recording) -> None:
 
 # ---- readers ----------------------------------------------------------------------------------------
 
-def _parse_csv(raw: bytes, source: str) -> Recording:
-    if not raw.strip():
-        raise RecordingError(f"{source}: empty file")
+def csv_text(raw: bytes, source: str) -> str:
+    """A CSV or text file's content as text; binary data: RecordingError."""
     if b"\x00" in raw:
         raise RecordingError(f"{source}: binary data, not a CSV recording")
     try:
-        text = raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise RecordingError(f"{source}: binary data, not a CSV recording (byte {e.start} is not text)") from None
-    lines = text.splitlines()
+
+
+def _parse_csv(raw: bytes, source: str) -> Recording:
+    if not raw.strip():
+        raise RecordingError(f"{source}: empty file")
+    lines = csv_text(raw, source).splitlines()
     first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
     if first is None:
         raise RecordingError(f"{source}: empty file")

@@ -22,7 +22,7 @@ import numpy as np
 
 from rig.errors import ConfigError, RecordingError
 from rig.recording import (_GZIP_MAGIC, _HDF5_MAGIC, _MAT_MAGIC, UNIFORM_TOL, Recording, _read_gzip, _validated,
-                           load_recording, read_bytes)
+                           csv_text, load_recording, read_bytes)
 
 SIGNALS = ("time", "command", "position", "acceleration", "reference")
 KEYS = SIGNALS + ("format", "sample_rate_hz", "closed_loop", "start_s", "stop_s", "csv")
@@ -125,11 +125,7 @@ class SignalMap:
     def from_table(cls, table: dict, source: str) -> "SignalMap":
         """Check a `[signals]` table; every problem is one ConfigError line naming `source` and the key."""
         where = f"{source}: [signals]"
-        if not isinstance(table, dict):
-            raise ConfigError(f"{where}: expected a table, got {type(table).__name__}")
-        unknown = [k for k in table if k not in KEYS]
-        if unknown:
-            raise ConfigError(f"{where}: unknown key {unknown[0]!r} (valid: {', '.join(KEYS)})")
+        _check_keys(table, KEYS, f"{where}:", "a table")
         for key in ("command", "position"):
             if key not in table:
                 raise ConfigError(f"{where}: {key} missing (the column or variable holding the plant's {key})")
@@ -168,6 +164,14 @@ class SignalMap:
                    csv=_csv_options(table.get("csv", {}), where))
 
 
+def _check_keys(value, valid: tuple[str, ...], what: str, expected: str) -> None:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{what} expected {expected}, got {value!r}"[:200])
+    unknown = [k for k in value if k not in valid]
+    if unknown:
+        raise ConfigError(f"{what} unknown key {str(unknown[0])[:40]!r} (valid: {', '.join(valid)})")
+
+
 def _number(v, what: str, *, lo: float | None = None, hi: float | None = None, unit: str = "") -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise ConfigError(f"{what}: expected a number{unit and ' in' + unit}, got {v!r}"[:200])
@@ -181,12 +185,8 @@ def _signal(key: str, value, where: str, default_unit: str) -> Signal:
     what = f"{where} {key}"
     if isinstance(value, str) or (isinstance(value, int) and not isinstance(value, bool)):
         value = {"name": value} if isinstance(value, str) else {"column": value}
-    if not isinstance(value, dict):
-        raise ConfigError(f"{what}: expected a name, a column number or a table "
-                          f"{{ name = ..., scale = ..., unit = ... }}, got {value!r}"[:200])
-    unknown = [k for k in value if k not in SIGNAL_KEYS]
-    if unknown:
-        raise ConfigError(f"{what}: unknown key {unknown[0]!r} (valid: {', '.join(SIGNAL_KEYS)})")
+    _check_keys(value, SIGNAL_KEYS, what + ":", "a name, a column number or a table { name = ..., scale = ..., "
+                "unit = ... }")
     name, column = value.get("name"), value.get("column")
     if name is not None:
         if not isinstance(name, str) or not name.strip():
@@ -217,11 +217,7 @@ def _signal(key: str, value, where: str, default_unit: str) -> Signal:
 
 def _csv_options(value, where: str) -> CsvOptions:
     what = f"{where} csv"
-    if not isinstance(value, dict):
-        raise ConfigError(f"{what}: expected a table {{ delimiter = ..., skip_rows = ..., header = ... }}")
-    unknown = [k for k in value if k not in CSV_KEYS]
-    if unknown:
-        raise ConfigError(f"{what}: unknown key {unknown[0]!r} (valid: {', '.join(CSV_KEYS)})")
+    _check_keys(value, CSV_KEYS, what + ":", "a table { delimiter = ..., skip_rows = ..., header = ... }")
     d = value.get("delimiter")
     if d == " ":
         d = "whitespace"
@@ -295,13 +291,7 @@ def _read_csv(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
     opts, plant = smap.csv, smap.source
     if raw.startswith(_GZIP_MAGIC):
         raw = _read_gzip(raw, source)
-    if b"\x00" in raw:
-        raise RecordingError(f"{source}: binary data, not a CSV recording")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise RecordingError(f"{source}: binary data, not a CSV recording (byte {e.start} is not text)") from None
-    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if i >= opts.skip_rows]
+    lines = [(i + 1, ln) for i, ln in enumerate(csv_text(raw, source).splitlines()) if i >= opts.skip_rows]
     lines = [(i, ln) for i, ln in lines if ln.strip() and not ln.lstrip().startswith(opts.comment)]
     if not lines:
         raise RecordingError(f"{source}: no data rows (after {opts.skip_rows} skipped lines and comments)")
