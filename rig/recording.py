@@ -89,34 +89,37 @@ class Recording:
 
 # ---- validation -------------------------------------------------------------------------------------
 
-def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
+def _validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] | None = None) -> Recording:
+    """The one set of rules every recording passes. labels: how the messages name each column (a plant file's
+    signal map names the file's own variables, rig/signalmap.py)."""
+    lab = {c: c for c in COLUMNS} | (labels or {})
     arrays = {}
     for name in COLUMNS:
         a = np.asarray(cols[name])
         if a.dtype.kind not in "iuf" and a.dtype != np.bool_:
-            raise RecordingError(f"{source}: column {name} is not numeric (dtype {a.dtype})")
+            raise RecordingError(f"{source}: column {lab[name]} is not numeric (dtype {a.dtype})")
         a = np.ascontiguousarray(a, dtype=float)
         if a.ndim != 1:
-            raise RecordingError(f"{source}: column {name} has shape {a.shape}, expected one value per sample")
+            raise RecordingError(f"{source}: column {lab[name]} has shape {a.shape}, expected one value per sample")
         arrays[name] = a
     n = arrays["time_s"].shape[0]
     for name, a in arrays.items():
         if a.shape[0] != n:
-            raise RecordingError(f"{source}: column {name} has {a.shape[0]} samples, time_s has {n}")
+            raise RecordingError(f"{source}: column {lab[name]} has {a.shape[0]} samples, {lab['time_s']} has {n}")
     if n == 0:
         raise RecordingError(f"{source}: no samples")
     for name, a in arrays.items():
         bad = ~np.isfinite(a)
         if bad.any():
             k = int(np.argmax(bad))
-            raise RecordingError(f"{source}: {name} is {a[k]} (not a finite number) at sample {k}")
+            raise RecordingError(f"{source}: {lab[name]} is {a[k]} (not a finite number) at sample {k}")
     if n < MIN_SAMPLES:
         raise RecordingError(f"{source}: too short: {n} samples, need at least {MIN_SAMPLES}")
     t = arrays["time_s"]
     dt = np.diff(t)
     if not (dt > 0).all():
         k = int(np.argmax(dt <= 0)) + 1
-        raise RecordingError(f"{source}: time_s not increasing at sample {k} ({t[k - 1]!r} then {t[k]!r})")
+        raise RecordingError(f"{source}: {lab['time_s']} not increasing at sample {k} ({t[k - 1]!r} then {t[k]!r})")
     step = float(np.median(dt))
     off = np.abs(dt - step) > UNIFORM_TOL * step
     if off.any():
@@ -127,15 +130,15 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
             missing = int(round(dt[k - 1] / step)) - 1
             more = int(off.sum()) - 1
             raise RecordingError(
-                f"{source}: time_s not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after t = {t[k - 1]:.6g} s "
-                f"(about {missing} samples missing, expected steps of {step:.6g} s"
+                f"{source}: {lab['time_s']} not uniform at sample {k}: a gap of {dt[k - 1]:.6g} s after "
+                f"t = {t[k - 1]:.6g} s (about {missing} samples missing, expected steps of {step:.6g} s"
                 f"{f'; {more} more irregular steps after it' if more else ''}): split the recording at the gap")
-        raise RecordingError(f"{source}: time_s not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
+        raise RecordingError(f"{source}: {lab['time_s']} not uniform at sample {k}: step {dt[k - 1]:.6g} s, "
                              f"expected {step:.6g} s")
     # the sample rate from the whole span (robust to per-step rounding of printed times)
     fs = (n - 1) / (t[-1] - t[0])
     if not np.isfinite(fs) or fs <= 0:
-        raise RecordingError(f"{source}: cannot determine a sample rate from time_s")
+        raise RecordingError(f"{source}: cannot determine a sample rate from {lab['time_s']}")
     return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
                      accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
 
@@ -143,12 +146,16 @@ def _validated(cols: dict[str, np.ndarray], source: str) -> Recording:
 # Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
 # beyond them is a wrong unit or a corrupt file.
 PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
+# another rig's command (a plant file's signal map), by its unit: a press's force reaches MN
+PLAUSIBLE_COMMAND = {"V": 1e4, "N": 1e8, "A": 1e4, "N m": 1e7}
 
 
 def check_plausible(rec: Recording) -> None:
     """One clear line for a value no sensor or command of a rig can have (e.g. 1e300 from a corrupt export)."""
     for name, lim in PLAUSIBLE_ABS.items():
         a = getattr(rec, name)
+        if name == "valve_cmd_V":
+            lim = PLAUSIBLE_COMMAND.get(rec.command_unit, lim)
         bad = np.abs(a) > lim
         if bad.any():
             k = int(np.argmax(bad))
@@ -158,16 +165,20 @@ def check_plausible(rec: Recording) -> None:
 
 # ---- readers ----------------------------------------------------------------------------------------
 
-def _parse_csv(raw: bytes, source: str) -> Recording:
-    if not raw.strip():
-        raise RecordingError(f"{source}: empty file")
+def csv_text(raw: bytes, source: str) -> str:
+    """A CSV or text file's content as text; binary data: RecordingError."""
     if b"\x00" in raw:
         raise RecordingError(f"{source}: binary data, not a CSV recording")
     try:
-        text = raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise RecordingError(f"{source}: binary data, not a CSV recording (byte {e.start} is not text)") from None
-    lines = text.splitlines()
+
+
+def _parse_csv(raw: bytes, source: str) -> Recording:
+    if not raw.strip():
+        raise RecordingError(f"{source}: empty file")
+    lines = csv_text(raw, source).splitlines()
     first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
     if first is None:
         raise RecordingError(f"{source}: empty file")
@@ -349,9 +360,8 @@ def _read_mat(raw: bytes, source: str) -> Recording:
     return _validated(cols, source)
 
 
-def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> Recording:
-    """Read a recording (format from the content's magic bytes, then the name). Raises RecordingError."""
-    path = Path(path)
+def read_bytes(path: Path) -> bytes:
+    """A recording file's content; missing, unreadable or empty: RecordingError."""
     source = str(path)
     try:
         raw = path.read_bytes()
@@ -363,6 +373,14 @@ def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> R
         raise RecordingError(f"{source}: cannot read ({e.strerror or e})") from None
     if not raw:
         raise RecordingError(f"{source}: empty file")
+    return raw
+
+
+def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> Recording:
+    """Read a recording (format from the content's magic bytes, then the name). Raises RecordingError."""
+    path = Path(path)
+    source = str(path)
+    raw = read_bytes(path)
     if raw.startswith(_HDF5_MAGIC) or path.suffix.lower() in (".h5", ".hdf5"):
         if not raw.startswith(_HDF5_MAGIC):
             raise RecordingError(f"{source}: not an HDF5 file (no HDF5 signature)")

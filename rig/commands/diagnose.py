@@ -15,6 +15,9 @@ from rig.errors import RigError
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): the model family, and [signals] naming REC's own "
+                        "columns or variables and their units")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", required=True,
                        help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
@@ -23,12 +26,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from rig.config import load_config
-    from rig.recording import check_plausible, load_recording
+    from rig.recording import check_plausible
+    from rig.signalmap import check_plant_supported, load_recording_for
     from sim_backend.linear import ActuatorParams
 
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
-    rec = load_recording(args.recording)                      # RecordingError: one line, exit 2
+    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    if args.plant is not None:
+        check_plant_supported(args.plant, rec)
     check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
         raise RigError(f"--out {args.out}: exists and is not a folder")

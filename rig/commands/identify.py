@@ -16,6 +16,9 @@ UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; time_s,valve_cmd_V,position_m,accel_mps2)")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): the model family, and [signals] naming REC's own "
+                        "columns or variables and their units")
     p.add_argument("--json", action="store_true",
                    help='print only {"parameters", "std", "fit", ...} as JSON (SI units, w_nv in rad/s)')
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
@@ -134,7 +137,8 @@ def write_outputs(res, out: Path) -> dict[str, Path]:
 def run(args) -> int:
     from rig.config import load_config
     from rig.identify import identify
-    from rig.recording import check_plausible, load_recording
+    from rig.recording import check_plausible
+    from rig.signalmap import check_plant_supported, load_recording_for
     from sim_backend.linear import ActuatorParams
 
     if args.starts < 1:
@@ -142,7 +146,9 @@ def run(args) -> int:
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
-    rec = load_recording(args.recording)                 # RecordingError: one line, exit 2
+    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    if args.plant is not None:
+        check_plant_supported(args.plant, rec)
     check_plausible(rec)
     if rec.closed_loop and rec.reference_m is None:
         # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit

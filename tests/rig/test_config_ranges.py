@@ -9,6 +9,7 @@ import dataclasses
 import math
 import re
 import tempfile
+import tomllib
 import typing
 from pathlib import Path
 
@@ -98,6 +99,8 @@ def test_hil_rate_bounds_the_floor_band():
 
 def test_shipped_configs_load():
     files = sorted((REPO / "drivers" / "devicemaps").glob("*.toml")) + sorted((REPO / "docs").glob("**/*.toml"))
+    # plant files (docs/PLANT.md: [plant], [signals]) are not rig configs; tests/rig/test_signalmap.py loads them
+    files = [f for f in files if not {"plant", "signals"} & set(tomllib.loads(f.read_text()))]
     assert len(files) >= 2
     for f in files:
         cfg = C.load_config(f)
