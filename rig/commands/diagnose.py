@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
     p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): the model family and its parameters (default: the eha "
+                        "actuator of --config or Table 1)")
 
 
 def run(args) -> int:
@@ -28,6 +31,10 @@ def run(args) -> int:
 
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
+    plant = None
+    if args.plant is not None:
+        from rig.plant.file import load_plant
+        plant = load_plant(args.plant, p0)                    # ConfigError: one line naming file and key
     rec = load_recording(args.recording)                      # RecordingError: one line, exit 2
     check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
@@ -42,11 +49,11 @@ def run(args) -> int:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
-             f"{'Table 1' if cfg is None else cfg.source}")
+             f"{plant.describe() if plant is not None else ('Table 1' if cfg is None else cfg.source)}")
     if rec.closed_loop:
         from rig.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
-    diag = diagnose(rec, p0, progress=progress, seed=args.seed)
+    diag = diagnose(rec, plant if plant is not None else p0, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:
         paths = report.write_outputs(args.out, diag, rec)

@@ -98,6 +98,7 @@ class Diagnosis:
     evidence: dict = field(default_factory=dict)             # plot data behind each named effect and sensor term
     used: np.ndarray | None = None                           # samples the fits used (not clipped, past the start)
     noise_floor: noise_mod.NoiseFloor | None = None
+    plant: dict = field(default_factory=dict)                # family, input unit, fitted linear keys, shooting
 
     def names(self) -> list[str]:
         return sorted(e["name"] for e in self.effects)
@@ -1241,7 +1242,18 @@ def _conclude(R: _Run, sensor: sensor_mod.SensorTerms, t_start: float) -> Diagno
                      params_refit=pb.plant.public_linear(R.refit.lin),
                      noise_m=float(pb.noise), summary=summary, series=series, frf=frf_out, candidates=R.tried,
                      timing_s=time.perf_counter() - t_start, sensor=sensor, command=R.cmd_info, verdict=verdict,
-                     evidence=ev, used=R.use, noise_floor=R.floor_aug)
+                     evidence=ev, used=R.use, noise_floor=R.floor_aug, plant=_plant_doc(pb, augmented))
+
+
+def _plant_doc(pb: Problem, augmented: Fit) -> dict:
+    """What diagnosis.json says of the plant: its family, the command's unit, the linear parameters of the
+    augmented model, and the segment-wise initial states when the plant integrates."""
+    doc = {"family": pb.plant.family, "input_unit": pb.plant.input_unit,
+           "free_parameters": list(pb.lin_keys),
+           "augmented_linear": pb.plant.public_linear(augmented.lin)}
+    if pb.shoot is not None:
+        doc["shooting"] = pb.shoot.as_dict(pb.fs)
+    return doc
 
 
 def _sensor_summary(s: sensor_mod.SensorTerms) -> str:
