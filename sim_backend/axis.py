@@ -5,7 +5,7 @@ the diagnosis on plant files (rig prove --plant, the EMPS-like worked example in
                                                                    saturation and deadband)
 Coulomb friction here is the real thing, not the diagnosis's smooth tanh: the carriage sticks while the applied
 force stays within +-F_c (Karnopp's stick band), which the diagnosis must still recognise. Integrated with small
-fixed sub-steps (semi-implicit Euler, 20 per sample by default); the command is held over each sample and delayed
+fixed sub-steps (20 per sample by default: the linear part exact over each, the friction force held); the command is held over each sample and delayed
 by tau (the switch inside a sample at the right sub-step).
 
 Closed loop: a position controller at the sample rate on the measured (quantised, noisy) position, as a drive's
@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+import scipy.linalg
 
 
 @dataclass(frozen=True)
@@ -54,21 +55,22 @@ class Sensor:
 
 
 @numba.njit(cache=True)
-def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, base, dist, sens_noise, step, offset,
-               x_out, u_out):
-    M, c, k, g, Fc, F0, tau, sat, dead = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6], prm[7], prm[8]
-    has_base = base[2] > 0.0
-    wb = 2.0 * math.pi * base[0]
-    mb = base[2] if has_base else 1.0
-    kb = mb * wb * wb; cb = 2.0 * base[1] * wb * mb
+def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, Gd, Cx, Cv, dist, sens_noise, step,
+               offset, x_out, u_out):
+    g, Fc, F0, tau, sat, dead = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
+    c, k = prm[6], prm[7]
     T = 1.0 / fs; h = T / n_sub
     m = int(math.floor(tau / T + 1e-9)); fr = tau - m * T
-    x = 0.0; v = 0.0; xb = 0.0; vb = 0.0
+    n = Ad.shape[0]
+    s = np.zeros(n); sn = np.zeros(n)
     integ = 0.0; xm_prev = 0.0
     u_hist = np.zeros(N)
-    vstick = 1e-7
+    vstick = 1e-6
     for kk in range(N):
-        xm = x - xb + offset + sens_noise[kk]
+        xr = 0.0
+        for i in range(n):
+            xr += Cx[i] * s[i]
+        xm = xr + offset + sens_noise[kk]
         if step > 0.0:
             xm = step * math.floor(xm / step + 0.5)
         x_out[kk] = xm
@@ -87,32 +89,65 @@ def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, base
         u_hist[kk] = u
         u_out[kk] = u
         for j in range(n_sub):
-            t_in = j * h
-            idx = kk - m if t_in >= fr - 1e-15 else kk - m - 1
+            idx = kk - m if j * h >= fr - 1e-15 else kk - m - 1
             ud = u_hist[idx] if idx >= 0 else 0.0
             if sat > 0.0:
                 ud = min(max(ud, -sat), sat)
             if dead > 0.0:
                 ud = ud - dead if ud > dead else (ud + dead if ud < -dead else 0.0)
-            t = kk * T + t_in
+            t = kk * T + j * h
             Fd = dist[1] * math.sin(2.0 * math.pi * dist[0] * t + dist[2]) if dist[0] > 0.0 else 0.0
-            vr = v - vb
-            Fa = g * ud + F0 + Fd - c * vr - k * (x - xb)
-            if abs(vr) < vstick and abs(Fa) <= Fc:
-                Ff = -Fa                       # stuck: friction holds the applied force
-            else:
-                s = vr if abs(vr) >= vstick else Fa
-                Ff = -Fc if s > 0 else Fc
-            a = (Fa + Ff) / M
-            if has_base:
-                ab = (-(Fa + Ff) - kb * xb - cb * vb) / mb
-                vb += h * ab
-                xb += h * vb
-            vn = v + h * a
-            if Fc > 0.0 and (v - vb + 0.0) * (vn - vb) < 0.0 and abs(Fa) <= Fc:
-                vn = vb                        # a reversal inside the stick band stops the carriage
-            v = vn
-            x += h * v
+            vr = 0.0; xr = 0.0
+            for i in range(n):
+                vr += Cv[i] * s[i]
+                xr += Cx[i] * s[i]
+            Fext = g * ud + F0 + Fd
+            Ff = 0.0
+            if Fc > 0.0:
+                Fa = Fext - c * vr - k * xr          # what acts on the carriage besides friction
+                if abs(vr) < vstick and abs(Fa) <= Fc:
+                    Ff = -Fa                         # stuck (Karnopp): friction holds the rest
+                    for i in range(n):               # and the relative velocity is zero
+                        s[i] -= Cv[i] * vr * (1.0 if Cv[i] != 0.0 else 0.0) * (1.0 if i == 1 else 0.0)
+                else:
+                    sg = vr if abs(vr) >= vstick else Fa
+                    Ff = -Fc if sg > 0 else Fc
+            for i in range(n):
+                acc = Gd[i] * (Fext + Ff)
+                for q in range(n):
+                    acc += Ad[i, q] * s[q]
+                sn[i] = acc
+            if Fc > 0.0:
+                vn = 0.0
+                for i in range(n):
+                    vn += Cv[i] * sn[i]
+                if vr * vn < 0.0 and abs(Fext - c * 0.0 - k * xr) <= Fc:
+                    for i in range(n):               # a reversal inside the stick band: the carriage stops
+                        if i == 1:
+                            sn[i] -= vn
+            for i in range(n):
+                s[i] = sn[i]
+
+
+def _exact_substep(ax: Axis, h: float):
+    """The linear part (mass, damping, stiffness, base) discretised exactly over a sub-step, with the force between
+    carriage and frame held: (Ad, Gd, Cx = encoder row, Cv = relative velocity row)."""
+    M, c, k = ax.mass_kg, ax.damping_n_s_per_m, ax.stiffness_n_per_m
+    if ax.base is None:
+        A = np.array([[0.0, 1.0], [-k / M, -c / M]]); G = np.array([0.0, 1.0 / M])
+        Cx = np.array([1.0, 0.0]); Cv = np.array([0.0, 1.0])
+    else:
+        fb, zb, mb = ax.base
+        wb = 2 * math.pi * fb
+        kb, cb = mb * wb * wb, 2 * zb * wb * mb
+        A = np.array([[0.0, 1.0, 0.0, 0.0], [-k / M, -c / M, k / M, c / M], [0.0, 0.0, 0.0, 1.0],
+                      [k / mb, c / mb, -(k + kb) / mb, -(c + cb) / mb]])
+        G = np.array([0.0, 1.0 / M, 0.0, -1.0 / mb])
+        Cx = np.array([1.0, 0.0, -1.0, 0.0]); Cv = np.array([0.0, 1.0, 0.0, -1.0])
+    n = len(G)
+    E = np.zeros((n + 1, n + 1)); E[:n, :n] = A * h; E[:n, n] = G * h
+    X = scipy.linalg.expm(E)
+    return X[:n, :n], X[:n, n], Cx, Cv
 
 
 def simulate_axis(ax: Axis, fs: float, *, command=None, reference=None, loop: Loop | None = None,
@@ -122,16 +157,16 @@ def simulate_axis(ax: Axis, fs: float, *, command=None, reference=None, loop: Lo
     closed = loop is not None
     src = np.ascontiguousarray(reference if closed else command, dtype=float)
     N = len(src)
-    prm = np.array([ax.mass_kg, ax.damping_n_s_per_m, ax.stiffness_n_per_m, ax.gain_n_per_unit, ax.coulomb_n,
-                    ax.constant_force_n, ax.delay_s, ax.saturation, ax.deadband])
-    base = np.array(ax.base if ax.base else (0.0, 0.0, 0.0), float)
+    prm = np.array([ax.gain_n_per_unit, ax.coulomb_n, ax.constant_force_n, ax.delay_s, ax.saturation, ax.deadband,
+                    ax.damping_n_s_per_m, ax.stiffness_n_per_m])
+    Ad, Gd, Cx, Cv = _exact_substep(ax, 1.0 / (fs * n_sub))
     dist = np.array(ax.disturbance if ax.disturbance else (0.0, 0.0, 0.0), float)
     noise = np.random.default_rng(sensor.seed).normal(0.0, sensor.noise_m, N) if sensor.noise_m > 0 else np.zeros(N)
     lp = loop or Loop(0.0, 0.0)
     x_out = np.empty(N); u_out = np.empty(N)
     _integrate(N, float(fs), int(n_sub), src if not closed else np.zeros(N), closed, lp.kp_per_s, lp.kv, lp.ki,
-               lp.u_max, src if closed else np.zeros(N), prm, base, dist, noise, sensor.step_m, sensor.offset_m,
-               x_out, u_out)
+               lp.u_max, src if closed else np.zeros(N), prm, Ad, Gd, Cx, Cv, dist, noise, sensor.step_m,
+               sensor.offset_m, x_out, u_out)
     return u_out, x_out
 
 
@@ -151,3 +186,22 @@ def trapezoid_program(fs: float, moves: list[tuple[float, float]], accel_mps2: f
         v_parts += [sgn * up, sgn * flat, sgn * up[::-1], np.zeros(int(round(dwell_s * fs)))]
     v = np.concatenate(v_parts)
     return start_m + np.cumsum(v) / fs
+
+
+# The EMPS benchmark's published figures (Janot, Gautier, Brunot: the electro-mechanical positioning system data
+# set and its reference model): M q'' = g_tau v_ir - F_v q' - F_c sign(q') - OF, recorded at 1 kHz in closed loop.
+EMPS = Axis(mass_kg=95.1089, damping_n_s_per_m=203.5034, gain_n_per_unit=35.15, coulomb_n=20.3935,
+            constant_force_n=-3.1648)
+EMPS_LOOP = Loop(kp_per_s=160.18, kv=243.45, ki=0.0, u_max=10.0)   # P position, P velocity (V s/m), +-10 V drive
+EMPS_ENCODER = Sensor(step_m=5e-8)                                    # ASSUMED: a 0.05 um encoder step, no noise
+EMPS_MOVES = [(0.15, 0.13), (-0.15, 0.13), (0.1, 0.06), (-0.1, 0.06), (0.05, 0.03), (-0.05, 0.03)] * 2  # ASSUMED
+EMPS_ACCEL_MPS2 = 0.83                                                # ASSUMED: the published profile's ~0.83 m/s^2
+
+
+def emps_like(fs: float = 1000.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(drive voltage v_ir [V], encoder position [m]) of an EMPS-like run: ~23 s of back-and-forth trapezoidal
+    moves up to 0.13 m/s over 0.15 m, under the published cascade. What the published figures do not give (the
+    moves, the encoder step) is marked ASSUMED above."""
+    ref = trapezoid_program(fs, EMPS_MOVES, EMPS_ACCEL_MPS2, 0.3)
+    sensor = Sensor(EMPS_ENCODER.step_m, EMPS_ENCODER.noise_m, EMPS_ENCODER.offset_m, seed)
+    return simulate_axis(EMPS, fs, reference=ref, loop=EMPS_LOOP, sensor=sensor)
