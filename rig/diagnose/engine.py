@@ -1195,6 +1195,8 @@ def _sensor_terms(R: _Run) -> sensor_mod.SensorTerms:
         wander_rms_m=terms["wander_rms_m"], lines=R.pickup + R.acc_pickup, accel_offset_mps2=acc_off, accel=check,
         quantisation_step_m=q, accel_quantisation_step_mps2=R.q_acc, clipped=_clips(R),
         start_transient_s=R.transient_s if R.cmd_info.starts_mid_run else 0.0, notes=[])
+    if pb.shoot is not None:
+        sensor.notes.append("no offset or drift is fitted: the segment-wise initial states hold the transducer's zero")
     if q > 0:
         sensor.notes.append(f"position quantised in steps of {q:.3g} m: a noise floor of {q / math.sqrt(12):.3g} m rms "
                             f"(step/sqrt(12)); residual structure below it means nothing")
@@ -1257,7 +1259,8 @@ def _plant_doc(pb: Problem, augmented: Fit) -> dict:
 
 
 def _sensor_summary(s: sensor_mod.SensorTerms) -> str:
-    parts = [f"offset {s.offset_m * 1e6:.3g} um", f"drift {s.drift_m_per_s * 1e9:.3g} nm/s"]
+    parts = [f"offset {s.offset_m * 1e6:.3g} um", f"drift {s.drift_m_per_s * 1e9:.3g} nm/s"] \
+        if (s.offset_m or s.drift_m_per_s) else []     # none: the segment-wise initial states hold the zero
     if s.wander_terms:
         parts.append(f"slow wander {s.wander_rms_m * 1e9:.3g} nm rms")
     for l in s.lines:

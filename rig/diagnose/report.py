@@ -244,8 +244,6 @@ def summary_text(diag, rec=None) -> str:
             lines.append(f"    evidence: {e['evidence']}")
     for g in diag.group or []:
         lines.append(f"  confounded (cannot be told apart here): {', '.join(g)}")
-    if getattr(diag, "plant", None):
-        doc["plant"] = dict(diag.plant)
     sensor = getattr(diag, "sensor", None)
     if sensor is not None:
         lines.append("SENSOR terms (fitted in every model, not physics):")
@@ -652,8 +650,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
             out.append("None: the refit linear model explains the recording.")
     for g in diag.group or []:
         out.append(f"\nConfounded, cannot be told apart on this recording: {', '.join(g)}.")
-    if getattr(diag, "plant", None):
-        doc["plant"] = dict(diag.plant)
+    pl = getattr(diag, "plant", None) or {}
+    if pl.get("family") and pl["family"] != "eha":
+        out.append(f"\nPlant: {pl['family']} (input in {pl['input_unit']}), augmented linear parameters "
+                   + ", ".join(f"{k} = {v:.4g}" for k, v in pl.get("augmented_linear", {}).items())
+                   + (f"; simulated in {pl['shooting']['segments']} segments from their own initial states "
+                      "(multiple shooting)" if "shooting" in pl else "") + ".")
     sensor = getattr(diag, "sensor", None)
     if sensor is not None:
         out += ["", "## Sensor terms (fitted in every model, never named as effects)", ""]
