@@ -6,6 +6,7 @@ traceback."""
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 import math
 import re
 import tempfile
@@ -98,6 +99,7 @@ def test_hil_rate_bounds_the_floor_band():
 
 def test_shipped_configs_load():
     files = sorted((REPO / "drivers" / "devicemaps").glob("*.toml")) + sorted((REPO / "docs").glob("**/*.toml"))
+    files = [f for f in files if not {"plant", "signals"} & set(tomllib.loads(f.read_text()))]   # plant files
     assert len(files) >= 2
     for f in files:
         cfg = C.load_config(f)
