@@ -496,19 +496,3 @@ def load_recording_for(path, plant_path=None) -> Recording:
     rig's own formats (rig.recording.load_recording)."""
     smap = load_plant_signals(plant_path) if plant_path is not None else None
     return load_recording(path) if smap is None else load_mapped(path, smap)
-
-
-SUPPORTED_FAMILIES = ("eha",)      # the plant models (issue 13) add theirs
-
-
-def check_plant_supported(plant_path, rec: Recording) -> None:
-    """Refuse, in one line, a plant file whose `[plant]` family the models do not handle yet, and an `eha` plant
-    fed a command that is not a valve voltage."""
-    plant = read_plant_file(plant_path).get("plant", {})
-    family = plant.get("family", "eha") if isinstance(plant, dict) else plant
-    if family not in SUPPORTED_FAMILIES:
-        raise ConfigError(f"{plant_path}: [plant] family = {family!r}: plant family {family} not supported yet "
-                          f"(supported: {', '.join(SUPPORTED_FAMILIES)})"[:300])
-    if family == "eha" and rec.command_unit != "V":
-        raise ConfigError(f"{plant_path}: [signals] command is in {rec.command_unit}: the eha plant's input is the "
-                          f"valve voltage (unit V or mV)")

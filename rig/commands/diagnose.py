@@ -15,26 +15,31 @@ from rig.errors import RigError
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)")
-    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
-                   help="plant file (TOML, docs/PLANT.md): the model family, and [signals] naming REC's own "
-                        "columns or variables and their units")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", required=True,
                        help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
     p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): the model family and its parameters (default: the eha "
+                        "actuator of --config or Table 1), and [signals] naming REC's own columns or variables "
+                        "and their units")
 
 
 def run(args) -> int:
     from rig.config import load_config
     from rig.recording import check_plausible
-    from rig.signalmap import check_plant_supported, load_recording_for
+    from rig.signalmap import load_recording_for
     from sim_backend.linear import ActuatorParams
 
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
-    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    plant = None
     if args.plant is not None:
-        check_plant_supported(args.plant, rec)
+        from rig.plant.file import check_command_unit, load_plant
+        plant = load_plant(args.plant, p0)                    # ConfigError: one line naming file and key
+    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    if plant is not None:
+        check_command_unit(args.plant, plant, rec)
     check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
         raise RigError(f"--out {args.out}: exists and is not a folder")
@@ -48,11 +53,11 @@ def run(args) -> int:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
-             f"{'Table 1' if cfg is None else cfg.source}")
+             f"{plant.describe() if plant is not None else ('Table 1' if cfg is None else cfg.source)}")
     if rec.closed_loop:
         from rig.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
-    diag = diagnose(rec, p0, progress=progress, seed=args.seed)
+    diag = diagnose(rec, plant if plant is not None else p0, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:
         paths = report.write_outputs(args.out, diag, rec)

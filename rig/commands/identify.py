@@ -16,9 +16,6 @@ UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; time_s,valve_cmd_V,position_m,accel_mps2)")
-    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
-                   help="plant file (TOML, docs/PLANT.md): the model family, and [signals] naming REC's own "
-                        "columns or variables and their units")
     p.add_argument("--json", action="store_true",
                    help='print only {"parameters", "std", "fit", ...} as JSON (SI units, w_nv in rad/s)')
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
@@ -28,6 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the multi-start points (default 0)")
     p.add_argument("--repeat", type=cliargs.count(1, 1000), default=1, metavar="N",
                    help="benchmark: identify N times and print p50/p99/max of the time on stderr")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): identify its free parameters (mechanical_axis, "
+                        "transfer_function) by output error; an eha plant file: the six actuator parameters; "
+                        "[signals] names REC's own columns or variables and their units")
     p.add_argument("--no-refine", action="store_true",
                    help="skip the time-domain output-error refinement (FRF fit only, as the paper)")
 
@@ -134,11 +135,47 @@ def write_outputs(res, out: Path) -> dict[str, Path]:
     return paths
 
 
+def _run_plant(args, rec, plant, t0: float) -> int:
+    """A mechanical_axis or transfer_function plant: its free parameters (rig.diagnose.refit)."""
+    from rig.diagnose.refit import identify_plant
+
+    def progress(stage: str, frac: float) -> None:
+        print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)
+
+    res = identify_plant(rec, plant, progress=progress)
+    if "warning" in res:
+        print(f"WARNING: {res['warning']}", file=sys.stderr)
+    if args.out:
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / "identify.json").write_text(json.dumps(res, indent=1))
+        except OSError as e:
+            raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    if args.json:
+        print(json.dumps(res, indent=1))
+        return 0
+    print(f"Identified {plant.family} from {rec.source} ({rec.n} samples at {rec.fs_hz:g} Hz)\n")
+    print("| parameter | start | identified | 1-sigma | bounds |\n|---|---|---|---|---|")
+    for k, v in res["parameters"].items():
+        if k in res["std"]:
+            lo, hi = res["bounds"][k]
+            print(f"| {k} | {res['start'][k]:.4g} | {v:.4g} | {res['std'][k]:.2g} | {lo:.3g}..{hi:.3g} |")
+        else:
+            print(f"| {k} | {v:.4g} (fixed) | | | |")
+    f = res["fit"]
+    print(f"\nNRMSE {f['nrmse']:.4f}, residual {f['residual_rms_m']:.3g} m rms (held-out blocks "
+          f"{f['holdout_residual_rms_m']:.3g} m)" + (f"; {res['shooting']['segments']} segments (multiple shooting)"
+                                                      if "shooting" in res else ""))
+    if res["at_bounds"]:
+        print("at their bounds: " + ", ".join(res["at_bounds"]) + " (the model lacks something: run rig diagnose)")
+    return 0
+
+
 def run(args) -> int:
     from rig.config import load_config
     from rig.identify import identify
     from rig.recording import check_plausible
-    from rig.signalmap import check_plant_supported, load_recording_for
+    from rig.signalmap import load_recording_for
     from sim_backend.linear import ActuatorParams
 
     if args.starts < 1:
@@ -146,10 +183,18 @@ def run(args) -> int:
     cfg = load_config(args.config) if args.config else None
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
-    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    plant = None
     if args.plant is not None:
-        check_plant_supported(args.plant, rec)
+        from rig.plant.file import check_command_unit, load_plant
+        plant = load_plant(args.plant, p0)               # ConfigError: one line naming file and key
+    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
     check_plausible(rec)
+    if plant is not None:
+        check_command_unit(args.plant, plant, rec)
+        if plant.family == "eha":
+            p0, plant = plant.actuator, None
+    if plant is not None:
+        return _run_plant(args, rec, plant, t0)
     if rec.closed_loop and rec.reference_m is None:
         # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
         # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.

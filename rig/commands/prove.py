@@ -22,6 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="every blind case also carries the habits of real recordings, with random sizes: sensor "
                         "offset, drift and wander, mains pickup, quantisation, coloured noise, mid-run starts, "
                         "any excitation type, sample rates 500 Hz - 10 kHz, lengths 20-200 s")
+    p.add_argument("--plant", metavar="FILE", type=Path, default=None,
+                   help="plant file (TOML, docs/PLANT.md): make the blind cases on its mechanical axis (friction, "
+                        "deadband, delay, constant force, saturation; encoder terms; open and closed loop)")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                    help="write the table, confusion matrix and score as DIR/proof.md and DIR/proof.json")
@@ -50,7 +53,23 @@ def run(args) -> int:
         print(f"[{done}/{total}] diagnosed {label}", file=sys.stderr, flush=True)
 
     cases = None
-    if args.cases is not None:
+    plant = None
+    if args.plant is not None:
+        from rig.plant.file import load_plant
+        plant = load_plant(args.plant, p0)
+        if plant.family == "eha":
+            p0 = plant.actuator
+            plant = None
+    if plant is not None:
+        from rig.diagnose import prove_axis
+        if args.cases is not None:
+            raise RigError("--plant and --cases: grade a folder against its answers.json, or make cases on the "
+                           "plant, not both")
+        title = f"rig prove --plant {args.plant} --n {args.n} --seed {args.seed}"
+        print(f"rig prove: {args.n} blind cases from seed {args.seed} on {plant.describe()} on {args.workers} "
+              "processes", file=sys.stderr, flush=True)
+        cases, rows = prove_axis.prove_plant(args.n, args.seed, plant, workers=args.workers, progress=progress)
+    elif args.cases is not None:
         title = f"rig prove --cases {args.cases}"
         n = len(prove.read_answers(args.cases))
         print(f"rig prove: grading {n} recordings of {args.cases} on {args.workers} processes",

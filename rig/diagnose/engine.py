@@ -44,20 +44,17 @@ from scipy.signal import csd, welch
 from rig import closedloop
 from rig.diagnose import command as command_mod
 from rig.diagnose import evidence as evidence_mod, locate, noise as noise_mod, sensor as sensor_mod
-from rig.diagnose.effects import NONLINEAR, SPECS, bounds, simulate
 from rig.diagnose.lm import _POOL, lm_fit
-from rig.diagnose.models import force_response, sim_linear
+from rig.diagnose.plants import model_for
+from rig.plant.model import Plant
 from rig.errors import RecordingError
 from rig.recording import check_plausible
 from sim_backend.linear import ActuatorParams
 
-LIN_KEYS = ("K_L", "K_C", "K_Q", "w_nv", "zeta")
 LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
 N_BLOCKS = 51                      # interleaved blocks (2 s blocks of a 100 s chirp); odd: the first and the last
                                    # are fit blocks, so the slow sensor terms never extrapolate into a held-out end
 MAX_EFFECTS = 2
-LINEAR_SIM = ("transport_delay", "base_resonance", "valve_saturation")   # exact in sim_linear
-SLOW = ("valve_deadband", "coulomb_friction")                           # need sim_reduced
 HARMONIC_SCREEN = 4.0              # nonlinear distortion / noise that makes nonlinear candidates worth fitting
 LINE_RATIO = 40.0                  # spectral line / local median for a line candidate
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
@@ -101,6 +98,7 @@ class Diagnosis:
     evidence: dict = field(default_factory=dict)             # plot data behind each named effect and sensor term
     used: np.ndarray | None = None                           # samples the fits used (not clipped, past the start)
     noise_floor: noise_mod.NoiseFloor | None = None
+    plant: dict = field(default_factory=dict)                # family, input unit, fitted linear keys, shooting
 
     def names(self) -> list[str]:
         return sorted(e["name"] for e in self.effects)
@@ -117,35 +115,76 @@ class Fit:
     k: int                        # number of fitted physics parameters
     dist: tuple | None = None     # (freq, coef_sin, coef_cos)
     coef: np.ndarray | None = None   # sensor-basis coefficients
+    state: np.ndarray | None = None  # segment-wise initial states' response (multiple shooting), metres
+
+
+@dataclass
+class Shooting:
+    """Segment-wise initial states of a plant with a pole at the origin (docs/PLANT.md): each segment is a fit
+    block and the held-out block after it; its initial state is estimated on the fit block (a linear nuisance
+    parameter, projected out with the sensor terms) and the held-out block is the model's prediction from it."""
+    starts: np.ndarray            # first sample of each segment
+    ends: np.ndarray
+    X0: dict = field(default_factory=dict)     # state dimension -> (segments, n) states from the data
+
+    @property
+    def count(self) -> int:
+        return len(self.starts)
+
+    def as_dict(self, fs: float) -> dict:
+        lens = (self.ends - self.starts) / fs
+        return {"segments": int(self.count), "segment_s": [float(np.min(lens)), float(np.max(lens))],
+                "method": "multiple shooting: each segment's initial state estimated on its fit block, its "
+                          "held-out block predicted from it"}
+
+
+SHOOT_BLOCK_S = 0.5                # block length of a segmented plant (a segment: a fit and a held-out block)
+
+
+def _n_blocks(plant, n: int, fs: float) -> int:
+    if not plant.segmented:
+        return N_BLOCKS
+    k = int(round(n / fs / SHOOT_BLOCK_S))
+    return int(min(201, max(21, k | 1)))            # odd: the first and the last are fit blocks
 
 
 class Problem:
-    def __init__(self, cmd: np.ndarray, y: np.ndarray, fs: float, p0: ActuatorParams, use: np.ndarray):
+    def __init__(self, cmd: np.ndarray, y: np.ndarray, fs: float, p0, use: np.ndarray):
         self.cmd = np.asarray(cmd, dtype=float)
         self.y = np.asarray(y, dtype=float)
         self.fs = float(fs)
         self.n = len(self.y)
-        self.p0 = p0
+        self.plant = model_for(p0)
+        self.p0 = self.plant.p0                     # ActuatorParams of the eha plant, else None
+        self.lin_keys = self.plant.lin_keys
+        self.nominal = dict(self.plant.nominal)
         self.t = np.arange(self.n) / self.fs
         self.use = np.asarray(use, bool)
-        blk = np.arange(self.n) * N_BLOCKS // self.n
+        n_blocks = _n_blocks(self.plant, self.n, self.fs)
+        blk = np.arange(self.n) * n_blocks // self.n
         self.mfit = ((blk % 2) == 0) & self.use
         self.mhold = ((blk % 2) == 1) & self.use
-        self.peak_ma = float(np.max(np.abs(self.cmd))) * p0.K_v
+        self.peak_ma = self.plant.peak_effect_scale(self.cmd)     # eha: driver current mA; else the command
         self.noise = 1.0
         self.n_eval = 0
         self.base_band = (5.0, 0.45 * self.fs)     # set to the excited band once known
         self.quick = False
         self.proxy = None
         self.broadband = False                      # noise or steps command (set once the command is read)
-        self.set_basis(sensor_mod.SensorBasis(self.n, self.fs))
+        self.shoot = None
+        if self.plant.segmented:
+            pair = blk // 2
+            starts = np.flatnonzero(np.r_[True, np.diff(pair) != 0])
+            self.shoot = Shooting(starts, np.r_[starts[1:], self.n])
+        self._free = (None, None)
+        self.set_basis(sensor_mod.SensorBasis(self.n, self.fs, zero_terms=self.shoot is None))
 
     # -- sensor terms
     def set_basis(self, basis: sensor_mod.SensorBasis) -> None:
         self.basis = basis
         self._Bf = np.ascontiguousarray(basis.B[self.mfit])
         self._G = self._Bf.T @ self._Bf
-        self._cho = cho_factor(self._G)
+        self._cho = cho_factor(self._G) if basis.m else None
 
     def _coef(self, rf: np.ndarray, Ff: np.ndarray | None = None):
         """Least-squares coefficients of the sensor basis (and of F, the disturbance regressors) on the fit
@@ -172,8 +211,49 @@ class Problem:
             out = out - F @ d
         return out, c, d
 
-    def params(self, lin: dict) -> ActuatorParams:
-        return self.p0.with_(**lin)
+    def free_response(self, lin: dict, fx: dict) -> np.ndarray:
+        """The segment-state regressors' shape (response to each unit initial state), cached per model."""
+        key = (tuple(sorted(lin.items())), repr(fx.get("base_resonance")))
+        if self._free[0] != key:
+            L = int(np.max(self.shoot.ends - self.shoot.starts))
+            self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
+        return self._free[1]
+
+    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray):
+        """_project with the segment-wise initial states: block-sparse normal equations (each segment's state
+        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response)."""
+        w = self.mfit
+        E = self.basis.B if F is None else np.column_stack([self.basis.B, F])
+        q = E.shape[1]
+        nx = O.shape[1]
+        sh = self.shoot
+        N = q + nx * sh.count
+        G = np.zeros((N, N)); b = np.zeros(N)
+        Ef = E[w]
+        G[:q, :q] = Ef.T @ Ef
+        b[:q] = Ef.T @ r[w]
+        for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
+            ws = w[a:e]
+            Ow = O[:e - a][ws]
+            i = q + s * nx
+            G[i:i + nx, i:i + nx] = Ow.T @ Ow
+            if q:
+                X = E[a:e][ws].T @ Ow
+                G[:q, i:i + nx] = X
+                G[i:i + nx, :q] = X.T
+            b[i:i + nx] = Ow.T @ r[a:e][ws]
+        d = np.sqrt(np.maximum(np.diag(G), 1e-300))
+        Gn = G / np.outer(d, d) + 1e-12 * np.eye(N)
+        try:
+            sol = np.linalg.solve(Gn, b / d) / d
+        except np.linalg.LinAlgError:
+            sol = np.linalg.lstsq(Gn, b / d, rcond=None)[0] / d
+        state = np.empty(self.n)
+        for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
+            state[a:e] = O[:e - a] @ sol[q + s * nx:q + (s + 1) * nx]
+        out = r - E @ sol[:q] - state
+        m = self.basis.m
+        return out, sol[:m], (sol[m:q] if F is not None else None), state
 
     def model(self, lin: dict, fx: dict) -> np.ndarray:
         self.n_eval += 1
@@ -182,25 +262,44 @@ class Problem:
             # superposition proxy: the exact slow model at its fit plus the change that the fast linear-sim
             # effects (delay, base, clip) and linear parameters make
             y_cur, base_c = self.proxy
-            fl = {k: v for k, v in sfx.items() if k in LINEAR_SIM}
-            return y_cur + simulate(self.params(lin), self.cmd, self.fs, fl) - base_c
-        return simulate(self.params(lin), self.cmd, self.fs, sfx)
+            fl = {k: v for k, v in sfx.items() if k in self.plant.linear_sim}
+            return y_cur + self.simulate(lin, fl) - base_c
+        return self.simulate(lin, sfx)
+
+    def simulate(self, lin: dict, fx: dict) -> np.ndarray:
+        """The plant with the effects fx (no disturbance) from the recorded command; a segmented plant from the
+        data's state at each segment start."""
+        if self.shoot is None:
+            return self.plant.simulate(lin, self.cmd, self.fs, fx)
+        nx = self.plant.matrices(lin, fx)[0].shape[0]
+        if nx not in self.shoot.X0:
+            self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
+        return self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, self.shoot.X0[nx])
+
+    def _residual_full(self, lin: dict, fx: dict):
+        r = self.y - self.model(lin, fx)
+        F = self.force_basis(lin, fx) if "periodic_disturbance" in fx else None
+        state = None
+        if self.shoot is not None:
+            r, c, d, state = self._project_shooting(r, F, self.free_response(lin, fx))
+        else:
+            r, c, d = self._project(r, F)
+        dist = None
+        if F is not None:
+            f = fx["periodic_disturbance"]["frequency_hz"]
+            dist = (f, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
+        return r, dist, c, state
 
     def residual(self, lin: dict, fx: dict):
         """Full-length residual with the sensor terms (and the disturbance) projected out on the fit blocks,
         the disturbance coefficients and the sensor coefficients."""
-        r = self.y - self.model(lin, fx)
-        dist = None
-        if "periodic_disturbance" in fx:
-            f = fx["periodic_disturbance"]["frequency_hz"]
-            r, c, d = self._project(r, self.force_basis(lin, fx))
-            dist = (f, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
-        else:
-            r, c, _ = self._project(r)
+        r, dist, c, _ = self._residual_full(lin, fx)
         return r, dist, c
 
     def residual_fit(self, lin: dict, fx: dict) -> np.ndarray:
         """The residual on the fit blocks only (what the least squares see)."""
+        if self.shoot is not None:
+            return self._residual_full(lin, fx)[0][self.mfit]
         rf = self.y[self.mfit] - self.model(lin, fx)[self.mfit]
         Ff = self.force_basis(lin, fx)[self.mfit] if "periodic_disturbance" in fx else None
         c, d = self._coef(rf, Ff)
@@ -210,26 +309,42 @@ class Problem:
         return rf
 
     def force_basis(self, lin: dict, fx: dict) -> np.ndarray:
-        """Position responses to a unit sin/cos piston force at the disturbance frequency (linear model with
-        the stand mode if named; the nonlinear effects are not applied to this small line)."""
-        b = fx.get("base_resonance")
-        base = (b["frequency_hz"], b["damping_ratio"], b.get("mass_kg", 280.0)) if b else None
-        return force_response(self.params(lin), self.fs, fx["periodic_disturbance"]["frequency_hz"], self.n, base)
+        """Position responses to a unit sin/cos load force at the disturbance frequency (linear model with
+        the base mode if named; the nonlinear effects are not applied to this small line)."""
+        return self.plant.force_response(lin, fx, self.fs, fx["periodic_disturbance"]["frequency_hz"], self.n)
 
-    def fit(self, lin0: dict, fx0: dict, free_lin=LIN_KEYS, free_fx: dict | None = None, max_iter=20,
+    def spec_keys(self, name: str) -> tuple[str, ...]:
+        return self.plant.specs[name].keys
+
+    def n_params(self, fx: dict) -> int:
+        """Fitted physics parameters: the linear ones, each effect's keys, the disturbance's frequency + 2."""
+        return len(self.lin_keys) + sum(3 if n == "periodic_disturbance" else len(self.spec_keys(n)) for n in fx)
+
+    def fit(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None, max_iter=20,
             rtol: float = 1e-5) -> Fit:
-        """Least squares on the fit blocks over free linear keys (log scale) and the free effect keys."""
-        free_fx = {n: SPECS[n].keys for n in fx0 if n != "periodic_disturbance"} if free_fx is None else free_fx
+        """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
+        keys."""
+        free_lin = self.lin_keys if free_lin is None else tuple(k for k in free_lin if k in self.lin_keys)
+        free_fx = {n: self.spec_keys(n) for n in fx0 if n != "periodic_disturbance"} if free_fx is None else free_fx
+        eha = self.plant.family == "eha"
         names, lo, hi, x0, scale = [], [], [], [], []
         for k in free_lin:
-            names.append(("lin", k)); nom = getattr(self.p0, k)
-            lo.append(math.log(LIN_BOUNDS[0])); hi.append(math.log(LIN_BOUNDS[1]))
-            x0.append(math.log(lin0.get(k, nom) / nom)); scale.append(0.05)
+            names.append(("lin", k)); nom = self.nominal[k]
+            blo, bhi = self.plant.bounds_lin[k]
+            if eha:
+                lo.append(math.log(LIN_BOUNDS[0])); hi.append(math.log(LIN_BOUNDS[1]))
+                x0.append(math.log(lin0.get(k, nom) / nom)); scale.append(0.05)
+            elif self.plant.log_scale[k]:
+                lo.append(math.log(blo / nom)); hi.append(math.log(bhi / nom))
+                x0.append(math.log(lin0.get(k, nom) / nom)); scale.append(0.05)
+            else:
+                lo.append(blo); hi.append(bhi)
+                x0.append(lin0.get(k, nom)); scale.append(0.02 * (bhi - blo))
         for n, keys in free_fx.items():
-            bnd = bounds(n, fs=self.fs, peak_ma=self.peak_ma, p=self.p0)
+            bnd = self.plant.effect_bounds(n, self.fs, self.peak_ma)
             if n == "base_resonance":     # a stand mode is only told apart (a pair) inside the excited band
                 bnd = [self.base_band] + list(bnd[1:])
-            for key, (a, b) in zip(SPECS[n].keys, bnd):
+            for key, (a, b) in zip(self.spec_keys(n), bnd):
                 if key not in keys:
                     continue
                 names.append((n, key)); lo.append(a); hi.append(b)
@@ -240,7 +355,8 @@ class Problem:
             lin = dict(lin0); fx = {n: dict(v) for n, v in fx0.items()}
             for (grp, key), val in zip(names, x):
                 if grp == "lin":
-                    lin[key] = getattr(self.p0, key) * math.exp(val)
+                    lin[key] = (self.nominal[key] * math.exp(val) if (eha or self.plant.log_scale[key])
+                                else float(val))
                 else:
                     fx[grp][key] = float(val)
             return lin, fx
@@ -254,28 +370,25 @@ class Problem:
             lin, fx = unpack(x)
         else:
             lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
-        return self.evaluate(lin, fx, k=n_params(fx))
+        return self.evaluate(lin, fx, k=self.n_params(fx))
 
     def evaluate(self, lin: dict, fx: dict, k: int) -> Fit:
-        r, dist, c = self.residual(lin, fx)
+        r, dist, c, state = self._residual_full(lin, fx)
         return Fit(lin=lin, fx=fx, rss_fit=float(np.sum(r[self.mfit] ** 2)), rss_hold=float(np.sum(r[self.mhold] ** 2)),
-                   k=k, dist=dist, coef=c)
+                   k=k, dist=dist, coef=c, state=state)
 
     def physics(self, f: Fit) -> np.ndarray:
-        """The physics part of a fitted model (with the disturbance's response), metres."""
+        """The physics part of a fitted model (with the disturbance's response and the segment states), metres."""
         yhat = self.model(f.lin, f.fx)
         if f.dist is not None:
             yhat = yhat + self.force_basis(f.lin, f.fx) @ np.array(f.dist[1:])
+        if f.state is not None:
+            yhat = yhat + f.state
         return yhat
 
     def series(self, f: Fit) -> np.ndarray:
         """The measurement as the model has it: physics plus the fitted sensor terms."""
         return self.physics(f) + self.basis.B @ f.coef
-
-
-def n_params(fx: dict) -> int:
-    """Fitted physics parameters: the linear ones, each effect's keys, the disturbance's frequency + 2."""
-    return len(LIN_KEYS) + sum(3 if n == "periodic_disturbance" else len(SPECS[n].keys) for n in fx)
 
 
 # ---- tests -------------------------------------------------------------------------------------------------
@@ -343,28 +456,41 @@ def _base_init(pb: Problem, lin: dict, fx_base: dict, f_lo: float, f_hi: float, 
             if c[i] < best[0]:
                 best = (float(c[i]), (float(fbs[i]), zb, mu))
     fb, zb, mu = best[1]
-    return {"frequency_hz": fb, "damping_ratio": zb, "mass_kg": pb.p0.M / mu}
+    return {"frequency_hz": fb, "damping_ratio": zb, "mass_kg": pb.plant.moving_mass_kg(lin) / mu}
 
 
 def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines,
                     y_clean: np.ndarray) -> tuple[dict, dict] | None:
-    slow = any(n in fx_base for n in SLOW)
+    slow = any(n in fx_base for n in pb.plant.slow)
     if name == "transport_delay":
         grid = np.r_[0.0, 0.5e-3, 1e-3, 1.5e-3, 2.2e-3, 3.2e-3, 4.5e-3] if slow else \
             np.r_[0.0, 0.2e-3, np.arange(0.5e-3, 6.01e-3, 0.5e-3)]
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "delay_s", grid)
         return lin, fx
-    if name == "valve_saturation":
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "limit_ma", pb.peak_ma * np.array([0.2, 0.35, 0.5, 0.6, 0.7, 0.8, 0.88, 0.94, 0.98]))
+    key = pb.spec_keys(name)[0]
+    if name in ("valve_saturation", "input_saturation"):
+        lin, fx, _ = _grid_best(pb, lins, fx_base, name, key, pb.peak_ma * np.array([0.2, 0.35, 0.5, 0.6, 0.7, 0.8, 0.88, 0.94, 0.98]))
         return lin, fx
     if name == "valve_deadband":
         grid = [0.15, 0.4, 1.0] if (pb.quick or slow) else [0.01, 0.08, 0.15, 0.3, 0.5, 0.7, 1.0, 1.5]
         grid = [g for g in grid if g < 0.6 * pb.peak_ma] or [0.1 * pb.peak_ma]
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "width_ma", grid)
         return lin, fx
-    if name == "coulomb_friction":
+    if name == "input_deadband":        # a fraction of the peak command (the model is static: no quick grid)
+        grid = pb.peak_ma * np.array([0.003, 0.01, 0.03, 0.06, 0.1, 0.2, 0.35])
+        lin, fx, _ = _grid_best(pb, lins, fx_base, name, key, grid)
+        return lin, fx
+    if name == "coulomb_friction" and pb.plant.family == "eha":
         grid = [60, 200, 600] if (pb.quick or slow) else [3, 40, 100, 200, 400, 800, 1400]
         lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", grid)
+        return lin, fx
+    if name == "coulomb_friction":      # a fraction of the peak drive force
+        frac = [0.01, 0.05, 0.2] if (pb.quick or slow) else [0.003, 0.01, 0.03, 0.07, 0.15, 0.3, 0.6]
+        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", pb.plant.peak_force_n(pb.cmd) * np.array(frac))
+        return lin, fx
+    if name == "constant_force":        # linear in the force: a coarse start, the fit does the rest
+        frac = [-0.1, -0.03, -0.01, 0.0, 0.01, 0.03, 0.1]
+        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", pb.plant.peak_force_n(pb.cmd) * np.array(frac))
         return lin, fx
     if name == "base_resonance":
         best = None
@@ -400,21 +526,22 @@ def _with_prior(pb: Problem, name: str, init, fx_base: dict, prior: dict | None)
 
 def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, second=False,
                    skip_above: float | None = None, prior: dict | None = None) -> Fit | None:
-    if second and name not in SLOW and any(n in fx_base for n in SLOW):
+    if second and name not in pb.plant.slow and any(n in fx_base for n in pb.plant.slow):
         return _fit_by_proxy(pb, name, lins, fx_base, band, lines, y_clean, prior)
     init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
     if init is None:
         return None
     lin0, fx0 = init
-    slow = any(n in fx0 for n in SLOW)
+    slow = any(n in fx0 for n in pb.plant.slow)
     if (slow or name == "valve_saturation") and skip_above is not None:
         # another candidate already reached the noise, or nothing calls for this one: refine only a start
         # that is already competitive
         st = pb.evaluate(lin0, fx0, k=0)
         if st.rss_fit > skip_above:
-            return Fit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=n_params(fx0), coef=st.coef)
+            return Fit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=pb.n_params(fx0), coef=st.coef, state=st.state)
     if slow and second:   # on a slow model: the effects with the gain and lag; the polish frees all
-        return pb.fit(lin0, fx0, free_lin=("K_Q", "K_C"), max_iter=6, rtol=SLOW_RTOL)
+        return pb.fit(lin0, fx0, free_lin=("K_Q", "K_C") if pb.plant.family == "eha" else None, max_iter=6,
+                      rtol=SLOW_RTOL)
     if slow:
         return pb.fit(lin0, fx0, max_iter=6, rtol=SLOW_RTOL)
     return pb.fit(lin0, fx0, max_iter=10)
@@ -426,18 +553,18 @@ def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band,
     simulation), then score the result with the exact slow model."""
     lin_c = lins[0]
     y_cur = pb.model(lin_c, fx_base)
-    base_c = simulate(pb.params(lin_c), pb.cmd, pb.fs, {k: v for k, v in fx_base.items() if k in LINEAR_SIM})
+    base_c = pb.simulate(lin_c, {k: v for k, v in fx_base.items() if k in pb.plant.linear_sim})
     pb.proxy = (y_cur, base_c)
     try:
         init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
         if init is None:
             return None
         lin0, fx0 = init
-        free_fx = {n: SPECS[n].keys for n in fx0 if n in LINEAR_SIM}
+        free_fx = {n: pb.spec_keys(n) for n in fx0 if n in pb.plant.linear_sim}
         f = pb.fit(lin0, fx0, free_fx=free_fx, max_iter=12)
     finally:
         pb.proxy = None
-    return pb.evaluate(f.lin, f.fx, k=n_params(f.fx))
+    return pb.evaluate(f.lin, f.fx, k=pb.n_params(f.fx))
 
 
 def _active(pb: Problem, f: Fit, name: str) -> bool:
@@ -450,12 +577,12 @@ def _active(pb: Problem, f: Fit, name: str) -> bool:
     r, _, _ = pb.residual(f.lin, without)
     nh = int(pb.mhold.sum())
     rss_wo = float(np.sum(r[pb.mhold] ** 2))
-    return nh * math.log(max(rss_wo, 1e-300) / max(f.rss_hold, 1e-300)) > len(SPECS[name].keys) * math.log(nh)
+    return nh * math.log(max(rss_wo, 1e-300) / max(f.rss_hold, 1e-300)) > len(pb.spec_keys(name)) * math.log(nh)
 
 
 def _polish(pb: Problem, f: Fit) -> Fit:
     """All linear and effect parameters together (the disturbance frequency refined after)."""
-    slow = any(n in f.fx for n in SLOW)
+    slow = any(n in f.fx for n in pb.plant.slow)
     pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=5 if slow else 15, rtol=SLOW_RTOL if slow else 1e-5))
     return pol if pol.rss_fit < f.rss_fit else f
 
@@ -464,7 +591,7 @@ def _refine_disturbance(pb: Problem, f: Fit) -> Fit:
     if "periodic_disturbance" not in f.fx:
         return f
     fx = {n: {k: v for k, v in d.items()} for n, d in f.fx.items()}
-    r = pb.y - pb.model(f.lin, fx) - pb.basis.B @ f.coef
+    r = pb.y - pb.model(f.lin, fx) - pb.basis.B @ f.coef - (f.state if f.state is not None else 0.0)
     fx["periodic_disturbance"]["frequency_hz"] = locate.refine_line(r * pb.use, pb.fs,
                                                                     fx["periodic_disturbance"]["frequency_hz"])
     out = pb.evaluate(f.lin, fx, f.k)
@@ -604,13 +731,18 @@ def _evidence(name: str, st: dict, mm: dict, extra: str = "") -> str:
         "valve_saturation": "gain loss at large command with odd distortion",
         "valve_deadband": "gain loss at small command, distortion at command zero crossings",
         "coulomb_friction": "distortion at velocity reversals, largest at low velocity",
+        "input_saturation": "gain loss at large command with odd distortion",
+        "input_deadband": "gain loss at small command, distortion at command zero crossings",
+        "constant_force": "a residual that a constant force on the load explains (position drifting one way "
+                          "under the same command)",
         "periodic_disturbance": "spectral line not coherent with the command",
     }[name]
     h = mm.get("harmonics", {})
     ms = mm.get("multisine_lines", {})
-    if name in NONLINEAR and h:
+    nonlinear = ("valve_saturation", "valve_deadband", "input_saturation", "input_deadband", "coulomb_friction")
+    if name in nonlinear and h:
         sig += f"; odd harmonics {h.get('odd_over_noise', 0):.0f}x noise, even {h.get('even_over_noise', 0):.0f}x"
-    if name in NONLINEAR and ms and ms.get("odd_over_noise") is not None:
+    if name in nonlinear and ms and ms.get("odd_over_noise") is not None:
         sig += (f"; unexcited odd lines of the multisine {ms['odd_over_noise']:.2f}x noise rms ({ms['odd_z']:.0f} "
                 f"standard errors above noise alone), even lines {ms.get('even_over_noise') or 0:.2f}x: odd "
                 f"distortion" if (ms.get("odd_z") or 0) > 5 else "")
@@ -681,8 +813,17 @@ def _no_claim_reason(rec, cmd_info: command_mod.Command) -> str:
     return ""
 
 
-def diagnose(rec, p0: ActuatorParams, *, progress: Callable[[str], None] | None = None, seed: int = 0) -> Diagnosis:
-    """Diagnose a recording (rig.recording.Recording) against the nominal ActuatorParams p0."""
+def diagnose(rec, p0: ActuatorParams | Plant, *, progress: Callable[[str], None] | None = None,
+             seed: int = 0) -> Diagnosis:
+    """Diagnose a recording (rig.recording.Recording) against a plant: the nominal ActuatorParams p0 of the eha
+    plant, or a Plant of any family (rig.plant, a plant file)."""
+    if isinstance(p0, Plant):
+        unit = getattr(rec, "command_unit", "V")
+        if p0.input_unit != unit:
+            raise RecordingError(f"{rec.source}: the command is in {unit} but the plant ({p0.source}) takes "
+                                 f"input_unit = {p0.input_unit!r}; check the signal map's command unit or the plant")
+        if p0.family == "eha":
+            p0 = p0.actuator
     from threadpoolctl import threadpool_limits
     # one BLAS thread: the products here are tall and thin (n x 30), where OpenBLAS's threads only wait for each
     # other (100x slower on a loaded 2-core machine); the two cores go to the simulators instead (lm._POOL)
@@ -756,17 +897,22 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
     say("reading the command")
     cmd_info = command_mod.analyse(cmd, fs)
     notes.append(f"command: {cmd_info.describe()}")
-    if fs < 500.0:
+    plant = model_for(p0)
+    if fs < 500.0 and plant.family == "eha":
         notes.append(f"sampled at {fs:g} Hz, below the 500 Hz the valve's dynamics (~{p0.w_nv / 2 / math.pi:.0f} Hz)"
                      " need to be seen")
+    if plant.segmented:
+        notes.append("the plant has a pole at the origin (it integrates: marginally stable), so simulated open loop "
+                     "from the recorded command its position drifts; it is simulated segment-wise instead, each "
+                     "segment from its own initial state (multiple shooting)")
     use = np.ones(len(cmd), bool)
     clip_cand, clip_lo, clip_hi = sensor_mod.flat_tops(pos)
     if clip_cand.any():
         use &= ~np.convolve(clip_cand, np.ones(3), "same").astype(bool)
     transient_s = 0.05                          # start-up instants carry no information
-    if cmd_info.starts_mid_run:
+    if cmd_info.starts_mid_run and not plant.segmented:     # segments start from their own estimated states
         transient_s = START_TRANSIENT_S
-        notes.append(f"the command is {cmd_info.start_V:.3g} V at the first sample, so the plant was not at rest "
+        notes.append(f"the command is {cmd_info.start_V:.3g} {getattr(rec, 'command_unit', 'V')} at the first sample, so the plant was not at rest "
                      f"when the recording began (a mid-run start): the first {transient_s:g} s are left out of the "
                      f"fit (the start transient)")
     use[: int(transient_s * fs)] = False
@@ -777,7 +923,7 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
     pb.broadband = cmd_info.kind in ("noise", "steps")
     return _Run(rec=rec, p0=p0, say=say, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=notes, use=use,
                 clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, pb=pb,
-                no_claim=_no_claim_reason(rec, cmd_info), nominal_lin={k: getattr(p0, k) for k in LIN_KEYS})
+                no_claim=_no_claim_reason(rec, cmd_info), nominal_lin=dict(pb.nominal))
 
 
 def _excited_band(R: _Run) -> tuple[float, float]:
@@ -807,6 +953,8 @@ def _refit(R: _Run) -> None:
     f_lo = 4.0 * sensor_mod.WANDER_MAX_HZ if pb.broadband else max(band[0], 1.0 / max(R.rec.duration_s, 1e-3))
     wander_max = min(sensor_mod.max_wander_terms(R.rec.duration_s, f_lo),
                      N_BLOCKS // 4)     # a cosine spans at least four blocks: it interpolates over a held-out one
+    if pb.shoot is not None:
+        wander_max = 0                  # the segments' initial states hold the zero
     k_w = _choose_wander(pb, refit, wander_max)
     if k_w:
         pb.set_basis(pb.basis.with_(wander_terms=k_w))
@@ -817,7 +965,7 @@ def _refit(R: _Run) -> None:
     R.acc_use = R.use & ~R.acc_clip
     R.check = sensor_mod.accel_check(pb.y - pb.basis.zero(refit.coef), R.acc, fs,
                                      (band[0], max(band[1], cmd_info.wide_band_hz[1])), R.acc_use)
-    R.acc_model = sim_linear(pb.params(refit.lin), R.cmd, fs, output="accel") if R.check.usable else None
+    R.acc_model = pb.plant.accel(refit.lin, R.cmd, fs) if R.check.usable else None
     R.pickup, force_lines, R.acc_pickup = _lines(pb, r_ref0, R.acc, R.acc_model, R.check, fs, cmd_info, R.acc_use)
     if R.pickup:
         pb.set_basis(pb.basis.with_(lines_hz=tuple(l.frequency_hz for l in R.pickup)))
@@ -860,8 +1008,8 @@ def _screen(R: _Run) -> None:
     key, d, R.nonlinear_hint = _distortion(R, R.r_ref, pb.y - pb.basis.B @ R.refit.coef)
     if d:
         R.mm[key] = d
-    moved = (pb.y - pb.basis.zero(R.refit.coef) - pb.basis.B[:, 2 + pb.basis.wander_terms:] @
-             R.refit.coef[2 + pb.basis.wander_terms:])[R.use]
+    moved = (pb.y - pb.basis.zero(R.refit.coef) - pb.basis.B[:, pb.basis.n_zero:] @
+             R.refit.coef[pb.basis.n_zero:])[R.use]
     snr = float(np.std(moved) / pb.noise) if pb.noise > 0 else 0.0
     if not R.no_claim and snr < MIN_SNR:
         R.no_claim = (f"the position moves only {snr:.1f}x its noise (beyond the sensor's zero and lines): too "
@@ -875,8 +1023,7 @@ def _search(R: _Run) -> None:
     if R.no_claim:
         R.say(f"no claim: {R.no_claim}")
         return
-    screen = ["transport_delay", "base_resonance"] + (["periodic_disturbance"] if R.lines else []) + \
-        ["valve_saturation", "valve_deadband", "coulomb_friction"]
+    screen = [n for n in pb.plant.catalogue if n != "periodic_disturbance" or R.lines]
     harmonic_now = True if R.nonlinear_hint is None else R.nonlinear_hint
     # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor: there,
     # no round is skipped for having reached "the noise"
@@ -884,7 +1031,7 @@ def _search(R: _Run) -> None:
     round1: dict[str, dict] = {}
     for step in range(MAX_EFFECTS):
         over = math.sqrt(R.current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
-        explained = EXPLAINED_SLOW if any(n in R.current.fx for n in SLOW) else EXPLAINED
+        explained = EXPLAINED_SLOW if any(n in R.current.fx for n in pb.plant.slow) else EXPLAINED
         R.say(f"round {step + 1}: held-out residual {over:.3f} x noise")
         results = _round(R, screen, harmonic_now, stop_at_noise and over < explained, explained, round1)
         if not R.chosen:
@@ -920,12 +1067,12 @@ def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, expla
     for name in screen:
         if name in chosen:
             continue
-        if name != "periodic_disturbance" and at_noise and not (harmonic_now and name in NONLINEAR):
+        if name != "periodic_disturbance" and at_noise and not (harmonic_now and name in pb.plant.nonlinear):
             continue        # the held-out residual is already at the noise: nothing left to explain
         R.say(f"candidate {'+'.join(chosen + [name])}")
         lins = [current.lin] if chosen else [R.refit.lin, R.nominal_lin]
         floor_ = [g.rss_fit for _, g, _ in results if math.sqrt(g.rss_hold / pb.mhold.sum()) / pb.noise < explained]
-        slow_name = name in SLOW
+        slow_name = name in pb.plant.slow
         if floor_ and slow_name and not harmonic_now:
             continue        # a cheap candidate already reached the noise and nothing calls for these
         pb.quick = not harmonic_now
@@ -943,7 +1090,7 @@ def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, expla
             continue
         f = _refine_disturbance(pb, f)
         st = compare(pb, base, f)
-        if st["passed"] and chosen and any(n in current.fx for n in SLOW) and null is None:
+        if st["passed"] and chosen and any(n in current.fx for n in pb.plant.slow) and null is None:
             # a slow model's polish may stop short: a candidate must beat the current model given the same
             # extra iterations, not the extra iterations themselves (fitted once, when needed)
             null = pb.fit(current.lin, current.fx, max_iter=6, rtol=SLOW_RTOL)
@@ -1048,6 +1195,8 @@ def _sensor_terms(R: _Run) -> sensor_mod.SensorTerms:
         wander_rms_m=terms["wander_rms_m"], lines=R.pickup + R.acc_pickup, accel_offset_mps2=acc_off, accel=check,
         quantisation_step_m=q, accel_quantisation_step_mps2=R.q_acc, clipped=_clips(R),
         start_transient_s=R.transient_s if R.cmd_info.starts_mid_run else 0.0, notes=[])
+    if pb.shoot is not None:
+        sensor.notes.append("no offset or drift is fitted: the segment-wise initial states hold the transducer's zero")
     if q > 0:
         sensor.notes.append(f"position quantised in steps of {q:.3g} m: a noise floor of {q / math.sqrt(12):.3g} m rms "
                             f"(step/sqrt(12)); residual structure below it means nothing")
@@ -1092,14 +1241,26 @@ def _conclude(R: _Run, sensor: sensor_mod.SensorTerms, t_start: float) -> Diagno
               "augmented_sensor_m": pb.basis.B @ augmented.coef}
     mm["notes"] = R.notes
     return Diagnosis(effects=effects, group=R.groups if effects else [], mismatch=mm, fit=fit,
-                     params_refit={k: float(v) for k, v in R.refit.lin.items()} | {"C": float(R.p0.C)},
+                     params_refit=pb.plant.public_linear(R.refit.lin),
                      noise_m=float(pb.noise), summary=summary, series=series, frf=frf_out, candidates=R.tried,
                      timing_s=time.perf_counter() - t_start, sensor=sensor, command=R.cmd_info, verdict=verdict,
-                     evidence=ev, used=R.use, noise_floor=R.floor_aug)
+                     evidence=ev, used=R.use, noise_floor=R.floor_aug, plant=_plant_doc(pb, augmented))
+
+
+def _plant_doc(pb: Problem, augmented: Fit) -> dict:
+    """What diagnosis.json says of the plant: its family, the command's unit, the linear parameters of the
+    augmented model, and the segment-wise initial states when the plant integrates."""
+    doc = {"family": pb.plant.family, "input_unit": pb.plant.input_unit,
+           "free_parameters": list(pb.lin_keys),
+           "augmented_linear": pb.plant.public_linear(augmented.lin)}
+    if pb.shoot is not None:
+        doc["shooting"] = pb.shoot.as_dict(pb.fs)
+    return doc
 
 
 def _sensor_summary(s: sensor_mod.SensorTerms) -> str:
-    parts = [f"offset {s.offset_m * 1e6:.3g} um", f"drift {s.drift_m_per_s * 1e9:.3g} nm/s"]
+    parts = [f"offset {s.offset_m * 1e6:.3g} um", f"drift {s.drift_m_per_s * 1e9:.3g} nm/s"] \
+        if (s.offset_m or s.drift_m_per_s) else []     # none: the segment-wise initial states hold the zero
     if s.wander_terms:
         parts.append(f"slow wander {s.wander_rms_m * 1e9:.3g} nm rms")
     for l in s.lines:
@@ -1119,9 +1280,14 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
     is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
     loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
-    if loop.closed:
+    if loop.closed and pb.plant.family == "eha":
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")
+    elif loop.closed:
+        sugg.append(f"Closed-loop data: {loop.reason}. The plant is simulated from the recorded command (what the "
+                    "drive received), so the claims stand, but the command carries the position's noise back in: "
+                    "the linear parameters can lean toward the controller's inverse, and only effects that predict "
+                    "the held-out blocks are named.")
     if no_claim:
         return Verdict("no_claim", f"No claim: {no_claim}.", sugg)
     over = fit["augmented"]["residual_over_noise_holdout"]
@@ -1132,8 +1298,13 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
                            sugg)
         return Verdict("explained", f"The refit of the linear parameters explains the recording (residual "
                                     f"{over:.2f}x noise).", sugg)
-    at_bounds = [k for k in LIN_KEYS
-                 if min(abs(math.log(refit.lin[k] / getattr(pb.p0, k)) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
+    if pb.plant.family == "eha":
+        at_bounds = [k for k in pb.lin_keys
+                     if min(abs(math.log(refit.lin[k] / pb.nominal[k]) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
+    else:
+        at_bounds = [k for k in pb.lin_keys
+                     if min(abs(refit.lin[k] - b) for b in pb.plant.bounds_lin[k])
+                     < 0.01 * (pb.plant.bounds_lin[k][1] - pb.plant.bounds_lin[k][0])]
     if at_bounds:
         sugg.append("The refit pushed " + ", ".join(at_bounds) + " to the edge of the physical range: a different "
                     "plant (or different units) than the configured model.")
@@ -1142,7 +1313,7 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
                     "position does not follow the command as this plant would.")
     if check is not None and not check.usable:
         sugg.append(check.note[0].upper() + check.note[1:] + ".")
-    if pb.fs < 500.0:
+    if pb.fs < 500.0 and pb.plant.family == "eha":
         sugg.append(f"The recording is sampled at {pb.fs:g} Hz, too slowly for the valve's dynamics.")
     if over > VERDICT_NOT_DESCRIBED:
         return Verdict("not_described",

@@ -20,7 +20,6 @@ import numpy as np
 from scipy.signal import csd, welch
 
 from rig.diagnose import locate
-from rig.diagnose.effects import simulate
 
 
 def _decimate_for_plot(t: np.ndarray, x: np.ndarray, fs: float, win_s: float = 0.5, max_pts: int = 2000):
@@ -192,17 +191,17 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
         ev["levels"] = lv
     for e in effects:
         name = e["name"]
-        if name in ("valve_saturation", "valve_deadband"):
+        if name in ("valve_saturation", "valve_deadband", "input_saturation", "input_deadband"):
             # several levels: gain by level; one level: the distortion the sweep or multisine shows; else the
             # residual by command magnitude
             ev["effects"][name] = ({"kind": "levels", **lv} if lv else
                                    distortion(pb, cmd_info, r_ref, r_aug, noise_floor)
                                    or {"kind": "command", **residual_by_command(pb, r_ref, r_aug)})
-        elif name == "coulomb_friction":
+        elif name in ("coulomb_friction", "constant_force"):
             ev["effects"][name] = {"kind": "velocity", **residual_by_velocity(pb, y_lin, r_ref, r_aug)}
         elif name in ("transport_delay", "base_resonance"):
             fx = {k: v for k, v in augmented.fx.items() if k not in (name, "periodic_disturbance")}
-            y_wo = simulate(pb.params(augmented.lin), pb.cmd, pb.fs, fx)
+            y_wo = pb.model(augmented.lin, fx)
             fr = frf_ratio(pb, y_clean - (y_aug - pb.model(augmented.lin, augmented.fx)), y_wo,
                            pb.model(augmented.lin, augmented.fx), band)
             if fr:
@@ -251,7 +250,7 @@ def sensor_evidence(pb, augmented, sensor, acc: np.ndarray, acc_use: np.ndarray,
     for l in sensor.lines:
         r_pos = r_aug
         if l.channel == "position_m" and l.frequency_hz in pb.basis.lines_hz:     # put the fitted line back
-            j = 2 + pb.basis.wander_terms + 2 * pb.basis.lines_hz.index(l.frequency_hz)
+            j = pb.basis.n_zero + 2 * pb.basis.lines_hz.index(l.frequency_hz)
             r_pos = r_aug + B[:, j:j + 2] @ augmented.coef[j:j + 2]
         ls = line_spectra(pb, r_pos, a_res, l.frequency_hz, check.gain if check is not None else 1.0, acc_use)
         ls["finding"] = l.evidence

@@ -16,8 +16,8 @@ import math
 
 import numba
 import numpy as np
-from scipy.linalg import matrix_balance
 
+from rig.plant.zoh import discretise, run, substeps
 from sim_backend.actuator import FRICTION_V_SCALE
 from sim_backend.linear import ActuatorParams
 
@@ -46,118 +46,6 @@ def ss_model(p: ActuatorParams, base: tuple[float, float, float] | None = None):
     Am[4] = fa / M
     Cm[3] = 1.0
     return Am, Bm, Cm
-
-
-@numba.njit(cache=True)
-def _expm_taylor(E):
-    """exp(E) by scaling and squaring with an 18-term Taylor series (E balanced, small order)."""
-    n = E.shape[0]
-    nrm = 0.0
-    for i in range(n):
-        s = 0.0
-        for j in range(n):
-            s += abs(E[i, j])
-        nrm = max(nrm, s)
-    q = 0
-    while nrm > 0.25:
-        nrm *= 0.5; q += 1
-    X = E / (2.0 ** q)
-    R = np.eye(n); T = np.eye(n)
-    for k in range(1, 19):
-        T = T @ X / k
-        R = R + T
-    for _ in range(q):
-        R = R @ R
-    return R
-
-
-def _phi(Am, Bm, tau):
-    """Exact ZOH pair (e^{A tau}, int_0^tau e^{A s} ds B) from the augmented matrix exponential (balanced)."""
-    n = len(Bm)
-    E = np.zeros((n + 1, n + 1)); E[:n, :n] = Am * tau; E[:n, n] = Bm * tau
-    Eb, (sc, _) = matrix_balance(E, permute=False, separate=True)
-    X = _expm_taylor(Eb)
-    X = X * sc[:, np.newaxis] / sc[np.newaxis, :]          # undo the similarity Eb = D^-1 E D
-    return X[:n, :n], X[:n, n]
-
-
-def discretise(Am, Bm, T: float, delay_s: float):
-    """x_{k+1} = Ad x_k + G0 u_{k-m} + G1 u_{k-m-1}: ZOH input delayed by delay_s = m T + fr (exact)."""
-    m = int(math.floor(delay_s / T + 1e-9)); fr = max(0.0, delay_s - m * T)
-    Ad, G = _phi(Am, Bm, T)
-    if fr < 1e-12 * T:
-        return Ad, G, np.zeros_like(G), m
-    A1, G0 = _phi(Am, Bm, T - fr)
-    _, Gf = _phi(Am, Bm, fr)
-    return Ad, G0, A1 @ Gf, m
-
-
-@numba.njit(cache=True, nogil=True)
-def _run_ss(Ad, G0, G1, Cm, u, m, out):
-    n = Ad.shape[0]; N = u.shape[0]
-    x = np.zeros(n); xn = np.zeros(n)
-    for k in range(N):
-        s = 0.0
-        for i in range(n):
-            s += Cm[i] * x[i]
-        out[k] = s
-        a = u[k - m] if k - m >= 0 else 0.0
-        b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
-        for i in range(n):
-            acc = G0[i] * a + G1[i] * b
-            for j in range(n):
-                acc += Ad[i, j] * x[j]
-            xn[i] = acc
-        for i in range(n):
-            x[i] = xn[i]
-
-
-@numba.njit(cache=True, nogil=True)
-def _run_modal(lam, g0, g1, c, u, m, out):
-    """_run_ss in modal coordinates: one complex state per real pole or conjugate pair (3 instead of 25 products
-    per sample for the 5-state model); the output is the real part."""
-    n = lam.shape[0]; N = u.shape[0]
-    xr = np.zeros(n); xi = np.zeros(n)
-    for k in range(N):
-        s = 0.0
-        for i in range(n):
-            s += c[i].real * xr[i] - c[i].imag * xi[i]
-        out[k] = s
-        a = u[k - m] if k - m >= 0 else 0.0
-        b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
-        for i in range(n):
-            lr = lam[i].real; li = lam[i].imag
-            nr = lr * xr[i] - li * xi[i] + g0[i].real * a + g1[i].real * b
-            ni = lr * xi[i] + li * xr[i] + g0[i].imag * a + g1[i].imag * b
-            xr[i] = nr; xi[i] = ni
-
-
-def run(Ad, G0, G1, Cm, u, m, out) -> np.ndarray:
-    """Simulate x_{k+1} = Ad x_k + G0 u_{k-m} + G1 u_{k-m-1}, y_k = Cm x_k from rest: in modal coordinates
-    (Ad = V diag(lam) V^-1, one of each conjugate pair kept, its output doubled) when V is well conditioned,
-    else directly."""
-    lam, V = np.linalg.eig(Ad)
-    if np.linalg.cond(V) > 1e8:
-        _run_ss(Ad, G0, G1, Cm, u, m, out)
-        return out
-    Vi = np.linalg.inv(V)
-    g0, g1, cc = Vi @ G0, Vi @ G1, Cm @ V
-    keep, weight, used = [], [], np.zeros(len(lam), bool)
-    for i in range(len(lam)):
-        if used[i]:
-            continue
-        used[i] = True
-        if abs(lam[i].imag) > 1e-12 * max(abs(lam[i]), 1e-300):
-            rest = np.where(used, np.inf, np.abs(lam - np.conj(lam[i])))
-            used[int(np.argmin(rest))] = True
-            weight.append(2.0)
-        else:
-            weight.append(1.0)
-        keep.append(i)
-    k = np.array(keep)
-    _run_modal(lam[k].astype(complex), g0[k].astype(complex), g1[k].astype(complex),
-               (cc[k] * np.array(weight)).astype(complex), u, m, out)
-    return out
 
 
 def driver_current(p: ActuatorParams, cmd_V: np.ndarray, sat_ma: float = 0.0) -> np.ndarray:
@@ -254,23 +142,9 @@ def _run_reduced(i_cmd, m, n_sub, Av, Bnew, Bold, prm, out):
 
 def _valve_substeps(p: ActuatorParams, fs: float, n_sub: int, delay_s: float):
     """Exact valve (Eq. 1) sub-step matrices with the held, delayed current switching inside a sample."""
-    T = 1.0 / fs; h = T / n_sub
     w, z = p.w_nv, p.zeta
     Av_c = np.array([[0.0, 1.0], [-w * w, -2 * z * w]]); Bv_c = np.array([0.0, w * w])
-    m = int(math.floor(delay_s / T + 1e-9)); fr = max(0.0, delay_s - m * T)
-    Av, Bh = _phi(Av_c, Bv_c, h)
-    Bnew = np.zeros((n_sub, 2)); Bold = np.zeros((n_sub, 2))
-    for j in range(n_sub):
-        t0, t1 = j * h, (j + 1) * h
-        if t1 <= fr + 1e-15:
-            Bold[j] = Bh
-        elif t0 >= fr - 1e-15:
-            Bnew[j] = Bh
-        else:                           # switch at fr inside this sub-step
-            A2, Bn = _phi(Av_c, Bv_c, t1 - fr)
-            _, Bo = _phi(Av_c, Bv_c, fr - t0)
-            Bnew[j] = Bn; Bold[j] = A2 @ Bo
-    return Av, Bnew, Bold, m
+    return substeps(Av_c, Bv_c, 1.0 / fs, n_sub, delay_s)
 
 
 def base_filter(y: np.ndarray, fs: float, p: ActuatorParams, base: tuple[float, float, float]) -> np.ndarray:

@@ -360,7 +360,8 @@ def confusion(rows: list[dict]) -> dict[str, dict[str, int]]:
     effect with no missed effect to explain it counts in row "none" (invented). A clean case named clean is
     (none, none).
     """
-    labels = list(CATALOGUE) + [NONE]
+    seen = {x for r in rows for x in list(r["truth"]) + list(r["named"])}
+    labels = list(CATALOGUE) + sorted(seen - set(CATALOGUE)) + [NONE]     # another plant's catalogue names too
     m = {a: {b: 0 for b in labels} for a in labels}
     for r in rows:
         truth, named = set(r["truth"]), set(r["named"])
@@ -568,7 +569,8 @@ def _fmt(v, spec=".3f") -> str:
 def _short_key(k: str) -> str:
     eff, key = k.split(".", 1)
     short = {"transport_delay": "delay", "base_resonance": "base", "valve_saturation": "sat",
-             "valve_deadband": "dead", "coulomb_friction": "fric", "periodic_disturbance": "dist"}.get(eff, eff)
+             "valve_deadband": "dead", "coulomb_friction": "fric", "periodic_disturbance": "dist",
+             "input_saturation": "sat", "input_deadband": "dead", "constant_force": "force"}.get(eff, eff)
     return f"{short}.{key.replace('_hz', '').replace('_s', '').replace('_ma', '').replace('_n', '')}"
 
 

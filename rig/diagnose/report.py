@@ -61,6 +61,8 @@ def diagnosis_dict(diag, rec=None) -> dict:
            "groups": [list(g) for g in (diag.group or [])], "params_refit": dict(diag.params_refit or {}),
            "noise_m": diag.noise_m, "timing_s": getattr(diag, "timing_s", None),
            "candidates": list(getattr(diag, "candidates", None) or [])}     # every test the engine ran
+    if getattr(diag, "plant", None):
+        doc["plant"] = dict(diag.plant)
     sensor = getattr(diag, "sensor", None)
     if sensor is not None:
         doc["sensor"] = sensor.as_dict()
@@ -113,7 +115,8 @@ def write_fit_csv(path: Path, diag, rec) -> Path:
 
 # ---- text --------------------------------------------------------------------------------------------
 _UNITS = {"delay_s": (1e3, "ms"), "frequency_hz": (1.0, "Hz"), "damping_ratio": (1.0, ""),
-          "limit_ma": (1.0, "mA"), "width_ma": (1.0, "mA"), "force_n": (1.0, "N"), "phase_rad": (1.0, "rad"),
+          "limit_ma": (1.0, "mA"), "width_ma": (1.0, "mA"), "limit_V": (1.0, "V"), "width_V": (1.0, "V"),
+          "limit_N": (1.0, "N"), "width_N": (1.0, "N"), "limit_A": (1.0, "A"), "width_A": (1.0, "A"), "force_n": (1.0, "N"), "phase_rad": (1.0, "rad"),
           "mass_kg": (1.0, "kg"), "amplitude_m": (1e9, "nm")}
 
 
@@ -647,6 +650,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
             out.append("None: the refit linear model explains the recording.")
     for g in diag.group or []:
         out.append(f"\nConfounded, cannot be told apart on this recording: {', '.join(g)}.")
+    pl = getattr(diag, "plant", None) or {}
+    if pl.get("family") and pl["family"] != "eha":
+        out.append(f"\nPlant: {pl['family']} (input in {pl['input_unit']}), augmented linear parameters "
+                   + ", ".join(f"{k} = {v:.4g}" for k, v in pl.get("augmented_linear", {}).items())
+                   + (f"; simulated in {pl['shooting']['segments']} segments from their own initial states "
+                      "(multiple shooting)" if "shooting" in pl else "") + ".")
     sensor = getattr(diag, "sensor", None)
     if sensor is not None:
         out += ["", "## Sensor terms (fitted in every model, never named as effects)", ""]

@@ -115,27 +115,37 @@ def mains_harmonic(f_hz: float) -> tuple[float, int] | None:
 
 # ---- the nuisance basis of the position channel ----------------------------------------------------
 class SensorBasis:
-    """Columns (n, m): 1, t, wander cosines, sin/cos of each pickup line. t scaled to [-1, 1]."""
+    """Columns (n, m): 1, t, wander cosines, sin/cos of each pickup line. t scaled to [-1, 1].
 
-    def __init__(self, n: int, fs: float, wander_terms: int = 0, lines_hz: tuple[float, ...] = ()):
+    zero_terms False: no offset, drift or wander columns (a plant simulated from segment-wise initial states:
+    those states hold the transducer's zero, rig.diagnose.engine)."""
+
+    def __init__(self, n: int, fs: float, wander_terms: int = 0, lines_hz: tuple[float, ...] = (),
+                 zero_terms: bool = True):
         self.n, self.fs = n, fs
-        self.wander_terms = int(wander_terms)
+        self.zero_terms = bool(zero_terms)
+        self.wander_terms = int(wander_terms) if zero_terms else 0
         self.lines_hz = tuple(float(f) for f in lines_hz)
         t = np.arange(n) / fs
-        cols = [np.ones(n), 2.0 * np.arange(n) / max(n - 1, 1) - 1.0]
+        cols = [np.ones(n), 2.0 * np.arange(n) / max(n - 1, 1) - 1.0] if zero_terms else []
         for k in range(2, 2 + self.wander_terms):
             cols.append(np.cos(math.pi * k * (np.arange(n) + 0.5) / n))
         for f in self.lines_hz:
             cols += [np.sin(2 * math.pi * f * t), np.cos(2 * math.pi * f * t)]
-        self.B = np.column_stack(cols)
+        self.B = np.column_stack(cols) if cols else np.zeros((n, 0))
 
     @property
     def m(self) -> int:
         return self.B.shape[1]
 
+    @property
+    def n_zero(self) -> int:
+        """Columns of the zero (offset, drift, wander) before the lines."""
+        return 2 + self.wander_terms if self.zero_terms else 0
+
     def with_(self, wander_terms: int | None = None, lines_hz=None) -> "SensorBasis":
         return SensorBasis(self.n, self.fs, self.wander_terms if wander_terms is None else wander_terms,
-                           self.lines_hz if lines_hz is None else lines_hz)
+                           self.lines_hz if lines_hz is None else lines_hz, self.zero_terms)
 
     def terms(self, coef: np.ndarray) -> dict:
         """Offset (the zero at t = 0), drift, wander rms and the lines (f, amplitude, phase of sin) from the
@@ -143,11 +153,11 @@ class SensorBasis:
         n, fs = self.n, self.fs
         T = (n - 1) / fs if n > 1 else 1.0
         c = np.asarray(coef, float)
-        drift = 2.0 * c[1] / T                          # d/dt of c1 (2 t/T - 1)
+        drift = 2.0 * c[1] / T if self.zero_terms else 0.0     # d/dt of c1 (2 t/T - 1)
         offset = float(self.zero(c)[0]) if n else 0.0   # the zero at t = 0
         wander = self.B[:, 2:2 + self.wander_terms] @ c[2:2 + self.wander_terms] if self.wander_terms else None
         lines = []
-        j = 2 + self.wander_terms
+        j = self.n_zero
         for f in self.lines_hz:
             a, b = c[j], c[j + 1]
             lines.append((f, float(math.hypot(a, b)), float(math.atan2(b, a))))
@@ -157,7 +167,7 @@ class SensorBasis:
 
     def zero(self, coef: np.ndarray) -> np.ndarray:
         """Offset + drift + wander (without the lines)."""
-        k = 2 + self.wander_terms
+        k = self.n_zero
         return self.B[:, :k] @ np.asarray(coef)[:k]
 
 

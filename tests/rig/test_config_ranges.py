@@ -6,6 +6,7 @@ traceback."""
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 import math
 import re
 import tempfile

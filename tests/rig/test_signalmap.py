@@ -20,7 +20,8 @@ from rig.recording import load_recording
 from rig.signalmap import (KEYS, UNITS, SignalMap, load_mapped, load_plant_signals, load_recording_for)
 from tests.paths import RECORDINGS, REPO
 
-EXAMPLES = sorted((REPO / "docs" / "examples").glob("*.toml"))
+PLANT_FILES = sorted((REPO / "docs" / "examples").glob("*.toml"))
+EXAMPLES = [p for p in PLANT_FILES if "[signals]" in p.read_text()]     # those that map a foreign file
 FS = 1000.0
 N = 1500
 
@@ -224,8 +225,7 @@ ERRORS = [  # (id, [signals] body, data writer, [plant] body, words the one line
      ["no samples within start_s = 50 s", "the time runs 0 to 1.499 s"]),
     ("bad format", MAP + 'format = "xlsx"\n', _good, "", ["format = 'xlsx'", "csv, mat, hdf5"]),
     ("wrong format", MAP + 'format = "hdf5"\n', _good, "", ["data.mat", "not a hdf5 file", "it is a MATLAB v5 file"]),
-    ("family not yet", MAP, _good, 'family = "transfer_function"',
-     ["[plant] family = 'transfer_function'", "not supported yet"]),
+    ("unknown family", MAP, _good, 'family = "magic"', ["[plant] family: 'magic' is not a plant family"]),
     ("eha fed a force", 'time = "t"\ncommand = { name = "vir", scale = 35.15, unit = "N" }\nposition = "qm"\n',
      _good, 'family = "eha"', ["[signals] command is in N", "valve voltage"]),
 ]
@@ -348,3 +348,10 @@ def test_shipped_example_loads_a_file_laid_out_as_it_says(tmp_path, example):
     assert rec.accel_present == (smap.acceleration is not None)
     assert (rec.reference_m is not None) == (smap.reference is not None) and bool(rec.closed_loop) == bool(
         smap.reference or smap.closed_loop)
+
+
+@pytest.mark.parametrize("example", PLANT_FILES, ids=[p.stem for p in PLANT_FILES])
+def test_shipped_example_plant_table_loads(example):
+    from rig.plant.file import load_plant
+    plant = load_plant(example)
+    assert plant.family in ("eha", "mechanical_axis", "transfer_function")

@@ -1,0 +1,246 @@
+"""The one exact zero-order-hold discretisation and the simulators built on it (identification and diagnosis of
+every plant family use these).
+
+  phi(A, B, tau)        (e^{A tau}, int_0^tau e^{A s} ds B) from one augmented matrix exponential (balanced,
+                        numba Taylor series with scaling and squaring: called per model evaluation)
+  discretise(A, B, T, delay_s)
+                        x_{k+1} = Ad x_k + G0 u_{k-m} + G1 u_{k-m-1}: the ZOH input delayed by delay_s = m T + fr,
+                        exact for a fractional delay
+  substeps(A, B, T, n_sub, delay_s)
+                        the same over n_sub equal sub-steps of a sample, the held (delayed) input switching
+                        inside the sample (for models with a nonlinearity that must be solved within a sample)
+  run(...)              simulate from rest (modal coordinates when well conditioned)
+  run_segments(...)     simulate with a load force channel: a constant force and Coulomb friction
+                        -F_c tanh(v / v_s) solved implicitly at the end of each sub-step (stiff for a small v_s),
+                        and the state reset at given samples (multiple shooting, docs/PLANT.md)
+The sample convention everywhere: y_k is read before u_k acts (converter pair at the same instant).
+"""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.linalg import matrix_balance
+
+
+@numba.njit(cache=True)
+def _expm_taylor(E):
+    """exp(E) by scaling and squaring with an 18-term Taylor series (E balanced, small order)."""
+    n = E.shape[0]
+    nrm = 0.0
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += abs(E[i, j])
+        nrm = max(nrm, s)
+    q = 0
+    while nrm > 0.25:
+        nrm *= 0.5; q += 1
+    X = E / (2.0 ** q)
+    R = np.eye(n); T = np.eye(n)
+    for k in range(1, 19):
+        T = T @ X / k
+        R = R + T
+    for _ in range(q):
+        R = R @ R
+    return R
+
+
+def phi(Am, Bm, tau):
+    """Exact ZOH pair (e^{A tau}, int_0^tau e^{A s} ds B) from the augmented matrix exponential (balanced)."""
+    n = len(Bm)
+    E = np.zeros((n + 1, n + 1)); E[:n, :n] = Am * tau; E[:n, n] = Bm * tau
+    Eb, (sc, _) = matrix_balance(E, permute=False, separate=True)
+    X = _expm_taylor(Eb)
+    X = X * sc[:, np.newaxis] / sc[np.newaxis, :]          # undo the similarity Eb = D^-1 E D
+    return X[:n, :n], X[:n, n]
+
+
+def split_delay(delay_s: float, T: float) -> tuple[int, float]:
+    """delay_s = m T + fr with 0 <= fr < T."""
+    m = int(math.floor(delay_s / T + 1e-9))
+    return m, max(0.0, delay_s - m * T)
+
+
+def discretise(Am, Bm, T: float, delay_s: float):
+    """x_{k+1} = Ad x_k + G0 u_{k-m} + G1 u_{k-m-1}: ZOH input delayed by delay_s = m T + fr (exact)."""
+    m, fr = split_delay(delay_s, T)
+    Ad, G = phi(Am, Bm, T)
+    if fr < 1e-12 * T:
+        return Ad, G, np.zeros_like(G), m
+    A1, G0 = phi(Am, Bm, T - fr)
+    _, Gf = phi(Am, Bm, fr)
+    return Ad, G0, A1 @ Gf, m
+
+
+def substeps(Am, Bm, T: float, n_sub: int, delay_s: float):
+    """Sub-step transition Ah (h = T / n_sub) and, per sub-step j, the input vectors of the sample's new and old
+    (delayed) input, Bnew[j] and Bold[j]: the held input switches at fr inside the sample (exact)."""
+    h = T / n_sub
+    m, fr = split_delay(delay_s, T)
+    Ah, Bh = phi(Am, Bm, h)
+    n = len(Bm)
+    Bnew = np.zeros((n_sub, n)); Bold = np.zeros((n_sub, n))
+    for j in range(n_sub):
+        t0, t1 = j * h, (j + 1) * h
+        if t1 <= fr + 1e-15:
+            Bold[j] = Bh
+        elif t0 >= fr - 1e-15:
+            Bnew[j] = Bh
+        else:                           # switch at fr inside this sub-step
+            A2, Bn = phi(Am, Bm, t1 - fr)
+            _, Bo = phi(Am, Bm, fr - t0)
+            Bnew[j] = Bn; Bold[j] = A2 @ Bo
+    return Ah, Bnew, Bold, m
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_ss(Ad, G0, G1, Cm, u, m, out):
+    n = Ad.shape[0]; N = u.shape[0]
+    x = np.zeros(n); xn = np.zeros(n)
+    for k in range(N):
+        s = 0.0
+        for i in range(n):
+            s += Cm[i] * x[i]
+        out[k] = s
+        a = u[k - m] if k - m >= 0 else 0.0
+        b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
+        for i in range(n):
+            acc = G0[i] * a + G1[i] * b
+            for j in range(n):
+                acc += Ad[i, j] * x[j]
+            xn[i] = acc
+        for i in range(n):
+            x[i] = xn[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_modal(lam, g0, g1, c, u, m, out):
+    """_run_ss in modal coordinates: one complex state per real pole or conjugate pair (3 instead of 25 products
+    per sample for the 5-state model); the output is the real part."""
+    n = lam.shape[0]; N = u.shape[0]
+    xr = np.zeros(n); xi = np.zeros(n)
+    for k in range(N):
+        s = 0.0
+        for i in range(n):
+            s += c[i].real * xr[i] - c[i].imag * xi[i]
+        out[k] = s
+        a = u[k - m] if k - m >= 0 else 0.0
+        b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
+        for i in range(n):
+            lr = lam[i].real; li = lam[i].imag
+            nr = lr * xr[i] - li * xi[i] + g0[i].real * a + g1[i].real * b
+            ni = lr * xi[i] + li * xr[i] + g0[i].imag * a + g1[i].imag * b
+            xr[i] = nr; xi[i] = ni
+
+
+def run(Ad, G0, G1, Cm, u, m, out) -> np.ndarray:
+    """Simulate x_{k+1} = Ad x_k + G0 u_{k-m} + G1 u_{k-m-1}, y_k = Cm x_k from rest: in modal coordinates
+    (Ad = V diag(lam) V^-1, one of each conjugate pair kept, its output doubled) when V is well conditioned,
+    else directly."""
+    lam, V = np.linalg.eig(Ad)
+    if np.linalg.cond(V) > 1e8:
+        _run_ss(Ad, G0, G1, Cm, u, m, out)
+        return out
+    Vi = np.linalg.inv(V)
+    g0, g1, cc = Vi @ G0, Vi @ G1, Cm @ V
+    keep, weight, used = [], [], np.zeros(len(lam), bool)
+    for i in range(len(lam)):
+        if used[i]:
+            continue
+        used[i] = True
+        if abs(lam[i].imag) > 1e-12 * max(abs(lam[i]), 1e-300):
+            rest = np.where(used, np.inf, np.abs(lam - np.conj(lam[i])))
+            used[int(np.argmin(rest))] = True
+            weight.append(2.0)
+        else:
+            weight.append(1.0)
+        keep.append(i)
+    k = np.array(keep)
+    _run_modal(lam[k].astype(complex), g0[k].astype(complex), g1[k].astype(complex),
+               (cc[k] * np.array(weight)).astype(complex), u, m, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, out):
+    n = Ah.shape[0]; N = u.shape[0]; n_sub = Bnew.shape[0]
+    x = np.zeros(n); xn = np.zeros(n)
+    gv = 0.0
+    for i in range(n):
+        gv += Cv[i] * Gf[i]
+    seg = 0
+    nseg = starts.shape[0]
+    for k in range(N):
+        if seg < nseg and k == starts[seg]:
+            for i in range(n):
+                x[i] = X0[seg, i]
+            seg += 1
+        s = 0.0
+        for i in range(n):
+            s += Cy[i] * x[i]
+        out[k] = s
+        a = u[k - m] if k - m >= 0 else 0.0
+        b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
+        for j in range(n_sub):
+            for i in range(n):
+                acc = Bnew[j, i] * a + Bold[j, i] * b + Gf[i] * f0
+                for q in range(n):
+                    acc += Ah[i, q] * x[q]
+                xn[i] = acc
+            if fric > 0.0:
+                # friction held over the sub-step at the end velocity v: v + gv fric tanh(v / vs) = z (monotone)
+                z = 0.0
+                for i in range(n):
+                    z += Cv[i] * xn[i]
+                lo = z - gv * fric; hi = z + gv * fric
+                v = z / (1.0 + gv * fric / vs)          # the stick solution; Newton from there, bracketed
+                if abs(z) > gv * fric:
+                    v = z - gv * fric * (1.0 if z > 0 else -1.0)
+                for it in range(60):
+                    th = math.tanh(v / vs)
+                    g = v + gv * fric * th - z
+                    if g > 0.0:
+                        hi = v
+                    else:
+                        lo = v
+                    dg = 1.0 + gv * fric * (1.0 - th * th) / vs
+                    vn = v - g / dg
+                    if vn <= lo or vn >= hi:
+                        vn = 0.5 * (lo + hi)
+                    if abs(vn - v) < 1e-13 + 1e-9 * abs(v):
+                        v = vn
+                        break
+                    v = vn
+                F = -fric * math.tanh(v / vs)
+                for i in range(n):
+                    xn[i] += Gf[i] * F
+            for i in range(n):
+                x[i] = xn[i]
+
+
+def run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, *, friction_n: float = 0.0, smoothing_m_per_s: float = 1e-4,
+                 force_n: float = 0.0, starts=None, X0=None) -> np.ndarray:
+    """Output samples of the sub-stepped model (substeps()) with a load-force channel Gf (sub-step integral of
+    the force input), the velocity row Cv and the output row Cy; the state set to X0[s] at sample starts[s]."""
+    u = np.ascontiguousarray(u, dtype=float)
+    st = np.zeros(0, np.int64) if starts is None else np.ascontiguousarray(starts, dtype=np.int64)
+    x0 = np.zeros((len(st), Ah.shape[0])) if X0 is None else np.ascontiguousarray(X0, dtype=float)
+    out = np.empty(len(u))
+    _run_segments(np.ascontiguousarray(Ah), np.ascontiguousarray(Bnew), np.ascontiguousarray(Bold),
+                  np.ascontiguousarray(Gf, dtype=float), np.ascontiguousarray(Cv, dtype=float),
+                  np.ascontiguousarray(Cy, dtype=float), u, int(m), float(friction_n), float(smoothing_m_per_s),
+                  float(force_n), st, x0, out)
+    return out
+
+
+def free_response(Ad, Cy, length: int) -> np.ndarray:
+    """(length, n): row k is Cy Ad^k, the output's response to each unit initial state."""
+    n = Ad.shape[0]
+    O = np.empty((length, n))
+    row = np.asarray(Cy, float).copy()
+    for k in range(length):
+        O[k] = row
+        row = row @ Ad
+    return O

@@ -1,0 +1,58 @@
+"""The diagnosis on other rigs' plants (issue 13): an EMPS-like electro-mechanical axis recorded in closed loop at
+1 kHz (sim_backend.axis: real stick-slip friction, the published model and cascade), and a clean open-loop axis."""
+import numpy as np
+import pytest
+
+from rig.diagnose.engine import diagnose
+from rig.diagnose.report import diagnosis_dict
+from rig.errors import RecordingError
+from rig.plant.file import load_plant, parse_plant
+from rig.recording import Recording
+from sim_backend.axis import EMPS, Axis, Sensor, emps_like, simulate_axis
+from tests.paths import REPO
+
+pytestmark = pytest.mark.slow
+
+
+def _rec(cmd, pos, unit="V"):
+    rec = Recording.from_signals(cmd, pos, None, fs_hz=1000.0, source="axis")
+    rec.command_unit = unit
+    rec.accel_present = False
+    return rec
+
+
+def test_emps_like_closed_loop_names_friction_and_halves_the_residual():
+    cmd, pos = emps_like()
+    plant = load_plant(REPO / "docs" / "examples" / "emps_like.toml")
+    d = diagnose(_rec(cmd, pos), plant)
+    named = {e["name"]: e["parameters"] for e in d.effects}
+    assert "coulomb_friction" in named, d.summary
+    assert abs(named["coulomb_friction"]["force_n"] / EMPS.coulomb_n - 1) < 0.25
+    assert set(named) <= {"coulomb_friction", "constant_force"}, d.summary     # nothing invented
+    assert d.fit["augmented"]["residual_rms_m"] < 0.5 * d.fit["refit"]["residual_rms_m"]
+    assert "Closed-loop data" in d.summary and "pole at the origin" in " ".join(d.mismatch["notes"])
+    doc = diagnosis_dict(d)
+    assert doc["plant"]["family"] == "mechanical_axis" and doc["plant"]["shooting"]["segments"] >= 20
+    assert abs(doc["plant"]["augmented_linear"]["mass_kg"] / EMPS.mass_kg - 1) < 0.1
+
+
+def test_clean_open_loop_axis_names_nothing():
+    ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0)
+    rng = np.random.default_rng(4)
+    from rig.excitation import band_noise
+    u = band_noise(1000.0, 20.0, 0.3, 30.0, 40.0, seed=5).cmd_V
+    cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(step_m=1e-7, noise_m=2e-7, offset_m=3e-4, seed=2))
+    plant = parse_plant({"family": "mechanical_axis", "input_unit": "N", "mass_kg": {"value": 25.0, "min": 5.0,
+                         "max": 100.0}, "damping_n_s_per_m": {"value": 50.0, "min": 5.0, "max": 500.0}}, "clean.toml")
+    d = diagnose(_rec(cmd, pos, "N"), plant)
+    assert d.effects == [], d.summary
+    assert d.fit["refit"]["residual_over_noise_holdout"] < 1.3
+    assert abs(d.params_refit["mass_kg"] / 20.0 - 1) < 0.05 and rng is not None
+
+
+def test_unit_mismatch_is_one_line():
+    cmd, pos = emps_like()
+    plant = parse_plant({"family": "mechanical_axis", "input_unit": "N", "mass_kg": 90.0,
+                         "damping_n_s_per_m": 200.0}, "force.toml")
+    with pytest.raises(RecordingError, match="command is in V but the plant .force.toml. takes input_unit = 'N'"):
+        diagnose(_rec(cmd[:2000], pos[:2000]), plant)

@@ -1,0 +1,118 @@
+"""The plant file's [plant] table, the model families' equations and the one ZOH simulator."""
+import math
+
+import numpy as np
+import pytest
+import scipy.signal
+from hypothesis import given, settings, strategies as st
+
+from rig.errors import ConfigError
+from rig.plant.file import load_plant, parse_plant
+from rig.plant.model import axis_state_space
+from rig.plant.zoh import discretise, run_segments, substeps
+from tests.paths import REPO
+
+AXIS = {"family": "mechanical_axis", "input_unit": "V", "mass_kg": {"value": 95.0, "min": 10.0, "max": 500.0},
+        "damping_n_s_per_m": 200.0, "gain_n_per_unit": 35.15}
+
+
+def test_worked_example_loads():
+    p = load_plant(REPO / "docs" / "examples" / "emps_like.toml")
+    assert p.family == "mechanical_axis" and p.input_unit == "V"
+    assert p.free == ("mass_kg", "damping_n_s_per_m")
+    assert p.params["gain_n_per_unit"].value == 35.15 and not p.params["gain_n_per_unit"].free
+    assert p.integrating()                      # k = 0: a pole at the origin
+
+
+def test_no_plant_table_is_the_eha_default(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text("[signals]\ntime = 't'\n")
+    assert load_plant(f).family == "eha"
+
+
+@pytest.mark.parametrize("table, words", [
+    ({**AXIS, "family": "gearbox"}, "family"),
+    ({**AXIS, "input_unit": "mV"}, "input_unit"),
+    ({**AXIS, "mass_kg": {"value": 600.0, "min": 10.0, "max": 500.0}}, "mass_kg: value 600 outside"),
+    ({**AXIS, "mass_kg": {"value": 95.0, "min": 10.0}}, "mass_kg: a free parameter needs both"),
+    ({**AXIS, "mass_kg": -1.0}, "mass_kg: expected a positive"),
+    ({**AXIS, "mass_kg": "heavy"}, "mass_kg: expected a finite number"),
+    ({k: v for k, v in AXIS.items() if k != "gain_n_per_unit"}, "gain_n_per_unit: missing"),
+    ({**AXIS, "input_unit": "N", "gain_n_per_unit": 2.0}, "the gain is 1"),
+    ({**AXIS, "spring": 3.0}, "spring: not a parameter"),
+    ({"family": "transfer_function", "num": [1.0, 2.0], "den": [1.0, 3.0]}, "strictly proper"),
+    ({"family": "transfer_function", "num": [1.0], "den": [0.0, 1.0, 3.0]}, "den[0]"),
+    ({"family": "eha", "K_Q": {"value": 1e-6, "min": 1e-7, "max": 1e-5}}, "K_Q"),
+])
+def test_bad_plant_gives_one_line_naming_file_and_key(table, words):
+    with pytest.raises(ConfigError) as e:
+        parse_plant(table, "rig_b.toml")
+    msg = str(e.value)
+    assert msg.startswith("rig_b.toml: [plant]") and words in msg and "\n" not in msg
+
+
+def test_force_input_has_gain_one_and_transfer_function_parses():
+    p = parse_plant({"family": "mechanical_axis", "input_unit": "N", "mass_kg": 2.0, "damping_n_s_per_m": 3.0},
+                    "f.toml")
+    assert p.values()["gain_n_per_unit"] == 1.0 and p.free == ()
+    tf = parse_plant({"family": "transfer_function", "num": [2e-3], "den": [1, {"value": 30, "min": 3, "max": 300}, 0]},
+                     "f.toml")
+    assert tf.free == ("den1",) and tf.integrating()
+    A, B, Bf, C, Cv = tf.state_space(tf.values())
+    w = np.array([2.0, 20.0])
+    H = np.array([C @ np.linalg.solve(1j * wk * np.eye(2) - A, B) for wk in w])
+    assert np.allclose(H, 2e-3 / ((1j * w) ** 2 + 30 * 1j * w), rtol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.dictionaries(st.sampled_from(["family", "input_unit", "mass_kg", "damping_n_s_per_m", "gain_n_per_unit",
+                                        "stiffness_n_per_m", "num", "den", "x"]),
+                       st.one_of(st.floats(allow_nan=True), st.text(max_size=5), st.booleans(),
+                                 st.sampled_from(["eha", "mechanical_axis", "transfer_function", "V", "N"]),
+                                 st.lists(st.floats(-10, 10), max_size=3),
+                                 st.fixed_dictionaries({"value": st.floats(-1e3, 1e3), "min": st.floats(-1e3, 1e3),
+                                                        "max": st.floats(-1e3, 1e3)})), max_size=6))
+def test_any_table_is_a_plant_or_one_config_error(table):
+    try:
+        p = parse_plant(table, "h.toml")
+    except ConfigError as e:
+        assert "\n" not in str(e) and str(e).startswith("h.toml: [plant]")
+        return
+    assert p.family in ("eha", "mechanical_axis", "transfer_function")
+
+
+def test_zoh_matches_scipy_and_the_delay_is_exact():
+    A, B, Bf, C, Cv = axis_state_space(95.0, 200.0, 1e4, 35.0)
+    T = 1e-3
+    Ad, G0, G1, m = discretise(A, B, T, 0.0)
+    ref = scipy.signal.cont2discrete((A, B[:, None], C[None, :], np.zeros((1, 1))), T, method="zoh")
+    assert np.allclose(Ad, ref[0], rtol=1e-12, atol=1e-15) and np.allclose(G0, ref[1][:, 0], rtol=1e-10)
+    # a delay of 2.4 samples: the response equals the undelayed one shifted by 2.4 samples (a smooth input)
+    t = np.arange(4000) * T
+    u = np.sin(2 * math.pi * 3 * t) * (1 - np.cos(2 * math.pi * t / 4.0)) / 2
+    Ah, Bn, Bo, m = substeps(A, B, T, 1, 2.4e-3)
+    y = run_segments(Ah, Bn, Bo, np.zeros(2), Cv, C, u, m)
+    y0 = run_segments(*substeps(A, B, T, 1, 0.0)[:3], np.zeros(2), Cv, C, u, 0)
+    ys = np.interp(t - 2.4e-3, t, y0)
+    assert np.max(np.abs(y - ys)) < 2e-3 * np.max(np.abs(y0))
+    assert m == 2
+
+
+def test_friction_and_constant_force_in_the_simulator():
+    """A free mass pushed by a constant force against Coulomb friction: the steady speed (F - F_c) / c, and a push
+    below F_c does not move it (the smooth friction's creep stays tiny)."""
+    M, c, Fc = 10.0, 20.0, 5.0
+    A, B, Bf, C, Cv = axis_state_space(M, c, 0.0, 1.0)
+    fs, n_sub = 1000.0, 5
+    Ah, Bn, Bo, m = substeps(A, B, 1 / fs, n_sub, 0.0)
+    from rig.plant.zoh import phi
+    Gf = phi(A, Bf, 1 / (fs * n_sub))[1]
+    u = np.full(5000, 8.0)
+    y = run_segments(Ah, Bn, Bo, Gf, Cv, C, u, m, friction_n=Fc, smoothing_m_per_s=1e-5, force_n=0.0)
+    v_end = (y[-1] - y[-1001]) / 1.0
+    assert abs(v_end - (8.0 - Fc) / c) < 1e-4
+    y = run_segments(Ah, Bn, Bo, Gf, Cv, C, np.zeros(5000), m, friction_n=Fc, smoothing_m_per_s=1e-5, force_n=3.0)
+    assert abs(y[-1]) < 1e-4                    # 3 N < F_c: stuck (creep of a stiff tanh only)
+    starts = np.array([0, 2500]); X0 = np.array([[0.0, 0.0], [0.5, 0.0]])
+    y = run_segments(Ah, Bn, Bo, Gf, Cv, C, np.zeros(5000), m, starts=starts, X0=X0)
+    assert y[2499] == 0.0 and y[2500] == 0.5    # the state is set at each segment start
