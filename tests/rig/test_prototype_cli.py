@@ -6,8 +6,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import pytest
+
+from rig.commands.bench import BlockClock, block_plan
 
 
 def rig(*args, timeout=600):
@@ -58,12 +61,51 @@ def test_design_reports_both_loops(tmp_path):
 
 
 def test_bench_loop_both_layouts_in_one_run():
-    out = rig("bench", "loop", "--layout", "both", "--rate", "5000", "--seconds", "1.2", "--no-realtime", "--json")
+    out = rig("bench", "loop", "--layout", "both", "--rate", "5000", "--seconds", "1.2", "--rounds", "2",
+              "--block-s", "0.1", "--no-realtime", "--json")
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)
-    assert [r["mounts"] for r in res["machine"]] == [4] * 3 and [r["mounts"] for r in res["prototype"]] == [1] * 3
-    assert len(res["compute_p99_ratio"]) == 3 and all(r > 0 for r in res["compute_p99_ratio"])
+    assert res["machine"]["mounts"] == 4 and res["prototype"]["mounts"] == 1
+    assert res["rounds"] == 2 and res["blocks_per_round"] == 3 and res["block_s"] == pytest.approx(0.1)
+    for name in ("machine", "prototype"):
+        by_round = res[name]["compute_us_by_round"]
+        assert len(by_round) == 2 and all(0 < r["p50"] <= r["p99"] <= r["max"] for r in by_round)
+        # every block's periods less its settling ones: 3 blocks of 500 periods, the first 100 of each left out
+        assert [r["n"] for r in by_round] == [3 * 400] * 2 and res[name]["compute_us"]["n"] == 2 * 3 * 400
+    ratios = [b["p99"] / a["p99"] for a, b in zip(res["machine"]["compute_us_by_round"],
+                                                   res["prototype"]["compute_us_by_round"])]
+    assert res["compute_p99_ratio"] == [round(r, 3) for r in ratios]
+    assert res["prototype_p99_le_machine_every_round"] == all(r <= 1 for r in ratios)
     assert set(res["kernel_us"]) == {"machine", "prototype"} and all(v > 0 for v in res["kernel_us"].values())
+    assert len(res["load_average"]) == 6
+
+
+def test_bench_loop_both_layouts_prints_rounds_and_verdict():
+    out = rig("bench", "loop", "--layout", "both", "--seconds", "0.8", "--rounds", "2", "--block-s", "0.2",
+              "--no-realtime")
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.splitlines()
+    assert sum(line.strip().startswith("round ") and "p99 ratio" in line for line in lines) == 2
+    assert lines[-1].startswith("one-mount compute p99 <= four-mount compute p99 in every round: ")
+    assert "alternating" in lines[0] and "load average" in lines[0]
+
+
+def test_block_plan_cuts_each_layouts_share_of_a_round():
+    assert block_plan(18, 3, 0.5) == (6, 0.5)         # 3 s per layout per round
+    assert block_plan(1.2, 2, 0.5) == (1, pytest.approx(0.3))        # shorter than a block: one block
+    k, s = block_plan(10, 3, 0.7)
+    assert k * s == pytest.approx(10 / 6) and k == 2
+
+
+def test_block_clock_stops_loop_time_between_blocks():
+    clock = BlockClock(0)
+    clock.stop()
+    time.sleep(0.05)
+    clock.resume()
+    t = clock.now_ns()
+    assert clock.offset_ns >= 50e6 and abs(t - (time.monotonic_ns() - clock.offset_ns)) < 5e6
+    clock.sleep_until(t + 2_000_000)                  # on its own time base: 2 ms on, not at once
+    assert clock.now_ns() - t >= 2e6
 
 
 @pytest.mark.slow
