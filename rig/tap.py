@@ -57,6 +57,12 @@ class RecordingTap:
         self._slot = s = self.recorder.next_row()         # -1: the ring is full, the row dropped and counted
         return self._ring, s
 
+    def begin(self, state: State, isolation: bool, overruns: int, skipped: int):
+        """A recorded period begins: the flags (flags) and the slot (slot) in one call, the loop's."""
+        if (state, isolation, overruns, skipped) != self._flags:
+            self.flags(state, isolation, overruns, skipped)
+        return self.slot()
+
     def close(self, copied: bool) -> None:
         """The period's row is final: commit it (copying it first if the kernel did not), or push it."""
         rec = self.recorder
