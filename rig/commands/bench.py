@@ -6,12 +6,15 @@
                                                   what the machine itself allows (same JSON)
   rig bench loop --layout prototype ...           the prototype instead: one mount on its stand, tracking a
                                                   sine (the isolation filters stepped alongside)
-  rig bench loop --layout both ...                four mounts and one, alternately in one run (three rounds
-                                                  each of --seconds / 6): {"machine", "prototype",
-                                                  "compute_p99_ratio"} (prototype / machine, per round), and
-                                                  "kernel_us": the compiled period alone, per layout (the
-                                                  least of 5 x 20000 back-to-back calls: the code's cost
-                                                  without the shared host's noise)
+  rig bench loop --layout both [--rounds R] [--block-s S] ...
+                                                  four mounts and one in one run, both sessions open, in short
+                                                  alternating blocks (about S = 0.2 s each, R = 3 rounds of
+                                                  --seconds / R, half of it per layout): per round each
+                                                  layout's compute p50/p99/max pooled over its blocks, the
+                                                  p99 ratio (prototype / machine) and whether one mount's p99
+                                                  <= four mounts' held in every round; "kernel_us": the
+                                                  compiled period alone, per layout (the least of 5 x 20000
+                                                  back-to-back calls: the code's cost without the host's noise)
   rig bench loop --feedforward [--rounds R] ...   the feedback-only loop and the loop with the floor
                                                   accelerometers and feedforward, alternating in one run
   rig bench loop --console ...                    blocks without and with the operator console and a browser
@@ -202,7 +205,7 @@ def bench_loop(args) -> int:
     layout = getattr(args, "layout", "machine")
     if args.feedforward and layout != "machine":
         raise RigError("--feedforward: the machine's loop (the stand layouts have no floor accelerometers)")
-    rounds, block_s = (3, 0.5) if layout == "both" else (4, 6.0)     # (the options: rig/console/bench.py)
+    rounds, block_s = (3, 0.2) if layout == "both" else (4, 6.0)     # (the options: rig/console/bench.py)
     args.rounds = rounds if getattr(args, "rounds", None) is None else args.rounds
     args.block_s = block_s if getattr(args, "block_s", None) is None else args.block_s
     if args.feedforward:
@@ -457,7 +460,8 @@ class BlockClock(MonotonicClock):
             self._stopped_at = None
 
 
-BLOCK_SETTLE_S = 0.02           # the first periods of each block (re-activation, caches the other loop used)
+BLOCK_SETTLE = 10               # periods left out at the start of each block: the first replays the gap and
+                                # re-activates (~5x a period's compute), the next few run on the other loop's caches
 
 
 def block_plan(seconds: float, rounds: int, block_s: float) -> tuple[int, float]:
@@ -471,7 +475,7 @@ def block_plan(seconds: float, rounds: int, block_s: float) -> tuple[int, float]
 def _bench_both(cfg, proto, args, rate: float) -> int:
     """Four mounts and one, both sessions open at once, run in short alternating blocks (MPMP... in even
     rounds, PMPM... in odd ones), each block a run of its session on a BlockClock; per round, each layout's
-    compute and wake-up figures pooled over its blocks (less the first BLOCK_SETTLE_S of each), so the shared
+    compute and wake-up figures pooled over its blocks (less the first BLOCK_SETTLE periods of each), so the shared
     host's noise falls on both alike."""
     rounds, block_s = args.rounds, args.block_s
     if not 1 <= rounds <= 100 or not 0.05 <= block_s <= 60:
@@ -502,7 +506,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
                   f"{k} block(s) of {blk:g} s per layout, alternating; "
                   f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}; "
                   f"load average {load0[0]:.2f}", file=sys.stderr)
-            settle = int(round(BLOCK_SETTLE_S * rate))
+            settle = BLOCK_SETTLE
             for r in range(rounds):
                 order = names if r % 2 == 0 else names[::-1]
                 for _ in range(k):
@@ -542,7 +546,7 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int]:
 def _both_figures(loops, spans, rate: float, rounds: int, k: int, blk: float) -> dict:
     """Per layout: pooled figures per round and over the run; the ratio of the p99s per round."""
     out: dict = {"rate_hz": rate, "rounds": rounds, "blocks_per_round": k, "block_s": round(blk, 4),
-                 "settle_s": BLOCK_SETTLE_S}
+                 "settle_periods": BLOCK_SETTLE}
     for name, loop in loops.items():
         keep = loop.keep
         comp = np.frombuffer(loop.compute_ns, dtype=np.int64)
@@ -573,7 +577,7 @@ def _print_both(out: dict, as_json: bool) -> None:
         print(json.dumps(out))
         return
     print(f"{out['rounds']} rounds at {out['rate_hz']:g} Hz; per round and layout {out['blocks_per_round']} "
-          f"block(s) of {out['block_s']:g} s, alternating, each less its first {out['settle_s'] * 1e3:g} ms; "
+          f"block(s) of {out['block_s']:g} s, alternating, each less its first {out['settle_periods']} periods; "
           f"load average {out['load_average'][0]:.2f} before, {out['load_average'][3]:.2f} after")
     m, p = out["machine"], out["prototype"]
     for r, ratio in enumerate(out["compute_p99_ratio"]):

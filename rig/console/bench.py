@@ -48,7 +48,7 @@ def add_arguments(p) -> None:
     p.add_argument("--serve", choices=("process", "thread", "both"), default="both",
                    help="--console: where the web server runs in the console blocks (default both, alternating)")
     p.add_argument("--block-s", type=float, default=None, metavar="S",
-                   help="--console: block length (default 6); --layout both: about this long per block (default 0.5)")
+                   help="--console: block length (default 6); --layout both: about this long per block (default 0.2)")
     p.add_argument("--rounds", type=int, default=None,
                    help="--console: rounds of all conditions; --feedforward: rounds of both runs (default 4); "
                         "--layout both: rounds (default 3)")
