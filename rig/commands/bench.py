@@ -451,8 +451,10 @@ class BlockClock(MonotonicClock):
     def sleep_until(self, t_ns: int) -> None:
         MonotonicClock.sleep_until(self, t_ns + self.offset_ns)
 
-    def stop(self) -> None:
-        self._stopped_at = time.monotonic_ns()
+    def stop(self, at_ns: int | None = None) -> None:
+        """Stopped now, or as from loop time at_ns (past: the end of the loop's last period, so the run's
+        teardown after it, which may wait for the CPU on a loaded host, is no loop time either)."""
+        self._stopped_at = time.monotonic_ns() if at_ns is None else min(time.monotonic_ns(), at_ns + self.offset_ns)
 
     def resume(self) -> None:
         if self._stopped_at is not None:
@@ -537,6 +539,7 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] |
     block is left out (and said so)."""
     loop = session.loop
     clock.resume()
+    end = None
     try:
         if loop.state is State.FAULT:           # a stall of the shared host tripped a rule: acknowledged
             loop.reset_fault()
@@ -544,12 +547,13 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] |
         loop.activate()
         i0 = loop.iterations
         session.run(seconds=seconds)
-        if loop.state is State.FAULT:
-            print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
-                  f"the block is left out", file=sys.stderr)
-            return None
+        end = loop.t_ns + loop.period_ns        # the end of its last period
     finally:
-        clock.stop()
+        clock.stop(end)
+    if loop.state is State.FAULT:
+        print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
+              f"the block is left out", file=sys.stderr)
+        return None
     return min(i0 + settle, loop.iterations), loop.iterations
 
 

@@ -131,6 +131,11 @@ def test_block_clock_stops_loop_time_between_blocks():
     assert clock.offset_ns >= 50e6 and abs(t - (time.monotonic_ns() - clock.offset_ns)) < 5e6
     clock.sleep_until(t + 2_000_000)                  # on its own time base: 2 ms on, not at once
     assert clock.now_ns() - t >= 2e6
+    last, off = clock.now_ns(), clock.offset_ns       # stopped as from a loop time already past:
+    time.sleep(0.03)
+    clock.stop(last)
+    clock.resume()
+    assert clock.offset_ns - off >= 30e6              # the 30 ms after it are no loop time
 
 
 @pytest.mark.slow
