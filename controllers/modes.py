@@ -115,12 +115,14 @@ class OperatingModes:
         self.check(self.current)
 
     def coefficients(self) -> np.ndarray:
+        """The head, the isolation controller's coefficients, then the tracking controller's, whose profile
+        table comes last: what every period reads stays together, ahead of the table."""
         head = (len(self._tc), self._nts, len(self._ic), self._nis, 1.0 if self.warm else 0.0)
-        return np.concatenate([np.array(head, dtype=np.float64), self._tc, self._ic])
+        return np.concatenate([np.array(head, dtype=np.float64), self._ic, self._tc])
 
     def track_coefficients(self, coef):
         """The tracking controller's part of this controller's coefficients (a view: its profile table)."""
-        return coef[_H:_H + len(self._tc)]
+        return coef[_H + len(self._ic):_H + len(self._ic) + len(self._tc)]
 
     def initial_state(self) -> list[float]:
         st = [0.0] * _S + self.track.initial_state() + self.iso.set_enabled(self.iso.initial_state(), False)
@@ -187,8 +189,8 @@ def modes_step(st, cf, a, x):
     nts = int(cf[1])
     nic = int(cf[2])
     nis = int(cf[3])
-    tc = cf[_H:_H + ntc]
-    ic = cf[_H + ntc:_H + ntc + nic]
+    ic = cf[_H:_H + nic]
+    tc = cf[_H + nic:_H + nic + ntc]
     ts = st[_S:_S + nts]
     iso = st[_S + nts:_S + nts + nis]
     mode = int(st[_MODE])

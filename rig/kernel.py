@@ -23,6 +23,7 @@ keeps numba's argument unboxing small: it is most of the cost of a call this siz
 """
 from __future__ import annotations
 
+import functools
 import struct
 
 import numba
@@ -274,12 +275,14 @@ class PeriodKernel:
         nst = [len(c.state_names) for c in controllers]
         ff_coefs = [np.asarray(f.coef, dtype=np.float64) for f in ffs]
         ff_nst = [len(f.initial_state()) for f in ffs]
+        # the controllers' coefficients last: a tracking controller's profile table (track_profile_s of
+        # samples) would otherwise sit between the parts every period touches
         parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n + nf, "older": OLDER_CAP * (n + nf),
                  "prev": 2 * n + nf, "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
-                 "pub": len(self.published) * n, "coefs": sum(len(c) for c in coefs), "osc": n * self.osc.width,
+                 "pub": len(self.published) * n, "osc": n * self.osc.width,
                  "ff": 1 + len(FF_TABLE) * nf if nf else 0, "ff_coefs": sum(len(c) for c in ff_coefs),
-                 "ff_states": sum(ff_nst), "row": self.layout.ncols}
+                 "ff_states": sum(ff_nst), "row": self.layout.ncols, "coefs": sum(len(c) for c in coefs)}
         at, off = 0, {}
         for part, size in parts.items():
             off[part] = at
@@ -327,15 +330,17 @@ class PeriodKernel:
         self.last_cmd = mem[off["last_cmd"]:off["last_cmd"] + n]
         self.flags = mem[off["flags"]:off["flags"] + len(LIMITER_FLAGS)]
         self.limiter.view(self.last_cmd, self.flags)
-        self.row = mem[off["row"]:]
+        self.row = mem[off["row"]:off["row"] + lay.ncols]
         self.no_ring = np.zeros((1, lay.ncols))       # stands in for the ring without a recorder (slot -1)
         self._older_bytes = 8 * off["older"]
         self._older_width = n + nf                  # a conversion: mount accelerations, then floor ones
         self._pack_older = struct.Struct(f"<{n + nf}d").pack_into
-        self._cmd = struct.Struct(f"<{n}d").unpack_from
         self._prev_x = off["prev"] + n                  # the last checked stroke per mount
-        self._cmd_bytes = 8 * (off["row"] + lay["valve_cmd_V"])
-        self._raw_bytes = 8 * (off["row"] + lay["valve_cmd_raw_V"])
+        unpack = struct.Struct(f"<{n}d").unpack_from
+        # commands(): the limited commands of the last period (the row's valve_cmd_V), a tuple; a partial of
+        # the C unpack, no Python frame (the loop's hot path)
+        self.commands = functools.partial(unpack, mem, 8 * (off["row"] + lay["valve_cmd_V"]))
+        self._raw = functools.partial(unpack, mem, 8 * (off["row"] + lay["valve_cmd_raw_V"]))
         self.reset_check()
         self.fresh_states()
         self.call = period_entry(n, bool(nf))          # compiled (or loaded) now, not in the first period
@@ -358,12 +363,9 @@ class PeriodKernel:
                          self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
                          *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
 
-    def commands(self) -> tuple:
-        """The limited commands of the last period (the row's valve_cmd_V)."""
-        return self._cmd(self.mem, self._cmd_bytes)
-
     def raw_commands(self) -> list:
-        return list(self._cmd(self.mem, self._raw_bytes))
+        """The controllers' commands of the last period, before the limits (the row's valve_cmd_raw_V)."""
+        return list(self._raw())
 
     def null_commands(self) -> None:
         """The row's commands to null (a fault in this period: nothing was written)."""

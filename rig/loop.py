@@ -91,7 +91,7 @@ class Loop:
     # ---- one period ----------------------------------------------------------------------------------
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
         """read -> kernel -> write -> record for the period starting at t_ns."""
-        gate, kernel, tap = self.gate, self.kernel, self.tap
+        gate, kernel, tap, sched = self.gate, self.kernel, self.tap, self.sched
         prev_t, self._last_cycle_t = self._last_cycle_t, t_ns
         gate.t_ns = t_ns
         if gate.pending:
@@ -108,23 +108,17 @@ class Loop:
             gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
             return
         self.last_meas = m
-        wd = self.sched.wd
-        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
-            gate.fault(wd.tripped)          # held up inside this period: the watchdog's line, not the aftermath
-        if m.device_fault and gate.lc.state is not _FAULT:
-            gate.fault(f"device fault: {m.device_fault}")
-        if m.accel_older and len(m.accel_older) > OLDER_CAP and gate.lc.state is not _FAULT:
-            gate.fault(f"the loop fell {len(m.accel_older)} conversions behind the accelerometer module (it "
-                       f"replays at most {OLDER_CAP}): held up for about {len(m.accel_older) * self.dt * 1e3:.0f} ms")
-            m = dataclasses.replace(m, accel_older=())      # recorded as the fault period, newest only
-        st = gate.lc.state
+        wd = sched.wd
+        if (wd is not None and wd.tripped) or m.device_fault or m.accel_older:
+            m = self._held_up(m, wd)        # rare: the watchdog, a device fault, conversions to replay
+        lc = gate.lc
+        st = lc.state
         recording = tap.recorder is not None
-        if recording:
-            tap.flags(st, gate.isolation, self.sched.overruns, self.sched.skipped)
-        ring, slot = tap.slot() if recording else (kernel.no_ring, -1)
+        ring, slot = tap.begin(st, gate.isolation, sched.overruns, sched.skipped) if recording \
+            else (kernel.no_ring, -1)
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
-        t0 = self.sched.t0_ns
+        t0 = sched.t0_ns
         fl = m.floor_accel_mps2 if self._floor else ()
         try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
             code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
@@ -144,13 +138,28 @@ class Loop:
                 gate.fault(f"port write failed: {e.__class__.__name__}: {e}")
         elif code == 0 and st is _INACTIVE:
             gate.write_null()
-        faulted = gate.lc.state is not st
+        faulted = lc.state is not st
         if faulted:                          # the period is recorded with its fault and nothing written
             kernel.null_commands()
             if recording:
-                tap.flags(gate.lc.state, gate.isolation, self.sched.overruns, self.sched.skipped)
+                tap.flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
         if recording:
-            tap.close(copied=code == 0 and slot >= 0 and not faulted)
+            tap.close(code == 0 and slot >= 0 and not faulted)
+
+    def _held_up(self, m, wd):
+        """The period's rare checks after the read: the watchdog tripped inside this period (its line, not the
+        aftermath), a device fault, more older conversions than the kernel replays (FAULT; recorded as the
+        fault period, the newest only). The measurement to use."""
+        gate = self.gate
+        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
+            gate.fault(wd.tripped)
+        if m.device_fault and gate.lc.state is not _FAULT:
+            gate.fault(f"device fault: {m.device_fault}")
+        if m.accel_older and len(m.accel_older) > OLDER_CAP and gate.lc.state is not _FAULT:
+            gate.fault(f"the loop fell {len(m.accel_older)} conversions behind the accelerometer module (it "
+                       f"replays at most {OLDER_CAP}): held up for about {len(m.accel_older) * self.dt * 1e3:.0f} ms")
+            m = dataclasses.replace(m, accel_older=())
+        return m
 
     def _reason(self, code: int, m, t_ns: int) -> str:
         if code - code % 100 == CHECK_FLOOR:

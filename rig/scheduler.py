@@ -106,6 +106,7 @@ class Scheduler:
         act_it = (self.iterations + max(1, int(round(activate_after_s * self.rate_hz)))
                   if activate_after_s is not None else -1)
         wd = self.wd
+        now_ns, sleep_until, watchdog_ns = clock.now_ns, clock.sleep_until, self.watchdog_ns   # bound once
         prev_wake = None
         compute_prev = 0
         idle = idle if clock.is_real else None
@@ -138,9 +139,9 @@ class Scheduler:
                 self._start_done += 1
                 if self._start_done == self._start_n:
                     self._check_rate(gate, time.thread_time_ns(), now)
-            clock.sleep_until(t)
-            wake = clock.now_ns()
-            if prev_wake is not None and wake - prev_wake > self.watchdog_ns and gate.state is not _FAULT:
+            sleep_until(t)
+            wake = now_ns()
+            if prev_wake is not None and wake - prev_wake > watchdog_ns and gate.state is not _FAULT:
                 gate.t_ns = t
                 gate.fault(f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods "
                            f"(limit watchdog_s = {self.watchdog_ns / 1e6:g} ms)")
@@ -164,7 +165,7 @@ class Scheduler:
             if final:
                 gate.request_active(False)
             cycle(t, wake - t, compute_prev)
-            done = clock.now_ns()
+            done = now_ns()
             j = self.iterations % keep
             wake_a[j] = wake - t
             comp_a[j] = compute_prev = done - wake

@@ -3,7 +3,7 @@
 With a rig.recorder.Recorder of the loop's layout the kernel copies the row straight into the recorder's
 shared ring (a slot from Recorder.next_row; committed here after the port write, so a period that faults
 after the kernel is recorded with its fault). Any other recorder (an adapter keeping a few columns) gets
-push_row(row) after the period. The rare flag columns are written into the row only when they change.
+push_row(row) after the period. The rare flag columns are written into the row only when they change (begin: flags and slot in one call).
 """
 from __future__ import annotations
 
@@ -49,8 +49,11 @@ class RecordingTap:
             row[self._i_over] = float(overruns)
             row[self._i_skip] = float(skipped)
 
-    def slot(self):
-        """(ring, slot) for the kernel: the recorder's ring and its next free row, else (no ring, -1)."""
+    def begin(self, state: State, isolation: bool, overruns: int, skipped: int):
+        """A recorded period begins: its flags (flags(), when they changed), then (ring, slot) for the kernel:
+        the recorder's ring and its next free row, else (no ring, -1). One call: the loop's hot path."""
+        if (state, isolation, overruns, skipped) != self._flags:
+            self.flags(state, isolation, overruns, skipped)
         if self._ring is None:
             self._slot = -1
             return self.kernel.no_ring, -1

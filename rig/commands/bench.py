@@ -6,12 +6,15 @@
                                                   what the machine itself allows (same JSON)
   rig bench loop --layout prototype ...           the prototype instead: one mount on its stand, tracking a
                                                   sine (the isolation filters stepped alongside)
-  rig bench loop --layout both ...                four mounts and one, alternately in one run (three rounds
-                                                  each of --seconds / 6): {"machine", "prototype",
-                                                  "compute_p99_ratio"} (prototype / machine, per round), and
-                                                  "kernel_us": the compiled period alone, per layout (the
-                                                  least of 5 x 20000 back-to-back calls: the code's cost
-                                                  without the shared host's noise)
+  rig bench loop --layout both [--rounds R] [--block-s S] ...
+                                                  four mounts and one in one run, both sessions open, in short
+                                                  alternating blocks (about S = 0.2 s each, R = 3 rounds of
+                                                  --seconds / R, half of it per layout): per round each
+                                                  layout's compute p50/p99/max pooled over its blocks, the
+                                                  p99 ratio (prototype / machine) and whether one mount's p99
+                                                  <= four mounts' held in every round; "kernel_us": the
+                                                  compiled period alone, per layout (the least of 5 x 20000
+                                                  back-to-back calls: the code's cost without the host's noise)
   rig bench loop --feedforward [--rounds R] ...   the feedback-only loop and the loop with the floor
                                                   accelerometers and feedforward, alternating in one run
   rig bench loop --console ...                    blocks without and with the operator console and a browser
@@ -39,6 +42,7 @@ runs of a round, which sit next to each other in time: the figure least moved by
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -54,6 +58,7 @@ from rig.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
 from rig.errors import RigError
+from rig.lifecycle import State
 from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
 from rig.session import Session
 from sim_backend.bench import bench_sim as run_bench
@@ -200,6 +205,9 @@ def bench_loop(args) -> int:
     layout = getattr(args, "layout", "machine")
     if args.feedforward and layout != "machine":
         raise RigError("--feedforward: the machine's loop (the stand layouts have no floor accelerometers)")
+    rounds, block_s = (3, 0.2) if layout == "both" else (4, 6.0)     # (the options: rig/console/bench.py)
+    args.rounds = rounds if getattr(args, "rounds", None) is None else args.rounds
+    args.block_s = block_s if getattr(args, "block_s", None) is None else args.block_s
     if args.feedforward:
         return _feedforward_ab(cfg, args, rate)
     if layout != "machine":
@@ -414,38 +422,201 @@ def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
 
 
 def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
-    """The prototype alone, or both layouts alternately (machine, prototype, machine, prototype) in one run."""
+    """The prototype alone, or both layouts in short alternating blocks (_bench_both)."""
     from rig.commands.run import LAYOUTS
     proto = load_config(getattr(args, "config", None) or LAYOUTS["prototype"][None])
     if proto.layout.plant != "stand":
         raise RigError(f"--layout {layout}: {proto.source} is not a stand layout")
-    order = [("prototype", proto)] if layout == "prototype" else [("machine", cfg), ("prototype", proto)] * 3
-    seconds = args.seconds if layout == "prototype" else args.seconds / 6
-    runs: dict = {}
-    for name, c in order:
-        print(f"rig bench loop: {name} ({len(c.layout.mounts) or 4} mount(s)) at {rate:g} Hz for {seconds:g} s"
-              f"{', ' + PROTOTYPE_BENCH_MODE if name == 'prototype' else ''}", file=sys.stderr)
-        runs.setdefault(name, []).append(_bench_once(c, args, rate, seconds,
-                                                     PROTOTYPE_BENCH_MODE if name == "prototype" else None))
-    if layout == "prototype":
-        _print_loop_figures(runs["prototype"][0], args.json, 0)
-        return 0
-    ratios = [p["compute_us"]["p99"] / m["compute_us"]["p99"] for m, p in zip(runs["machine"], runs["prototype"])]
-    kern = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
-    out = {"machine": runs["machine"], "prototype": runs["prototype"], "compute_p99_ratio": [round(r, 3) for r in ratios],
-           "kernel_us": kern}
-    if args.json:
-        print(json.dumps(out))
-        return 0
-    for name in ("machine", "prototype"):
-        for r in runs[name]:
-            c, w = r["compute_us"], r["wake_latency_us"]
-            print(f"{name:9s} {r['mounts']} mount(s): compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us"
-                  f" | wake p99 {w['p99']:7.1f} us | overruns {r['overruns']}")
-    print(f"compute p99, prototype / machine, per round: {', '.join(f'{r:.2f}' for r in ratios)}")
-    print(f"the compiled period alone: machine {kern['machine']:.3f} us, prototype {kern['prototype']:.3f} us "
-          f"({kern['prototype'] / kern['machine']:.2f}x)")
+    if layout == "both":
+        return _bench_both(cfg, proto, args, rate)
+    print(f"rig bench loop: prototype (1 mount) at {rate:g} Hz for {args.seconds:g} s, {PROTOTYPE_BENCH_MODE}",
+          file=sys.stderr)
+    _print_loop_figures(_bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE), args.json, 0)
     return 0
+
+
+class BlockClock(MonotonicClock):
+    """The real clock of one of several loops run in turns: stopped between the loop's blocks, so its loop time
+    (and the simulated plant that keeps pace with it) runs only while the loop runs: a resumed loop sees no gap
+    (no catch-up of the plant, no replayed periods)."""
+
+    def __init__(self, spin_ns: int | None = None) -> None:
+        super().__init__(spin_ns)
+        self.offset_ns = 0                  # real time spent stopped so far
+        self._stopped_at: int | None = None
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns() - self.offset_ns
+
+    def sleep_until(self, t_ns: int) -> None:
+        MonotonicClock.sleep_until(self, t_ns + self.offset_ns)
+
+    def stop(self, at_ns: int | None = None) -> None:
+        """Stopped now, or as from loop time at_ns (past: the end of the loop's last period, so the run's
+        teardown after it, which may wait for the CPU on a loaded host, is no loop time either)."""
+        self._stopped_at = time.monotonic_ns() if at_ns is None else min(time.monotonic_ns(), at_ns + self.offset_ns)
+
+    def resume(self) -> None:
+        if self._stopped_at is not None:
+            self.offset_ns += time.monotonic_ns() - self._stopped_at
+            self._stopped_at = None
+
+
+BLOCK_SETTLE = 10               # periods left out at the start of each block: the first replays the gap and
+                                # re-activates (~5x a period's compute), the next few run on the other loop's caches
+
+
+def block_plan(seconds: float, rounds: int, block_s: float) -> tuple[int, float]:
+    """Blocks per layout per round and their length [s]: each layout gets seconds / (2 rounds) per round, cut
+    into blocks of about block_s (at least one)."""
+    per = seconds / (2 * rounds)
+    k = max(1, int(round(per / block_s)))
+    return k, per / k
+
+
+def _bench_both(cfg, proto, args, rate: float) -> int:
+    """Four mounts and one, both sessions open at once, run in short alternating blocks (MPMP... in even
+    rounds, PMPM... in odd ones), each block a run of its session on a BlockClock; per round, each layout's
+    compute and wake-up figures pooled over its blocks (less the first BLOCK_SETTLE periods of each), so the shared
+    host's noise falls on both alike."""
+    rounds, block_s = args.rounds, args.block_s
+    if not 1 <= rounds <= 100 or not 0.05 <= block_s <= 60:
+        raise RigError(f"--rounds/--block-s: expected 1..100 rounds of 0.05..60 s blocks, got {rounds}, {block_s}")
+    k, blk = block_plan(args.seconds, rounds, block_s)
+    realtime = cfg.loop.realtime and not args.no_realtime
+    spin = None if args.spin_us is None else int(round(args.spin_us * 1e3))
+    names = ("machine", "prototype")
+    keep = int(math.ceil((args.seconds / 2 + 1) * rate)) + 4 * rounds * k     # every period of a session
+    tmp = []
+    for _ in names:
+        fd, path = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
+        os.close(fd)
+        tmp.append(path)
+    clocks = {n: BlockClock(spin) for n in names}
+    spans: dict = {n: [[] for _ in range(rounds)] for n in names}     # (first, last) period index per block
+    faulted = {n: 0 for n in names}         # blocks left out: the loop faulted in them
+    load0 = os.getloadavg()
+    try:
+        with contextlib.ExitStack() as stack:
+            sessions = {n: stack.enter_context(Session(
+                c, "sim", clock=clocks[n], rate_hz=rate, overrun_policy=args.policy, mode=mode, keep_timing=keep,
+                stop_on_fault=False, rate_check=False, record=path, realtime=realtime,
+                record_attrs={"command": "rig bench loop --layout both"}))
+                for n, c, mode, path in zip(names, (cfg, proto), (None, PROTOTYPE_BENCH_MODE), tmp)}
+            for c in clocks.values():
+                c.stop()
+            print(f"rig bench loop --layout both: 4 mounts and 1 at {rate:g} Hz, {rounds} rounds, each "
+                  f"{k} block(s) of {blk:g} s per layout, alternating; "
+                  f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}; "
+                  f"load average {load0[0]:.2f}", file=sys.stderr)
+            settle = BLOCK_SETTLE
+            for r in range(rounds):
+                order = names if r % 2 == 0 else names[::-1]
+                for _ in range(k):
+                    for n in order:
+                        span = _run_block(sessions[n], clocks[n], blk, settle)
+                        if span is None:
+                            faulted[n] += 1
+                        else:
+                            spans[n][r].append(span)
+                print(f"rig bench loop --layout both: round {r + 1}/{rounds} done", file=sys.stderr)
+            loops = {n: s.loop for n, s in sessions.items()}
+    finally:
+        for path in tmp:
+            os.unlink(path)
+    out = _both_figures(loops, spans, rate, rounds, k, blk)
+    for n in names:
+        out[n]["faulted_blocks"] = faulted[n]
+    out["kernel_us"] = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
+    out["load_average"] = [round(v, 2) for v in load0 + os.getloadavg()]
+    _print_both(out, args.json)
+    return 0
+
+
+def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] | None:
+    """One block of a session's loop, ACTIVE from its first period: the period indexes it measured; None when
+    the loop faulted in it (a stall of the shared host): its periods after the fault did less work, so the
+    block is left out (and said so)."""
+    loop = session.loop
+    clock.resume()
+    end = None
+    try:
+        if loop.state is State.FAULT:           # a stall of the shared host tripped a rule: acknowledged
+            loop.reset_fault()
+        loop.stop_reason = None
+        loop.activate()
+        i0 = loop.iterations
+        session.run(seconds=seconds)
+        end = loop.t_ns + loop.period_ns        # the end of its last period
+    finally:
+        clock.stop(end)
+    if loop.state is State.FAULT:
+        print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
+              f"the block is left out", file=sys.stderr)
+        return None
+    return min(i0 + settle, loop.iterations), loop.iterations
+
+
+def _both_figures(loops, spans, rate: float, rounds: int, k: int, blk: float) -> dict:
+    """Per layout: pooled figures per round and over the run; the ratio of the p99s per round."""
+    out: dict = {"rate_hz": rate, "rounds": rounds, "blocks_per_round": k, "block_s": round(blk, 4),
+                 "settle_periods": BLOCK_SETTLE}
+    for name, loop in loops.items():
+        keep = loop.keep
+        comp = np.frombuffer(loop.compute_ns, dtype=np.int64)
+        wake = np.frombuffer(loop.wake_ns, dtype=np.int64)
+
+        def pool(a, rs):
+            idx = [np.arange(i0, i1) for r in rs for i0, i1 in spans[name][r]]
+            return a[np.concatenate(idx) % keep] * 1e-3 if idx else np.zeros(0)
+        out[name] = {"mounts": loop.n,
+                     "compute_us_by_round": [_pct(pool(comp, [r])) for r in range(rounds)],
+                     "wake_latency_us_by_round": [_pct(pool(wake, [r])) for r in range(rounds)],
+                     "compute_us": _pct(pool(comp, range(rounds))),
+                     "wake_latency_us": _pct(pool(wake, range(rounds))),
+                     "iterations": loop.iterations, "overruns": loop.overruns}
+    m, p = out["machine"]["compute_us_by_round"], out["prototype"]["compute_us_by_round"]
+    out["compute_p99_ratio"] = [round(b["p99"] / a["p99"], 3) if a["n"] and b["n"] else None for a, b in zip(m, p)]
+    out["rounds_prototype_p99_le_machine"] = sum(a["n"] > 0 and b["n"] > 0 and b["p99"] <= a["p99"] for a, b in zip(m, p))
+    out["prototype_p99_le_machine_every_round"] = out["rounds_prototype_p99_le_machine"] == rounds
+    return out
+
+
+def _pct(a) -> dict:
+    if not a.size:                          # every block of the round faulted
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    return {"p50": round(float(np.percentile(a, 50)), 2), "p99": round(float(np.percentile(a, 99)), 2),
+            "max": round(float(a.max()), 2), "n": int(a.size)}
+
+
+def _print_both(out: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(out))
+        return
+    print(f"{out['rounds']} rounds at {out['rate_hz']:g} Hz; per round and layout {out['blocks_per_round']} "
+          f"block(s) of {out['block_s']:g} s, alternating, each less its first {out['settle_periods']} periods; "
+          f"load average {out['load_average'][0]:.2f} before, {out['load_average'][3]:.2f} after")
+    m, p = out["machine"], out["prototype"]
+    for r, ratio in enumerate(out["compute_p99_ratio"]):
+        a, b = m["compute_us_by_round"][r], p["compute_us_by_round"][r]
+        if ratio is None:
+            print(f"  round {r + 1}: every block of a layout faulted (see the notes above)")
+            continue
+        print(f"  round {r + 1}: compute machine (4) p50 {a['p50']:6.2f} p99 {a['p99']:6.2f} max {a['max']:8.1f} us"
+              f" | prototype (1) p50 {b['p50']:6.2f} p99 {b['p99']:6.2f} max {b['max']:8.1f} us | p99 ratio "
+              f"{ratio:.2f}")
+    for name in ("machine", "prototype"):
+        c, w = out[name]["compute_us"], out[name]["wake_latency_us"]
+        print(f"  {name:9s} ({out[name]['mounts']}) pooled: compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max "
+              f"{c['max']:8.1f} us | wake p99 {w['p99']:7.1f} us | overruns {out[name]['overruns']}"
+              + (f" | {out[name]['faulted_blocks']} block(s) left out (faulted)" if out[name]['faulted_blocks'] else ""))
+    kern = out["kernel_us"]
+    print(f"  the compiled period alone: machine {kern['machine']:.3f} us, prototype {kern['prototype']:.3f} us "
+          f"({kern['prototype'] / kern['machine']:.2f}x)")
+    ok = out["prototype_p99_le_machine_every_round"]
+    n_ok = out["rounds_prototype_p99_le_machine"]
+    print(f"one-mount compute p99 <= four-mount compute p99 in every round: {'yes' if ok else 'no'} "
+          f"({n_ok} of {out['rounds']} rounds)")
 
 
 def _kernel_us(cfg, mode) -> float:

@@ -47,9 +47,11 @@ def add_arguments(p) -> None:
                    help="alternate blocks without and with the operator console and a browser on its page")
     p.add_argument("--serve", choices=("process", "thread", "both"), default="both",
                    help="--console: where the web server runs in the console blocks (default both, alternating)")
-    p.add_argument("--block-s", type=float, default=6.0, metavar="S", help="--console: block length (default 6)")
-    p.add_argument("--rounds", type=int, default=4,
-                   help="--console: rounds of all conditions; --feedforward: rounds of both runs (default 4)")
+    p.add_argument("--block-s", type=float, default=None, metavar="S",
+                   help="--console: block length (default 6); --layout both: about this long per block (default 0.2)")
+    p.add_argument("--rounds", type=int, default=None,
+                   help="--console: rounds of all conditions; --feedforward: rounds of both runs (default 4); "
+                        "--layout both: rounds (default 3)")
     p.add_argument("--no-record", action="store_true",
                    help="--console: no recording: the console's live ring is then the ring the period writes "
                         "(its whole cost on the loop's path), against none at all")
