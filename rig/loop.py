@@ -295,4 +295,5 @@ class Loop:
     keep = property(lambda self: self.sched.keep)
     wake_ns = property(lambda self: self.sched.wake_ns)
     compute_ns = property(lambda self: self.sched.compute_ns)
+    cpu_ns = property(lambda self: self.sched.cpu_ns)
     missed_deadline_fraction = property(lambda self: self.sched.missed_deadline_fraction)

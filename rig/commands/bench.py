@@ -505,6 +505,8 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
                 for n, c, mode, path in zip(names, (cfg, proto), (None, PROTOTYPE_BENCH_MODE), tmp)}
             for c in clocks.values():
                 c.stop()
+            for sess in sessions.values():
+                sess.loop.sched.measure_cpu()
             print(f"rig bench loop --layout both: 4 mounts and 1 at {rate:g} Hz, {rounds} rounds, each "
                   f"{k} block(s) of {blk:g} s per layout, alternating; "
                   f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}; "
@@ -565,6 +567,7 @@ def _both_figures(loops, spans, rate: float, rounds: int, k: int, blk: float) ->
         keep = loop.keep
         comp = np.frombuffer(loop.compute_ns, dtype=np.int64)
         wake = np.frombuffer(loop.wake_ns, dtype=np.int64)
+        cpu = np.frombuffer(loop.cpu_ns, dtype=np.int64) if loop.cpu_ns is not None else None
 
         def pool(a, rs):
             idx = [np.arange(i0, i1) for r in rs for i0, i1 in spans[name][r]]
@@ -575,10 +578,18 @@ def _both_figures(loops, spans, rate: float, rounds: int, k: int, blk: float) ->
                      "compute_us": _pct(pool(comp, range(rounds))),
                      "wake_latency_us": _pct(pool(wake, range(rounds))),
                      "iterations": loop.iterations, "overruns": loop.overruns}
+        if cpu is not None:         # the loop thread's CPU time: the same periods, the host's preemption left out
+            out[name]["cpu_us_by_round"] = [_pct(pool(cpu, [r])) for r in range(rounds)]
+            out[name]["cpu_us"] = _pct(pool(cpu, range(rounds)))
     m, p = out["machine"]["compute_us_by_round"], out["prototype"]["compute_us_by_round"]
     out["compute_p99_ratio"] = [round(b["p99"] / a["p99"], 3) if a["n"] and b["n"] else None for a, b in zip(m, p)]
     out["rounds_prototype_p99_le_machine"] = sum(a["n"] > 0 and b["n"] > 0 and b["p99"] <= a["p99"] for a, b in zip(m, p))
     out["prototype_p99_le_machine_every_round"] = out["rounds_prototype_p99_le_machine"] == rounds
+    if "cpu_us" in out["machine"] and "cpu_us" in out["prototype"]:
+        mc, pc = out["machine"]["cpu_us_by_round"], out["prototype"]["cpu_us_by_round"]
+        out["cpu_p99_ratio"] = [round(b["p99"] / a["p99"], 3) if a["n"] and b["n"] else None for a, b in zip(mc, pc)]
+        out["rounds_prototype_cpu_p99_le_machine"] = sum(a["n"] > 0 and b["n"] > 0 and b["p99"] <= a["p99"]
+                                                         for a, b in zip(mc, pc))
     return out
 
 
@@ -610,6 +621,13 @@ def _print_both(out: dict, as_json: bool) -> None:
         print(f"  {name:9s} ({out[name]['mounts']}) pooled: compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max "
               f"{c['max']:8.1f} us | wake p99 {w['p99']:7.1f} us | overruns {out[name]['overruns']}"
               + (f" | {out[name]['faulted_blocks']} block(s) left out (faulted)" if out[name]['faulted_blocks'] else ""))
+    if "cpu_p99_ratio" in out:
+        for name in ("machine", "prototype"):
+            c = out[name]["cpu_us"]
+            print(f"  {name:9s} ({out[name]['mounts']}) pooled: CPU time of the loop thread per period p50 "
+                  f"{c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us")
+        print("  CPU time p99 ratio by round (1 / 4 mounts): "
+              + ", ".join("-" if v is None else f"{v:.2f}" for v in out["cpu_p99_ratio"]))
     kern = out["kernel_us"]
     print(f"  the compiled period alone: machine {kern['machine']:.3f} us, prototype {kern['prototype']:.3f} us "
           f"({kern['prototype'] / kern['machine']:.2f}x)")
@@ -617,6 +635,10 @@ def _print_both(out: dict, as_json: bool) -> None:
     n_ok = out["rounds_prototype_p99_le_machine"]
     print(f"one-mount compute p99 <= four-mount compute p99 in every round: {'yes' if ok else 'no'} "
           f"({n_ok} of {out['rounds']} rounds)")
+    if "cpu_p99_ratio" in out:
+        n_cpu = out["rounds_prototype_cpu_p99_le_machine"]
+        print(f"one-mount CPU time p99 <= four-mount in every round: {'yes' if n_cpu == out['rounds'] else 'no'} "
+              f"({n_cpu} of {out['rounds']} rounds)")
 
 
 def _kernel_us(cfg, mode) -> float:

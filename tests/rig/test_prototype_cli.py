@@ -75,6 +75,9 @@ def test_bench_loop_both_layouts_in_one_run():
         # a block in which a stall of the loaded host faulted the loop is left out whole
         assert all(r["n"] % 490 == 0 and r["n"] <= 3 * 490 for r in by_round)
         assert res[name]["compute_us"]["n"] == (2 * 3 - res[name]["faulted_blocks"]) * 490
+        # the loop thread's CPU time over the same periods: inside the period's wall time (+ one clock read)
+        cpu, wall = res[name]["cpu_us"], res[name]["compute_us"]
+        assert cpu["n"] == wall["n"] and 0 < cpu["p50"] <= wall["p50"] + 5.0
     pairs = list(zip(res["machine"]["compute_us_by_round"], res["prototype"]["compute_us_by_round"]))
     assert res["compute_p99_ratio"] == [round(b["p99"] / a["p99"], 3) if a["n"] and b["n"] else None
                                         for a, b in pairs]
@@ -90,7 +93,9 @@ def test_bench_loop_both_layouts_prints_rounds_and_verdict():
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.splitlines()
     assert sum(line.strip().startswith("round ") and "p99 ratio" in line for line in lines) == 2
-    assert lines[-1].startswith("one-mount compute p99 <= four-mount compute p99 in every round: ")
+    assert lines[-2].startswith("one-mount compute p99 <= four-mount compute p99 in every round: ")
+    assert lines[-1].startswith("one-mount CPU time p99 <= four-mount in every round: ")
+    assert sum("CPU time of the loop thread per period" in line for line in lines) == 2
     assert "alternating" in lines[0] and "load average" in lines[0]
 
 
@@ -107,6 +112,7 @@ def test_both_figures_pool_each_layouts_blocks_per_round():
             self.n, self.keep, self.iterations, self.overruns = n, len(comp_us), len(comp_us), 0
             self.compute_ns = array.array("q", [int(c * 1e3) for c in comp_us])
             self.wake_ns = array.array("q", [5000] * len(comp_us))
+            self.cpu_ns = None          # measure_cpu() not called
     machine = FakeLoop(4, [10.0] * 10 + [30.0] * 10 + [20.0] * 10)
     proto = FakeLoop(1, [5.0] * 10 + [40.0] * 10 + [1.0] * 10)
     spans = {"machine": [[(0, 10), (20, 25)], [(10, 20)]], "prototype": [[(0, 10)], [(10, 20)]]}
