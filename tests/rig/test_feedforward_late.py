@@ -83,3 +83,27 @@ def test_a_late_period_leaves_no_slow_table_offset(on_time):
     after = max(abs(late[p] - ref[p]) for p in range(at + 225, at + 325))
     assert kick > 1e-6                                      # the late period did knock the table
     assert after < 0.1e-6, (kick, after)
+
+
+def test_rig_hil_counts_the_late_periods_of_each_mode(tmp_path):
+    """`rig hil`'s late_periods: per mode's metered stretch, the periods the loop woke more than a period late
+    or the accelerometers had no new conversion (read as in the period before); an unreadable recording: {}."""
+    import h5py
+    from rig.commands.hil import late_periods
+    rate, n = 500.0, 3000                                   # two modes of 3 s each
+    t = np.arange(n) / rate
+    acc = np.random.default_rng(1).standard_normal((n, 4))
+    wake = np.full(n, 50.0)
+    wake[[600, 700, 2000]] = 2500.0                         # more than the 2000 us period late
+    wake[1000] = 1999.0                                     # late, but within its period
+    acc[2601] = acc[2600]                                   # no new conversion (second mode)
+    acc[1601] = acc[1600]                                   # in the second mode's settling: not metered
+    acc[2500:2503] = acc[2499]
+    acc[100] = acc[99]                                      # in the first mode's settling: not metered
+    rec = tmp_path / "run.h5"
+    with h5py.File(rec, "w") as f:
+        for name, v in (("time_s", t), ("wake_latency_us", wake), ("accel_mps2", acc)):
+            f.create_dataset(name, data=v)
+    got = late_periods(rec, ("off", "feedback"), 3.0, 1.0, rate)
+    assert got == {"off": round(2 / 1000, 4), "feedback": round(5 / 1000, 4)}
+    assert late_periods(tmp_path / "missing.h5", ("off",), 3.0, 1.0, rate) == {}
