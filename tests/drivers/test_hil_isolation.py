@@ -20,7 +20,7 @@ from rig.commands.hil import HIL_DEFAULT_CONFIG, hil_config
 
 pytestmark = pytest.mark.hil           # the real drivers against the emulated devices, on loopback
 
-SECONDS = 12.0                           # off, feedback, feedback + feedforward: 4 s each
+SECONDS = 15.0                           # off, feedback, feedback + feedforward: 5 s each (as `rig hil`)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +69,7 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
     sil_db = 20 * math.log10(off / on)
     print(f"reduction through the drivers {res['isolation_reduction_db']} dB, lockstep simulation {sil_db:.2f} dB")
     assert sil_db > 6.0                                  # the HIL design itself (hil.toml) meets the target
-    # the loop through the real drivers does what the same controller does in lockstep simulation (3 s of
+    # the loop through the real drivers does what the same controller does in lockstep simulation (4 s of
     # floor motion per half: the two halves differ by ~1 dB on their own)
     why = f"through the drivers {res['isolation_reduction_db']} dB, lockstep {sil_db:.2f} dB; {out.stderr[-1500:]}"
     assert res["isolation_reduction_db"] == pytest.approx(sil_db, abs=2.5), why
