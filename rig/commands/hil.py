@@ -23,8 +23,8 @@ the valves hold their last command meanwhile, so a loaded machine shows here fir
 suffers first).
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording"} on
-stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no isolation figure
-and exits 130.
+stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
+isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
@@ -253,7 +253,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             "isolation_reduction_db": reduction("feedback"),
             "feedforward_reduction_db": reduction(ISOLATION_MODES[2]),
             "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-            "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": table,
+            "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
+            "table_rms_m": table,
             "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
             "lost_conversions": lost, "stop_reason": reason,
             "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
