@@ -100,7 +100,10 @@ def _ff_mount(mem, m, g):
 def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
     """The periods the controllers did not see: `miss` skipped ones replayed (at most max_held, the latest),
     inputs interpolated from the previous period's measurement to this one's; or a sample-driven port's
-    n_older conversions before the newest (mount accelerations, then floor ones), with this period's stroke.
+    n_older conversions before the newest (mount accelerations, then floor ones), with the stroke interpolated
+    from the previous period's to this one's: the transducer hands over no older samples, and stepping them all
+    with the newest stroke puts a step into the blend's slow stroke path after a late period (the stroke
+    moved meanwhile: the valve held its command), a table offset that decays only at the blend's pace.
     The feedforward (nf > 0) steps with them. Outputs are not written."""
     prev = int(mem[_H_PREV])
     for j in range(max(0, miss - int(mem[_H_MAXHELD])), miss):
@@ -115,8 +118,10 @@ def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
     older = int(mem[_H_OLDER])
     w = n + nf
     for k in range(n_older):
+        f = (k + 1) / (n_older + 1)
         for m in range(n):
-            _step_mount(mem, m, mem[older + k * w + m], xs[m])
+            px = mem[prev + n + m]
+            _step_mount(mem, m, mem[older + k * w + m], px + f * (xs[m] - px))
             if nf:
                 _ff_mount(mem, m, mem[older + k * w + n + m])
 

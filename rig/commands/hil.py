@@ -17,10 +17,14 @@ feedforward_reduction_db the same for feedback + feedforward (null without floor
 motion of the emulated plant. The modes see successive stretches of the floor motion (one real-time run), so
 the figures also carry the floor's own variation; "transmissibility_db" (table rms over floor rms per mode)
 takes the floor's level out.
+"late_periods" gives per mode the share of its metered periods that were late: the loop woke more than a
+period after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply);
+the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
+suffers first).
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "recording"} on stdout; progress
-goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no isolation figure
-and exits 130.
+"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording"} on
+stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
+isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
@@ -47,9 +51,10 @@ from rig import cliargs, inject, operated
 from rig.backends import default_config, make_port
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
-from rig.errors import RigError
+from rig.errors import RecordingError, RigError
 from rig.gate import ISOLATION_MODES
 from rig.port import Commands
+from rig.recorder import read_recording
 from rig.rt import raise_priority
 from rig.session import Session
 
@@ -164,7 +169,7 @@ def run(args) -> int:
                   quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
     out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
                                "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db",
-                               "recording")}
+                               "late_periods", "recording")}
     if res["stop_reason"] in ("SIGINT", "SIGTERM"):
         print(f"rig hil: interrupted ({res['stop_reason']}) at t = {res['t_s']:.1f} s of {seconds:g} s: the run "
               f"did not finish, no isolation figure; {out['samples_recorded']} samples recorded to "
@@ -192,6 +197,10 @@ def run(args) -> int:
                   f"{'n/a' if red is None else f'{red:.1f} dB'} (rms {res['table_rms_m']['off'] * 1e6:.3f} um off -> "
                   f"{res['table_rms_m'][mode] * 1e6:.3f} um; table/floor "
                   f"{out['transmissibility_db'].get('off')} -> {out['transmissibility_db'].get(mode)} dB)")
+        late = out["late_periods"]
+        if late:
+            print("late periods (woke a period late or no new accelerometer conversion), metered: " + ", ".join(
+                f"{m.replace('_', ' + ')} {'n/a' if v is None else f'{100 * v:.1f} %'}" for m, v in late.items()))
     return 1 if res["faults"] else 0
 
 
@@ -205,6 +214,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
               f"at {rate:g} Hz", file=sys.stderr)
     modes = ISOLATION_MODES if cfg.sensors.floor_accel else ISOLATION_MODES[:2]
+    settle = min(cfg.hil.settle_s, seconds / (2 * len(modes)))      # of each mode's share, not metered
     session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
                       keep_timing=int(seconds * rate) + 16, record=record,
                       record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial",
@@ -217,7 +227,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         rig = port.rig
         try:
             time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
-            phases = _Phases(loop, rig, seconds, min(cfg.hil.settle_s, seconds / (2 * len(modes))), quiet,
+            phases = _Phases(loop, rig, seconds, settle, quiet,
                              cfg.hil.device_priority, modes)
             phases.start()
             with inject.Armed(session, injections):
@@ -228,6 +238,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
             lost = getattr(port.accel, "lost_conversions", 0)
     rec = session.recorder
+    late = late_periods(record, modes, seconds / len(modes), settle, rate)
     table = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
     tr = {m: 20 * math.log10(table[m] / rig.floor_rms_m(m)) if m in rig.meter and table[m] > 0 else math.nan
           for m in modes}
@@ -242,10 +253,30 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             "isolation_reduction_db": reduction("feedback"),
             "feedforward_reduction_db": reduction(ISOLATION_MODES[2]),
             "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": table,
+            "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
+            "table_rms_m": table,
             "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
             "lost_conversions": lost, "stop_reason": reason,
             "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
+
+
+def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float) -> dict:
+    """Per mode (each share_s of loop time in turn, metered after settle_s, as _Phases meters): the share of its
+    periods that were late, from the recording: the loop woke more than a period after the deadline, or the
+    accelerometers read as in the period before (the module's new conversion had not arrived: the controllers
+    held). {} when the recording cannot be read."""
+    try:
+        rec = read_recording(record)
+        t, wake, acc = rec["time_s"], rec["wake_latency_us"], rec["accel_mps2"]
+    except (RecordingError, KeyError):
+        return {}
+    held = np.r_[False, np.all(acc[1:] == acc[:-1], axis=1)]
+    late = (wake > 1e6 / rate_hz) | held
+    out = {}
+    for k, mode in enumerate(modes):
+        m = (t >= k * share_s + settle_s) & (t < (k + 1) * share_s)
+        out[mode] = round(float(late[m].mean()), 4) if m.any() else None
+    return out
 
 
 def _raw_round_trips(port, n: int) -> dict:

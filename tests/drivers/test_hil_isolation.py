@@ -20,7 +20,7 @@ from rig.commands.hil import HIL_DEFAULT_CONFIG, hil_config
 
 pytestmark = pytest.mark.hil           # the real drivers against the emulated devices, on loopback
 
-SECONDS = 12.0                           # off, feedback, feedback + feedforward: 4 s each
+SECONDS = 15.0                           # off, feedback, feedback + feedforward: 5 s each (as `rig hil`)
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +36,10 @@ def test_json_schema_and_clean_run(hil_run):
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)                       # only JSON on stdout
     assert set(res) == {"transports", "faults", "overruns", "iterations", "samples_recorded",
-                        "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "recording"}
-    assert set(res["transmissibility_db"]) == {"off", "feedback", "feedback_feedforward"}
+                        "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods",
+                        "recording"}
+    assert set(res["transmissibility_db"]) == set(res["late_periods"]) == {"off", "feedback", "feedback_feedforward"}
+    assert all(0.0 <= v <= 1.0 for v in res["late_periods"].values())
     assert res["transports"] == ["canopen", "modbus_tcp", "serial"]
     assert res["faults"] == 0
     cfg = hil_config(load_config(HIL_DEFAULT_CONFIG))
@@ -67,7 +69,7 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
     sil_db = 20 * math.log10(off / on)
     print(f"reduction through the drivers {res['isolation_reduction_db']} dB, lockstep simulation {sil_db:.2f} dB")
     assert sil_db > 6.0                                  # the HIL design itself (hil.toml) meets the target
-    # the loop through the real drivers does what the same controller does in lockstep simulation (3 s of
+    # the loop through the real drivers does what the same controller does in lockstep simulation (4 s of
     # floor motion per half: the two halves differ by ~1 dB on their own)
     why = f"through the drivers {res['isolation_reduction_db']} dB, lockstep {sil_db:.2f} dB; {out.stderr[-1500:]}"
     assert res["isolation_reduction_db"] == pytest.approx(sil_db, abs=2.5), why
@@ -106,6 +108,24 @@ def test_feedforward_through_drivers_matches_lockstep_simulation(hil_run):
     assert sil_db > 10.0                                 # the HIL design (hil.toml) meets the target
     assert got == pytest.approx(sil_db, abs=3.5), why
     assert got > res["isolation_reduction_db"] + 1.0, why
+
+
+LATE_BOUND = 0.10            # the >= 10 dB target holds for runs with at most this share of late metered periods
+
+
+def test_feedforward_meets_the_target_through_the_drivers(hil_run):
+    """Issue 14's HIL target: feedback + floor feedforward through the drivers >= 10 dB, 0 faults. Stated for
+    runs in which at most LATE_BOUND of the metered periods were late (the loop woke a period late, or the
+    Modbus reply with the new conversion came late); a machine loaded beyond that (other processes at real-time
+    priority on its 2 cores) is named in the skip, not judged."""
+    out, _ = hil_run
+    res = json.loads(out.stdout)
+    assert res["faults"] == 0, out.stderr[-1500:]
+    late = res["late_periods"]["feedback_feedforward"]
+    if late > LATE_BOUND:
+        pytest.skip(f"{100 * late:.1f} % of the metered periods late (the target is stated for <= "
+                    f"{100 * LATE_BOUND:g} %): the machine is too loaded to judge it")
+    assert res["feedforward_reduction_db"] >= 10.0, (late, out.stderr[-1500:])
 
 
 def test_bad_rate_is_one_line_user_error():

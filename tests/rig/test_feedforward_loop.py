@@ -72,9 +72,10 @@ def test_kernel_runs_controller_plus_feedforward_like_the_reference():
             for i in range(4):
                 ref_step(i, prev[0][i] + f * (a[i] - prev[0][i]), prev[1][i] + f * (x[i] - prev[1][i]),
                          prev[2][i] + f * (g[i] - prev[2][i]))
-        for o in older:
+        for j, o in enumerate(older):                         # the stroke interpolated across them
+            f = (j + 1) / (len(older) + 1)
             for i in range(4):
-                ref_step(i, o[i], x[i], o[4 + i])
+                ref_step(i, o[i], prev[1][i] + f * (x[i] - prev[1][i]), o[4 + i])
         ff = [feedforward_step(ffs[i], fst[i], g[i]) for i in range(4)]
         raw = []
         for i in range(4):
