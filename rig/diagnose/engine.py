@@ -1279,7 +1279,7 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
     """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
     is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
-    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
+    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     if loop.closed and pb.plant.family == "eha":
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")
