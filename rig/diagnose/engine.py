@@ -895,7 +895,7 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
     fs = float(rec.fs_hz)
     notes: list[str] = []
     say("reading the command")
-    cmd_info = command_mod.analyse(cmd, fs)
+    cmd_info = command_mod.analyse(cmd, fs, unit=getattr(rec, "command_unit", "V"))
     notes.append(f"command: {cmd_info.describe()}")
     plant = model_for(p0)
     if fs < 500.0 and plant.family == "eha":
