@@ -302,7 +302,9 @@ def _read_csv(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
         return [c.strip().strip('"').strip() for c in ln.split(delim)]
 
     first = split(lines[0][1])
-    header = opts.header if opts.header is not None else not all(_is_number(c) for c in first)
+    # empty cells (a delimiter ending every line, as MATLAB's `save -ascii -tabs` and the DaISy files write)
+    # say nothing: only a cell that is text makes the first line a header
+    header = opts.header if opts.header is not None else not all(_is_number(c) for c in first if c)
     names = first if header else None
     body = lines[1:] if header else lines
     if not body:

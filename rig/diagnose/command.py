@@ -48,6 +48,7 @@ class Command:
     excited_lines: np.ndarray | None = None   # multisine: indices k of the excited lines (frequency k fs / period)
     start_V: float = 0.0
     notes: list[str] = field(default_factory=list)
+    unit: str = "V"                         # the command's unit (a plant file's command may be N or A)
 
     @property
     def multilevel(self) -> bool:
@@ -64,12 +65,12 @@ class Command:
         lo, hi = self.band_hz
         what = {"sweep": f"{self.sweep_law or 'frequency'} sweep", "multisine": "periodic multisine",
                 "steps": "steps", "noise": "broadband random command", "sine": "single sine", "flat": "constant"}
-        s = f"{what.get(self.kind, self.kind)}, {lo:.3g}-{hi:.3g} Hz, peak {self.peak_V:.3g} V"
+        s = f"{what.get(self.kind, self.kind)}, {lo:.3g}-{hi:.3g} Hz, peak {self.peak_V:.3g} {self.unit}"
         if self.kind == "multisine" and self.period:
             s += (f", period {self.period / self.fs_hz:.4g} s ({self.n // self.period} periods), "
                   f"{len(self.excited_lines)} excited lines")
         if self.multilevel:
-            s += ", levels " + ", ".join(f"{s_.peak_V:.3g}" for s_ in self.segments) + " V"
+            s += ", levels " + ", ".join(f"{s_.peak_V:.3g}" for s_ in self.segments) + f" {self.unit}"
         elif len(self.segments) > 1:
             s += f", repeated {len(self.segments)} times"
         return s
@@ -252,7 +253,14 @@ def _multisine(cmd: np.ndarray, period: int) -> np.ndarray | None:
     return on
 
 
-def analyse(cmd_V: np.ndarray, fs: float) -> Command:
+def analyse(cmd_V: np.ndarray, fs: float, unit: str = "V") -> Command:
+    """The command's kind, band and levels; `unit` (V, N, A: the recording's command_unit) for the text."""
+    out = _classify(cmd_V, fs)
+    out.unit = unit
+    return out
+
+
+def _classify(cmd_V: np.ndarray, fs: float) -> Command:
     cmd = np.asarray(cmd_V, float)
     n = len(cmd)
     peak = float(np.max(np.abs(cmd))) if n else 0.0
@@ -288,8 +296,9 @@ def analyse(cmd_V: np.ndarray, fs: float) -> Command:
         lo, hi = np.percentile(np.clip(fi[core & on], 0.0, fs / 2), [0.5, 99.5])
         out.band_hz = (max(float(lo), 3.0 * fs / n), min(float(hi), 0.45 * fs))
         return out
-    # one sine: nearly all power in one Welch bin
-    f, P = welch(cmd - cmd.mean(), fs=fs, nperseg=int(min(n, 4 * fs)))
+    # one sine: nearly all power in one Welch bin; segments of at least a quarter of the record, so that a slow
+    # narrow-band command (a closed loop's at a low sample rate) is not three 0.25 Hz bins, i.e. a "sine"
+    f, P = welch(cmd - cmd.mean(), fs=fs, nperseg=int(min(n, max(4 * fs, n // 4))))
     if P.sum() > 0 and np.sort(P)[-3:].sum() > 0.95 * P.sum():
         out.kind = "sine"
         out.phase = phase

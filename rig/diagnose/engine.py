@@ -895,7 +895,7 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
     fs = float(rec.fs_hz)
     notes: list[str] = []
     say("reading the command")
-    cmd_info = command_mod.analyse(cmd, fs)
+    cmd_info = command_mod.analyse(cmd, fs, unit=getattr(rec, "command_unit", "V"))
     notes.append(f"command: {cmd_info.describe()}")
     plant = model_for(p0)
     if fs < 500.0 and plant.family == "eha":
@@ -1279,7 +1279,7 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
     """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
     is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
-    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
+    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     if loop.closed and pb.plant.family == "eha":
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")

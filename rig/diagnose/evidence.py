@@ -123,6 +123,14 @@ def distortion(pb, cmd_info, r_ref: np.ndarray, r_aug: np.ndarray, noise_floor) 
     return {}
 
 
+def _length(x_m: float, sign: str = "") -> str:
+    """A length in the unit that keeps it readable (nm, um or mm)."""
+    for unit, scale in (("nm", 1e9), ("um", 1e6)):
+        if abs(x_m) * scale < 1000.0:
+            return f"{x_m * scale:{sign}.3g} {unit}"
+    return f"{x_m * 1e3:{sign}.3g} mm"
+
+
 def residual_by_velocity(pb, y_lin: np.ndarray, r_ref: np.ndarray, r_aug: np.ndarray) -> dict:
     v = np.gradient(y_lin) * pb.fs
     u = pb.use
@@ -135,8 +143,9 @@ def residual_by_velocity(pb, y_lin: np.ndarray, r_ref: np.ndarray, r_aug: np.nda
     slow_ = np.abs(c) < 0.3 * vmax                      # friction shows at low velocity
     neg, pos = m_ref[(c < 0) & slow_], m_ref[(c > 0) & slow_]
     step = float(np.mean(neg) - np.mean(pos)) if len(neg) and len(pos) else 0.0
-    finding = (f"at low velocity the refit residual averages {np.mean(neg) * 1e9:+.3g} nm while the piston moves "
-               f"down and {np.mean(pos) * 1e9:+.3g} nm while it moves up: a step of {abs(step) * 1e9:.3g} nm "
+    mover = "the piston" if pb.plant.family == "eha" else "the load"
+    finding = (f"at low velocity the refit residual averages {_length(np.mean(neg), '+')} while {mover} moves "
+               f"down and {_length(np.mean(pos), '+')} while it moves up: a step of {_length(abs(step))} "
                f"({abs(step) / pb.noise:.1f}x noise) at the velocity reversal, which the augmented model removes"
                if len(neg) and len(pos) else "no velocity range to compare")
     return {"velocity_mps": c, "refit_mean_m": m_ref, "augmented_mean_m": m_aug, "noise_m": pb.noise,

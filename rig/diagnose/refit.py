@@ -54,7 +54,7 @@ def identify_plant(rec, plant: Plant, progress=None) -> dict:
     r = (pb.y - y)[use]
     yc = pb.y[use] - pb.y[use].mean()
     hold = math.sqrt(f.rss_hold / max(pb.mhold.sum(), 1))
-    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None))
+    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     out = {"plant": plant.family, "input_unit": plant.input_unit, "source": rec.source,
            "parameters": pb.plant.public_linear(f.lin), "std": std,
            "start": {k: plant.params[k].value for k in keys},

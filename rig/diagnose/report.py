@@ -229,7 +229,11 @@ def summary_text(diag, rec=None) -> str:
         lines.insert(1 if rec is not None else 0, f"command: {cmd.describe()}")
     for note in (diag.mismatch or {}).get("notes", [])[1:]:
         lines.append(f"  note: {note}")
-    lines.append("WHAT physics the linear model leaves out (after refitting its six parameters):")
+    pl = getattr(diag, "plant", None) or {}
+    free = pl.get("free_parameters") if pl.get("family", "eha") != "eha" else None
+    refitted = ("its six parameters" if free is None else
+                f"its free parameters {', '.join(free)}" if free else "nothing: every parameter is fixed")
+    lines.append(f"WHAT physics the linear model leaves out (after refitting {refitted}):")
     verdict = getattr(diag, "verdict", None)
     if not diag.effects:
         if verdict is not None and verdict.status != "explained":

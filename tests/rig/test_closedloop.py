@@ -46,3 +46,39 @@ def test_rig_run_recordings_are_closed_loop_by_their_attributes():
 def test_too_short_says_so():
     ev = closedloop.check(np.ones(100), np.arange(100.0), FS)
     assert ev.closed is False and "too short" in ev.reason
+
+
+def test_the_recordings_own_word_counts_where_the_data_are_too_short():
+    """A plant file's [signals] reference or closed_loop marks the data closed loop (Recording.closed_loop):
+    a 100 Hz, 10 s log is too short for the data test, the file's word still names the loop."""
+    ev = closedloop.check(np.ones(1000), np.arange(1000.0), 100.0, stated="position PID with a current loop")
+    assert ev.closed is True and ev.statistic is None and "position PID with a current loop" in ev.reason
+    assert closedloop.check(np.ones(1000), np.arange(1000.0), 100.0).closed is False
+
+
+def test_identify_through_a_plant_file_names_a_closed_loop_the_file_states(tmp_path):
+    """rig identify --plant on a short closed-loop log at 100 Hz: the map's reference makes the report say so."""
+    from rig.diagnose.refit import identify_plant
+    from rig.plant.file import load_plant
+    from rig.signalmap import load_recording_for
+    rng = np.random.default_rng(3)
+    n, fs, m, c = 1000, 100.0, 5.0, 20.0
+    ref = np.where((np.arange(n) // 200) % 2, 0.01, -0.01)
+    x = v = 0.0
+    rows = []
+    for k in range(n):                                     # a P-D position loop on a free mass, force in N
+        u = 400.0 * (ref[k] - x) - 40.0 * v + 0.5 * rng.standard_normal()
+        rows.append(f"{k / fs:.3f},{u:.6f},{x:.9f},{ref[k]:.4f}")
+        v += (u - c * v) / m / fs
+        x += v / fs
+    (tmp_path / "log.csv").write_text("t,force,pos,ref\n" + "\n".join(rows) + "\n")
+    plant_toml = tmp_path / "axis.toml"
+    plant_toml.write_text('[plant]\nfamily = "mechanical_axis"\ninput_unit = "N"\n'
+                          'mass_kg = { value = 4.0, min = 1.0, max = 50.0 }\n'
+                          'damping_n_s_per_m = { value = 10.0, min = 1.0, max = 200.0 }\n'
+                          '[signals]\ntime = "t"\ncommand = { name = "force", unit = "N" }\n'
+                          'position = { name = "pos", unit = "m" }\nreference = { name = "ref", unit = "m" }\n')
+    rec = load_recording_for(tmp_path / "log.csv", plant_toml)
+    out = identify_plant(rec, load_plant(plant_toml))
+    assert out["closed_loop"]["closed_loop"] is True and "says so" in out["closed_loop"]["reason"]
+    assert "closed-loop data" in out["warning"]

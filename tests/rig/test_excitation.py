@@ -119,3 +119,23 @@ def test_rig_chirp_levels_and_multisine(tmp_path):
     assert bad.returncode == 2 and "at least two levels" in bad.stderr and "Traceback" not in bad.stderr
     bad = _rig("chirp", "--levels", "0.5,nan", "--out", tmp_path / "x.h5")
     assert bad.returncode == 2 and "expected > 0 V and <= 50 V, got 'nan'" in bad.stderr
+
+
+def test_slow_narrow_band_command_at_a_low_rate_is_not_a_sine():
+    """A closed loop's command logged at 10 Hz (the DaISy ball-and-beam's beam angle: a lightly damped
+    oscillation near 0.27 Hz over 44 s) falls in three 0.25 Hz bins of a 4 s Welch segment; it is no single
+    sine (which would refuse any claim). A real sine at that rate stays one; the unit is the command's."""
+    fs, n = 10.0, 440
+    rng = np.random.default_rng(0)
+    w = 2 * np.pi * 0.27 / fs
+    r = np.exp(-0.3 * w)
+    from scipy.signal import lfilter
+    u = lfilter([1.0], [1.0, -2 * r * np.cos(w), r * r], rng.standard_normal(n))
+    cmd = analyse(u, fs, unit="A")
+    assert cmd.kind == "noise" and cmd.describe().endswith(" A") and " V" not in cmd.describe()
+    assert analyse(np.sin(2 * np.pi * 0.3 * np.arange(n) / fs), fs).kind == "sine"
+
+
+def test_evidence_lengths_read_in_a_fitting_unit():
+    from rig.diagnose.evidence import _length
+    assert _length(-1.14e-3, "+") == "-1.14 mm" and _length(2.5e-7) == "250 nm" and _length(4.2e-5, "+") == "+42 um"

@@ -83,6 +83,19 @@ def test_whitespace_dat_without_header_at_a_sample_rate(tmp_path):
     assert rec.meta["signal_map"]["position"]["si_unit"] == "rad"
 
 
+
+def test_a_delimiter_ending_every_line_keeps_the_first_row(tmp_path):
+    """MATLAB's `save -ascii -tabs` (the DaISy files) pads each number and ends every line with a tab and CRLF:
+    the empty last cell must not make the first data row a header (it was silently dropped)."""
+    _, u, x, _, _ = _axis()
+    path = tmp_path / "daisy.dat"
+    path.write_bytes("".join(f"{ui:16.7e}\t{xi:16.7e}\t\r\n" for ui, xi in zip(u, x)).encode())
+    rec = load_mapped(path, _map('sample_rate_hz = 1000.0\ncommand = { column = 0, unit = "N" }\n'
+                                 'position = { column = 1, unit = "m" }\n'))
+    assert rec.n == N
+    assert rec.command[0] == pytest.approx(float(f"{u[0]:.7e}"), abs=1e-12)
+    np.testing.assert_allclose(rec.position_m, x, rtol=1e-6, atol=1e-12)
+
 def test_mat_v5_row_vectors_matrix_columns_and_struct_fields(tmp_path):
     t, u, x, a, r = _axis()
     path = tmp_path / "emps.mat"

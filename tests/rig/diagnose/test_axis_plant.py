@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rig.diagnose.engine import diagnose
-from rig.diagnose.report import diagnosis_dict
+from rig.diagnose.report import diagnosis_dict, summary_text
 from rig.errors import RecordingError
 from rig.plant.file import load_plant, parse_plant
 from rig.recording import Recording
@@ -46,6 +46,9 @@ def test_clean_open_loop_axis_names_nothing():
                          "max": 100.0}, "damping_n_s_per_m": {"value": 50.0, "min": 5.0, "max": 500.0}}, "clean.toml")
     d = diagnose(_rec(cmd, pos, "N"), plant)
     assert d.effects == [], d.summary
+    text = summary_text(d)           # the report speaks of this plant: its unit and its free parameters
+    assert "its free parameters mass_kg, damping_n_s_per_m" in text and " N" in d.command.describe()
+    assert "six parameters" not in text and " V" not in d.command.describe()
     assert d.fit["refit"]["residual_over_noise_holdout"] < 1.3
     assert abs(d.params_refit["mass_kg"] / 20.0 - 1) < 0.05 and rng is not None
 
