@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -23,11 +24,27 @@ pytestmark = pytest.mark.hil           # the real drivers against the emulated d
 SECONDS = 15.0                           # off, feedback, feedback + feedforward: 5 s each (as `rig hil`)
 
 
+def _faulted(out) -> bool:
+    try:
+        return json.loads(out.stdout)["faults"] > 0
+    except (ValueError, KeyError, TypeError):
+        return False
+
+
 @pytest.fixture(scope="module")
 def hil_run(tmp_path_factory):
+    """One `rig hil` run. A run that faulted while the host's load average was above its core count (the
+    emulated serial amplifier then misses its 100 ms staleness limit: other processes held both cores) is
+    run once more, and said so; a fault in a run on a host that is not overloaded is judged as it is."""
     rec = tmp_path_factory.mktemp("hil") / "run.h5"
-    out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--seconds", str(SECONDS), "--record", str(rec),
-                          "--json"], capture_output=True, text=True, timeout=300)
+    argv = [sys.executable, "-m", "rig.cli", "hil", "--seconds", str(SECONDS), "--record", str(rec), "--json"]
+    out = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    load = os.getloadavg()[0]
+    if _faulted(out) and load > (os.cpu_count() or 1):
+        print(f"rig hil faulted at load average {load:.1f} on {os.cpu_count()} cores "
+              f"({out.stderr.strip().splitlines()[-4:]}); run once more", file=sys.stderr)
+        rec.unlink(missing_ok=True)
+        out = subprocess.run(argv, capture_output=True, text=True, timeout=300)
     return out, rec
 
 
