@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -797,12 +797,7 @@ def _floor(pb: Problem, r: np.ndarray, cmd_info: command_mod.Command) -> noise_m
     """The noise floor of a residual, the response taken out as the command's kind allows (rig.diagnose.noise)."""
     if cmd_info.kind == "multisine":
         return noise_mod.floor(r, pb.fs, pb.use, period=cmd_info.period)
-    if _feedback(pb):
-        # a model without the missing physics misfits where the loop moves the axis (low frequencies); the
-        # encoder's noise is white: its level is read from the upper band (0.6-0.95 of Nyquist)
-        fl = noise_mod.floor(r, pb.fs, pb.use)
-        return replace(fl, rms_m=min(fl.rms_m, fl.white_rms_m))
-    if cmd_info.kind in ("noise", "steps"):
+    if cmd_info.kind in ("noise", "steps") and not _feedback(pb):
         return noise_mod.floor(r * pb.use, pb.fs, pb.use, cmd=pb.cmd)
     return noise_mod.floor(r, pb.fs, pb.use)
 
