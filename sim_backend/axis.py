@@ -5,7 +5,7 @@ the diagnosis on plant files (rig prove --plant, the EMPS-like worked example in
                                                                    saturation and deadband)
 Coulomb friction here is the real thing, not the diagnosis's smooth tanh: the carriage sticks while the applied
 force stays within +-F_c (Karnopp's stick band), which the diagnosis must still recognise. Integrated with small
-fixed sub-steps (20 per sample by default: the linear part exact over each, the friction force held); the command is held over each sample and delayed
+fixed sub-steps (100 per sample by default: the linear part exact over each, the friction force held); the command is held over each sample and delayed
 by tau (the switch inside a sample at the right sub-step).
 
 Closed loop: a position controller at the sample rate on the measured (quantised, noisy) position, as a drive's
@@ -151,7 +151,7 @@ def _exact_substep(ax: Axis, h: float):
 
 
 def simulate_axis(ax: Axis, fs: float, *, command=None, reference=None, loop: Loop | None = None,
-                  sensor: Sensor = Sensor(), n_sub: int = 20) -> tuple[np.ndarray, np.ndarray]:
+                  sensor: Sensor = Sensor(), n_sub: int = 100) -> tuple[np.ndarray, np.ndarray]:
     """(recorded command, measured position [m]) at fs: open loop from `command`, or closed loop following
     `reference` [m] under `loop`."""
     closed = loop is not None

@@ -139,6 +139,7 @@ class Shooting:
 
 
 SHOOT_BLOCK_S = 0.5                # block length of a segmented plant (a segment: a fit and a held-out block)
+SHOOT_GN_STEPS = 2                 # Gauss-Newton steps on the segment states of a model with friction
 
 
 def _n_blocks(plant, n: int, fs: float) -> int:
@@ -171,6 +172,7 @@ class Problem:
         self.quick = False
         self.proxy = None
         self.broadband = False                      # noise or steps command (set once the command is read)
+        self.loop = None                            # closedloop.LoopEvidence (set once the data are read)
         self.shoot = None
         if self.plant.segmented:
             pair = blk // 2
@@ -219,9 +221,10 @@ class Problem:
             self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
         return self._free[1]
 
-    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray):
+    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray, states: bool = False):
         """_project with the segment-wise initial states: block-sparse normal equations (each segment's state
-        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response)."""
+        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response) and,
+        with states=True, the (segments, n) initial-state corrections too."""
         w = self.mfit
         E = self.basis.B if F is None else np.column_stack([self.basis.B, F])
         q = E.shape[1]
@@ -253,6 +256,8 @@ class Problem:
             state[a:e] = O[:e - a] @ sol[q + s * nx:q + (s + 1) * nx]
         out = r - E @ sol[:q] - state
         m = self.basis.m
+        if states:
+            return out, sol[:m], (sol[m:q] if F is not None else None), state, sol[q:].reshape(sh.count, nx)
         return out, sol[:m], (sol[m:q] if F is not None else None), state
 
     def model(self, lin: dict, fx: dict) -> np.ndarray:
@@ -274,7 +279,18 @@ class Problem:
         nx = self.plant.matrices(lin, fx)[0].shape[0]
         if nx not in self.shoot.X0:
             self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
-        return self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, self.shoot.X0[nx])
+        X0 = self.shoot.X0[nx]
+        y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
+        if not any(n in fx for n in self.plant.slow):
+            return y            # linear in the initial state: the projection's correction is exact
+        # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
+        # and the sticking): Gauss-Newton steps on the segment states, the correction the projection finds from
+        # the data's start applied to the simulation itself; the projection then corrects what is left
+        for _ in range(SHOOT_GN_STEPS):
+            _, _, _, _, dX = self._project_shooting(self.y - y, None, self.free_response(lin, fx), states=True)
+            X0 = X0 + dX
+            y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
+        return y
 
     def _residual_full(self, lin: dict, fx: dict):
         r = self.y - self.model(lin, fx)
@@ -781,9 +797,17 @@ def _floor(pb: Problem, r: np.ndarray, cmd_info: command_mod.Command) -> noise_m
     """The noise floor of a residual, the response taken out as the command's kind allows (rig.diagnose.noise)."""
     if cmd_info.kind == "multisine":
         return noise_mod.floor(r, pb.fs, pb.use, period=cmd_info.period)
-    if cmd_info.kind in ("noise", "steps"):
+    if cmd_info.kind in ("noise", "steps") and not _feedback(pb):
         return noise_mod.floor(r * pb.use, pb.fs, pb.use, cmd=pb.cmd)
     return noise_mod.floor(r, pb.fs, pb.use)
+
+
+def _feedback(pb: Problem) -> bool:
+    """The command was computed from the measured position (a plant file's axis under its controller): its
+    part coherent with the residual is then the position's noise fed back, not the plant's response, so the noise
+    floor is not estimated by removing it. (The eha plant keeps its estimator: its closed-loop recordings get no
+    open-loop claim.)"""
+    return pb.plant.family != "eha" and pb.loop is not None and pb.loop.closed
 
 
 def _validate(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -921,6 +945,8 @@ def _prepare(rec, p0: ActuatorParams, say: Callable[[str], None]) -> _Run:
                              "clipped samples")
     pb = Problem(cmd, pos, fs, p0, use)
     pb.broadband = cmd_info.kind in ("noise", "steps")
+    if plant.family != "eha":
+        pb.loop = closedloop.check(cmd, pos, fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     return _Run(rec=rec, p0=p0, say=say, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=notes, use=use,
                 clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, pb=pb,
                 no_claim=_no_claim_reason(rec, cmd_info), nominal_lin=dict(pb.nominal))
@@ -1279,7 +1305,8 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
     """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
     is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
-    loop = closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
+    loop = pb.loop or closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None),
+                                       stated=getattr(rec, "closed_loop", ""))
     if loop.closed and pb.plant.family == "eha":
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")

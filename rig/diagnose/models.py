@@ -17,7 +17,7 @@ import math
 import numba
 import numpy as np
 
-from rig.plant.zoh import discretise, run, substeps
+from rig.plant.zoh import discretise, friction_velocity, run, substeps
 from sim_backend.actuator import FRICTION_V_SCALE
 from sim_backend.linear import ActuatorParams
 
@@ -104,32 +104,8 @@ def _run_reduced(i_cmd, m, n_sub, Av, Bnew, Bold, prm, out):
             c0 = A * (Pb + g * k * Q) / den - KL * yb
             c1 = A * A * g * k / den + KL * g + C
             if fric > 0.0:
-                lo = (c0 - fric) / c1; hi = (c0 + fric) / c1
-                # start from the velocity extrapolated over the last two steps; if that leaves the bracket,
-                # from the slip or the stick solution of the smoothed sign
-                vv = 2.0 * v - v_old
-                if vv <= lo or vv >= hi:
-                    if abs(c0) > fric:
-                        vv = (c0 - fric * (1.0 if c0 > 0 else -1.0)) / c1
-                    else:
-                        vv = c0 / (c1 + fric / vs)
-                    if vv <= lo or vv >= hi:
-                        vv = 0.5 * (lo + hi)
-                for it in range(60):
-                    th = math.tanh(vv / vs)
-                    f = c0 - c1 * vv - fric * th
-                    if f > 0.0:
-                        lo = vv
-                    else:
-                        hi = vv
-                    df = -c1 - fric * (1.0 - th * th) / vs
-                    vn = vv - f / df
-                    if vn <= lo or vn >= hi:
-                        vn = 0.5 * (lo + hi)
-                    if abs(vn - vv) < 1e-10 + 1e-6 * abs(vv):
-                        vv = vn
-                        break
-                    vv = vn
+                # start from the velocity extrapolated over the last two steps
+                vv = friction_velocity(c0, c1, fric, vs, 2.0 * v - v_old, 1e-10, 1e-6)
                 v_old = v
                 v = vv
             else:

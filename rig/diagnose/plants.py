@@ -22,9 +22,13 @@ from rig.plant.model import Plant, eha_plant
 from rig.plant.zoh import discretise, free_response, phi, run_segments, substeps
 from sim_backend.linear import ActuatorParams
 
-FRICTION_SMOOTHING_M_PER_S = 1e-5   # v_s of F_c tanh(v / v_s): stiction-free Coulomb friction; 95 % of F_c at
-                                    # 0.2 mm/s, far below the speeds an axis is diagnosed at
-SUB_HZ = 5000.0                     # sub-step rate of the friction model (implicit per sub-step)
+FRICTION_SMOOTHING_M_PER_S = 1e-7   # v_s of F_c tanh(v / v_s), solved implicitly: the carriage sticks while the
+                                    # applied force stays within F_c (it creeps at most at v_s, 50 nm in 0.5 s)
+STATE_HALF_WINDOW_S = 0.010         # half-width of the cubic that reads a segment's start state from the data
+SUB_HZ = 5000.0                     # sub-step rate of the friction model (implicit per sub-step) ...
+FRICTION_REFINE = 20                # ... and a sub-step where the friction changes regime (a reversal, sticking,
+                                    # breakaway) redone in 20 (an event timed to 10 us: a reversal's velocity
+                                    # error F_c h / M would otherwise shift the position by F_c h / c)
 
 
 @dataclass(frozen=True)
@@ -170,8 +174,13 @@ class AxisModel:
         n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if fric > 0 else 1
         Ah, Bnew, Bold, m = substeps(A, B, 1.0 / fs, n_sub, delay)
         Gf = phi(A, Bf, 1.0 / (fs * n_sub))[1] if (fric > 0 or f0 != 0) else np.zeros(len(B))
+        fine = None
+        if fric > 0:
+            K = FRICTION_REFINE
+            fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
         return run_segments(Ah, Bnew, Bold, Gf, Cv, C, self.shaped_command(cmd, fx), m, friction_n=fric,
-                            smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0)
+                            smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
+                            fine=fine)
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""
@@ -180,24 +189,25 @@ class AxisModel:
         return free_response(Ad, C, length)
 
     def state_from_data(self, y: np.ndarray, fs: float, starts: np.ndarray, fx: dict) -> np.ndarray:
-        """Initial states at the segment starts from the measured position: a local quadratic over 15 ms gives
-        position and velocity (mechanical axis; the base at rest); other families start at zero (their
-        segment states are found exactly by the projection)."""
+        """Initial states at the segment starts from the measured position: a cubic through +-10 ms of position
+        centred on the start (one-sided at the record's ends) gives position and velocity (mechanical axis; the
+        base at rest); other families start at zero (their segment states are found exactly by the projection).
+        Centred, because a one-sided fit's end velocity is poor, and a friction model's response is not linear
+        in its start (the engine refines these states by Gauss-Newton steps)."""
         n_state = 4 if (self.family == "mechanical_axis" and "base_resonance" in fx) else \
             self.matrices(self.nominal, fx)[0].shape[0]
         X0 = np.zeros((len(starts), n_state))
         if self.family != "mechanical_axis":
             return X0
-        w = max(3, int(round(0.015 * fs)))
-        t = np.arange(w) / fs
-        V = np.vander(t, 3)
+        w = max(2, int(round(STATE_HALF_WINDOW_S * fs)))
         for i, s in enumerate(starts):
-            seg = y[s:s + w]
-            if len(seg) < 3:
+            a, b = max(0, s - w), min(len(y), s + w + 1)
+            if b - a < 5:
                 X0[i, 0] = y[min(s, len(y) - 1)]
                 continue
-            c = np.linalg.lstsq(V[:len(seg)], seg, rcond=None)[0]
-            X0[i, 0], X0[i, 1] = c[2], c[1]
+            t = (np.arange(a, b) - s) / fs
+            c = np.polynomial.polynomial.polyfit(t, y[a:b], 3)
+            X0[i, 0], X0[i, 1] = c[0], c[1]
         return X0
 
     def force_response(self, lin: dict, fx: dict, fs: float, f_hz: float, n: int) -> np.ndarray:

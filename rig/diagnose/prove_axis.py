@@ -6,12 +6,14 @@ Each case: the plant's free parameters moved +-15 % within their bounds; none, o
 effects (transport_delay, input_saturation, input_deadband, coulomb_friction, constant_force) with plausible sizes
 relative to the drive's force; open loop (band-limited noise command) or closed loop (back-and-forth moves under
 a P-PI cascade tuned on the nominal plant); the encoder's step, white noise and an offset; 20-30 s at 1 kHz.
+In closed loop a saturation is drawn as 40-90 % of the peak command the same run asks for without it, and the
+controller's output is clipped at 1.5 x that peak (its converter's range): a saturation the loop survives.
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
@@ -84,16 +86,37 @@ def draw_axis_cases(n: int, seed: int, plant: Plant) -> list[Case]:
         dur = round(float(rng.uniform(20.0, 30.0)), 1)
         exc = {"kind": "closed_loop" if closed else "band_noise", "seed": int(rng.integers(2 ** 31))}
         tags = [exc["kind"], "quantised" if sensor["step_m"] else "unquantised"]
-        cases.append(Case(name=f"a{i + 1:02d}_{'+'.join(effects) or 'nominal'}", effects=effects, linear=lin,
-                          fs_hz=FS_HZ, duration_s=dur, amplitude_V=u_peak, seed=int(rng.integers(2 ** 31)),
-                          excitation=exc, sensor=sensor, habits=tags))
+        case = Case(name=f"a{i + 1:02d}_{'+'.join(effects) or 'nominal'}", effects=effects, linear=lin,
+                    fs_hz=FS_HZ, duration_s=dur, amplitude_V=u_peak, seed=int(rng.integers(2 ** 31)),
+                    excitation=exc, sensor=sensor, habits=tags)
+        if closed and "input_saturation" in effects:
+            frac = np.random.default_rng([case.seed, 1]).uniform(*SATURATION_CLOSED_LOOP)  # the draws after it stay
+            _closed_loop_saturation(case, plant, float(frac))
+        cases.append(case)
     return cases
 
 
-def _loop_for(v: dict) -> Loop:
-    """A P-P cascade on the nominal plant: velocity loop at ~90 rad/s, position loop at half of it."""
+SATURATION_CLOSED_LOOP = (0.4, 0.9)     # the drive's limit as a fraction of the peak command the loop asks for
+DAC_RANGE = 1.5                         # the controller's output range over that peak
+
+
+def _closed_loop_saturation(case: Case, plant: Plant, fraction: float) -> None:
+    """A saturation the loop survives, as on a real axis: the limit is a fraction of the peak command the same
+    run asks for without it (the open-loop draw's scale says nothing of what the controller commands), and the
+    controller's output is clipped at its converter's range (1.5 x that peak) instead of growing without bound
+    while the drive is saturated."""
+    u = plant.input_unit
+    free = replace(case, effects={k: v for k, v in case.effects.items() if k != "input_saturation"})
+    peak = float(np.max(np.abs(simulate_axis_case(free, plant).valve_cmd_V)))
+    case.effects["input_saturation"] = {f"limit_{u}": fraction * peak}
+    case.excitation["u_max"] = DAC_RANGE * peak
+
+
+def _loop_for(v: dict, u_max: float = math.inf) -> Loop:
+    """A P-P cascade on the nominal plant: velocity loop at ~90 rad/s, position loop at half of it; its output
+    clipped at u_max."""
     wv = 90.0
-    return Loop(kp_per_s=0.5 * wv, kv=wv * v["mass_kg"] / v["gain_n_per_unit"], ki=0.0, u_max=1e9)
+    return Loop(kp_per_s=0.5 * wv, kv=wv * v["mass_kg"] / v["gain_n_per_unit"], ki=0.0, u_max=min(u_max, 1e9))
 
 
 def _moves(rng, duration_s: float) -> list[tuple[float, float]]:
@@ -122,7 +145,8 @@ def simulate_axis_case(case: Case, plant: Plant) -> Recording:
     if case.excitation["kind"] == "closed_loop":
         ref = trapezoid_program(case.fs_hz, _moves(rng, case.duration_s), 0.8, 0.3)[: int(case.duration_s * case.fs_hz)]
         nominal = plant.values()
-        cmd, pos = simulate_axis(ax, case.fs_hz, reference=ref, loop=_loop_for(nominal), sensor=sensor)
+        loop = _loop_for(nominal, case.excitation.get("u_max", math.inf))
+        cmd, pos = simulate_axis(ax, case.fs_hz, reference=ref, loop=loop, sensor=sensor)
     else:
         cmd_in = ex.band_noise(case.fs_hz, case.duration_s, 0.3, 30.0, case.amplitude_V,
                                seed=case.excitation["seed"]).cmd_V

@@ -11,8 +11,10 @@ every plant family use these).
                         inside the sample (for models with a nonlinearity that must be solved within a sample)
   run(...)              simulate from rest (modal coordinates when well conditioned)
   run_segments(...)     simulate with a load force channel: a constant force and Coulomb friction
-                        -F_c tanh(v / v_s) solved implicitly at the end of each sub-step (stiff for a small v_s),
-                        and the state reset at given samples (multiple shooting, docs/PLANT.md)
+                        -F_c tanh(v / v_s) solved implicitly at the end of each sub-step (stiff for a small v_s:
+                        it sticks), a sub-step where the friction changes regime redone in shorter ones, and the
+                        state reset at given samples (multiple shooting, docs/PLANT.md)
+  friction_velocity     the one implicit friction solve (also the actuator's reduced model's)
 The sample convention everywhere: y_k is read before u_k acts (converter pair at the same instant).
 """
 from __future__ import annotations
@@ -164,12 +166,84 @@ def run(Ad, G0, G1, Cm, u, m, out) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, out):
-    n = Ah.shape[0]; N = u.shape[0]; n_sub = Bnew.shape[0]
-    x = np.zeros(n); xn = np.zeros(n)
+def friction_velocity(c0, c1, fric, vs, guess, atol, rtol):
+    """The velocity v solving c0 - c1 v - fric tanh(v / vs) = 0 (monotone in v): a sub-step's end velocity with
+    Coulomb friction held at its end value (implicit, stiff for a small vs). Newton from `guess` (else from the
+    slip or the stick solution), bracketed by the roots of the saturated tanh. The one friction solve of every
+    simulator (rig.diagnose.models for the actuator, run_segments here)."""
+    lo = (c0 - fric) / c1; hi = (c0 + fric) / c1
+    vv = guess
+    if vv <= lo or vv >= hi:
+        if abs(c0) > fric:
+            vv = (c0 - fric * (1.0 if c0 > 0 else -1.0)) / c1
+        else:
+            vv = c0 / (c1 + fric / vs)
+        if vv <= lo or vv >= hi:
+            vv = 0.5 * (lo + hi)
+    for it in range(60):
+        th = math.tanh(vv / vs)
+        f = c0 - c1 * vv - fric * th
+        if f > 0.0:
+            lo = vv
+        else:
+            hi = vv
+        df = -c1 - fric * (1.0 - th * th) / vs
+        vn = vv - f / df
+        if vn <= lo or vn >= hi:
+            vn = 0.5 * (lo + hi)
+        if abs(vn - vv) < atol + rtol * abs(vv):
+            vv = vn
+            break
+        vv = vn
+    return vv
+
+
+SLIP_OVER_VS = 20.0          # |v| above 20 v_s: sliding (tanh saturated); below: stuck (the stiff tanh holds it)
+
+
+@numba.njit(cache=True, nogil=True)
+def _regime(v, vs):
+    if v > SLIP_OVER_VS * vs:
+        return 1
+    if v < -SLIP_OVER_VS * vs:
+        return -1
+    return 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _substep(Ah, bn, bo, Gf, Cv, x, a, b, f0, fric, vs, xn):
+    """One sub-step: the linear part exact, then the friction force held at its end value (implicit); returns
+    the end velocity. xn is written."""
+    n = Ah.shape[0]
+    for i in range(n):
+        acc = bn[i] * a + bo[i] * b + Gf[i] * f0
+        for q in range(n):
+            acc += Ah[i, q] * x[q]
+        xn[i] = acc
+    z = 0.0
+    for i in range(n):
+        z += Cv[i] * xn[i]
+    if fric <= 0.0:
+        return z
     gv = 0.0
     for i in range(n):
         gv += Cv[i] * Gf[i]
+    v0 = 0.0
+    for i in range(n):
+        v0 += Cv[i] * x[i]
+    # friction held over the sub-step at the end velocity v: v + gv fric tanh(v / vs) = z
+    v = friction_velocity(z, 1.0, gv * fric, vs, v0, 1e-13, 1e-9)
+    F = -fric * math.tanh(v / vs)
+    for i in range(n):
+        xn[i] += Gf[i] * F
+    return v
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, Ahf, Bnewf, Boldf, Gff, out):
+    n = Ah.shape[0]; N = u.shape[0]; n_sub = Bnew.shape[0]
+    K = Bnewf.shape[0] // n_sub if fric > 0.0 else 0
+    x = np.zeros(n); xn = np.zeros(n); xm = np.zeros(n); xk = np.zeros(n)
     seg = 0
     nseg = starts.shape[0]
     for k in range(N):
@@ -184,54 +258,42 @@ def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, ou
         a = u[k - m] if k - m >= 0 else 0.0
         b = u[k - m - 1] if k - m - 1 >= 0 else 0.0
         for j in range(n_sub):
+            v0 = 0.0
             for i in range(n):
-                acc = Bnew[j, i] * a + Bold[j, i] * b + Gf[i] * f0
-                for q in range(n):
-                    acc += Ah[i, q] * x[q]
-                xn[i] = acc
-            if fric > 0.0:
-                # friction held over the sub-step at the end velocity v: v + gv fric tanh(v / vs) = z (monotone)
-                z = 0.0
+                v0 += Cv[i] * x[i]
+            v1 = _substep(Ah, Bnew[j], Bold[j], Gf, Cv, x, a, b, f0, fric, vs, xn)
+            if K > 1 and _regime(v0, vs) != _regime(v1, vs):
+                # the motion reverses, sticks or breaks away inside this sub-step: the friction force changes
+                # within it, so the sub-step is redone in K short ones (the event's time to h / K)
                 for i in range(n):
-                    z += Cv[i] * xn[i]
-                lo = z - gv * fric; hi = z + gv * fric
-                v = z / (1.0 + gv * fric / vs)          # the stick solution; Newton from there, bracketed
-                if abs(z) > gv * fric:
-                    v = z - gv * fric * (1.0 if z > 0 else -1.0)
-                for it in range(60):
-                    th = math.tanh(v / vs)
-                    g = v + gv * fric * th - z
-                    if g > 0.0:
-                        hi = v
-                    else:
-                        lo = v
-                    dg = 1.0 + gv * fric * (1.0 - th * th) / vs
-                    vn = v - g / dg
-                    if vn <= lo or vn >= hi:
-                        vn = 0.5 * (lo + hi)
-                    if abs(vn - v) < 1e-13 + 1e-9 * abs(v):
-                        v = vn
-                        break
-                    v = vn
-                F = -fric * math.tanh(v / vs)
+                    xm[i] = x[i]
+                for q in range(K):
+                    _substep(Ahf, Bnewf[j * K + q], Boldf[j * K + q], Gff, Cv, xm, a, b, f0, fric, vs, xk)
+                    for i in range(n):
+                        xm[i] = xk[i]
                 for i in range(n):
-                    xn[i] += Gf[i] * F
+                    xn[i] = xm[i]
             for i in range(n):
                 x[i] = xn[i]
 
 
 def run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, *, friction_n: float = 0.0, smoothing_m_per_s: float = 1e-4,
-                 force_n: float = 0.0, starts=None, X0=None) -> np.ndarray:
+                 force_n: float = 0.0, starts=None, X0=None, fine=None) -> np.ndarray:
     """Output samples of the sub-stepped model (substeps()) with a load-force channel Gf (sub-step integral of
-    the force input), the velocity row Cv and the output row Cy; the state set to X0[s] at sample starts[s]."""
+    the force input), the velocity row Cv and the output row Cy; the state set to X0[s] at sample starts[s].
+    fine = (Ah, Bnew, Bold, Gf) of K times shorter sub-steps (substeps(..., K n_sub, ...)): a sub-step in which
+    friction changes regime (a reversal, sticking, breakaway) is redone on them."""
     u = np.ascontiguousarray(u, dtype=float)
     st = np.zeros(0, np.int64) if starts is None else np.ascontiguousarray(starts, dtype=np.int64)
     x0 = np.zeros((len(st), Ah.shape[0])) if X0 is None else np.ascontiguousarray(X0, dtype=float)
+    if fine is None:
+        fine = (Ah, Bnew, Bold, Gf)
+    Ahf, Bnf, Bof, Gff = (np.ascontiguousarray(a, dtype=float) for a in fine)
     out = np.empty(len(u))
     _run_segments(np.ascontiguousarray(Ah), np.ascontiguousarray(Bnew), np.ascontiguousarray(Bold),
                   np.ascontiguousarray(Gf, dtype=float), np.ascontiguousarray(Cv, dtype=float),
                   np.ascontiguousarray(Cy, dtype=float), u, int(m), float(friction_n), float(smoothing_m_per_s),
-                  float(force_n), st, x0, out)
+                  float(force_n), st, x0, Ahf, Bnf, Bof, Gff, out)
     return out
 
 
