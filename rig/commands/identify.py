@@ -146,8 +146,8 @@ def _run_plant(args, rec, plant, t0: float) -> int:
     if "warning" in res:
         print(f"WARNING: {res['warning']}", file=sys.stderr)
     if args.out:
+        cliargs.make_out_dir(args.out)
         try:
-            args.out.mkdir(parents=True, exist_ok=True)
             (args.out / "identify.json").write_text(json.dumps(res, indent=1))
         except OSError as e:
             raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
