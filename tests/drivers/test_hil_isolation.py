@@ -24,16 +24,28 @@ pytestmark = pytest.mark.hil           # the real drivers against the emulated d
 SECONDS = 15.0                           # off, feedback, feedback + feedforward: 5 s each (as `rig hil`)
 
 
+LATE_BOUND = 0.10            # the targets are judged on runs with at most this share of late metered periods
+
+
 def _faulted(out) -> bool:
     try:
-        return json.loads(out.stdout)["faults"] > 0
-    except (ValueError, KeyError, TypeError):
+        res = json.loads(out.stdout)
+        return res["faults"] > 0 or max(res["late_periods"].values()) > LATE_BOUND
+    except (ValueError, KeyError, TypeError, AttributeError):
         return False
+
+
+def _skip_if_late(res, mode: str) -> None:
+    """The reductions are judged on runs the host let the loop keep on time; beyond LATE_BOUND named, not judged."""
+    late = res["late_periods"][mode]
+    if late > LATE_BOUND:
+        pytest.skip(f"{100 * late:.1f} % of the metered {mode} periods late (judged for <= {100 * LATE_BOUND:g} %): "
+                    f"the machine is too loaded to judge it")
 
 
 @pytest.fixture(scope="module")
 def hil_run(tmp_path_factory):
-    """One `rig hil` run. A run that faulted is run once more, and said so on stderr: on this shared 2-core
+    """One `rig hil` run. A run that faulted, or had more than LATE_BOUND of a mode's periods late, is run once more, and said so on stderr: on this shared 2-core
     host a stall of 100 ms (the emulated serial amplifier past its staleness limit under load, or one
     100.8 ms gap between periods seen at load 1.2 in 1 of 3 clean-clone runs) faults a run now and then, and
     the safety rules are right to fault it. Two faulted runs in a row fail the tests."""
@@ -78,6 +90,7 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
     from controllers.tune_hil import table_rms
     out, _ = hil_run
     res = json.loads(out.stdout)
+    _skip_if_late(res, "feedback")
     cfg = hil_config(load_config(HIL_DEFAULT_CONFIG))
     dt = 1.0 / cfg.loop.rate_hz
     p = params_from_config(cfg)
@@ -117,6 +130,7 @@ def test_feedforward_through_drivers_matches_lockstep_simulation(hil_run):
     undo that)."""
     out, _ = hil_run
     res = json.loads(out.stdout)
+    _skip_if_late(res, "feedback_feedforward")
     cfg = hil_config(load_config(HIL_DEFAULT_CONFIG))
     third = SECONDS / 3 - min(cfg.hil.settle_s, SECONDS / 6)
     sil_db = 20 * math.log10(_lockstep_table_rms(cfg, "off", third)
@@ -128,7 +142,6 @@ def test_feedforward_through_drivers_matches_lockstep_simulation(hil_run):
     assert got > res["isolation_reduction_db"] + 1.0, why
 
 
-LATE_BOUND = 0.10            # the >= 10 dB target holds for runs with at most this share of late metered periods
 
 
 def test_feedforward_meets_the_target_through_the_drivers(hil_run):
@@ -139,11 +152,8 @@ def test_feedforward_meets_the_target_through_the_drivers(hil_run):
     out, _ = hil_run
     res = json.loads(out.stdout)
     assert res["faults"] == 0, out.stderr[-1500:]
-    late = res["late_periods"]["feedback_feedforward"]
-    if late > LATE_BOUND:
-        pytest.skip(f"{100 * late:.1f} % of the metered periods late (the target is stated for <= "
-                    f"{100 * LATE_BOUND:g} %): the machine is too loaded to judge it")
-    assert res["feedforward_reduction_db"] >= 10.0, (late, out.stderr[-1500:])
+    _skip_if_late(res, "feedback_feedforward")
+    assert res["feedforward_reduction_db"] >= 10.0, (res["late_periods"], out.stderr[-1500:])
 
 
 def test_bad_rate_is_one_line_user_error():
