@@ -612,8 +612,21 @@ def plot_evidence(out_dir: Path, diag) -> list[tuple[str, str, str]]:
 
 # ---- report.md ---------------------------------------------------------------------------------------
 def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) -> str:
+    """report.md: the verdict, where model and recording differ, the physics named, the sensor terms, the
+    evidence, the fit table and the figures, one section function each."""
     mm = diag.mismatch or {}
     verdict = getattr(diag, "verdict", None)
+    out = _report_head(diag, rec, mm, verdict)
+    out += _report_mismatch(diag, mm)
+    out += _report_effects(diag, mm, verdict)
+    out += _report_sensor_and_evidence(diag, evidence)
+    out += _report_fit(diag)
+    out += _report_figures(figures, windows)
+    return "\n".join(out)
+
+
+def _report_head(diag, rec, mm: dict, verdict) -> list[str]:
+    """Title, the recording in one line, the verdict with its suggestions, the command and the notes."""
     cmd = getattr(diag, "command", None)
     out = [f"# Diagnosis of {rec.source}", "",
            f"{rec.n} samples at {rec.fs_hz:g} Hz ({rec.duration_s:g} s). Position noise estimate: "
@@ -625,7 +638,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
         out += [f"Command: {cmd.describe()}.", ""]
     for note in mm.get("notes", [])[1:]:
         out += [f"Note: {note}.", ""]
-    out += [f"**Summary:** {diag.summary or '-'}", "", "## Where the model and the recording differ", "",
+    return out
+
+
+def _report_mismatch(diag, mm: dict) -> list[str]:
+    """The summary and the bands, windows and patterns where the model and the recording differ."""
+    out = [f"**Summary:** {diag.summary or '-'}", "", "## Where the model and the recording differ", "",
            f"- Frequency bands (FRF error above its coherence-based uncertainty): {_spans(mm.get('bands_hz'), 'Hz', 20)}",
            f"- Time windows: {_spans(mm.get('windows_s'), 's', 20)}"]
     after = (mm.get("after_refit") or {}).get("bands_hz")
@@ -637,7 +655,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
     for key in ("regimes", "harmonics", "uncorrelated"):
         if key in mm:
             out.append(f"- {key.capitalize()}: {_DESCRIBE[key](mm[key])}")
-    out += ["", "## Physics left out by the linear model", ""]
+    return out
+
+
+def _report_effects(diag, mm: dict, verdict) -> list[str]:
+    """The effects named (or why none), the confounded groups and a non-eha plant's augmented parameters."""
+    out = ["", "## Physics left out by the linear model", ""]
     if diag.effects:
         out += ["| effect | parameters | score | evidence |", "|---|---|---|---|"]
         for e in diag.effects:
@@ -660,6 +683,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
                    + ", ".join(f"{k} = {v:.4g}" for k, v in pl.get("augmented_linear", {}).items())
                    + (f"; simulated in {pl['shooting']['segments']} segments from their own initial states "
                       "(multiple shooting)" if "shooting" in pl else "") + ".")
+    return out
+
+
+def _report_sensor_and_evidence(diag, evidence) -> list[str]:
+    """The fitted sensor terms, and each evidence figure with its finding."""
+    out = []
     sensor = getattr(diag, "sensor", None)
     if sensor is not None:
         out += ["", "## Sensor terms (fitted in every model, never named as effects)", ""]
@@ -670,8 +699,13 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
             out += [f"### {label}", "", f"{finding[:1].upper() + finding[1:] if finding else '-'}", ""]
             if name:
                 out += [f"![{label}]({name})", ""]
-    out += ["", "## Fit", "", "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise |",
-            "|---|---|---|---|---|---|"]
+    return out
+
+
+def _report_fit(diag) -> list[str]:
+    """The three models' fit figures and the refit linear parameters."""
+    out = ["", "## Fit", "", "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise |",
+           "|---|---|---|---|---|---|"]
     for m in MODELS:
         f = _fit_row(diag.fit, m)
         out.append(f"| {m} | {_figure(f.get('nrmse'))} | {_figure(f.get('nrmse_fit'))} | "
@@ -681,7 +715,12 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
         out += ["", "Refit linear parameters: " + ", ".join(f"{k} = {float(v):.4g}" for k, v in
                                                             diag.params_refit.items()
                                                             if isinstance(v, (int, float)))]
-    out += ["", "## Figures", ""]
+    return out
+
+
+def _report_figures(figures: dict[str, str], windows) -> list[str]:
+    """The figures with their captions, and what the data files hold."""
+    out = ["", "## Figures", ""]
     captions = {"frf": "FRF overlay (measured, nominal, refit, augmented) with coherence",
                 "residuals": "Residual spectra of the three models against the noise floor",
                 "windows": "Worst time windows: " + ", ".join(f"{a:.2f}-{b:.2f} s" for a, b in windows)
@@ -691,7 +730,7 @@ def report_markdown(diag, rec, figures: dict[str, str], windows, evidence=()) ->
     out += ["Data: `diagnosis.json`, `fit.csv` (time_s, measured_m, nominal_m, refit_m, augmented_m, "
             "augmented_sensor_m, used): each model column is the measurement as the model has it, physics plus "
             "its sensor terms, so measured_m - augmented_m is the noise where used = 1.", ""]
-    return "\n".join(out)
+    return out
 
 
 def write_outputs(out_dir: Path, diag, rec) -> dict[str, Path]:
