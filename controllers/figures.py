@@ -9,8 +9,10 @@ import numpy as np
 from controllers.analysis import (ACTUATOR_KEYS, BANDS, DiscreteRig, attenuation_db, disk_gm_pm, mimo,
                                   scaled_for_margins, siso, with_actuator)
 from controllers.isolation import IsolationController, params_from_config
+from controllers.tracking import TrackingPID, bandwidth_hz, pid_from_config, tracking_response
 from controllers.vibration_criteria import plot_vc
 from rig.config import MOUNTS
+from sim_backend.linear import ActuatorParams
 from sim_backend.rig_plant import I_TABLE, I_TOOL
 
 BAND_LABELS = {"1hz": "1 Hz", "5_10hz": "5-10 Hz", "20_60hz": "20-60 Hz", "60_100hz": "60-100 Hz",
@@ -18,6 +20,7 @@ BAND_LABELS = {"1hz": "1 Hz", "5_10hz": "5-10 Hz", "20_60hz": "20-60 Hz", "60_10
 
 
 def _plt():
+    # matplotlib loads only when figures are drawn: `rig design` without --out never pays for it
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -28,20 +31,44 @@ def _db(x):
     return 20 * np.log10(np.abs(x))
 
 
-def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None) -> list[Path]:
-    plt = _plt()
-    f = rig.f
-    band = (f >= 0.5) & (f <= 200)
-    files = []
+class _Saver:
+    """Saves a figure into the output folder and keeps the files in the order written (design.md shows them
+    in that order)."""
 
-    def save(fig, name):
-        p = out / name
+    def __init__(self, out: Path, plt) -> None:
+        self.out, self.plt, self.files = out, plt, []
+
+    def __call__(self, fig, name: str) -> None:
+        p = self.out / name
         fig.tight_layout()
         fig.savefig(p, dpi=110)
-        plt.close(fig)
-        files.append(p)
+        self.plt.close(fig)
+        self.files.append(p)
 
-    # Fig. 11: Nyquist per mount, with the disk the tuner keeps L out of
+
+def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None) -> list[Path]:
+    """Every figure of the design (one function each, in the order design.md lists them), then design.md."""
+    plt = _plt()
+    save = _Saver(out, plt)
+    f = rig.f
+    band = (f >= 0.5) & (f <= 200)
+    _nyquist_figure(save, plt, data, result)
+    _ground_figures(save, plt, f, band, data, result)
+    _cross_figure(save, plt, f, band, data)
+    pi_note = _pi_figure(save, plt, cfg, dt, rig, band, data)
+    _mimo_figure(save, plt, f, band, data, result)
+    _sensitivity_figure(save, plt, f, dt, data, result)
+    if ffs is not None:
+        _feedforward_figures(save, plt, cfg, dt, rig, ctrls, ffs, data, result)
+    bw = _tracking_figure(save, plt, cfg, dt)
+    files = save.files
+    (out / "design.md").write_text(markdown(result, paper, pi_note, bw, cfg, [p.name for p in files]))
+    files.append(out / "design.md")
+    return files
+
+
+def _nyquist_figure(save, plt, data, result) -> None:
+    """Fig. 11: Nyquist per mount, with the disk the tuner keeps L out of."""
     fig, axs = plt.subplots(2, 2, figsize=(10, 9))
     th = np.linspace(0, 2 * np.pi, 200)
     for ax, m in zip(axs.flat, MOUNTS):
@@ -63,7 +90,9 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     fig.suptitle("Nyquist, one mount's loop (others nulled), ZOH + 1 period delay (cf. paper Fig. 11)")
     save(fig, "fig11_nyquist.png")
 
-    # Figs. 12, 13: ground -> table / tool (Y), passive vs controlled (feedback, feedback + feedforward)
+
+def _ground_figures(save, plt, f, band, data, result) -> None:
+    """Figs. 12, 13: ground -> table / tool (Y), passive vs controlled (feedback, feedback + feedforward)."""
     for fig_no, name, o in ((12, "table", I_TABLE + 1), (13, "tool", I_TOOL + 1)):
         fig, axs = plt.subplots(2, 2, figsize=(11, 8), sharex=True)
         for ax, m in zip(axs.flat, MOUNTS):
@@ -83,7 +112,9 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
         fig.suptitle(f"Ground at the mount -> {name} (Y), SISO view (cf. paper Fig. {fig_no})")
         save(fig, f"fig{fig_no}_ground_to_{name}.png")
 
-    # Fig. 14: cross paths for the front-left mount
+
+def _cross_figure(save, plt, f, band, data) -> None:
+    """Fig. 14: cross paths for the front-left mount."""
     r = data["siso"]["front_left"]
     fig, axs = plt.subplots(2, 2, figsize=(11, 8), sharex=True)
     for ax, (lab, o) in zip(axs.flat, (("table X", I_TABLE), ("tool X", I_TOOL), ("table Z", I_TABLE + 2),
@@ -98,7 +129,11 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     fig.suptitle("Cross transmissibilities, front-left mount (cf. paper Fig. 14)")
     save(fig, "fig14_cross_front_left.png")
 
-    # Fig. 10: PI alone vs PI + compensator (front-left, tool Y)
+
+def _pi_figure(save, plt, cfg, dt, rig, band, data) -> str:
+    """Fig. 10: PI alone vs PI + compensator (front-left, tool Y); returns the note for design.md."""
+    f = rig.f
+    r = data["siso"]["front_left"]
     p0 = params_from_config(cfg, 0)
 
     def make(g):
@@ -122,8 +157,12 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     save(fig, "fig10_pi_vs_compensator.png")
+    return pi_note
 
-    # all four loops closed: uniform and independent floor, feedback / feedforward / both
+
+def _mimo_figure(save, plt, f, band, data, result) -> None:
+    """All four loops closed: uniform and independent floor, feedback / feedforward / both, and the
+    generalised Nyquist plot."""
     fig, axs = plt.subplots(1, 3, figsize=(16, 4.8))
     o = I_TABLE + 1
     mm = data["mimo"]
@@ -153,7 +192,9 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     axs[2].set_title(f"generalised Nyquist det(I+L)-1; stable={mm['stable']}", fontsize=9)
     save(fig, "mimo_transmissibility.png")
 
-    # sensitivity per mount: where the attenuation is paid back (Bode's integral)
+
+def _sensitivity_figure(save, plt, f, dt, data, result) -> None:
+    """Sensitivity per mount: where the attenuation is paid back (Bode's integral)."""
     fig, ax = plt.subplots(figsize=(9, 5))
     for m in MOUNTS:
         ax.semilogx(f, _db(1 / (1 + data["siso"][m]["L"])), lw=1, label=m)
@@ -170,12 +211,9 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     ax.legend(fontsize=8)
     save(fig, "sensitivity.png")
 
-    if ffs is not None:
-        _feedforward_figures(save, plt, cfg, dt, rig, ctrls, ffs, data, result)
 
-    # Fig. 4: actuator alone, reference tracking PID
-    from controllers.tracking import TrackingPID, bandwidth_hz, pid_from_config, tracking_response
-    from sim_backend.linear import ActuatorParams
+def _tracking_figure(save, plt, cfg, dt) -> float:
+    """Fig. 4: actuator alone, reference tracking PID; returns its bandwidth in Hz."""
     pid = TrackingPID(pid_from_config(cfg), dt)
     ft = np.geomspace(0.5, 1000, 800)
     T = tracking_response(ActuatorParams.from_config(cfg), pid, ft)
@@ -191,10 +229,7 @@ def write_all(out: Path, cfg, dt, rig, ctrls, data, result, paper, log, ffs=None
     for a in (a1, a2):
         a.grid(alpha=0.3, which="both")
     save(fig, "fig4_tracking.png")
-
-    (out / "design.md").write_text(markdown(result, paper, pi_note, bw, cfg, [p.name for p in files]))
-    files.append(out / "design.md")
-    return files
+    return bw
 
 
 def _feedforward_figures(save, plt, cfg, dt, rig, ctrls, ffs, data, result):
@@ -248,6 +283,24 @@ def _band_row(a) -> str:
 
 
 def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
+    """design.md: the design's figures beside the paper's, one section function each."""
+    L = _md_margins(result, paper, cfg)
+    L += _md_attenuation(result, paper)
+    L += _md_mimo(result)
+    L += _md_robust(result)
+    L += _md_feedforward(result)
+    L += _md_predicted_demo(result)
+    L += _md_sensitivity_integral(result)
+    L += _md_tuning_slack(result)
+    L += ["## Other figures", "", f"- Fig. 10 (front-left, tool): {pi_note}.",
+          f"- Fig. 4: actuator-alone PID tracking bandwidth {tracking_bw_hz:.1f} Hz (paper ~95 Hz).", ""]
+    L += [f"![{n}]({n})" for n in figures] + [""]
+    return "\n".join(L)
+
+
+def _md_margins(result, paper, cfg) -> list[str]:
+    """Title, the loop's set-up, each mount's margins beside the paper's, the multiloop disk margin and
+    whether the design meets the paper."""
     L = ["# rig design: isolation loops on the discrete rig", "",
          f"Loop rate {cfg.loop.rate_hz:g} Hz, ZOH + one period of computation delay. Actuator model: "
          f"{result['design_model']['actuator']}. SISO view (paper Fig. 5): one mount's loop closed, the other "
@@ -270,6 +323,12 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
     mp = result["meets_paper"]
     L += [f"At or above the paper in every band: {mp['bands']}; GM >= 6 dB and PM >= 35 deg on every mount: "
           f"{mp['margins']}; robustly stable (below): {mp['robust']}.", ""]
+    return L
+
+
+def _md_attenuation(result, paper) -> list[str]:
+    """Attenuation ground -> table and ground -> tool per mount (SISO), beside the paper's targets."""
+    L = []
     for name in ("table", "tool"):
         L += [f"## Attenuation ground -> {name} (Y), feedback, dB (band entries: minimum over the band)", "",
               "| view | 1 Hz | 5-10 Hz | 20-60 Hz | 60-100 Hz | min 1-100 Hz |", "|---|---|---|---|---|---|"]
@@ -284,46 +343,65 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
         p = paper[name]
         L.append(f"| paper (text) | {p['1hz']} | {p['5_10hz']} | {p['20_60hz']} | {p['60_100hz']} | 5-25 overall |")
         L.append("")
-    L += ["## All four loops closed: what the machine feels (ground -> table Y, dB)", "",
-          "Uniform: the same floor motion at every mount. Independent: uncorrelated floor motion of equal spectrum "
-          "at each mount (the table's responses add in power).", "",
-          "| path | floor | 1 Hz | 5-10 Hz | 20-60 Hz | 60-100 Hz | min 1-100 Hz |", "|---|---|---|---|---|---|---|"]
+    return L
+
+
+def _md_mimo(result) -> list[str]:
+    """All four loops closed: ground -> table under uniform and independent floor motion."""
+    L = ["## All four loops closed: what the machine feels (ground -> table Y, dB)", "",
+         "Uniform: the same floor motion at every mount. Independent: uncorrelated floor motion of equal spectrum "
+         "at each mount (the table's responses add in power).", "",
+         "| path | floor | 1 Hz | 5-10 Hz | 20-60 Hz | 60-100 Hz | min 1-100 Hz |", "|---|---|---|---|---|---|---|"]
     for tag, v in result["mimo"].items():
         for key in ("uniform", "independent"):
             L.append(f"| {tag.replace('_', ' + ')} | {key} | " + _band_row(v[key]["ground_to_table"]) + " |")
+    return L
+
+
+def _md_robust(result) -> list[str]:
+    """Robust stability over the perturbed plants."""
     rb = result["robust"]
-    L += ["", "## Robust stability", "",
-          f"All four loops on {rb['corners'] + rb['random']} plants: every actuator's gain within +-"
-          f"{100 * rb['gain_tol']:.0f} % and every machine mode's frequency within +-{100 * rb['mode_tol']:.0f} % "
-          f"(rigid-body modes on the actuators included), independently: the {rb['corners']} corners "
-          f"(2^4 gain corners x modes all low / nominal / all high) and {rb['random']} uniform random draws.", "",
-          f"- all stable: {rb['all_stable']} ({rb['unstable']} unstable)",
-          f"- slowest fast closed-loop pole decay: {rb['worst_decay_1_per_s']:.2f} 1/s",
-          f"- worst multiloop disk margin: {rb['worst_disk_margin_mimo']:.3f}",
-          f"- worst single-loop GM / PM on a perturbed plant: {rb['worst_siso_gm_db']:.2f} dB / "
-          f"{rb['worst_siso_pm_deg']:.1f} deg", ""]
+    return ["", "## Robust stability", "",
+            f"All four loops on {rb['corners'] + rb['random']} plants: every actuator's gain within +-"
+            f"{100 * rb['gain_tol']:.0f} % and every machine mode's frequency within +-{100 * rb['mode_tol']:.0f} % "
+            f"(rigid-body modes on the actuators included), independently: the {rb['corners']} corners "
+            f"(2^4 gain corners x modes all low / nominal / all high) and {rb['random']} uniform random draws.", "",
+            f"- all stable: {rb['all_stable']} ({rb['unstable']} unstable)",
+            f"- slowest fast closed-loop pole decay: {rb['worst_decay_1_per_s']:.2f} 1/s",
+            f"- worst multiloop disk margin: {rb['worst_disk_margin_mimo']:.3f}",
+            f"- worst single-loop GM / PM on a perturbed plant: {rb['worst_siso_gm_db']:.2f} dB / "
+            f"{rb['worst_siso_pm_deg']:.1f} deg", ""]
+
+
+def _md_feedforward(result) -> list[str]:
+    """The floor feedforward: its filter, and the worst attenuation with the actuator off the model."""
     ff = result["feedforward"]
     me = ff["model_error"]
-    L += ["## Floor feedforward", "",
-          f"Inverse of the actuator's own model G_EHA (valve Eq. 1 x actuator Eq. 8, Eq. 10) on the "
-          f"floor accelerometer: high-pass {ff['params']['hp_hz']:g} Hz, roll-off {ff['params']['lowpass_hz']:g} Hz "
-          f"(order {ff['params']['lowpass_order']}), lead {ff['lead_s'] * 1e3:.3f} ms for the ZOH, the period of "
-          "computation and the roll-off's delay.", "",
-          f"Model error: the plant's K_L, C, w_nv, zeta, K_Q, K_C each +-{100 * me['tol']:.0f} % from the model the "
-          f"controllers were designed on ({me['plants']} plants: all corners). Feedback stable on all: "
-          f"{me['feedback_stable_all']}. Worst attenuation ground -> table, all four loops closed (dB):", "",
-          "| path | floor | 1 Hz | 5-10 Hz | 20-60 Hz | 60-100 Hz | min 1-100 Hz |", "|---|---|---|---|---|---|---|"]
+    L = ["## Floor feedforward", "",
+         f"Inverse of the actuator's own model G_EHA (valve Eq. 1 x actuator Eq. 8, Eq. 10) on the "
+         f"floor accelerometer: high-pass {ff['params']['hp_hz']:g} Hz, roll-off {ff['params']['lowpass_hz']:g} Hz "
+         f"(order {ff['params']['lowpass_order']}), lead {ff['lead_s'] * 1e3:.3f} ms for the ZOH, the period of "
+         "computation and the roll-off's delay.", "",
+         f"Model error: the plant's K_L, C, w_nv, zeta, K_Q, K_C each +-{100 * me['tol']:.0f} % from the model the "
+         f"controllers were designed on ({me['plants']} plants: all corners). Feedback stable on all: "
+         f"{me['feedback_stable_all']}. Worst attenuation ground -> table, all four loops closed (dB):", "",
+         "| path | floor | 1 Hz | 5-10 Hz | 20-60 Hz | 60-100 Hz | min 1-100 Hz |", "|---|---|---|---|---|---|---|"]
     for tag, v in me["worst_attenuation_db"].items():
         for key in ("uniform", "independent"):
             L.append(f"| {tag.replace('_', ' + ')}, worst plant | {key} | " + _band_row(v[key]) + " |")
     wp = me["worst_plant_factors"]
     L += ["", "Worst plant (factors on the model): " + ", ".join(f"{k} x {x:.2f}" for k, x in wp.items()) + ".", ""]
+    return L
+
+
+def _md_predicted_demo(result) -> list[str]:
+    """The predicted `rig demo` figure per case, and the vibration criteria the predicted table meets."""
     pd = result["predicted_demo"]
-    L += ["## Predicted `rig demo` figure (linear, same floor statistics in both halves)", "",
-          f"Table Y rms in {pd['feedback']['band_hz'][0]:g}-{pd['feedback']['band_hz'][1]:g} Hz under the configured "
-          "floor (spectrum, rms, correlation between mounts), with the simulated sensors' noise:", "",
-          "| case | passive [um] | controlled [um] | from the floor | from accelerometer noise | from floor "
-          "accelerometer noise | reduction [dB] | noise-free [dB] |", "|---|---|---|---|---|---|---|---|"]
+    L = ["## Predicted `rig demo` figure (linear, same floor statistics in both halves)", "",
+         f"Table Y rms in {pd['feedback']['band_hz'][0]:g}-{pd['feedback']['band_hz'][1]:g} Hz under the configured "
+         "floor (spectrum, rms, correlation between mounts), with the simulated sensors' noise:", "",
+         "| case | passive [um] | controlled [um] | from the floor | from accelerometer noise | from floor "
+         "accelerometer noise | reduction [dB] | noise-free [dB] |", "|---|---|---|---|---|---|---|---|"]
     for tag, r in pd.items():
         L.append(f"| {tag.replace('_', ' + ').replace('model + error', '(actuator +-10 % off, worst)')} | "
                  f"{r['passive_um']:.3f} | {r['controlled_um']:.3f} | {r['from_floor_um']:.3f} | "
@@ -333,20 +411,30 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
         vc = result["predicted_vc"]["vc_class"]
         L += ["", "Vibration criterion met by the predicted table motion: " + ", ".join(
             f"{k}: {v}" for k, v in vc.items()) + "."]
+    return L
+
+
+def _md_sensitivity_integral(result) -> list[str]:
+    """What limits the feedback: Bode's sensitivity integral per mount."""
     si = result["sensitivity_integral"]
-    L += ["", "## What limits the feedback", "",
-          "Bode's sensitivity integral: for this loop (stable, one period of delay) the area of ln|S| over "
-          "0 Hz to Nyquist is zero, so every neper of attenuation below 100 Hz is paid back above it. The disk "
-          "margin of 2/3 bounds |S| by 2 (6 dB), so the payback needs at least (area / ln 2) Hz of amplification, "
-          "and it can only sit where the loop is still active: below the machine-on-actuator modes "
-          "(~250-320 Hz), whose phase, with the valve's, the flow integrator's and the delay's, ends the loop's "
-          "reach.", "",
-          "| mount | area below 100 Hz [Hz Np] | area above [Hz Np] | sum | peak of S [dB] at [Hz] | amplified from "
-          "[Hz] | minimum width at S = 2 [Hz] |", "|---|---|---|---|---|---|---|"]
+    L = ["", "## What limits the feedback", "",
+         "Bode's sensitivity integral: for this loop (stable, one period of delay) the area of ln|S| over "
+         "0 Hz to Nyquist is zero, so every neper of attenuation below 100 Hz is paid back above it. The disk "
+         "margin of 2/3 bounds |S| by 2 (6 dB), so the payback needs at least (area / ln 2) Hz of amplification, "
+         "and it can only sit where the loop is still active: below the machine-on-actuator modes "
+         "(~250-320 Hz), whose phase, with the valve's, the flow integrator's and the delay's, ends the loop's "
+         "reach.", "",
+         "| mount | area below 100 Hz [Hz Np] | area above [Hz Np] | sum | peak of S [dB] at [Hz] | amplified from "
+         "[Hz] | minimum width at S = 2 [Hz] |", "|---|---|---|---|---|---|---|"]
     for m, s in si.items():
         L.append(f"| {m} | {s['below_hz_nepers']:.1f} | {s['above_hz_nepers']:.1f} | {s['total_hz_nepers']:.2f} | "
                  f"{s['peak_db']:.1f} at {s['peak_hz']:.0f} | {s['amplified_from_hz']:.0f} | "
                  f"{-s['below_hz_nepers'] / math.log(2):.0f} |")
+    return L
+
+
+def _md_tuning_slack(result) -> list[str]:
+    """The tuner's constraints and which of them, and which bands, are at their limit for this design."""
     ts = result["tuning_slack"]
     dm = min(ts["disk_margin"].values())
     active = []
@@ -360,16 +448,12 @@ def markdown(result, paper, pi_note, tracking_bw_hz, cfg, figures) -> str:
     ex = ts["band_excess_db"]
     worst = min(ex.values())
     tight = [BAND_LABELS[b] for b, v in ex.items() if v < worst + 0.2]
-    L += ["", "The tuner (controllers/tune.py, `rig design --tune`) maximises the worst band's excess over the "
-              f"paper with the disk margin >= {ts['disk_margin_min']:.3f} on every mount, |L| <= "
-              f"{ts['loop_gain_above_max_db']:g} dB and the accelerometer -> valve gain <= "
-              f"{ts['hf_gain_max_V_per_mps2']:g} V per m/s^2 from {ts['from_hz']:g} Hz on as hard constraints. "
-              "For this design the band excesses over the paper are " + ", ".join(
-                  f"{BAND_LABELS[b]} {v:+.2f} dB" for b, v in ex.items()) + f" (worst mount); the tightest: "
-              f"{', '.join(tight)}; constraints at their limit: {', '.join(active) or 'none'}. Where a band and a "
-              "constraint are both at their limit, more of that band costs margin, high-frequency gain or "
-              "another band.", ""]
-    L += ["## Other figures", "", f"- Fig. 10 (front-left, tool): {pi_note}.",
-          f"- Fig. 4: actuator-alone PID tracking bandwidth {tracking_bw_hz:.1f} Hz (paper ~95 Hz).", ""]
-    L += [f"![{n}]({n})" for n in figures] + [""]
-    return "\n".join(L)
+    return ["", "The tuner (controllers/tune.py, `rig design --tune`) maximises the worst band's excess over the "
+                f"paper with the disk margin >= {ts['disk_margin_min']:.3f} on every mount, |L| <= "
+                f"{ts['loop_gain_above_max_db']:g} dB and the accelerometer -> valve gain <= "
+                f"{ts['hf_gain_max_V_per_mps2']:g} V per m/s^2 from {ts['from_hz']:g} Hz on as hard constraints. "
+                "For this design the band excesses over the paper are " + ", ".join(
+                    f"{BAND_LABELS[b]} {v:+.2f} dB" for b, v in ex.items()) + f" (worst mount); the tightest: "
+                f"{', '.join(tight)}; constraints at their limit: {', '.join(active) or 'none'}. Where a band and a "
+                "constraint are both at their limit, more of that band costs margin, high-frequency gain or "
+                "another band.", ""]
