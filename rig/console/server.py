@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import collections
+import contextlib
 import hmac
 import json
 import logging
@@ -29,6 +30,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
+from starlette.routing import Route, WebSocketRoute
+from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from rig.console.feed import Feed
 from rig.console.live import LiveReader
@@ -239,73 +245,77 @@ def _finite(o):
 
 
 # ---- the web application ---------------------------------------------------------------------------------------
-def create_app(state: ConsoleState, port: int):
-    from starlette.applications import Starlette
-    from starlette.requests import Request
-    from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
-    from starlette.routing import Route, WebSocketRoute
-    from starlette.websockets import WebSocket, WebSocketDisconnect
+class _Site:
+    """The web application over one ConsoleState: who may come in (Host header, access token), the page and
+    its static files, the JSON API, the websocket, and the ticker that sends the pages each update."""
 
-    hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
-    origins = {f"http://{h}" for h in hosts}
-    csp = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
-           f"connect-src 'self' ws://127.0.0.1:{port} ws://localhost:{port}; frame-ancestors 'none'")
+    def __init__(self, state: ConsoleState, port: int) -> None:
+        self.state = state
+        self.hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
+        self.origins = {f"http://{h}" for h in self.hosts}
+        self.csp = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
+                    f"connect-src 'self' ws://127.0.0.1:{port} ws://localhost:{port}; frame-ancestors 'none'")
 
-    def token_of(conn) -> str:
+    # ---- access ----------------------------------------------------------------------------------------------
+    @staticmethod
+    def _token_of(conn) -> str:
         auth = conn.headers.get("authorization", "")
         return (conn.query_params.get("token") or conn.cookies.get(COOKIE)
                 or (auth[6:] if auth.lower().startswith("token ") else ""))
 
-    def allowed(conn) -> bool:
-        if conn.headers.get("host") not in hosts:
+    def allowed(self, conn) -> bool:
+        if conn.headers.get("host") not in self.hosts:
             return False
-        tok = token_of(conn)
-        return bool(state.token) and hmac.compare_digest(tok.encode(), state.token.encode())
+        tok = self._token_of(conn)
+        return bool(self.state.token) and hmac.compare_digest(tok.encode(), self.state.token.encode())
 
+    @staticmethod
     def forbidden() -> Response:
         return PlainTextResponse("403 forbidden: open the console at the address `rig run --console` printed "
                                  "(it carries the access token)\n", status_code=403)
 
-    def page_headers(resp: Response, request: Request) -> Response:
-        resp.headers["Content-Security-Policy"] = csp
+    def page_headers(self, resp: Response, request: Request) -> Response:
+        resp.headers["Content-Security-Policy"] = self.csp
         resp.headers["Cache-Control"] = "no-store"
         resp.headers["X-Content-Type-Options"] = "nosniff"
         if request.query_params.get("token"):
-            resp.set_cookie(COOKIE, state.token, httponly=True, samesite="strict", path="/")
+            resp.set_cookie(COOKIE, self.state.token, httponly=True, samesite="strict", path="/")
         return resp
 
-    async def page(request: Request) -> Response:
-        if not allowed(request):
-            return forbidden()
-        return page_headers(FileResponse(STATIC / "index.html", media_type="text/html"), request)
+    # ---- routes ----------------------------------------------------------------------------------------------
+    async def page(self, request: Request) -> Response:
+        if not self.allowed(request):
+            return self.forbidden()
+        return self.page_headers(FileResponse(STATIC / "index.html", media_type="text/html"), request)
 
-    async def static(request: Request) -> Response:
-        if not allowed(request):
-            return forbidden()
+    async def static(self, request: Request) -> Response:
+        if not self.allowed(request):
+            return self.forbidden()
         path = (STATIC / request.path_params["path"]).resolve()
         if STATIC.resolve() not in path.parents or not path.is_file():
             return PlainTextResponse("404 not found\n", status_code=404)
-        return page_headers(FileResponse(path), request)
+        return self.page_headers(FileResponse(path), request)
 
-    async def api_state(request: Request) -> Response:
-        if not allowed(request):
-            return forbidden()
-        return JSONResponse(_finite(state.snapshot()))
+    async def api_state(self, request: Request) -> Response:
+        if not self.allowed(request):
+            return self.forbidden()
+        return JSONResponse(_finite(self.state.snapshot()))
 
-    async def api_command(request: Request) -> Response:
-        if not allowed(request):
-            return forbidden()
+    async def api_command(self, request: Request) -> Response:
+        if not self.allowed(request):
+            return self.forbidden()
         try:
             msg = await request.json()
         except ValueError:
             msg = None
-        reply = await state.command(msg, f"http {request.client.host}:{request.client.port}")
-        code = 200 if reply["ok"] else (403 if state.read_only else 409)
+        reply = await self.state.command(msg, f"http {request.client.host}:{request.client.port}")
+        code = 200 if reply["ok"] else (403 if self.state.read_only else 409)
         return JSONResponse(reply, status_code=code)
 
-    async def ws_endpoint(ws: WebSocket) -> None:
+    async def ws_endpoint(self, ws: WebSocket) -> None:
+        state = self.state
         origin = ws.headers.get("origin")
-        if not allowed(ws) or (origin is not None and origin not in origins):
+        if not self.allowed(ws) or (origin is not None and origin not in self.origins):
             await ws.close(code=1008)          # before accept: the handshake gets HTTP 403
             return
         await ws.accept()
@@ -330,7 +340,10 @@ def create_app(state: ConsoleState, port: int):
             state.clients.discard(client)
             pump.cancel()
 
-    async def ticker() -> None:
+    # ---- updates ---------------------------------------------------------------------------------------------
+    async def ticker(self) -> None:
+        """An update every TICK_S, and at once when a command has just been applied."""
+        state = self.state
         next_t = time.monotonic()
         while not state.gone.is_set():
             t0 = time.thread_time()
@@ -350,21 +363,24 @@ def create_app(state: ConsoleState, port: int):
             except asyncio.TimeoutError:
                 pass
 
-    import contextlib
-
     @contextlib.asynccontextmanager
-    async def lifespan(app):
+    async def lifespan(self, app):
+        """While the server runs: the control socket read on the event loop, and the ticker."""
         loop = asyncio.get_running_loop()
-        state.control.setblocking(False)
-        loop.add_reader(state.control.fileno(), state.on_control)
-        task = asyncio.create_task(ticker())
+        self.state.control.setblocking(False)
+        loop.add_reader(self.state.control.fileno(), self.state.on_control)
+        task = asyncio.create_task(self.ticker())
         yield
         task.cancel()
-        loop.remove_reader(state.control.fileno())
+        loop.remove_reader(self.state.control.fileno())
 
-    return Starlette(routes=[Route("/", page), Route("/static/{path:path}", static), Route("/api/state", api_state),
-                             Route("/api/command", api_command, methods=["POST"]),
-                             WebSocketRoute("/ws", ws_endpoint)], lifespan=lifespan)
+
+def create_app(state: ConsoleState, port: int):
+    site = _Site(state, port)
+    return Starlette(routes=[Route("/", site.page), Route("/static/{path:path}", site.static),
+                             Route("/api/state", site.api_state),
+                             Route("/api/command", site.api_command, methods=["POST"]),
+                             WebSocketRoute("/ws", site.ws_endpoint)], lifespan=site.lifespan)
 
 
 def _server(state: ConsoleState, listen: socket.socket):
