@@ -60,6 +60,7 @@ from rig import cliargs, inject, operated, report
 from rig.backends import BACKENDS, default_config
 from rig.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
+from rig.console.runner import run_with_console
 from rig.errors import RecordingError, RigError
 from rig.lifecycle import State
 from rig.session import Session
@@ -187,16 +188,25 @@ def read_script(path) -> list[tuple[float, str]]:
 
 
 def run(args) -> int:
+    _log_to_stderr()
+    plan = _RunPlan(args)
+    if args.console:
+        loop, reason = run_with_console(args, plan.cfg, plan.backend, plan.new_session, plan.started)
+    else:
+        loop, reason = plan.run_alone()
+    return plan.finish(loop, reason)
+
+
+def _log_to_stderr() -> None:
     if not logging.getLogger().handlers:
         # our own INFO lines (lifecycle, start/stop); libraries (canopen, pymodbus) only from WARNING
         logging.basicConfig(level=logging.WARNING, format="rig run: %(message)s", stream=sys.stderr)
         logging.getLogger("rig").setLevel(logging.INFO)
-    backend = args.backend
-    cfg = layout_config(args, backend)
-    backend = backend or cfg.backend.name
-    injections = [inject.parse(x) for x in args.inject]
-    for inj in injections:
-        inject.check(inj, backend)
+
+
+def _run_config(args, cfg, backend: str, injections):
+    """The options checked against each other and the backend (one line naming the option otherwise); the
+    config the run uses (hil: its own rate, staleness limit and watchdog)."""
     if args.seconds is not None and args.seconds <= 0:
         raise RigError(f"--seconds: expected > 0, got {args.seconds}")
     if args.settle is not None and not 0 <= args.settle <= 3600:
@@ -213,37 +223,56 @@ def run(args) -> int:
         raise RigError("--port/--read-only: only with --console")
     if injections and args.console:
         raise RigError("--inject: not with --console (rehearse faults on a run without it)")
-    clock = SimClock() if args.sim_time else MonotonicClock()
-    stand = cfg.layout.plant == "stand"
-    start = start_request(args)
-    if start is not None and not stand:
-        raise RigError("--mode/--position/--reference: operating modes are for the stand layout (--layout prototype)")
-    record, tmp = args.record, None
-    if args.plot and not stand:
-        raise RigError("--plot: for the stand layout (--layout prototype)")
-    if args.plot and record is None:
-        fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
-        os.close(fd)
-        record = tmp
-    attrs = {"command": "rig run", "isolation_at_start": args.isolation,
-             "overrun_policy": args.policy or cfg.loop.overrun_policy, "layout": cfg.layout.plant}
-    if stand:
-        attrs["mode_at_start"] = start or "hold"
-    script = read_script(args.script) if args.script else None
+    return cfg
 
-    def new_session(record=record) -> Session:
+
+class _RunPlan:
+    """What `rig run`'s options ask for, checked before anything starts: config, backend, clock, the start
+    mode on stands, the recording (a temporary one when only --plot wants it) and its attributes, the script
+    and the injections. Builds the sessions, logs their start and reports after the run."""
+
+    def __init__(self, args) -> None:
+        self.args = args
+        cfg = layout_config(args, args.backend)
+        self.backend = backend = args.backend or cfg.backend.name
+        self.injections = [inject.parse(x) for x in args.inject]
+        for inj in self.injections:
+            inject.check(inj, backend)
+        self.cfg = cfg = _run_config(args, cfg, backend, self.injections)
+        self.clock = SimClock() if args.sim_time else MonotonicClock()
+        self.stand = stand = cfg.layout.plant == "stand"
+        self.start = start = start_request(args)
+        if start is not None and not stand:
+            raise RigError("--mode/--position/--reference: operating modes are for the stand layout "
+                           "(--layout prototype)")
+        self.record, self.tmp = args.record, None
+        if args.plot and not stand:
+            raise RigError("--plot: for the stand layout (--layout prototype)")
+        if args.plot and self.record is None:
+            fd, self.tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
+            os.close(fd)
+            self.record = self.tmp
+        self.attrs = {"command": "rig run", "isolation_at_start": args.isolation,
+                      "overrun_policy": args.policy or cfg.loop.overrun_policy, "layout": cfg.layout.plant}
+        if stand:
+            self.attrs["mode_at_start"] = start or "hold"
+        self.script = read_script(args.script) if args.script else None
+
+    def new_session(self, record) -> Session:
         # with the console a fault keeps the loop running in FAULT (valves safe, sensors read) for the operator
-        return Session(cfg, backend, clock=clock, isolation=(args.isolation == "on"), overrun_policy=args.policy,
-                       record=record, record_attrs=attrs, realtime=cfg.loop.realtime and not args.no_realtime,
-                       signals=True, status=not args.quiet, control_file=args.control, mode=start, script=script,
+        args = self.args
+        return Session(self.cfg, self.backend, clock=self.clock, isolation=(args.isolation == "on"),
+                       overrun_policy=args.policy, record=record, record_attrs=self.attrs,
+                       realtime=self.cfg.loop.realtime and not args.no_realtime, signals=True, status=not args.quiet,
+                       control_file=args.control, mode=self.start, script=self.script,
                        stop_on_fault=not args.console, stability_check=not args.force, feedforward=args.feedforward)
 
-    def started(session) -> float:
+    def started(self, session) -> float:
         """Log the start; the settle time before activation."""
-        loop = session.loop
-        if stand:
+        args, backend, cfg, loop = self.args, self.backend, self.cfg, session.loop
+        if self.stand:
             log.info("backend %s, %s on the stand at %g Hz, mode %s, config %s, pid %d (SIGUSR1 isolate <-> hold, "
-                     "SIGUSR2 off <-> hold%s)", backend, ", ".join(loop.names), loop.rate_hz, start or "hold",
+                     "SIGUSR2 off <-> hold%s)", backend, ", ".join(loop.names), loop.rate_hz, self.start or "hold",
                      cfg.source, os.getpid(), f", control file {args.control}" if args.control else "")
         else:
             log.info("backend %s, %d mounts at %g Hz, isolation %s, config %s, pid %d (SIGUSR1 toggles "
@@ -255,33 +284,36 @@ def run(args) -> int:
             log.info("warming up the controllers for %.1f s before activation (valves at null)", settle)
         return settle
 
-    if args.console:
-        from rig.console.runner import run_with_console
-        loop, reason = run_with_console(args, cfg, backend, new_session, started)
-    else:
-        with new_session() as session:
+    def run_alone(self):
+        """One session without the console, with the fault rehearsal armed; (its loop, the stop reason)."""
+        with self.new_session(self.record) as session:
             loop = session.loop
-            settle = started(session)
-            with inject.Armed(session, injections) as armed:
-                reason = session.run(seconds=args.seconds, activate_after_s=settle)
+            settle = self.started(session)
+            with inject.Armed(session, self.injections) as armed:
+                reason = session.run(seconds=self.args.seconds, activate_after_s=settle)
             for spec, t in armed.applied.items():
                 log.info("injected %s at t = %.3f s", spec, t)
-    tm = loop.timing_us()
-    log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
-             "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
-             100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
-             f", recorded to {args.record}" if args.record else "")
-    if stand and record is not None:
-        try:
-            _report(record, args.plot, loop.names, title=None if tmp is None else "rig run")
-        finally:
-            if tmp:
-                os.unlink(tmp)
-    elif args.record:
-        _vc_summary(args.record)
-    if loop.lc.state is State.FAULT:
-        return 1                          # the reason was logged once, when it happened
-    return 0
+        return loop, reason
+
+    def finish(self, loop, reason: str) -> int:
+        """The stop line, the stand's tracking figures or the machine's VC summary; the exit code."""
+        args, record = self.args, self.record
+        tm = loop.timing_us()
+        log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
+                 "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
+                 100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
+                 f", recorded to {args.record}" if args.record else "")
+        if self.stand and record is not None:
+            try:
+                _report(record, args.plot, loop.names, title=None if self.tmp is None else "rig run")
+            finally:
+                if self.tmp:
+                    os.unlink(self.tmp)
+        elif args.record:
+            _vc_summary(args.record)
+        if loop.lc.state is State.FAULT:
+            return 1                          # the reason was logged once, when it happened
+        return 0
 
 
 def _vc_summary(path) -> None:
