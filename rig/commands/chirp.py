@@ -170,18 +170,9 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     out = Path(out)
     if out.is_dir():
         raise RigError(f"--out {out}: is a folder, expected a recording file name")
-    mounts = layout_mounts(cfg)
-    n = 1 if backend == "sim" else len(mounts)
-    if backend == "sim":
-        m_idx, names = 0, ("stand",)
-    else:
-        if n == 1 and mount == "front_left":          # the default names the machine's first mount
-            mount = mounts[0]
-        if mount not in mounts:
-            raise RigError(f"--mount: expected one of {', '.join(mounts)}, got {mount!r}")
-        m_idx, names = mounts.index(mount), mounts
+    m_idx, names = _chirped_mount(cfg, backend, mount)
     samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt) if signal is None else signal.cmd_V
-    ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(n)]
+    ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(len(names))]
     h5_path = out if not csv else out.with_name(out.name + ".part.h5")
     total = settle_s + duration_s + 0.05        # a short null tail after the chirp
     session = Session(cfg, backend, controllers=ctrls, clock=SimClock() if sim_time else MonotonicClock(),
@@ -194,24 +185,9 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                                     "duration_s": duration_s, "fs_hz": rate, "settle_s": settle_s,
                                     "chirp": "linear" if signal is None else signal.kind,
                                     **({} if signal is None else signal.attrs())})
-    done = threading.Event()
     wall0 = time.perf_counter()
-    with session:
-        loop = session.loop
-        if on_session is not None:
-            on_session(session)
-
-        def poll():
-            while not done.wait(0.1):
-                if progress and loop.t0_ns is not None:
-                    progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9), total)
-
-        threading.Thread(target=poll, name="rig-chirp-progress", daemon=True).start()
-        try:
-            reason = session.run(seconds=total, activate_after_s=settle_s)
-        finally:
-            done.set()
-    rec = session.recorder
+    reason = _run_with_progress(session, total, settle_s, progress, on_session)
+    loop, rec = session.loop, session.recorder
     if progress and loop.t0_ns is not None:
         progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9 + loop.dt), total)
     wall = time.perf_counter() - wall0
@@ -226,6 +202,40 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
             "periods": loop.iterations, "rows_written": rec.rows_written, "dropped_rows": rec.dropped_rows,
             "overruns": loop.overruns, "skipped_periods": loop.skipped, "stop_reason": reason,
             "wall_s": wall, "simulated_time": sim_time, "compute_us": tm["compute_us"]}
+
+
+def _chirped_mount(cfg, backend: str, mount: str) -> tuple[int, tuple[str, ...] | list[str]]:
+    """The chirped mount's index and the run's mount names: sim, the one actuator on its stand; otherwise
+    --mount among the layout's mounts (the default, front_left, is the first mount of a one-mount layout)."""
+    mounts = layout_mounts(cfg)
+    if backend == "sim":
+        return 0, ("stand",)
+    if len(mounts) == 1 and mount == "front_left":          # the default names the machine's first mount
+        mount = mounts[0]
+    if mount not in mounts:
+        raise RigError(f"--mount: expected one of {', '.join(mounts)}, got {mount!r}")
+    return mounts.index(mount), mounts
+
+
+def _run_with_progress(session, total_s: float, settle_s: float, progress, on_session) -> str:
+    """Run the session for total_s, activating after settle_s; progress(t_s, total_s), if given, polled every
+    0.1 s from a helper thread. Returns the stop reason."""
+    done = threading.Event()
+    with session:
+        loop = session.loop
+        if on_session is not None:
+            on_session(session)
+
+        def poll():
+            while not done.wait(0.1):
+                if progress and loop.t0_ns is not None:
+                    progress(min(total_s, (loop.t_ns - loop.t0_ns) * 1e-9), total_s)
+
+        threading.Thread(target=poll, name="rig-chirp-progress", daemon=True).start()
+        try:
+            return session.run(seconds=total_s, activate_after_s=settle_s)
+        finally:
+            done.set()
 
 
 def run(args) -> int:
