@@ -188,6 +188,7 @@ def read_script(path) -> list[tuple[float, str]]:
 
 
 def run(args) -> int:
+    """`rig run`: plan from the options, run (alone or under the console), report; the exit code."""
     _log_to_stderr()
     plan = _RunPlan(args)
     if args.console:

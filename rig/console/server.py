@@ -376,6 +376,7 @@ class _Site:
 
 
 def create_app(state: ConsoleState, port: int):
+    """The console's Starlette application on 127.0.0.1:`port`: the routes of _Site over `state`."""
     site = _Site(state, port)
     return Starlette(routes=[Route("/", site.page), Route("/static/{path:path}", site.static),
                              Route("/api/state", site.api_state),
