@@ -36,6 +36,20 @@ from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 FRICTION_V_SCALE = 2e-5     # m/s, the tanh smoothing of sign(v) used by the recordings' simulator
 
 
+@numba.njit(cache=True, inline="always")
+def dead_zone(x, width):
+    """x less a dead zone of +-width (no output inside it); width <= 0: x unchanged.
+
+    The one rule for a spool overlap or a drive's input deadband, in every simulator and diagnosis model."""
+    if width <= 0.0:
+        return x
+    if x > width:
+        return x - width
+    if x < -width:
+        return x + width
+    return 0.0
+
+
 @dataclass(frozen=True)
 class Effects:
     delay_s: float = 0.0
@@ -109,16 +123,7 @@ def _deriv(y, i_cmd, f_dist, xg, vg, prm, out):
     # Eq. 1: second-order spool, driven by the (possibly saturated) driver current
     out[0] = vv
     out[1] = w_nv * w_nv * (i_cmd - xv) - 2.0 * zeta * w_nv * vv
-    # spool overlap: no flow inside +-dead
-    if dead > 0.0:
-        if xv > dead:
-            xe = xv - dead
-        elif xv < -dead:
-            xe = xv + dead
-        else:
-            xe = 0.0
-    else:
-        xe = xv
+    xe = dead_zone(xv, dead)                # spool overlap: no flow inside +-dead
     if base_on > 0.0:
         y_rel = xp - xb
         v_rel = vp - vb

@@ -21,6 +21,8 @@ import numba
 import numpy as np
 import scipy.linalg
 
+from sim_backend.actuator import dead_zone
+
 
 @dataclass(frozen=True)
 class Axis:
@@ -93,8 +95,7 @@ def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, 
             ud = u_hist[idx] if idx >= 0 else 0.0
             if sat > 0.0:
                 ud = min(max(ud, -sat), sat)
-            if dead > 0.0:
-                ud = ud - dead if ud > dead else (ud + dead if ud < -dead else 0.0)
+            ud = dead_zone(ud, dead)
             t = kk * T + j * h
             Fd = dist[1] * math.sin(2.0 * math.pi * dist[0] * t + dist[2]) if dist[0] > 0.0 else 0.0
             vr = 0.0; xr = 0.0

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from rig.plant.zoh import discretise, friction_velocity, run, substeps
-from sim_backend.actuator import FRICTION_V_SCALE
+from sim_backend.actuator import FRICTION_V_SCALE, dead_zone
 from sim_backend.linear import ActuatorParams
 
 
@@ -86,15 +86,7 @@ def _run_reduced(i_cmd, m, n_sub, Av, Bnew, Bold, prm, out):
             n0 = Av[0, 0] * x0 + Av[0, 1] * x1 + u0
             n1 = Av[1, 0] * x0 + Av[1, 1] * x1 + u1
             x0 = n0; x1 = n1
-            if dead > 0.0:
-                if x0 > dead:
-                    xe = x0 - dead
-                elif x0 < -dead:
-                    xe = x0 + dead
-                else:
-                    xe = 0.0
-            else:
-                xe = x0
+            xe = dead_zone(x0, dead)
             Q = KQ * xe
             if first:       # backward Euler start
                 g = h; yb = y; Pb = P
