@@ -114,14 +114,14 @@ class Loop:
         lc = gate.lc
         st = lc.state
         recording = tap.recorder is not None
-        ring, slot = tap.begin(st, gate.isolation, sched.overruns, sched.skipped) if recording \
-            else (kernel.no_ring, -1)
+        if recording:
+            tap.begin(st, gate.isolation, sched.overruns, sched.skipped)
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = sched.t0_ns
         fl = m.floor_accel_mps2 if self._floor else ()
         try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
-            code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
+            code = kernel.call(kernel.mem, tap.ring, tap.hdr, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
                                *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
@@ -143,8 +143,8 @@ class Loop:
             kernel.null_commands()
             if recording:
                 tap.flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
-        if recording:
-            tap.close(code == 0 and slot >= 0 and not faulted)
+        if recording and (faulted or code or tap.pushes):    # the kernel recorded the row as it stands
+            tap.close(code >= 0)
 
     def _held_up(self, m, wd):
         """The period's rare checks after the read: the watchdog tripped inside this period (its line, not the
@@ -224,9 +224,11 @@ class Loop:
         return self.gate.stop_reason or "stopped"
 
     def safe_stop(self) -> None:
-        """After the loop: valve to null (deactivate), safe state, watchdog off. Port stays open."""
+        """After the loop: valve to null (deactivate), safe state, watchdog off, the last row published. Port
+        stays open."""
         self.gate.safe_stop()
         self.sched.stop_watchdog()
+        self.tap.publish()
 
     # ---- the gate's requests and transitions, and the figures, as the loop's -------------------------
     def request_active(self, on: bool) -> None:

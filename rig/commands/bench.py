@@ -654,6 +654,6 @@ def _kernel_us(cfg, mode) -> float:
         for _ in range(5):
             t = time.perf_counter_ns()
             for _ in range(20000):
-                k.call(k.mem, k.no_ring, -1, *args)
+                k.call(k.mem, k.no_ring, k.no_hdr, *args)
             best = min(best, (time.perf_counter_ns() - t) / 20000 / 1e3)
     return round(best, 4)
