@@ -51,17 +51,22 @@ _ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.
 OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
-INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step")   # then MOUNT_INPUTS
+# the inputs, then MOUNT_INPUTS; state .. skipped: the row's flag columns (the lifecycle state, isolation on, the
+# scheduler's overrun and skipped counts at the period's start)
+INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step", "state", "isolation",
+          "overruns", "skipped")
 MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
-(_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP) = range(len(INPUTS))
+(_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
+ _IN_SKIP) = range(len(INPUTS))
+_FAULT_STATE = 3.0          # rig.lifecycle.State.FAULT (the row's fault column)
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
           "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
-          "r_ff_on")
+          "r_ff_on", "r_flags")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
  _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
- _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO) = range(len(HEADER))
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS) = range(len(HEADER))
 _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
 # The feedforward part of the block: the floor range, then per mount FF_TABLE
 FF_TABLE = ("coef", "n_sections", "state", "fade")
@@ -70,6 +75,18 @@ FF_TABLE = ("coef", "n_sections", "state", "fade")
 # the recorder ring's producer rule (rig/ring.py), compiled into the period
 _publish = numba.njit(cache=True, inline="always")(ring_rule.publish)
 _claim = numba.njit(cache=True, inline="always")(ring_rule.claim)
+
+
+@numba.njit("void(float64[::1], float64, float64, float64, float64)", cache=True)
+def row_flags(mem, state, isolation, overruns, skipped):
+    """The row's flag columns (layout.FLAG_CHANNELS: lifecycle_state, isolation_on, fault, overruns,
+    skipped_periods, in this order): every period in run_period, and by the loop after a period faulted."""
+    r = int(mem[_H_ROW]) + int(mem[_H_RFLAGS])
+    mem[r] = state
+    mem[r + 1] = isolation
+    mem[r + 2] = 1.0 if state == _FAULT_STATE else 0.0
+    mem[r + 3] = overruns
+    mem[r + 4] = skipped
 
 
 @numba.njit(cache=True, inline="always")
@@ -202,6 +219,7 @@ def run_period(mem, ring, hdr):
         for j in range(npub * n):
             k = int(mem[pub + j])
             row[rp + j] = mem[k] if k >= 0 else np.nan
+    row_flags(mem, mem[i + _IN_STATE], mem[i + _IN_ISO], mem[i + _IN_OVER], mem[i + _IN_SKIP])
     row[int(mem[_H_RL])] = flags[_F_LIMITED]
     row[int(mem[_H_RT])] = mem[i + _IN_T_S]
     row[int(mem[_H_RW])] = mem[i + _IN_WAKE]
@@ -318,7 +336,7 @@ class PeriodKernel:
                              off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
                              nf, off["ff"],
                              *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                               else (lay.ncols,) * 3))
+                               else (lay.ncols,) * 3), lay["lifecycle_state"])
         mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
                                                           + self.osc.limits())
         self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
@@ -376,15 +394,20 @@ class PeriodKernel:
         return len(older)
 
     def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
-               ring=None, hdr=None) -> int:
+               ring=None, hdr=None, flags=(0, False, 0, 0)) -> int:
         """One period for the measurement `m` (rig.port.Measurements): 0 or a rule's code; given a recorder's
-        ring and header, its row written there. (The loop makes this call itself, inlined, on its hot path.)"""
+        ring and header, its row written there; flags: the row's (lifecycle state, isolation, overruns,
+        skipped). (The loop makes this call itself, inlined, on its hot path.)"""
         ns = m.new_samples
         if ring is None:
             ring, hdr = self.no_ring, self.no_hdr
         return self.call(self.mem, ring, hdr, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
-                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
+                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0, *flags,
                          *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
+
+    def record_flags(self, state, isolation: bool, overruns: int, skipped: int) -> None:
+        """The row's flag columns, after a period that faulted past the compiled call (row_flags)."""
+        row_flags(self.mem, float(state), float(isolation), float(overruns), float(skipped))
 
     def raw_commands(self) -> list:
         """The controllers' commands of the last period, before the limits (the row's valve_cmd_raw_V)."""

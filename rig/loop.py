@@ -114,8 +114,8 @@ class Loop:
         lc = gate.lc
         st = lc.state
         recording = tap.recorder is not None
-        if recording:
-            tap.begin(st, gate.isolation, sched.overruns, sched.skipped)
+        if tap.waits:
+            tap.wait_room()                 # simulated time: the writer's room for the row
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = sched.t0_ns
@@ -124,6 +124,7 @@ class Loop:
             code = kernel.call(kernel.mem, tap.ring, tap.hdr, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
+                               st, gate.isolation, sched.overruns, sched.skipped,
                                *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
         except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
             gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
@@ -141,8 +142,7 @@ class Loop:
         faulted = lc.state is not st
         if faulted:                          # the period is recorded with its fault and nothing written
             kernel.null_commands()
-            if recording:
-                tap.flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
+            kernel.record_flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
         if recording and (faulted or code or tap.pushes):    # the kernel recorded the row as it stands
             tap.close(code >= 0)
 

@@ -6,7 +6,6 @@ own into the next row of the shared ring (rig/ring.py), so nothing of it runs in
 period that faults after the compiled call (a port write that fails) has its row corrected here, in place,
 before the next period publishes it; the row of the run's last period is published when the run ends or the
 recorder changes. Any other recorder (an adapter keeping a few columns) gets push_row(row) after the period.
-The rare flag columns are written into the row only when they change (`begin`).
 """
 from __future__ import annotations
 
@@ -14,21 +13,16 @@ from operator import itemgetter
 
 from rig import ring as rr
 from rig.kernel import ring_ok
-from rig.lifecycle import State
 
 
 class RecordingTap:
     def __init__(self, kernel) -> None:
         self.kernel = kernel
         self.row = kernel.row
-        lay = kernel.layout
-        self._i_state, self._i_iso, self._i_fault = lay["lifecycle_state"], lay["isolation_on"], lay["fault"]
-        self._i_over, self._i_skip = lay["overruns"], lay["skipped_periods"]
         self.recorder = None
         self.ring, self.hdr = kernel.no_ring, kernel.no_hdr     # what the kernel writes (no rows: nothing)
         self.pushes = False             # the recorder takes push_row after the period (no ring of its own)
-        self._waits = False             # simulated time: wait for the writer rather than drop
-        self._flags = None
+        self.waits = False              # simulated time: wait for the writer rather than drop
 
     def bind(self, recorder) -> None:
         """Record into `recorder` from the next period on (None: nothing recorded). The row the old one got
@@ -45,8 +39,7 @@ class RecordingTap:
             ring, hdr = self.kernel.no_ring, self.kernel.no_hdr
         self.ring, self.hdr = ring, hdr
         self.pushes = recorder is not None and ring is self.kernel.no_ring
-        self._waits = bool(getattr(recorder, "wait_when_full", False)) and not self.pushes
-        self._flags = None
+        self.waits = bool(getattr(recorder, "wait_when_full", False)) and not self.pushes
         self.recorder = recorder
 
     def publish(self) -> None:
@@ -54,24 +47,10 @@ class RecordingTap:
         if self.ring.shape[0]:
             rr.publish(self.hdr)
 
-    def flags(self, state: State, isolation: bool, overruns: int, skipped: int) -> None:
-        """The rare flags into the row, only when they changed (the row keeps them between periods)."""
-        f = (state, isolation, overruns, skipped)
-        if f != self._flags:
-            self._flags = f
-            row = self.row
-            row[self._i_state] = float(state)
-            row[self._i_iso] = 1.0 if isolation else 0.0
-            row[self._i_fault] = 1.0 if state is State.FAULT else 0.0
-            row[self._i_over] = float(overruns)
-            row[self._i_skip] = float(skipped)
-
-    def begin(self, state: State, isolation: bool, overruns: int, skipped: int) -> None:
-        """A recorded period begins: its flags (flags(), when they changed); in simulated time the writer is
-        given room for the row (the loop's hot path: one call)."""
-        if (state, isolation, overruns, skipped) != self._flags:
-            self.flags(state, isolation, overruns, skipped)
-        if self._waits:
+    def wait_room(self) -> None:
+        """Simulated time: the writer makes room for the period's row before the compiled call (not waited for
+        on the real clock: a full ring drops the row)."""
+        if self.waits:
             self.recorder.wait_room()
 
     def close(self, written: bool) -> None:

@@ -649,7 +649,7 @@ def _kernel_us(cfg, mode) -> float:
     with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
         s.run(seconds=0.1, activate_after_s=0.01)
         k, m = s.loop.kernel, s.loop.last_meas
-        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
+        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, 2, True, 0, 0, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
         best = math.inf
         for _ in range(5):
             t = time.perf_counter_ns()
