@@ -16,7 +16,8 @@
   work of one period (wake-up to the next sleep: read, kernel, write, record and the loop's own bookkeeping)
   is measured; if its median exceeds period_budget of the period the loop cannot hold the rate on this
   machine, and the run is refused (RateRefused, a ConfigError, after a safe stop) with the figures.
-- An optional Port.idle() runs in the slack after a period when at least half a period is left.
+- `idle` (the loop's slack work: its 10 Hz watch when due, and an optional Port.idle()) runs in the slack after
+  a period when at least half a period is left.
 - The stop period: an ACTIVE run stops through one INACTIVE period (valve null written, the period
   recorded), so the recording ends with the null the valve got: the last period of a run of `seconds` or
   `iterations`, or the period after a stop request (a signal, the control file, a console).
