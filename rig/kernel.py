@@ -37,6 +37,7 @@ from controllers.playback import playback_step
 from controllers.tracking import track_step
 from rig.config import MAX_MOUNTS, Config
 from rig.errors import ConfigError
+from rig import ring as ring_rule
 from rig.layout import RowLayout, loop_channels
 from rig.recorder import Channel
 from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
@@ -50,20 +51,42 @@ _ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.
 OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
-INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step")   # then MOUNT_INPUTS
+# the inputs, then MOUNT_INPUTS; state .. skipped: the row's flag columns (the lifecycle state, isolation on, the
+# scheduler's overrun and skipped counts at the period's start)
+INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step", "state", "isolation",
+          "overruns", "skipped")
 MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
-(_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP) = range(len(INPUTS))
+(_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
+ _IN_SKIP) = range(len(INPUTS))
+_FAULT_STATE = 3.0          # rig.lifecycle.State.FAULT (the row's fault column)
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
           "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
-          "r_ff_on")
+          "r_ff_on", "r_flags")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
  _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
- _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO) = range(len(HEADER))
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS) = range(len(HEADER))
 _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
 # The feedforward part of the block: the floor range, then per mount FF_TABLE
 FF_TABLE = ("coef", "n_sections", "state", "fade")
+
+
+# the recorder ring's producer rule (rig/ring.py), compiled into the period
+_publish = numba.njit(cache=True, inline="always")(ring_rule.publish)
+_claim = numba.njit(cache=True, inline="always")(ring_rule.claim)
+
+
+@numba.njit("void(float64[::1], float64, float64, float64, float64)", cache=True)
+def row_flags(mem, state, isolation, overruns, skipped):
+    """The row's flag columns (layout.FLAG_CHANNELS: lifecycle_state, isolation_on, fault, overruns,
+    skipped_periods, in this order): every period in run_period, and by the loop after a period faulted."""
+    r = int(mem[_H_ROW]) + int(mem[_H_RFLAGS])
+    mem[r] = state
+    mem[r + 1] = isolation
+    mem[r + 2] = 1.0 if state == _FAULT_STATE else 0.0
+    mem[r + 3] = overruns
+    mem[r + 4] = skipped
 
 
 @numba.njit(cache=True, inline="always")
@@ -127,11 +150,13 @@ def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
 
 
 @numba.njit(cache=True)
-def run_period(mem, ring, slot):
+def run_period(mem, ring, hdr):
     """One period on the block: check the measurement; step the controllers (unless the port has no new
-    conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; with
-    slot >= 0 copy the row into ring[slot] (the recorder's; the caller commits). FAULT: the row only.
-    0, or a rule's code (rig/safety.py): then nothing is copied, the caller records the period itself."""
+    conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; given a
+    recorder's ring (rows > 0) and its header (rig/ring.py), publish the row of the period before and write
+    this one into the next row, claimed (a full ring: dropped and counted). FAULT: the row only.
+    0, or a rule's code (rig/safety.py): the caller then corrects the claimed row (its fault, null commands)
+    before the next period publishes it."""
     n = int(mem[_H_N])
     i = int(mem[_H_IN])
     mode = int(mem[i + _IN_MODE])
@@ -194,6 +219,7 @@ def run_period(mem, ring, slot):
         for j in range(npub * n):
             k = int(mem[pub + j])
             row[rp + j] = mem[k] if k >= 0 else np.nan
+    row_flags(mem, mem[i + _IN_STATE], mem[i + _IN_ISO], mem[i + _IN_OVER], mem[i + _IN_SKIP])
     row[int(mem[_H_RL])] = flags[_F_LIMITED]
     row[int(mem[_H_RT])] = mem[i + _IN_T_S]
     row[int(mem[_H_RW])] = mem[i + _IN_WAKE]
@@ -201,8 +227,12 @@ def run_period(mem, ring, slot):
     if nf:          # the switch request of the first mount's feedforward (they switch together)
         b = int(mem[_H_FF]) + 1
         row[int(mem[_H_RO])] = mem[int(mem[b + 2]) + 2 * int(mem[b + 1]) + 1]
-    if code == 0 and slot >= 0:
-        ring[slot, :] = row
+    cap = ring.shape[0]
+    if cap > 0:
+        _publish(hdr)
+        slot = _claim(hdr, cap)
+        if slot >= 0:
+            ring[slot, :] = row
     return code
 
 
@@ -221,12 +251,12 @@ def period_entry(n: int, floor: bool = False):
         meas += [f"g{i}" for i in range(n)] if floor else []
         args = list(INPUTS) + meas
         name = f"period_{n}{'_floor' if floor else ''}"
-        src = (f"def {name}(mem, ring, slot, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
+        src = (f"def {name}(mem, ring, hdr, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
                + "".join(f"    mem[i + {k}] = {a}\n" for k, a in enumerate(args))
-               + "    return run_period(mem, ring, slot)\n")
+               + "    return run_period(mem, ring, hdr)\n")
         scope = {"run_period": run_period}
         exec(src, scope)
-        sig = f"int64(float64[::1], float64[:, ::1], int64, {', '.join(['float64'] * len(args))})"
+        sig = f"int64(float64[::1], float64[:, ::1], int64[::1], {', '.join(['float64'] * len(args))})"
         _ENTRIES[key] = native_entry(numba.njit(sig)(scope[name]))
     return _ENTRIES[key]
 
@@ -234,7 +264,7 @@ def period_entry(n: int, floor: bool = False):
 def native_entry(dispatcher):
     """The compiled function's own entry point (argument unboxing only) for its one compiled signature,
     skipping the dispatcher's type resolution. The caller must pass exactly those types (a C-contiguous
-    float64 block, a 2-D C-contiguous float64 ring: ring_ok, an int). Falls back to the dispatcher where
+    float64 block, a 2-D C-contiguous float64 ring: ring_ok, its int64 header). Falls back to the dispatcher where
     numba does not offer this."""
     try:
         (sig,) = dispatcher.signatures
@@ -243,10 +273,13 @@ def native_entry(dispatcher):
         return dispatcher
 
 
-def ring_ok(ring) -> bool:
-    """A recorder ring the kernel may write: 2-D C-contiguous float64 (native_entry checks nothing)."""
+def ring_ok(ring, hdr) -> bool:
+    """A recorder ring the kernel may write: 2-D C-contiguous float64 rows, and its header: C-contiguous
+    int64 of rig/ring.py HEADER's words (native_entry checks nothing)."""
     return (isinstance(ring, np.ndarray) and ring.ndim == 2 and ring.dtype == np.float64
-            and ring.flags.c_contiguous and ring.flags.writeable)
+            and ring.flags.c_contiguous and ring.flags.writeable
+            and isinstance(hdr, np.ndarray) and hdr.ndim == 1 and hdr.dtype == np.int64
+            and hdr.flags.c_contiguous and hdr.flags.writeable and hdr.size >= len(ring_rule.HEADER))
 
 
 class PeriodKernel:
@@ -303,7 +336,7 @@ class PeriodKernel:
                              off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
                              nf, off["ff"],
                              *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                               else (lay.ncols,) * 3))
+                               else (lay.ncols,) * 3), lay["lifecycle_state"])
         mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
                                                           + self.osc.limits())
         self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
@@ -336,7 +369,8 @@ class PeriodKernel:
         self.flags = mem[off["flags"]:off["flags"] + len(LIMITER_FLAGS)]
         self.limiter.view(self.last_cmd, self.flags)
         self.row = mem[off["row"]:off["row"] + lay.ncols]
-        self.no_ring = np.zeros((1, lay.ncols))       # stands in for the ring without a recorder (slot -1)
+        self.no_ring = np.zeros((0, lay.ncols))       # stands in for the ring without a recorder (no rows) ...
+        self.no_hdr = np.zeros(len(ring_rule.HEADER), dtype=np.int64)     # ... and for its header
         self._older_bytes = 8 * off["older"]
         self._older_width = n + nf                  # a conversion: mount accelerations, then floor ones
         self._pack_older = struct.Struct(f"<{n + nf}d").pack_into
@@ -360,13 +394,20 @@ class PeriodKernel:
         return len(older)
 
     def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
-               ring, slot: int) -> int:
-        """One period for the measurement `m` (rig.port.Measurements): 0 or a rule's code. (The loop makes
-        this call itself, inlined, on its hot path.)"""
+               ring=None, hdr=None, flags=(0, False, 0, 0)) -> int:
+        """One period for the measurement `m` (rig.port.Measurements): 0 or a rule's code; given a recorder's
+        ring and header, its row written there; flags: the row's (lifecycle state, isolation, overruns,
+        skipped). (The loop makes this call itself, inlined, on its hot path.)"""
         ns = m.new_samples
-        return self.call(self.mem, ring, slot, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
-                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
+        if ring is None:
+            ring, hdr = self.no_ring, self.no_hdr
+        return self.call(self.mem, ring, hdr, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
+                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0, *flags,
                          *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
+
+    def record_flags(self, state, isolation: bool, overruns: int, skipped: int) -> None:
+        """The row's flag columns, after a period that faulted past the compiled call (row_flags)."""
+        row_flags(self.mem, float(state), float(isolation), float(overruns), float(skipped))
 
     def raw_commands(self) -> list:
         """The controllers' commands of the last period, before the limits (the row's valve_cmd_raw_V)."""

@@ -13,8 +13,9 @@ the controllers once per conversion, in order, older ones first; a period withou
 command. Skipped periods are replayed into the controllers (at most MAX_HELD_STEPS; longer gaps fault on the
 watchdog anyway). Any exception of the port is a fault, never a silent death. The controllers' saturation
 recovery suspending or resuming a mount's isolation is logged and recorded as an event once per change
-(checked at 10 Hz, off the per-period path), and so is the recorder's writer process: if it dies while the
-loop records, the run faults at once (valves to null) and says so. A run stops through one INACTIVE period
+(checked at 10 Hz; on the real clock in the slack after a period, not in its time: rare code runs from cold
+caches, tens of us), and so is the recorder's writer process: if it dies while the loop records, the run
+faults at once (valves to null) and says so. A run stops through one INACTIVE period
 (rig/scheduler.py): its last recorded row has the valve at null. With floor feedforward filters (one per
 mount) the loop takes the port's floor accelerometers (Measurements.floor_accel_mps2) and the isolation mode
 (off / feedback / feedback_feedforward) is switched through the gate's requests.
@@ -86,6 +87,10 @@ class Loop:
         self._last_cycle_t = None            # start of the previous cycle (skipped periods in between)
         self._susp_every = max(1, int(round(0.1 * self.rate_hz)))   # suspension watch (event/log), 10 Hz
         self._susp_count = self._susp_every
+        # the 10 Hz watch runs in the period when its count reaches this: 0 in simulated time; on the real clock
+        # it runs in the slack after a period (_slack) and in the period only when no slack came for another
+        # 0.1 s: rare code is slow code (tens of us from cold caches), kept out of the period's time
+        self._watch_late = 0 if not self.clock.is_real else -self._susp_every
         self._susp = [False] * self.n
 
     # ---- one period ----------------------------------------------------------------------------------
@@ -97,11 +102,8 @@ class Loop:
         if gate.pending:
             gate.apply_requests()
         self._susp_count -= 1
-        if self._susp_count <= 0:           # 10 Hz: suspension events; the recorder's writer alive
-            self._susp_count = self._susp_every
-            self._watch_suspension()
-            if tap.recorder is not None:
-                self._watch_recorder()
+        if self._susp_count <= self._watch_late:    # 10 Hz: suspension events; the recorder's writer alive
+            self._watch()
         try:
             m = self.port.read(t_ns)
         except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
@@ -114,16 +116,17 @@ class Loop:
         lc = gate.lc
         st = lc.state
         recording = tap.recorder is not None
-        ring, slot = tap.begin(st, gate.isolation, sched.overruns, sched.skipped) if recording \
-            else (kernel.no_ring, -1)
+        if tap.waits:
+            tap.wait_room()                 # simulated time: the writer's room for the row
         ns = m.new_samples
         miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = sched.t0_ns
         fl = m.floor_accel_mps2 if self._floor else ()
         try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
-            code = kernel.call(kernel.mem, ring, slot, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
+            code = kernel.call(kernel.mem, tap.ring, tap.hdr, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
                                wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
                                kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
+                               st, gate.isolation, sched.overruns, sched.skipped,
                                *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
         except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
             gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
@@ -141,10 +144,25 @@ class Loop:
         faulted = lc.state is not st
         if faulted:                          # the period is recorded with its fault and nothing written
             kernel.null_commands()
-            if recording:
-                tap.flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
-        if recording:
-            tap.close(code == 0 and slot >= 0 and not faulted)
+            kernel.record_flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
+        if recording and (faulted or code or tap.pushes):    # the kernel recorded the row as it stands
+            tap.close(code >= 0)
+
+    def _watch(self) -> None:
+        """The 10 Hz watch: the controllers' saturation recovery (events), the recorder's writer alive."""
+        self._susp_count = self._susp_every
+        self._watch_suspension()
+        if self.tap.recorder is not None:
+            self._watch_recorder()
+
+    def _slack(self) -> None:
+        """The real clock's slack after a period (the scheduler calls it when half a period is left): the 10 Hz
+        watch when due, then the port's own housekeeping."""
+        if self._susp_count <= 0:
+            self._watch()
+        idle = getattr(self.port, "idle", None)
+        if idle is not None:
+            idle()
 
     def _held_up(self, m, wd):
         """The period's rare checks after the read: the watchdog tripped inside this period (its line, not the
@@ -216,7 +234,7 @@ class Loop:
         self.sched.start_watchdog(self.port.safe_state)
         try:
             self.sched.run(self.cycle, self.gate, seconds=seconds, iterations=iterations,
-                           activate_after_s=activate_after_s, idle=getattr(self.port, "idle", None))
+                           activate_after_s=activate_after_s, idle=self._slack)
         except KeyboardInterrupt:
             self.gate.stop("SIGINT")
         finally:
@@ -224,9 +242,11 @@ class Loop:
         return self.gate.stop_reason or "stopped"
 
     def safe_stop(self) -> None:
-        """After the loop: valve to null (deactivate), safe state, watchdog off. Port stays open."""
+        """After the loop: valve to null (deactivate), safe state, watchdog off, the last row published. Port
+        stays open."""
         self.gate.safe_stop()
         self.sched.stop_watchdog()
+        self.tap.publish()
 
     # ---- the gate's requests and transitions, and the figures, as the loop's -------------------------
     def request_active(self, on: bool) -> None:

@@ -1,7 +1,8 @@
 """Recording that never blocks the loop: a preallocated ring drained by a writer into HDF5 (h5py).
 
-The loop pushes one row of floats per period (`push`: a struct.pack_into into the ring, then the head
-counter; no allocation, no lock, single producer and single consumer). The writer appends the rows to
+The loop's compiled period writes one row of floats per period straight into the ring (rig/ring.py: the
+producer's rule over the ring's header, the same functions Recorder.push runs; no allocation, no lock,
+single producer and single consumer). The writer appends the rows to
 chunked, resizable datasets, one per channel (width 1 -> shape (n,), width w -> (n, w)), with the unit as
 an attribute, and flushes the file every flush_s (<= 0.1 s): a kill -9 loses at most the last flush
 interval and the file still opens. A full ring drops the row and counts it (`dropped_rows`), never waits.
@@ -50,12 +51,13 @@ from pathlib import Path
 
 import numpy as np
 
+from rig import ring as rr
 from rig.errors import RecordingError
 from rig.rt import raise_priority
 
 log = logging.getLogger("rig.recorder")
 
-_HDR = 64                        # ring header: head (int64 @0), tail (int64 @8)
+_HDR = 64                        # ring header: rig/ring.py HEADER (int64 words: head @0, tail @8, dropped, pending)
 _Q = struct.Struct("<q")
 WRITER_PRIORITY = 20             # SCHED_FIFO of the writer in real-time runs (loop 80, drivers 55, HIL devices 50)
 COMPRESSION = ("gzip", None)     # gzip: shuffle + deflate level 1 (see the module docstring); None: raw
@@ -94,9 +96,8 @@ class Recorder:
         self._cap = max(int(ring_s * rate_hz), 4 * chunk_rows, 1024)
         self._rowbytes = 8 * self.ncols
         self._pack = struct.Struct(f"<{self.ncols}d").pack_into
-        self._head = 0
-        self._tail_seen = 0
-        self.dropped_rows = 0
+        self._hdr: np.ndarray | None = None      # ring_header(): the producer's state, on the shared map
+        self._dropped_final = 0
         self.rows_written = 0
         self.error: str | None = None
         self._proc: subprocess.Popen | None = None
@@ -123,6 +124,7 @@ class Recorder:
         try:
             os.ftruncate(fd, _HDR + self._cap * self._rowbytes)
             self._mm = mmap.mmap(fd, _HDR + self._cap * self._rowbytes)
+            self._hdr = np.frombuffer(self._mm, dtype=np.int64, count=len(rr.HEADER))
         finally:
             os.close(fd)
         spec = {"path": str(self.path), "ring": ring_path, "cap": self._cap, "ncols": self.ncols,
@@ -152,6 +154,7 @@ class Recorder:
         """Drain everything, write final attributes, close. Raises RecordingError if writing failed."""
         if self._proc is None:
             return
+        rr.publish(self._hdr)                  # the last row claimed (the loop's stop period)
         try:
             self._send({"close": True, "attrs": {k: _jsonable(v) for k, v in final_attrs.items()},
                         "dropped_rows": self.dropped_rows})
@@ -168,7 +171,8 @@ class Recorder:
             self.error = f"writer exited with code {self._proc.returncode}"
         self._proc = None
         if self._mm is not None:
-            self._ring = None
+            self._dropped_final = self.dropped_rows
+            self._ring = self._hdr = None
             try:
                 self._mm.close()
             except BufferError:                # a ring_rows() view is still held: unmapped with it
@@ -187,60 +191,56 @@ class Recorder:
         self._proc.stdin.flush()
 
     # ---- the period -----------------------------------------------------------------------------------
-    def _slot(self) -> int:
-        """Byte offset of the next free row in the ring, or -1 when it is full (the row is dropped, counted)."""
-        r = self.next_row()
-        return -1 if r < 0 else _HDR + r * self._rowbytes
-
-    def next_row(self) -> int:
-        """Index in ring_rows() of the next free row, or -1 when the ring is full (the row is dropped and
-        counted). Filling the row and then commit() is push_row by hand (the loop's compiled period)."""
-        h = self._head
-        if h - self._tail_seen >= self._cap:
-            self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
-            while self.wait_when_full and h - self._tail_seen >= self._cap and self._proc is not None \
-                    and self._proc.poll() is None:
-                time.sleep(0.0005)
-                self._tail_seen = _Q.unpack_from(self._mm, 8)[0]
-            if h - self._tail_seen >= self._cap:
-                self.dropped_rows += 1
-                return -1
-        return h % self._cap
-
     def ring_rows(self) -> np.ndarray:
-        """The ring as a (rows, ncols) float64 array on the shared map (written in place, then commit())."""
+        """The ring as a (rows, ncols) float64 array on the shared map (rows claimed by rig/ring.py claim)."""
         if self._ring is None:
             self._ring = np.frombuffer(self._mm, dtype=np.float64, count=self._cap * self.ncols,
                                        offset=_HDR).reshape(self._cap, self.ncols)
         return self._ring
 
+    def ring_header(self) -> np.ndarray:
+        """The ring's header (rig/ring.py HEADER, int64 on the shared map): the producer's state. The loop's
+        compiled period claims, writes and publishes its rows through it."""
+        return self._hdr
+
+    def wait_room(self) -> None:
+        """Simulated time (wait_when_full): wait until the writer has made room for one more row, instead of
+        the row being dropped (nothing is late there). On the real clock: nothing, the row is dropped."""
+        if self.wait_when_full:
+            while rr.room(self._hdr, self._cap) <= 0 and self._proc is not None and self._proc.poll() is None:
+                time.sleep(0.0005)
+
     @property
     def committed(self) -> int:
         """Rows published to the ring so far (its head): another reader of the ring (a console) follows it."""
-        return self._head
+        return int(self._hdr[rr.HEAD]) if self._hdr is not None else self.rows_written
 
-    def commit(self) -> None:
-        """Publish the row filled at next_row() to the writer."""
-        self._head = h = self._head + 1
-        _Q.pack_into(self._mm, 0, h)           # publish after the row (x86 stores are not reordered)
+    @property
+    def dropped_rows(self) -> int:
+        """Rows dropped because the ring was full (counted by the producer, in the ring's header)."""
+        return int(self._hdr[rr.DROPPED]) if self._hdr is not None else self._dropped_final
 
     def push(self, *values: float) -> bool:
-        """Append one row (ncols floats, in channel order). Never blocks; False if dropped (ring full)."""
-        off = self._slot()
-        if off < 0:
+        """Append one row (ncols floats, in channel order). Never blocks on the real clock; False if dropped
+        (ring full)."""
+        self.wait_room()
+        r = rr.claim(self._hdr, self._cap)
+        if r < 0:
             return False
-        self._pack(self._mm, off, *values)
-        self.commit()
+        self._pack(self._mm, _HDR + r * self._rowbytes, *values)
+        rr.publish(self._hdr)
         return True
 
     def push_row(self, row) -> bool:
         """push() for a row already packed in a float64 buffer of ncols values (one copy, no argument
-        unpacking: the loop's compiled path). Never blocks; False if dropped (ring full)."""
-        off = self._slot()
-        if off < 0:
+        unpacking). Never blocks on the real clock; False if dropped (ring full)."""
+        self.wait_room()
+        r = rr.claim(self._hdr, self._cap)
+        if r < 0:
             return False
+        off = _HDR + r * self._rowbytes
         self._mm[off:off + self._rowbytes] = row      # exact size or IndexError: the layout must match
-        self.commit()
+        rr.publish(self._hdr)
         return True
 
     def event(self, t_s: float, text: str) -> None:
@@ -253,12 +253,12 @@ class Recorder:
 
     def free_rows(self) -> int:
         """Rows the ring can take now without dropping (for producers that may wait, not the loop)."""
-        return self._cap - (self._head - _Q.unpack_from(self._mm, 8)[0])
+        return rr.room(self._hdr, self._cap)
 
     @property
     def rows_committed(self) -> int:
-        """Rows the producer has committed to the ring so far."""
-        return self._head
+        """Rows the producer has committed (published) to the ring so far."""
+        return self.committed
 
     @property
     def pid(self) -> int | None:

@@ -11,12 +11,14 @@
   the period the limit is crossed.
 - The missed-deadline rule: more than missed_limit of the periods scheduled over the last missed_window_s
   missed their deadline -> fault. Counted in MISS_BLOCKS blocks of loop time per window (a few integer
-  operations at a block's end, nothing per period beyond a compare).
+  operations at a block's end, nothing per period beyond a compare), judged after that period's work (rare
+  code runs from cold caches: tens of us, kept out of the period's time; the fault comes with the next one).
 - The start-up rate check (rate_check): over the first periods (START_MIN_S, 50 to 2000 periods) the
   work of one period (wake-up to the next sleep: read, kernel, write, record and the loop's own bookkeeping)
   is measured; if its median exceeds period_budget of the period the loop cannot hold the rate on this
   machine, and the run is refused (RateRefused, a ConfigError, after a safe stop) with the figures.
-- An optional Port.idle() runs in the slack after a period when at least half a period is left.
+- `idle` (the loop's slack work: its 10 Hz watch when due, and an optional Port.idle()) runs in the slack after
+  a period when at least half a period is left.
 - The stop period: an ACTIVE run stops through one INACTIVE period (valve null written, the period
   recorded), so the recording ends with the null the valve got: the last period of a run of `seconds` or
   `iterations`, or the period after a stop request (a signal, the control file, a console).
@@ -83,8 +85,10 @@ class Scheduler:
         self.start_figures: dict | None = None
 
     def measure_cpu(self) -> None:
-        """Also record each period's CPU time of the loop thread (time.thread_time_ns, about 1 us a call, so
-        benchmarks only): the period's own work without the time the host gave other processes in it."""
+        """Also record each period's CPU time of the loop thread from its wake-up to the end of its work
+        (time.thread_time_ns, about 1 us a call, so benchmarks only; read just before the wake-up time, so the
+        compute figure does not hold it): the period's own work without the time the host gave other
+        processes in it."""
         self.cpu_ns = array.array("q", bytes(8 * self.keep))
 
     def start_watchdog(self, on_trip) -> None:
@@ -120,6 +124,7 @@ class Scheduler:
         lag_ns = self.lag_ns
         block_t = t + self._block_ns                       # the end of the current block (loop time)
         block_start = (self.overruns + self.skipped, self.iterations + self.skipped)
+        block_end = None                                   # (missed, scheduled) of a block just ended
         busy_a = self.busy_ns
         cpu_a = self.cpu_ns
         cpu_now = time.thread_time_ns
@@ -148,6 +153,8 @@ class Scheduler:
                 if self._start_done == self._start_n:
                     self._check_rate(gate, time.thread_time_ns(), now)
             sleep_until(t)
+            if cpu_a is not None:
+                c0 = cpu_now()                             # (a syscall: outside the compute it measures)
             wake = now_ns()
             if prev_wake is not None and wake - prev_wake > watchdog_ns and gate.state is not _FAULT:
                 gate.t_ns = t
@@ -160,8 +167,7 @@ class Scheduler:
             if t >= block_t:                             # a block of loop time ended: the missed-deadline rule
                 block_t = t + self._block_ns
                 now = (self.overruns + self.skipped, self.iterations + self.skipped)
-                gate.t_ns = t
-                self._missed_block(gate, now[0] - block_start[0], now[1] - block_start[1])
+                block_end = (now[0] - block_start[0], now[1] - block_start[1])     # judged after the period
                 block_start = now
             if wd is not None:
                 wd.beat += 1
@@ -177,13 +183,16 @@ class Scheduler:
                 done = now_ns()
                 j = self.iterations % keep
             else:
-                c0 = cpu_now()
                 cycle(t, wake - t, compute_prev)
                 done = now_ns()
                 j = self.iterations % keep
                 cpu_a[j] = cpu_now() - c0
             wake_a[j] = wake - t
             comp_a[j] = compute_prev = done - wake
+            if block_end is not None:                    # rare code (cold caches): outside the period's time
+                gate.t_ns = t
+                self._missed_block(gate, *block_end)
+                block_end = None
             self.iterations += 1
             t += period
             if done > t:

@@ -1,76 +1,75 @@
 """The recording tap: the kernel's row of each period into the recorder, without blocking the loop.
 
-With a rig.recorder.Recorder of the loop's layout the kernel copies the row straight into the recorder's
-shared ring (a slot from Recorder.next_row; committed here after the port write, so a period that faults
-after the kernel is recorded with its fault). Any other recorder (an adapter keeping a few columns) gets
-push_row(row) after the period. The rare flag columns are written into the row only when they change (begin: flags and slot in one call).
+With a recorder that offers its ring (rig.recorder.Recorder of the loop's layout, the console's live ring)
+the compiled period does the recording itself: it publishes the row of the period before and writes its
+own into the next row of the shared ring (rig/ring.py), so nothing of it runs in Python per period. A
+period that faults after the compiled call (a port write that fails) has its row corrected here, in place,
+before the next period publishes it; the row of the run's last period is published when the run ends or the
+recorder changes. Any other recorder (an adapter keeping a few columns) gets push_row(row) after the period.
 """
 from __future__ import annotations
 
 from operator import itemgetter
 
+from rig import ring as rr
 from rig.kernel import ring_ok
-from rig.lifecycle import State
 
 
 class RecordingTap:
     def __init__(self, kernel) -> None:
         self.kernel = kernel
         self.row = kernel.row
-        lay = kernel.layout
-        self._i_state, self._i_iso, self._i_fault = lay["lifecycle_state"], lay["isolation_on"], lay["fault"]
-        self._i_over, self._i_skip = lay["overruns"], lay["skipped_periods"]
         self.recorder = None
-        self._ring = None
-        self._flags = None
-        self._slot = -1
+        self.ring, self.hdr = kernel.no_ring, kernel.no_hdr     # what the kernel writes (no rows: nothing)
+        self.pushes = False             # the recorder takes push_row after the period (no ring of its own)
+        self.waits = False              # simulated time: wait for the writer rather than drop
 
     def bind(self, recorder) -> None:
-        """Record into `recorder` from the next period on (None: nothing recorded). The recorder is set last:
-        another thread that sees it changed may close the old one."""
-        ring = None
+        """Record into `recorder` from the next period on (None: nothing recorded). The row the old one got
+        last is published first. The recorder is set last: another thread that sees it changed may close the
+        old one."""
+        self.publish()
+        ring = hdr = None
         if recorder is not None and getattr(recorder, "ncols", None) == len(self.row) and \
-                hasattr(recorder, "ring_rows") and hasattr(recorder, "next_row"):
-            ring = recorder.ring_rows()
-            ring = ring if ring_ok(ring) else None
-        self._ring = ring
-        self._flags = None
+                hasattr(recorder, "ring_rows") and hasattr(recorder, "ring_header"):
+            ring, hdr = recorder.ring_rows(), recorder.ring_header()
+            if not ring_ok(ring, hdr):
+                ring = hdr = None
+        if ring is None:
+            ring, hdr = self.kernel.no_ring, self.kernel.no_hdr
+        self.ring, self.hdr = ring, hdr
+        self.pushes = recorder is not None and ring is self.kernel.no_ring
+        self.waits = bool(getattr(recorder, "wait_when_full", False)) and not self.pushes
         self.recorder = recorder
 
-    def flags(self, state: State, isolation: bool, overruns: int, skipped: int) -> None:
-        """The rare flags into the row, only when they changed (the row keeps them between periods)."""
-        f = (state, isolation, overruns, skipped)
-        if f != self._flags:
-            self._flags = f
-            row = self.row
-            row[self._i_state] = float(state)
-            row[self._i_iso] = 1.0 if isolation else 0.0
-            row[self._i_fault] = 1.0 if state is State.FAULT else 0.0
-            row[self._i_over] = float(overruns)
-            row[self._i_skip] = float(skipped)
+    def publish(self) -> None:
+        """The row claimed last to the reader (the run ended, or the recorder changes)."""
+        if self.ring.shape[0]:
+            rr.publish(self.hdr)
 
-    def begin(self, state: State, isolation: bool, overruns: int, skipped: int):
-        """A recorded period begins: its flags (flags(), when they changed), then (ring, slot) for the kernel:
-        the recorder's ring and its next free row, else (no ring, -1). One call: the loop's hot path."""
-        if (state, isolation, overruns, skipped) != self._flags:
-            self.flags(state, isolation, overruns, skipped)
-        if self._ring is None:
-            self._slot = -1
-            return self.kernel.no_ring, -1
-        self._slot = s = self.recorder.next_row()         # -1: the ring is full, the row dropped and counted
-        return self._ring, s
+    def wait_room(self) -> None:
+        """Simulated time: the writer makes room for the period's row before the compiled call (not waited for
+        on the real clock: a full ring drops the row)."""
+        if self.waits:
+            self.recorder.wait_room()
 
-    def close(self, copied: bool) -> None:
-        """The period's row is final: commit it (copying it first if the kernel did not), or push it."""
+    def close(self, written: bool) -> None:
+        """The period's row changed after the compiled call (a fault), or goes to a recorder without a ring:
+        correct it in the row the kernel claimed (written: the compiled call ran), or claim one now, or push it."""
         rec = self.recorder
         if rec is None:
             return
-        if self._ring is None:
+        if self.pushes:
             rec.push_row(self.row)
-        elif self._slot >= 0:
-            if not copied:
-                self._ring[self._slot, :] = self.row
-            rec.commit()
+            return
+        ring, hdr = self.ring, self.hdr
+        if written:
+            r = rr.pending_row(hdr, ring.shape[0])
+        else:
+            rr.publish(hdr)
+            r = rr.claim(hdr, ring.shape[0])
+        if r >= 0:
+            ring[r, :] = self.row
 
     def event(self, t_s: float, text: str) -> None:
         if self.recorder is not None:

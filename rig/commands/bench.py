@@ -8,7 +8,8 @@
                                                   sine (the isolation filters stepped alongside)
   rig bench loop --layout both [--rounds R] [--block-s S] ...
                                                   four mounts and one in one run, both sessions open, in short
-                                                  alternating blocks (about S = 0.2 s each, R = 3 rounds of
+                                                  alternating blocks (about S = 0.2 s each, starting on the
+                                                  wall clock's 20 ms grid, R = 3 rounds of
                                                   --seconds / R, half of it per layout): per round each
                                                   layout's compute p50/p99/max pooled over its blocks, the
                                                   p99 ratio (prototype / machine) and whether one mount's p99
@@ -438,14 +439,29 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
 class BlockClock(MonotonicClock):
     """The real clock of one of several loops run in turns: stopped between the loop's blocks, so its loop time
     (and the simulated plant that keeps pace with it) runs only while the loop runs: a resumed loop sees no gap
-    (no catch-up of the plant, no replayed periods)."""
+    (no catch-up of the plant, no replayed periods).
 
-    def __init__(self, spin_ns: int | None = None) -> None:
+    With align_ns, the first reading after a resume (the scheduler's, which sets the block's deadlines one
+    period apart from it) waits, still stopped, until the wall clock is on a multiple of align_ns: every
+    block's deadlines then sit at the same phase of the host's own periodic work (the kernel's timer tick,
+    every 1 to 10 ms: about 30 us on this VM, landing in the work of every 10th or 20th period of a block
+    whose start happened to line it up), so that work falls on the layouts' periods alike."""
+
+    def __init__(self, spin_ns: int | None = None, align_ns: int = 0) -> None:
         super().__init__(spin_ns)
         self.offset_ns = 0                  # real time spent stopped so far
         self._stopped_at: int | None = None
+        self.align_ns = int(align_ns)
+        self._align = False
 
     def now_ns(self) -> int:
+        if self._align:
+            self._align = False
+            wall = time.monotonic_ns()
+            on_grid = wall + (-wall) % self.align_ns
+            MonotonicClock.sleep_until(self, on_grid)
+            self.offset_ns += on_grid - wall            # the wait is no loop time
+            return on_grid - self.offset_ns
         return time.monotonic_ns() - self.offset_ns
 
     def sleep_until(self, t_ns: int) -> None:
@@ -460,10 +476,12 @@ class BlockClock(MonotonicClock):
         if self._stopped_at is not None:
             self.offset_ns += time.monotonic_ns() - self._stopped_at
             self._stopped_at = None
+            self._align = self.align_ns > 0
 
 
 BLOCK_SETTLE = 10               # periods left out at the start of each block: the first replays the gap and
                                 # re-activates (~5x a period's compute), the next few run on the other loop's caches
+BLOCK_ALIGN_NS = 20_000_000     # blocks start on the wall clock's 20 ms grid (a multiple of any timer tick period)
 
 
 def block_plan(seconds: float, rounds: int, block_s: float) -> tuple[int, float]:
@@ -492,7 +510,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
         fd, path = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
         os.close(fd)
         tmp.append(path)
-    clocks = {n: BlockClock(spin) for n in names}
+    clocks = {n: BlockClock(spin, BLOCK_ALIGN_NS) for n in names}
     spans: dict = {n: [[] for _ in range(rounds)] for n in names}     # (first, last) period index per block
     faulted = {n: 0 for n in names}         # blocks left out: the loop faulted in them
     load0 = os.getloadavg()
@@ -536,9 +554,10 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
 
 
 def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] | None:
-    """One block of a session's loop, ACTIVE from its first period: the period indexes it measured; None when
-    the loop faulted in it (a stall of the shared host): its periods after the fault did less work, so the
-    block is left out (and said so)."""
+    """One block of a session's loop, ACTIVE from its first period: the period indexes it measured (less the
+    first `settle` and the last, the stop period: deactivation, its event and log line, once a block); None
+    when the loop faulted in it (a stall of the shared host): its periods after the fault did less work, so
+    the block is left out (and said so)."""
     loop = session.loop
     clock.resume()
     end = None
@@ -556,7 +575,7 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] |
         print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
               f"the block is left out", file=sys.stderr)
         return None
-    return min(i0 + settle, loop.iterations), loop.iterations
+    return min(i0 + settle, loop.iterations - 1), loop.iterations - 1
 
 
 def _both_figures(loops, spans, rate: float, rounds: int, k: int, blk: float) -> dict:
@@ -605,8 +624,8 @@ def _print_both(out: dict, as_json: bool) -> None:
         print(json.dumps(out))
         return
     print(f"{out['rounds']} rounds at {out['rate_hz']:g} Hz; per round and layout {out['blocks_per_round']} "
-          f"block(s) of {out['block_s']:g} s, alternating, each less its first {out['settle_periods']} periods; "
-          f"load average {out['load_average'][0]:.2f} before, {out['load_average'][3]:.2f} after")
+          f"block(s) of {out['block_s']:g} s, alternating, starting on a {BLOCK_ALIGN_NS / 1e6:g} ms grid, each "
+          f"less its first {out['settle_periods']} periods and its stop period; load average {out['load_average'][0]:.2f} before, {out['load_average'][3]:.2f} after")
     m, p = out["machine"], out["prototype"]
     for r, ratio in enumerate(out["compute_p99_ratio"]):
         a, b = m["compute_us_by_round"][r], p["compute_us_by_round"][r]
@@ -649,11 +668,11 @@ def _kernel_us(cfg, mode) -> float:
     with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
         s.run(seconds=0.1, activate_after_s=0.01)
         k, m = s.loop.kernel, s.loop.last_meas
-        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
+        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, 2, True, 0, 0, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
         best = math.inf
         for _ in range(5):
             t = time.perf_counter_ns()
             for _ in range(20000):
-                k.call(k.mem, k.no_ring, -1, *args)
+                k.call(k.mem, k.no_ring, k.no_hdr, *args)
             best = min(best, (time.perf_counter_ns() - t) / 20000 / 1e3)
     return round(best, 4)

@@ -1,16 +1,18 @@
 """The live ring: the loop's recording rows, published in shared memory for the console's web server.
 
 The loop's side is the recorder interface the tap already drives (rig/tap.py): `ncols`, `ring_rows()`,
-`next_row()`, `commit()`, `push_row()`, `event()`. Bound as the loop's recorder while no recording runs, the
-compiled period copies every row into it, exactly as it would into a recording's ring; while a recording
+`ring_header()`, `push_row()`, `event()`. Bound as the loop's recorder while no recording runs, the
+compiled period claims, writes and publishes every row in it (rig/ring.py), exactly as it does in a
+recording's ring; while a recording
 runs, the console copies the recording's new rows in here from another thread (`append`). Unlike a
 recording's ring it never waits for a reader and never drops: it overwrites the oldest row, and a reader that
 fell behind by more than the capacity skips ahead (and counts what it skipped).
 
 The memory is a memfd (an anonymous shared file), so the web server may be another process: it maps the
-same file descriptor (passed over the control socket) with `LiveReader`. Layout: a 64-byte header (head:
-rows published so far, int64 @0; ncols @8; capacity in rows @16), then capacity x ncols float64 rows.
-Publication order: the row first, then the head (x86 does not reorder stores).
+same file descriptor (passed over the control socket) with `LiveReader`. Layout: a 64-byte header (the
+producer's words of rig/ring.py HEADER: head, rows published so far, int64 @0; tail NEVER_FULL; dropped;
+pending; then ncols @32 and capacity in rows @40), then capacity x ncols float64 rows. Publication order:
+the row first, then the head (x86 does not reorder stores).
 """
 from __future__ import annotations
 
@@ -20,9 +22,12 @@ import struct
 
 import numpy as np
 
+from rig import ring as rr
+
 _HDR = 64
 _Q = struct.Struct("<q")
-_HEADER = struct.Struct("<qqq")
+_SHAPE = struct.Struct("<qq")           # ncols, capacity
+_SHAPE_AT = 8 * len(rr.HEADER)
 
 
 class LiveRing:
@@ -37,25 +42,22 @@ class LiveRing:
         self.fd = os.memfd_create("rig-console-live", os.MFD_CLOEXEC)
         os.ftruncate(self.fd, size)
         self._mm = mmap.mmap(self.fd, size)
-        _HEADER.pack_into(self._mm, 0, 0, self.ncols, self.capacity)
+        self._hdr = np.frombuffer(self._mm, dtype=np.int64, count=len(rr.HEADER))
+        self._hdr[rr.TAIL] = rr.NEVER_FULL
+        _SHAPE.pack_into(self._mm, _SHAPE_AT, self.ncols, self.capacity)
         self._rows = np.frombuffer(self._mm, dtype=np.float64, count=self.capacity * self.ncols,
                                    offset=_HDR).reshape(self.capacity, self.ncols)
-        self._head = 0
 
     # ---- the tap's recorder interface (the loop's thread) ----------------------------------------------
     def ring_rows(self) -> np.ndarray:
         return self._rows
 
-    def next_row(self) -> int:
-        return self._head % self.capacity
-
-    def commit(self) -> None:
-        self._head = h = self._head + 1
-        _Q.pack_into(self._mm, 0, h)
+    def ring_header(self) -> np.ndarray:
+        return self._hdr
 
     def push_row(self, row) -> bool:
-        self._rows[self._head % self.capacity, :] = row
-        self.commit()
+        self._rows[rr.claim(self._hdr, self.capacity), :] = row
+        rr.publish(self._hdr)
         return True
 
     def event(self, t_s: float, text: str) -> None:
@@ -66,22 +68,21 @@ class LiveRing:
         total = n = len(rows)
         if n == 0:
             return
-        start = self._head
+        start = self.head                  # (the loop published its last row here when it was unbound)
         if n > self.capacity:            # only the newest fit; the older ones count as overwritten
             rows, n, start = rows[-self.capacity:], self.capacity, start + n - self.capacity
         i = start % self.capacity
         k = min(n, self.capacity - i)
         self._rows[i:i + k] = rows[:k]
         self._rows[:n - k] = rows[k:]
-        self._head = h = self._head + total
-        _Q.pack_into(self._mm, 0, h)
+        self._hdr[rr.HEAD] += total
 
     @property
     def head(self) -> int:
-        return self._head
+        return int(self._hdr[rr.HEAD])
 
     def close(self) -> None:
-        self._rows = None
+        self._rows = self._hdr = None
         try:
             self._mm.close()
         except BufferError:          # a view is still held (a late reader): unmapped with it
@@ -95,7 +96,7 @@ class LiveReader:
     def __init__(self, fd: int) -> None:
         size = os.fstat(fd).st_size
         self._mm = mmap.mmap(fd, size, prot=mmap.PROT_READ)
-        _, self.ncols, self.capacity = _HEADER.unpack_from(self._mm, 0)
+        self.ncols, self.capacity = _SHAPE.unpack_from(self._mm, _SHAPE_AT)
         if _HDR + 8 * self.ncols * self.capacity != size:
             raise ValueError(f"live ring: {size} bytes do not hold {self.capacity} rows of {self.ncols}")
         self._rows = np.frombuffer(self._mm, dtype=np.float64, count=self.capacity * self.ncols,

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rig import ring as rr
 from rig.console import feed as feed_mod
 from rig.console.feed import Feed
 from rig.console.live import LiveReader, LiveRing
@@ -27,10 +28,16 @@ def _reader(ring: LiveRing) -> LiveReader:
 def test_rows_the_kernel_commits_reach_the_reader_in_order():
     ring = LiveRing(3, 16)
     rd = _reader(ring)
-    for k in range(10):
-        ring.ring_rows()[ring.next_row()] = (k, 2 * k, 3 * k)      # what the compiled period does, then commit
-        ring.commit()
-    rows = rd.read()
+    hdr = ring.ring_header()
+    rows = []
+    for k in range(10):                         # what the compiled period does (rig/ring.py): publish, claim
+        rr.publish(hdr)
+        ring.ring_rows()[rr.claim(hdr, ring.capacity)] = (k, 2 * k, 3 * k)
+        new = rd.read()
+        assert len(new) == (1 if k else 0)                             # the row before, published
+        rows.extend(new.tolist())
+    rr.publish(hdr)                                                    # the run ends: the last row too
+    rows = np.array(rows + rd.read().tolist())
     assert rows[:, 0].tolist() == list(range(10)) and rows[:, 2].tolist() == [3 * k for k in range(10)]
     assert len(rd.read()) == 0                                        # nothing new
     ring.push_row(np.array([10.0, 20.0, 30.0]))

@@ -67,7 +67,7 @@ def _kernel(ctrls, cfg=WIDE):
 
 def _period(k, t, acc, xs, miss=0):
     m = Measurements(t, list(acc), list(xs), [t] * len(acc))
-    assert k.period(m, t, 0.0, 0.0, 0.0, MODE_INACTIVE, miss, k.no_ring, -1) == 0
+    assert k.period(m, t, 0.0, 0.0, 0.0, MODE_INACTIVE, miss) == 0
 
 
 def test_kernel_replay_equals_interpolated_reference_steps():

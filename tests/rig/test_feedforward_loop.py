@@ -49,7 +49,6 @@ def test_kernel_runs_controller_plus_feedforward_like_the_reference():
     rr, rf, rg = lay["valve_cmd_raw_V"], lay["ff_cmd_V"], lay["floor_accel_mps2"]
     rng = np.random.default_rng(5)
     prev = None
-    ring = np.zeros((1, lay.ncols))
 
     def ref_step(i, a, x, g):
         u, states[i] = isolation_step(ctrls[i], states[i], (a, x), DT)
@@ -65,7 +64,7 @@ def test_kernel_runs_controller_plus_feedforward_like_the_reference():
             miss = 3                                             # three skipped periods, replayed
         m = Measurements(p * 200_000, a, x, [p * 200_000] * 4, floor_accel_mps2=g, accel_older=older,
                          new_samples=(1 + len(older)) if older else None)
-        code = k.period(m, p * 200_000, p * DT, 0.0, 0.0, MODE_ACTIVE, miss, ring, -1)
+        code = k.period(m, p * 200_000, p * DT, 0.0, 0.0, MODE_ACTIVE, miss)
         assert code in (0, 500)                                 # (a random walk may reach the clamp: latched)
         for j in range(miss):
             f = (j + 1) / (miss + 1)
@@ -100,7 +99,7 @@ def test_a_bad_floor_accelerometer_faults_naming_it():
                                           "+-5 m/s^2, [sensors] floor_range_mps2)")
     k, _, _ = _kernel()
     m = Measurements(0, [0.0] * 4, [0.0] * 4, [0] * 4, floor_accel_mps2=[0.0, 6.0, 0.0, 0.0])
-    assert k.period(m, 0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, k.no_ring, -1) == CHECK_FLOOR + 1
+    assert k.period(m, 0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0) == CHECK_FLOOR + 1
 
 
 def test_modes_switch_through_the_gate_without_a_jump_and_are_recorded(tmp_path):

@@ -210,13 +210,13 @@ def test_kernel_writes_the_ring_after_a_first_period_recorded_by_the_loop(tmp_pa
     port.clear_faults()
     loop.reset_fault()
     loop.stop_reason = None
-    copies = []
-    commit = rec.commit
-    rec.commit = lambda: (copies.append(loop.tap._ring[loop.tap._slot].copy()), commit())
+    by_python = []
+    close = loop.tap.close
+    loop.tap.close = lambda written: (by_python.append(written), close(written))
     loop.run(iterations=500, activate_after_s=0.01)
-    assert loop.tap._ring is not None                  # the ring is bound for the kernel
+    assert loop.tap.ring is rec.ring_rows()            # the ring is bound for the kernel
+    assert by_python == [] and rec.committed == 505    # the kernel recorded each period; the last published
     rec.close()
     r = read_recording(path)
     assert len(r["time_s"]) == 505 and r["fault"][:5].tolist() == [1.0] * 5 and r["lifecycle_state"][-2] == 2
     assert r["lifecycle_state"][-1] == 1 and np.all(r["valve_cmd_V"][-1] == 0.0)     # the stop period
-    assert len(copies) == 500
