@@ -150,64 +150,48 @@ def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
 
 
 @numba.njit(cache=True)
-def run_period(mem, ring, hdr):
-    """One period on the block: check the measurement; step the controllers (unless the port has no new
-    conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; given a
-    recorder's ring (rows > 0) and its header (rig/ring.py), publish the row of the period before and write
-    this one into the next row, claimed (a full ring: dropped and counted). FAULT: the row only.
-    0, or a rule's code (rig/safety.py): the caller then corrects the claimed row (its fault, null commands)
-    before the next period publishes it."""
-    n = int(mem[_H_N])
-    i = int(mem[_H_IN])
-    mode = int(mem[i + _IN_MODE])
+def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
+    """Outside FAULT: the sensor checks; the controllers' step (or their hold without a new conversion); the
+    limit if ACTIVE, the null if not. 0, or the code of the rule that fired."""
     m0 = i + len(INPUTS)
-    acc = mem[m0:m0 + n]
-    xs = mem[m0 + n:m0 + 2 * n]
-    nf = int(mem[_H_NFL])
-    fl = mem[m0 + 3 * n:m0 + 3 * n + nf]
-    row = mem[int(mem[_H_ROW]):int(mem[_H_ROW]) + int(mem[_H_NROW])]
-    ra, rx, rc, rr = int(mem[_H_RA]), int(mem[_H_RX]), int(mem[_H_RC]), int(mem[_H_RR])
-    row[ra:ra + n] = acc
-    row[rx:rx + n] = xs
-    if nf:
-        rg = int(mem[_H_RG])
-        row[rg:rg + nf] = fl
-    flags = mem[int(mem[_H_FLAGS]):int(mem[_H_FLAGS]) + 3]
-    code = 0
-    if mode == MODE_FAULT:
+    rc, rr = int(mem[_H_RC]), int(mem[_H_RR])
+    lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
+    chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
+    code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
+    if code == 0 and nf:
+        code = check_floor(fl, mem[int(mem[_H_FF])])
+    if code != 0:
+        return code
+    if mem[i + _IN_STEP] > 0.5:
+        _catch_up(mem, n, acc, xs, fl, nf, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
+        if nf:
+            rf = int(mem[_H_RF])
+            for m in range(n):
+                uf = _ff_mount(mem, m, fl[m])
+                row[rf + m] = uf
+                row[rr + m] = _step_mount(mem, m, acc[m], xs[m]) + uf
+        else:
+            for m in range(n):
+                row[rr + m] = _step_mount(mem, m, acc[m], xs[m])
+    prev = int(mem[_H_PREV])
+    mem[prev:prev + n] = acc
+    mem[prev + n:prev + 2 * n] = xs
+    mem[prev + 2 * n:prev + 2 * n + nf] = fl
+    if mode != MODE_ACTIVE:
         row[rc:rc + n] = 0.0
-    else:
-        lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
-        chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
-        code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
-        if code == 0 and nf:
-            code = check_floor(fl, mem[int(mem[_H_FF])])
-        if code == 0:
-            if mem[i + _IN_STEP] > 0.5:
-                _catch_up(mem, n, acc, xs, fl, nf, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
-                if nf:
-                    rf = int(mem[_H_RF])
-                    for m in range(n):
-                        uf = _ff_mount(mem, m, fl[m])
-                        row[rf + m] = uf
-                        row[rr + m] = _step_mount(mem, m, acc[m], xs[m]) + uf
-                else:
-                    for m in range(n):
-                        row[rr + m] = _step_mount(mem, m, acc[m], xs[m])
-            prev = int(mem[_H_PREV])
-            mem[prev:prev + n] = acc
-            mem[prev + n:prev + 2 * n] = xs
-            mem[prev + 2 * n:prev + 2 * n + nf] = fl
-            if mode == MODE_ACTIVE:
-                last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
-                code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
-                if code == 0:
-                    w = len(OSC_STATE) + int(lim[_L_OSC_N])
-                    o = int(mem[_H_OSC])
-                    code = check_oscillation(mem[o:o + n * w].reshape((n, w)), lim, row[rc:rc + n],
-                                             mem[i + _IN_T_NS])
-            else:
-                row[rc:rc + n] = 0.0
+        return 0
+    last = mem[int(mem[_H_LAST]):int(mem[_H_LAST]) + n]
+    code = limit_commands(last, flags, lim, row[rr:rr + n], row[rc:rc + n])
+    if code == 0:
+        w = len(OSC_STATE) + int(lim[_L_OSC_N])
+        o = int(mem[_H_OSC])
+        code = check_oscillation(mem[o:o + n * w].reshape((n, w)), lim, row[rc:rc + n], mem[i + _IN_T_NS])
+    return code
+
+
+@numba.njit(cache=True)
+def _row_rest(mem, i, n, nf, row, flags):
+    """The row after the commands: controller states, published channels, flags, times, feedforward switch."""
     o_st = int(mem[_H_ST])
     nst = int(mem[_H_NST])
     rs = int(mem[_H_RS])
@@ -227,6 +211,38 @@ def run_period(mem, ring, hdr):
     if nf:          # the switch request of the first mount's feedforward (they switch together)
         b = int(mem[_H_FF]) + 1
         row[int(mem[_H_RO])] = mem[int(mem[b + 2]) + 2 * int(mem[b + 1]) + 1]
+
+
+@numba.njit(cache=True)
+def run_period(mem, ring, hdr):
+    """One period on the block: check the measurement; step the controllers (unless the port has no new
+    conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; given a
+    recorder's ring (rows > 0) and its header (rig/ring.py), publish the row of the period before and write
+    this one into the next row, claimed (a full ring: dropped and counted). FAULT: the row only.
+    0, or a rule's code (rig/safety.py): the caller then corrects the claimed row (its fault, null commands)
+    before the next period publishes it."""
+    n = int(mem[_H_N])
+    i = int(mem[_H_IN])
+    mode = int(mem[i + _IN_MODE])
+    m0 = i + len(INPUTS)
+    acc = mem[m0:m0 + n]
+    xs = mem[m0 + n:m0 + 2 * n]
+    nf = int(mem[_H_NFL])
+    fl = mem[m0 + 3 * n:m0 + 3 * n + nf]
+    row = mem[int(mem[_H_ROW]):int(mem[_H_ROW]) + int(mem[_H_NROW])]
+    ra, rx, rc = int(mem[_H_RA]), int(mem[_H_RX]), int(mem[_H_RC])
+    row[ra:ra + n] = acc
+    row[rx:rx + n] = xs
+    if nf:
+        rg = int(mem[_H_RG])
+        row[rg:rg + nf] = fl
+    flags = mem[int(mem[_H_FLAGS]):int(mem[_H_FLAGS]) + 3]
+    code = 0
+    if mode == MODE_FAULT:
+        row[rc:rc + n] = 0.0
+    else:
+        code = _control(mem, i, n, mode, acc, xs, fl, nf, row, flags)
+    _row_rest(mem, i, n, nf, row, flags)
     cap = ring.shape[0]
     if cap > 0:
         _publish(hdr)
@@ -327,43 +343,14 @@ class PeriodKernel:
             at += size
         self.mem = mem = np.zeros(at)
         lay = self.layout
-        mem[:len(HEADER)] = (n, off["inputs"], off["older"], off["prev"], off["limits"], off["check"],
-                             off["last_cmd"], off["flags"], off["mounts"], off["states"], sum(nst), off["row"],
-                             lay.ncols, max_held_steps, lay["time_s"], lay["accel_mps2"], lay["stroke_m"],
-                             lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
-                             lay["controller_state"] if "controller_state" in lay else lay.ncols,
-                             lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], len(self.published),
-                             off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
-                             nf, off["ff"],
-                             *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                               else (lay.ncols,) * 3), lay["lifecycle_state"])
+        mem[:len(HEADER)] = self._header(off, max_held_steps, sum(nst))
         mem[off["limits"]:off["limits"] + len(LIMITS)] = (self.check.limits() + self.limiter.limits()
                                                           + self.osc.limits())
         self.osc_state = mem[off["osc"]:off["osc"] + n * self.osc.width].reshape(n, self.osc.width)
         self._osc_initial = self.osc.initial_state([c.kind in _OSC_KINDS for c in controllers])
         self.osc_state[:] = self._osc_initial
-        self.states, self.coefs = [], []
-        so, co = off["states"], off["coefs"]
-        mem[off["pub"]:off["pub"] + len(self.published) * n] = -1.0
-        for m, (c, cf) in enumerate(zip(controllers, coefs)):
-            mem[off["mounts"] + 5 * m:off["mounts"] + 5 * m + 5] = (c.kind, co, len(cf), so, nst[m])
-            mem[co:co + len(cf)] = cf
-            self.states.append(mem[so:so + nst[m]])
-            self.coefs.append(mem[co:co + len(cf)])
-            for name, _, _, idx in getattr(c, "published", ()):
-                mem[off["pub"] + list(self.published).index(name) * n + m] = so + idx
-            co += len(cf)
-            so += nst[m]
-        self.ff_states = []
-        if nf:
-            mem[off["ff"]] = self.floor_range
-            co, so = off["ff_coefs"], off["ff_states"]
-            for m, (f, cf) in enumerate(zip(ffs, ff_coefs)):
-                mem[off["ff"] + 1 + 4 * m:off["ff"] + 5 + 4 * m] = (co, len(f.sections), so, f.fade)
-                mem[co:co + len(cf)] = cf
-                self.ff_states.append(mem[so:so + ff_nst[m]])
-                co += len(cf)
-                so += ff_nst[m]
+        self._place_controllers(off, coefs, nst)
+        self._place_feedforward(off, ff_coefs, ff_nst)
         self.check_state = mem[off["check"]:off["check"] + len(CHECK_STATE) * n].reshape(len(CHECK_STATE), n)
         self.last_cmd = mem[off["last_cmd"]:off["last_cmd"] + n]
         self.flags = mem[off["flags"]:off["flags"] + len(LIMITER_FLAGS)]
@@ -383,6 +370,52 @@ class PeriodKernel:
         self.reset_check()
         self.fresh_states()
         self.call = period_entry(n, bool(nf))          # compiled (or loaded) now, not in the first period
+
+    def _header(self, off: dict, max_held_steps: int, n_states: int) -> tuple:
+        """The block's header (HEADER's order): where each part and each row column is."""
+        n, nf, lay = self.n, self.nf, self.layout
+        return (n, off["inputs"], off["older"], off["prev"], off["limits"], off["check"],
+                off["last_cmd"], off["flags"], off["mounts"], off["states"], n_states, off["row"],
+                lay.ncols, max_held_steps, lay["time_s"], lay["accel_mps2"], lay["stroke_m"],
+                lay["valve_cmd_V"], lay["valve_cmd_raw_V"],
+                lay["controller_state"] if "controller_state" in lay else lay.ncols,
+                lay["cmd_limited"], lay["wake_latency_us"], lay["compute_prev_us"], len(self.published),
+                off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
+                nf, off["ff"],
+                *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
+                  else (lay.ncols,) * 3), lay["lifecycle_state"])
+
+    def _place_controllers(self, off: dict, coefs: list, nst: list) -> None:
+        """Each mount's controller: its table entry, its coefficients and state in the block, and where its
+        published channels are."""
+        mem, n = self.mem, self.n
+        self.states, self.coefs = [], []
+        so, co = off["states"], off["coefs"]
+        mem[off["pub"]:off["pub"] + len(self.published) * n] = -1.0
+        for m, (c, cf) in enumerate(zip(self.ctrls, coefs)):
+            mem[off["mounts"] + 5 * m:off["mounts"] + 5 * m + 5] = (c.kind, co, len(cf), so, nst[m])
+            mem[co:co + len(cf)] = cf
+            self.states.append(mem[so:so + nst[m]])
+            self.coefs.append(mem[co:co + len(cf)])
+            for name, _, _, idx in getattr(c, "published", ()):
+                mem[off["pub"] + list(self.published).index(name) * n + m] = so + idx
+            co += len(cf)
+            so += nst[m]
+
+    def _place_feedforward(self, off: dict, ff_coefs: list, ff_nst: list) -> None:
+        """Each mount's floor feedforward, when there is one: table entry, coefficients, state."""
+        mem = self.mem
+        self.ff_states = []
+        if not self.nf:
+            return
+        mem[off["ff"]] = self.floor_range
+        co, so = off["ff_coefs"], off["ff_states"]
+        for m, (f, cf) in enumerate(zip(self.ffs, ff_coefs)):
+            mem[off["ff"] + 1 + 4 * m:off["ff"] + 5 + 4 * m] = (co, len(f.sections), so, f.fade)
+            mem[co:co + len(cf)] = cf
+            self.ff_states.append(mem[so:so + ff_nst[m]])
+            co += len(cf)
+            so += ff_nst[m]
 
     # ---- the period -----------------------------------------------------------------------------------
     def pack_older(self, older) -> int:

@@ -111,10 +111,7 @@ class Scheduler:
         t = clock.now_ns() + period
         if self.t0_ns is None:
             self.t0_ns = t
-        end_t = t + int(round(seconds * 1e9)) if seconds is not None else None
-        max_it = self.iterations + iterations if iterations is not None else None
-        act_it = (self.iterations + max(1, int(round(activate_after_s * self.rate_hz)))
-                  if activate_after_s is not None else -1)
+        end_t, max_it, act_it = self._ends(t, seconds, iterations, activate_after_s)
         wd = self.wd
         now_ns, sleep_until, watchdog_ns = clock.now_ns, clock.sleep_until, self.watchdog_ns   # bound once
         prev_wake = None
@@ -125,7 +122,6 @@ class Scheduler:
         block_t = t + self._block_ns                       # the end of the current block (loop time)
         block_start = (self.overruns + self.skipped, self.iterations + self.skipped)
         block_end = None                                   # (missed, scheduled) of a block just ended
-        busy_a = self.busy_ns
         cpu_a = self.cpu_ns
         cpu_now = time.thread_time_ns
         final = False                                      # this is the stop period
@@ -143,27 +139,16 @@ class Scheduler:
             elif (end_t is not None and t + period >= end_t) or \
                     (max_it is not None and self.iterations + 1 >= max_it):
                 final = True                               # the run's last period is its stop period
-            if self._start_done < self._start_n and prev_wake is not None:   # start-up rate check
-                now = clock.now_ns()
-                busy_a[self._start_done] = now - prev_wake                      # the last period's work
-                if self._start_done == 0:
-                    self._start_at = (time.thread_time_ns(), now, self.overruns + self.skipped,
-                                      self.iterations + self.skipped)
-                self._start_done += 1
-                if self._start_done == self._start_n:
-                    self._check_rate(gate, time.thread_time_ns(), now)
+            if self._start_done < self._start_n and prev_wake is not None:
+                self._start_sample(gate, prev_wake)
             sleep_until(t)
             if cpu_a is not None:
                 c0 = cpu_now()                             # (a syscall: outside the compute it measures)
             wake = now_ns()
             if prev_wake is not None and wake - prev_wake > watchdog_ns and gate.state is not _FAULT:
-                gate.t_ns = t
-                gate.fault(f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods "
-                           f"(limit watchdog_s = {self.watchdog_ns / 1e6:g} ms)")
+                self._late(gate, t, f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods", "watchdog_s")
             if wake - t > lag_ns and gate.state is not _FAULT:
-                gate.t_ns = t
-                gate.fault(f"loop lag: {(wake - t) / 1e6:.1f} ms behind real time (limit lag_limit_s = "
-                           f"{lag_ns / 1e6:g} ms): the loop cannot keep up")
+                self._late(gate, t, f"loop lag: {(wake - t) / 1e6:.1f} ms behind real time", "lag_limit_s")
             if t >= block_t:                             # a block of loop time ended: the missed-deadline rule
                 block_t = t + self._block_ns
                 now = (self.overruns + self.skipped, self.iterations + self.skipped)
@@ -178,14 +163,10 @@ class Scheduler:
                 gate.request_active(True)
             if final:
                 gate.request_active(False)
-            if cpu_a is None:
-                cycle(t, wake - t, compute_prev)
-                done = now_ns()
-                j = self.iterations % keep
-            else:
-                cycle(t, wake - t, compute_prev)
-                done = now_ns()
-                j = self.iterations % keep
+            cycle(t, wake - t, compute_prev)
+            done = now_ns()
+            j = self.iterations % keep
+            if cpu_a is not None:
                 cpu_a[j] = cpu_now() - c0
             wake_a[j] = wake - t
             comp_a[j] = compute_prev = done - wake
@@ -196,13 +177,44 @@ class Scheduler:
             self.iterations += 1
             t += period
             if done > t:
-                self.overruns += 1
-                if skip:
-                    missed = (done - t) // period + 1
-                    self.skipped += missed
-                    t += missed * period
+                t = self._overran(done, t, skip)
             elif idle is not None and t - done > idle_ns:
                 idle()                      # the port's housekeeping, in the slack before the next period
+
+    def _ends(self, t: int, seconds, iterations, activate_after_s) -> tuple:
+        """(loop time to stop at or None, iteration to stop at or None, iteration to activate at or -1)."""
+        end_t = t + int(round(seconds * 1e9)) if seconds is not None else None
+        max_it = self.iterations + iterations if iterations is not None else None
+        act_it = (self.iterations + max(1, int(round(activate_after_s * self.rate_hz)))
+                  if activate_after_s is not None else -1)
+        return end_t, max_it, act_it
+
+    def _start_sample(self, gate, prev_wake: int) -> None:
+        """The start-up rate check: the work of the first periods, judged once there are enough."""
+        now = self.clock.now_ns()
+        self.busy_ns[self._start_done] = now - prev_wake                      # the last period's work
+        if self._start_done == 0:
+            self._start_at = (time.thread_time_ns(), now, self.overruns + self.skipped,
+                              self.iterations + self.skipped)
+        self._start_done += 1
+        if self._start_done == self._start_n:
+            self._check_rate(gate, time.thread_time_ns(), now)
+
+    def _late(self, gate, t: int, what: str, key: str) -> None:
+        """FAULT for a period that came too late: the watchdog's gap or the loop's lag behind real time."""
+        limit_ns = self.watchdog_ns if key == "watchdog_s" else self.lag_ns
+        tail = ": the loop cannot keep up" if key == "lag_limit_s" else ""
+        gate.t_ns = t
+        gate.fault(f"{what} (limit {key} = {limit_ns / 1e6:g} ms){tail}")
+
+    def _overran(self, done: int, t: int, skip: bool) -> int:
+        """Count an overrun; under the skip policy, skip the periods already past. The next deadline."""
+        self.overruns += 1
+        if skip:
+            missed = (done - t) // self.period_ns + 1
+            self.skipped += missed
+            t += missed * self.period_ns
+        return t
 
     # ---- the rules off the per-period path ------------------------------------------------------------------
     def _missed_block(self, gate, missed: int, scheduled: int) -> None:
