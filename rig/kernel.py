@@ -149,7 +149,7 @@ def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
                 _ff_mount(mem, m, mem[older + k * w + n + m])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")      # one compiled period, as before the split
 def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
     """Outside FAULT: the sensor checks; the controllers' step (or their hold without a new conversion); the
     limit if ACTIVE, the null if not. 0, or the code of the rule that fired."""
@@ -189,7 +189,7 @@ def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
     return code
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")      # one compiled period, as before the split
 def _row_rest(mem, i, n, nf, row, flags):
     """The row after the commands: controller states, published channels, flags, times, feedforward switch."""
     o_st = int(mem[_H_ST])
