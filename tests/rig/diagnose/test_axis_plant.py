@@ -59,3 +59,24 @@ def test_unit_mismatch_is_one_line():
                          "damping_n_s_per_m": 200.0}, "force.toml")
     with pytest.raises(RecordingError, match="command is in V but the plant .force.toml. takes input_unit = 'N'"):
         diagnose(_rec(cmd[:2000], pos[:2000]), plant)
+
+
+def test_closed_loop_friction_with_a_deadband_is_named_by_the_pair_step():
+    """Coulomb friction and an input deadband both stop the carriage near zero force: on a short closed-loop run
+    each alone takes the other's share, the forward selection ends far from the noise, and the pair step (both
+    fitted jointly from their first-round fits) must name both, with their sizes."""
+    from rig.diagnose.prove_axis import _loop_for, _moves
+    from sim_backend.axis import trapezoid_program
+    plant = load_plant(REPO / "docs" / "examples" / "emps_like.toml")
+    ax = Axis(mass_kg=78.0, damping_n_s_per_m=144.0, gain_n_per_unit=35.15, coulomb_n=6.3, deadband=0.14)
+    ref = trapezoid_program(1000.0, _moves(np.random.default_rng(2), 8.0), 0.8, 0.3)[:8000]
+    cmd, pos = simulate_axis(ax, 1000.0, reference=ref, loop=_loop_for(plant.values()),
+                             sensor=Sensor(step_m=1e-7, noise_m=1.5e-7, offset_m=-3.7e-4, seed=3))
+    d = diagnose(_rec(cmd, pos), plant)
+    named = {e["name"]: e["parameters"] for e in d.effects}
+    assert set(named) == {"coulomb_friction", "input_deadband"}, d.summary
+    assert abs(named["coulomb_friction"]["force_n"] / 6.3 - 1) < 0.1
+    assert abs(named["input_deadband"]["width_V"] / 0.14 - 1) < 0.1
+    pairs = [c for c in d.candidates if c.get("step") == "pair"]
+    assert any(c["passed"] and set(c["effects"]) == set(named) for c in pairs), "the pair step did not find it"
+    assert d.verdict.status in ("explained", "partly")
