@@ -604,6 +604,21 @@ def _active(pb: Problem, f: Fit, name: str) -> bool:
     return nh * math.log(max(rss_wo, 1e-300) / max(f.rss_hold, 1e-300)) > len(pb.spec_keys(name)) * math.log(nh)
 
 
+def _at_edge(pb: Problem, f: Fit, name: str) -> bool:
+    """A stand mode pinned at the edge of its physical range (its frequency at the excited band's edge, its
+    damping ratio or the base's mass at a bound) is three free parameters spent on what is not a mode: a clean
+    closed-loop run's fed-back noise fitted by a 161 Hz mode of damping 0.003 on a base of 100 x the axis's mass.
+    Only the stand mode: a one-parameter effect at its bound is inactive or a real extreme."""
+    if name != "base_resonance":
+        return False
+    bnd = [pb.base_band] + list(pb.plant.effect_bounds(name, pb.fs, pb.peak_ma)[1:])
+    for key, (lo, hi) in zip(pb.spec_keys(name), bnd):
+        v = f.fx[name][key]
+        if min(abs(math.log(v / lo)), abs(math.log(hi / v))) < 0.01:
+            return True
+    return False
+
+
 def _polish(pb: Problem, f: Fit) -> Fit:
     """All linear and effect parameters together (the disturbance frequency refined after)."""
     slow = any(n in f.fx for n in pb.plant.slow)
@@ -1092,11 +1107,21 @@ def _search(R: _Run) -> None:
             harmonic_now = bool(now)
         if "periodic_disturbance" in R.chosen and "periodic_disturbance" in screen:
             screen.remove("periodic_disturbance")
+    if getattr(pb.plant, "axis_search", False):
+        # the polish frees everything at once: an effect it made inactive (a deadband polished to width 0 once
+        # friction came in beside it) is no longer a finding
+        for name in list(R.chosen):
+            if not _active(pb, R.current, name):
+                fx = {k: v for k, v in R.current.fx.items() if k != name}
+                R.current = pb.evaluate(R.current.lin, fx, pb.n_params(fx))
+                R.chosen.remove(name)
+                R.stats_of.pop(name, None)
+                R.groups = [g for g in R.groups if g[0] != name]
 
 
 def _pairs(R: _Run) -> bool:
-    """The pair step: a second chance for a recording the forward selection leaves far from the noise (its
-    verdict would be "not described"). Two effects can hide each other: Coulomb friction and a deadband both stop
+    """The pair step: a second chance for a recording the forward selection leaves above the noise (its verdict
+    would not be "explained"). Two effects can hide each other: Coulomb friction and a deadband both stop
     the motion near zero force, friction and a saturation or a delay both bend the closed loop's moves, so each
     alone takes part of the other's share and the first one chosen spoils the start of the second. Every pair of
     the one-parameter candidates is therefore fitted jointly from the two effects' own first-round fits. A pair
@@ -1105,10 +1130,10 @@ def _pairs(R: _Run) -> bool:
     other effect alone, refitted (and is active: taking it out of the pair loses the margin). True when a pair
     was taken."""
     pb = R.pb
-    if not getattr(pb.plant, "pair_search", False) or R.no_claim or len(R.round1) < 2:
+    if not getattr(pb.plant, "axis_search", False) or R.no_claim or len(R.round1) < 2:
         return False
     nh = max(int(pb.mhold.sum()), 1)
-    if math.sqrt(R.current.rss_hold / nh) / pb.noise <= VERDICT_NOT_DESCRIBED:
+    if math.sqrt(R.current.rss_hold / nh) / pb.noise <= VERDICT_AT_NOISE:
         return False
     names = [n for n in pb.plant.catalogue if n in R.round1 and n != "periodic_disturbance"
              and len(pb.spec_keys(n)) == 1]
@@ -1189,6 +1214,8 @@ def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, expla
                 st = compare(pb, base, f)
         if st["passed"] and not _active(pb, f, name):
             st = {**st, "passed": False, "inactive": True}
+        if st["passed"] and getattr(pb.plant, "axis_search", False) and _at_edge(pb, f, name):
+            st = {**st, "passed": False, "at_edge": True}
         R.tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
         results.append((name, f, st))
     return results
