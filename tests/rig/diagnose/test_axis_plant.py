@@ -80,3 +80,27 @@ def test_closed_loop_friction_with_a_deadband_is_named_by_the_pair_step():
     pairs = [c for c in d.candidates if c.get("step") == "pair"]
     assert any(c["passed"] and set(c["effects"]) == set(named) for c in pairs), "the pair step did not find it"
     assert d.verdict.status in ("explained", "partly")
+
+
+def test_a_stand_mode_at_the_edge_of_its_range_is_not_a_finding():
+    """base_resonance with its damping ratio or base mass at a bound, or its frequency at the excited band's edge,
+    fails the edge test on a plant file's axis; a mode inside its range passes; the eha plant does not run it."""
+    from rig.diagnose.engine import Fit, Problem, _at_edge
+    from sim_backend.linear import ActuatorParams
+    plant = load_plant(REPO / "docs" / "examples" / "logger_axis.toml")
+    n = 2000
+    pb = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, plant, np.ones(n, bool))
+    pb.base_band = (5.0, 400.0)
+    lo_m, hi_m = pb.plant.effect_bounds("base_resonance", 1000.0, 1.0)[2]
+
+    def fit(f_hz, zeta, mass):
+        return Fit(lin={}, fx={"base_resonance": {"frequency_hz": f_hz, "damping_ratio": zeta, "mass_kg": mass}},
+                   rss_fit=1.0, rss_hold=1.0, k=3)
+    inside = fit(60.0, 0.05, 20.0 * lo_m)
+    assert not _at_edge(pb, inside, "base_resonance")
+    assert _at_edge(pb, fit(161.0, 0.003, 20.0 * lo_m), "base_resonance")      # damping at its lower bound
+    assert _at_edge(pb, fit(60.0, 0.05, hi_m), "base_resonance")                # base mass at its upper bound
+    assert _at_edge(pb, fit(400.0, 0.05, 20.0 * lo_m), "base_resonance")       # at the band's edge
+    assert not _at_edge(pb, fit(60.0, 0.05, hi_m), "coulomb_friction")         # only the stand mode
+    eha = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, ActuatorParams(), np.ones(n, bool))
+    assert pb.plant.axis_search and not eha.plant.axis_search
