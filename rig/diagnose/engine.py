@@ -21,7 +21,7 @@ Protocol
     likelihood-ratio test on the held-out blocks with the parameters frozen from the fit blocks.
   * Forward selection: best single effect, then the best second effect on top of it, max two; a round is
     skipped once the held-out residual is at the noise. Each chosen model is polished (all parameters).
-  * Pair step (plant files' axes only): when the selection leaves the recording far from the noise, pairs of
+  * Pair step (plant files' axes only): when the selection leaves the recording above the noise, pairs of
     one-parameter effects fitted jointly from their first-round fits, under the same tests (_pairs).
   * Screening for speed: the disturbance only with a force line; slow nonlinear models (deadband, friction) are
     refined only when their best grid start rivals the best candidate so far (and, without a sign of
