@@ -51,6 +51,7 @@ class EhaModel:
     LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
     segmented = False
     input_unit = "V"
+    axis_search = False                # its search stays as its proof measured it (docs/DIAGNOSIS.md)
 
     def __init__(self, plant: Plant):
         self.plant = plant
@@ -125,6 +126,7 @@ class AxisModel:
         self.bounds_lin = {k: (plant.params[k].lo, plant.params[k].hi) for k in self.lin_keys}
         self.log_scale = {k: plant.params[k].log_scale for k in self.lin_keys}
         self.segmented = plant.integrating()
+        self.axis_search = True        # the pair step, the stand mode's edge test, the post-polish check (engine)
         self.p0 = None
 
     # ---- values

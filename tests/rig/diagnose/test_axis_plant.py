@@ -59,3 +59,48 @@ def test_unit_mismatch_is_one_line():
                          "damping_n_s_per_m": 200.0}, "force.toml")
     with pytest.raises(RecordingError, match="command is in V but the plant .force.toml. takes input_unit = 'N'"):
         diagnose(_rec(cmd[:2000], pos[:2000]), plant)
+
+
+def test_closed_loop_friction_with_a_deadband_is_named_by_the_pair_step():
+    """Coulomb friction and an input deadband both stop the carriage near zero force: on a short closed-loop run
+    each alone takes the other's share, the forward selection ends far from the noise, and the pair step (both
+    fitted jointly from their first-round fits) must name both, with their sizes."""
+    from rig.diagnose.prove_axis import _loop_for, _moves
+    from sim_backend.axis import trapezoid_program
+    plant = load_plant(REPO / "docs" / "examples" / "emps_like.toml")
+    ax = Axis(mass_kg=78.0, damping_n_s_per_m=144.0, gain_n_per_unit=35.15, coulomb_n=6.3, deadband=0.14)
+    ref = trapezoid_program(1000.0, _moves(np.random.default_rng(2), 8.0), 0.8, 0.3)[:8000]
+    cmd, pos = simulate_axis(ax, 1000.0, reference=ref, loop=_loop_for(plant.values()),
+                             sensor=Sensor(step_m=1e-7, noise_m=1.5e-7, offset_m=-3.7e-4, seed=3))
+    d = diagnose(_rec(cmd, pos), plant)
+    named = {e["name"]: e["parameters"] for e in d.effects}
+    assert set(named) == {"coulomb_friction", "input_deadband"}, d.summary
+    assert abs(named["coulomb_friction"]["force_n"] / 6.3 - 1) < 0.1
+    assert abs(named["input_deadband"]["width_V"] / 0.14 - 1) < 0.1
+    pairs = [c for c in d.candidates if c.get("step") == "pair"]
+    assert any(c["passed"] and set(c["effects"]) == set(named) for c in pairs), "the pair step did not find it"
+    assert d.verdict.status in ("explained", "partly")
+
+
+def test_a_stand_mode_at_the_edge_of_its_range_is_not_a_finding():
+    """base_resonance with its damping ratio or base mass at a bound, or its frequency at the excited band's edge,
+    fails the edge test on a plant file's axis; a mode inside its range passes; the eha plant does not run it."""
+    from rig.diagnose.engine import Fit, Problem, _at_edge
+    from sim_backend.linear import ActuatorParams
+    plant = load_plant(REPO / "docs" / "examples" / "logger_axis.toml")
+    n = 2000
+    pb = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, plant, np.ones(n, bool))
+    pb.base_band = (5.0, 400.0)
+    lo_m, hi_m = pb.plant.effect_bounds("base_resonance", 1000.0, 1.0)[2]
+
+    def fit(f_hz, zeta, mass):
+        return Fit(lin={}, fx={"base_resonance": {"frequency_hz": f_hz, "damping_ratio": zeta, "mass_kg": mass}},
+                   rss_fit=1.0, rss_hold=1.0, k=3)
+    inside = fit(60.0, 0.05, 20.0 * lo_m)
+    assert not _at_edge(pb, inside, "base_resonance")
+    assert _at_edge(pb, fit(161.0, 0.003, 20.0 * lo_m), "base_resonance")      # damping at its lower bound
+    assert _at_edge(pb, fit(60.0, 0.05, hi_m), "base_resonance")                # base mass at its upper bound
+    assert _at_edge(pb, fit(400.0, 0.05, 20.0 * lo_m), "base_resonance")       # at the band's edge
+    assert not _at_edge(pb, fit(60.0, 0.05, hi_m), "coulomb_friction")         # only the stand mode
+    eha = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, ActuatorParams(), np.ones(n, bool))
+    assert pb.plant.axis_search and not eha.plant.axis_search
