@@ -84,6 +84,8 @@ def test_bench_loop_both_layouts_in_one_run():
                                         for a, b in pairs]
     assert res["prototype_p99_le_machine_every_round"] == all(a["n"] and b["n"] and b["p99"] <= a["p99"]
                                                               for a, b in pairs)
+    pm, pp = res["machine"]["compute_us"], res["prototype"]["compute_us"]
+    assert res["prototype_p99_le_machine_pooled"] == (pp["p99"] <= pm["p99"])
     assert set(res["kernel_us"]) == {"machine", "prototype"} and all(v > 0 for v in res["kernel_us"].values())
     assert len(res["load_average"]) == 6
 
@@ -94,6 +96,10 @@ def test_bench_loop_both_layouts_prints_rounds_and_verdict():
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.splitlines()
     assert sum(line.strip().startswith("round ") and "p99 ratio" in line for line in lines) == 2
+    assert lines[-3].startswith("one-mount compute p99 <= four-mount compute p99 over the run: ")
+    pooled = {n: float(line.split("p99")[1].split()[0]) for line in lines for n in ("machine", "prototype")
+              if line.strip().startswith(n) and "pooled: compute" in line}
+    assert ("yes" if pooled["prototype"] <= pooled["machine"] else "no") == lines[-3].split(": ")[1].split()[0]
     assert lines[-2].startswith("one-mount compute p99 <= four-mount compute p99 in every round: ")
     assert lines[-1].startswith("one-mount CPU time p99 <= four-mount in every round: ")
     assert sum("CPU time of the loop thread per period" in line for line in lines) == 2
@@ -123,6 +129,9 @@ def test_both_figures_pool_each_layouts_blocks_per_round():
     assert m[0]["max"] == 20.0 and m[0]["p50"] == 10.0 and m[1]["p99"] == 30.0     # only the blocks' periods
     assert out["compute_p99_ratio"] == [round(5.0 / m[0]["p99"], 3), round(40.0 / 30.0, 3)]
     assert out["rounds_prototype_p99_le_machine"] == 1 and not out["prototype_p99_le_machine_every_round"]
+    # pooled over the run: machine 10 x 10, 5 x 20 and 10 x 30 us; prototype 10 x 5 and 10 x 40 us
+    assert out["machine"]["compute_us"]["p99"] == 30.0 and out["prototype"]["compute_us"]["p99"] == 40.0
+    assert out["prototype_p99_le_machine_pooled"] is False
     spans["prototype"][1] = []                                  # every block of the round faulted: left out
     out = _both_figures({"machine": machine, "prototype": proto}, spans, 5000.0, 2, 2, 0.2)
     assert out["prototype"]["compute_us_by_round"][1]["n"] == 0 and out["compute_p99_ratio"][1] is None
