@@ -92,6 +92,7 @@ class Loop:
         # 0.1 s: rare code is slow code (tens of us from cold caches), kept out of the period's time
         self._watch_late = 0 if not self.clock.is_real else -self._susp_every
         self._susp = [False] * self.n
+        self._port_idle = getattr(port, "idle", None)      # the port's slack housekeeping (optional), bound once
 
     # ---- one period ----------------------------------------------------------------------------------
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
@@ -160,9 +161,8 @@ class Loop:
         watch when due, then the port's own housekeeping."""
         if self._susp_count <= 0:
             self._watch()
-        idle = getattr(self.port, "idle", None)
-        if idle is not None:
-            idle()
+        if self._port_idle is not None:
+            self._port_idle()
 
     def _held_up(self, m, wd):
         """The period's rare checks after the read: the watchdog tripped inside this period (its line, not the

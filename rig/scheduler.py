@@ -146,9 +146,9 @@ class Scheduler:
                 c0 = cpu_now()                             # (a syscall: outside the compute it measures)
             wake = now_ns()
             if prev_wake is not None and wake - prev_wake > watchdog_ns and gate.state is not _FAULT:
-                self._late(gate, t, f"watchdog: {(wake - prev_wake) / 1e6:.3f} ms between periods", "watchdog_s")
+                self._gap_fault(gate, t, wake - prev_wake)
             if wake - t > lag_ns and gate.state is not _FAULT:
-                self._late(gate, t, f"loop lag: {(wake - t) / 1e6:.1f} ms behind real time", "lag_limit_s")
+                self._lag_fault(gate, t, wake - t)
             if t >= block_t:                             # a block of loop time ended: the missed-deadline rule
                 block_t = t + self._block_ns
                 now = (self.overruns + self.skipped, self.iterations + self.skipped)
@@ -200,12 +200,17 @@ class Scheduler:
         if self._start_done == self._start_n:
             self._check_rate(gate, time.thread_time_ns(), now)
 
-    def _late(self, gate, t: int, what: str, key: str) -> None:
-        """FAULT for a period that came too late: the watchdog's gap or the loop's lag behind real time."""
-        limit_ns = self.watchdog_ns if key == "watchdog_s" else self.lag_ns
-        tail = ": the loop cannot keep up" if key == "lag_limit_s" else ""
+    def _gap_fault(self, gate, t: int, gap_ns: int) -> None:
+        """FAULT: the gap since the last wake-up passed the watchdog's limit."""
         gate.t_ns = t
-        gate.fault(f"{what} (limit {key} = {limit_ns / 1e6:g} ms){tail}")
+        gate.fault(f"watchdog: {gap_ns / 1e6:.3f} ms between periods "
+                   f"(limit watchdog_s = {self.watchdog_ns / 1e6:g} ms)")
+
+    def _lag_fault(self, gate, t: int, lag_ns: int) -> None:
+        """FAULT: the loop woke further behind its deadline than lag_limit_s."""
+        gate.t_ns = t
+        gate.fault(f"loop lag: {lag_ns / 1e6:.1f} ms behind real time (limit lag_limit_s = {self.lag_ns / 1e6:g} ms): "
+                   f"the loop cannot keep up")
 
     def _overran(self, done: int, t: int, skip: bool) -> int:
         """Count an overrun; under the skip policy, skip the periods already past. The next deadline."""
