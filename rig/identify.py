@@ -26,14 +26,13 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-import scipy.linalg
 import scipy.optimize
 
 from rig import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
 from rig.recording import Recording, check_plausible
-from sim_backend.linear import IDENTIFIED, ActuatorParams, g_eha_frf, zoh_delay
+from sim_backend.linear import IDENTIFIED, ActuatorParams, discretize_zoh, g_eha_frf, zoh_delay
 
 # Bounds as ratios to the design value (p0). K_L +-50 % (issue 6); the valve's by realistic ranges for a
 # proportional servo valve of this size: natural frequency 20-300 Hz, apparent damping 0.2-2 (proportional valves
@@ -196,12 +195,8 @@ def continuous_ss(p: ActuatorParams) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def discrete_ss(p: ActuatorParams, fs_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact ZOH discretisation: Phi = e^{AT}, Gamma = int_0^T e^{As} ds B (one augmented expm)."""
     A, B, C = continuous_ss(p)
-    n = A.shape[0]
-    M = np.zeros((n + 1, n + 1))
-    M[:n, :n] = A
-    M[:n, n:] = B
-    E = scipy.linalg.expm(M / fs_hz)
-    return E[:n, :n], E[:n, n:], C
+    Phi, Gam = discretize_zoh(A, B, 1.0 / fs_hz)
+    return Phi, Gam, C
 
 
 @numba.njit(cache=True)

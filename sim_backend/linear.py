@@ -162,6 +162,15 @@ def model_figures(p: ActuatorParams, machine_mass_kg: float, n_mounts: int = 4) 
     }
 
 
+def discretize_zoh(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation x[k+1] = Ad x[k] + Bd u[k], inputs held over [t_k, t_k + dt):
+    discretize_zoh_foh without a linearly interpolated input. For models built once per run or per fit step
+    (the rig's plant and its analysis, the actuator's identification); the diagnosis's per-evaluation ZOH,
+    balanced for any plant family's scaling and with fractional delays, is rig/plant/zoh.py."""
+    Ad, Bd, _, _ = discretize_zoh_foh(A, B, np.zeros((A.shape[0], 0)), dt)
+    return Ad, Bd
+
+
 def discretize_zoh_foh(A: np.ndarray, Bu: np.ndarray, Bg: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
     """Exact discretisation of x' = A x + Bu u + Bg g with u held over the period (ZOH) and g interpolated
     linearly between samples (first-order hold, the floor moves continuously):

@@ -21,11 +21,10 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-import scipy.linalg
 import scipy.signal
 
 from rig.config import MOUNTS, Config
-from sim_backend.linear import ActuatorParams, discretize_zoh_foh
+from sim_backend.linear import ActuatorParams, discretize_zoh, discretize_zoh_foh
 from sim_backend.machine import ModalModel, modal_model_from_config
 
 OUTPUTS = tuple([f"accel_{m}" for m in MOUNTS] + [f"stroke_{m}" for m in MOUNTS] + [f"x_{m}" for m in MOUNTS]
@@ -112,12 +111,7 @@ def rig_state_space(cfg: Config, modal: ModalModel | None = None) -> RigStateSpa
 
 def discretize(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact ZOH discretisation: x[k+1] = Ad x[k] + Bd w[k] for inputs held over [t_k, t_k + dt)."""
-    n, m = ss.B.shape
-    big = np.zeros((n + m, n + m))
-    big[:n, :n] = ss.A
-    big[:n, n:] = ss.B
-    e = scipy.linalg.expm(big * dt)
-    return np.ascontiguousarray(e[:n, :n]), np.ascontiguousarray(e[:n, n:])
+    return discretize_zoh(ss.A, ss.B, dt)
 
 
 def discretize_foh_ground(ss: RigStateSpace, dt: float) -> tuple[np.ndarray, ...]:
