@@ -1336,9 +1336,9 @@ def _conclude(R: _Run, sensor: sensor_mod.SensorTerms, t_start: float) -> Diagno
         mm["not_claimed"] = [{"name": e["name"], "parameters": e["parameters"]} for e in effects]
         effects = []
     what = _summary_effects(effects) if effects else "none"
-    summary = (f"{verdict.text} Missing physics: {what}. Residual/noise nominal "
-               f"{fit['nominal']['residual_over_noise']:.1f}, refit {fit['refit']['residual_over_noise']:.1f}, "
-               f"augmented {fit['augmented']['residual_over_noise_holdout']:.2f} (noise {pb.noise:.2g} m). "
+    held = {m: fit[m]["residual_over_noise_holdout"] for m in ("nominal", "refit", "augmented")}
+    summary = (f"{verdict.text} Missing physics: {what}. Held-out residual/noise nominal {held['nominal']:.1f}, "
+               f"refit {held['refit']:.1f}, augmented {held['augmented']:.2f} (noise {pb.noise:.2g} m). "
                f"Mismatch vs nominal in {len(mm['bands_hz'])} band(s), after refit in "
                f"{len(mm['after_refit']['bands_hz'])}.")
     if R.groups and effects:

@@ -253,11 +253,13 @@ def summary_text(diag, rec=None) -> str:
         lines.append("SENSOR terms (fitted in every model, not physics):")
         lines += [f"  {t}" for t in sensor_lines(sensor)]
     lines.append("HOW MUCH BETTER (NRMSE of position; residual rms / noise rms):")
-    lines.append(f"  {'model':10} {'NRMSE':>8} {'fit seg':>8} {'held-out':>8} {'resid/noise':>11}")
+    lines.append(f"  {'':10} {'NRMSE':-^26} {'resid/noise':-^17}")
+    lines.append(f"  {'model':10} {'whole':>8} {'fit seg':>8} {'held-out':>8} {'whole':>8} {'held-out':>8}")
     for m in MODELS:
         f = _fit_row(diag.fit, m)
         lines.append(f"  {m:10} {_figure(f.get('nrmse')):>8} {_figure(f.get('nrmse_fit')):>8} "
-                     f"{_figure(f.get('nrmse_holdout')):>8} {_figure(f.get('residual_over_noise'), '.2f'):>11}")
+                     f"{_figure(f.get('nrmse_holdout')):>8} {_figure(f.get('residual_over_noise'), '.2f'):>8} "
+                     f"{_figure(f.get('residual_over_noise_holdout'), '.2f'):>8}")
     nom, aug = _fit_row(diag.fit, "nominal").get("nrmse"), _fit_row(diag.fit, "augmented").get("nrmse")
     if nom and aug is not None and aug > 0:
         lines.append(f"  NRMSE {nom:.4f} -> {aug:.4f} ({nom / aug:.1f}x better than nominal)")
@@ -704,13 +706,15 @@ def _report_sensor_and_evidence(diag, evidence) -> list[str]:
 
 def _report_fit(diag) -> list[str]:
     """The three models' fit figures and the refit linear parameters."""
-    out = ["", "## Fit", "", "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise |",
-           "|---|---|---|---|---|---|"]
+    out = ["", "## Fit", "",
+           "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise "
+           "| residual / noise held-out |", "|---|---|---|---|---|---|---|"]
     for m in MODELS:
         f = _fit_row(diag.fit, m)
         out.append(f"| {m} | {_figure(f.get('nrmse'))} | {_figure(f.get('nrmse_fit'))} | "
                    f"{_figure(f.get('nrmse_holdout'))} | {_figure(f.get('residual_rms_m'), '.3g')} | "
-                   f"{_figure(f.get('residual_over_noise'), '.2f')} |")
+                   f"{_figure(f.get('residual_over_noise'), '.2f')} | "
+                   f"{_figure(f.get('residual_over_noise_holdout'), '.2f')} |")
     if diag.params_refit:
         out += ["", "Refit linear parameters: " + ", ".join(f"{k} = {float(v):.4g}" for k, v in
                                                             diag.params_refit.items()

@@ -74,6 +74,24 @@ def test_diagnosis_json_schema_and_physics(delayed):
     assert any(hi > 50.0 for lo, hi in doc["mismatch"]["bands_hz"])
 
 
+def test_summary_and_tables_give_the_held_out_residual_for_every_model(delayed):
+    """The verdict is judged on the held-out blocks: the summary gives that figure for all three models (it once
+    gave the whole record's for nominal and refit beside the held-out one for the augmented model), and the
+    tables give both."""
+    doc = json.loads((delayed["out"] / "diagnosis.json").read_text())
+    held = {m: doc["fit"][m]["residual_over_noise_holdout"] for m in ("nominal", "refit", "augmented")}
+    assert (f"Held-out residual/noise nominal {held['nominal']:.1f}, refit {held['refit']:.1f}, "
+            f"augmented {held['augmented']:.2f}") in doc["summary"]
+    report = (delayed["out"] / "report.md").read_text()
+    for m in ("nominal", "refit", "augmented"):
+        row = next(line for line in report.splitlines() if line.startswith(f"| {m} |"))
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert float(cells[5]) == pytest.approx(doc["fit"][m]["residual_over_noise"], abs=0.006)
+        assert float(cells[6]) == pytest.approx(held[m], abs=0.006)
+        text = next(line for line in delayed["res"].stdout.splitlines() if line.strip().startswith(m + " "))
+        assert float(text.split()[-1]) == pytest.approx(held[m], abs=0.006)
+
+
 def test_fit_csv_every_instant(delayed):
     rec = load_recording(delayed["path"])
     with open(delayed["out"] / "fit.csv", newline="") as fh:
