@@ -47,7 +47,7 @@ from rig import closedloop
 from rig.diagnose import command as command_mod
 from rig.diagnose import evidence as evidence_mod, locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.lm import _POOL, lm_fit
-from rig.diagnose.plants import model_for
+from rig.diagnose.plants import at_bounds, model_for
 from rig.plant.model import Plant
 from rig.errors import RecordingError
 from rig.recording import check_plausible
@@ -1391,6 +1391,23 @@ def _sensor_summary(s: sensor_mod.SensorTerms) -> str:
     return ", ".join(parts)
 
 
+def _file_bound_hints(pb, refit) -> list[str]:
+    """A plant file's free parameters the refit left at a bound of their range. A bound of zero reached is the data
+    asking for no such term (a pure integrator has no den[-1]), not a different plant: said so."""
+    hints = []
+    for k, edge in at_bounds(pb.plant.bounds_lin, refit.lin, pb.lin_keys).items():
+        lo, hi = pb.plant.bounds_lin[k]
+        v = refit.lin[k]
+        if edge == 0.0:
+            hints.append(f"The refit took {k} to 0, the bound of its range in the plant file ({lo:g}..{hi:g}): the "
+                         f"data ask for no such term; fix {k} = 0 in the plant file if that is the physics.")
+        else:
+            hints.append(f"The refit pushed {k} to {v:.4g}, the {'lower' if edge == lo else 'upper'} bound of its "
+                         f"range in the plant file ({lo:g}..{hi:g}): widen the range if that value is plausible, "
+                         f"else the plant (or its units) differs from the file's.")
+    return hints
+
+
 def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, refit: Fit, cmd_info, check,
              use: np.ndarray, r_ref: np.ndarray) -> Verdict:
     """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
@@ -1417,15 +1434,13 @@ def _verdict(pb: Problem, rec, no_claim: str, effects: list[dict], fit: dict, re
         return Verdict("explained", f"The refit of the linear parameters explains the recording (residual "
                                     f"{over:.2f}x noise).", sugg)
     if pb.plant.family == "eha":
-        at_bounds = [k for k in pb.lin_keys
-                     if min(abs(math.log(refit.lin[k] / pb.nominal[k]) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
+        at_edge = [k for k in pb.lin_keys
+                   if min(abs(math.log(refit.lin[k] / pb.nominal[k]) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
+        if at_edge:
+            sugg.append("The refit pushed " + ", ".join(at_edge) + " to the edge of the physical range: a "
+                        "different plant (or different units) than the configured model.")
     else:
-        at_bounds = [k for k in pb.lin_keys
-                     if min(abs(refit.lin[k] - b) for b in pb.plant.bounds_lin[k])
-                     < 0.01 * (pb.plant.bounds_lin[k][1] - pb.plant.bounds_lin[k][0])]
-    if at_bounds:
-        sugg.append("The refit pushed " + ", ".join(at_bounds) + " to the edge of the physical range: a different "
-                    "plant (or different units) than the configured model.")
+        sugg += _file_bound_hints(pb, refit)
     if fit["refit"]["nrmse"] > 0.5:
         sugg.append(f"Even the refit leaves {100 * fit['refit']['nrmse']:.0f} % of the motion unexplained: the "
                     "position does not follow the command as this plant would.")

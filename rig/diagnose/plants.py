@@ -31,6 +31,18 @@ FRICTION_REFINE = 20                # ... and a sub-step where the friction chan
                                     # error F_c h / M would otherwise shift the position by F_c h / c)
 
 
+def at_bounds(bounds_lin: dict, lin: dict, keys) -> dict[str, float]:
+    """The linear parameters (of keys) a fit left within 1 % of their range's width from a bound: name -> that
+    bound."""
+    out = {}
+    for k in keys:
+        lo, hi = bounds_lin[k]
+        edge = lo if abs(lin[k] - lo) <= abs(lin[k] - hi) else hi
+        if abs(lin[k] - edge) < 0.01 * (hi - lo):
+            out[k] = edge
+    return out
+
+
 @dataclass(frozen=True)
 class Spec:
     name: str

@@ -14,6 +14,7 @@ import numpy as np
 
 from rig import closedloop
 from rig.diagnose.engine import Problem
+from rig.diagnose.plants import at_bounds
 from rig.errors import RecordingError
 from rig.plant.model import Plant
 from rig.recording import check_plausible
@@ -59,8 +60,7 @@ def identify_plant(rec, plant: Plant, progress=None) -> dict:
            "parameters": pb.plant.public_linear(f.lin), "std": std,
            "start": {k: plant.params[k].value for k in keys},
            "bounds": {k: [plant.params[k].lo, plant.params[k].hi] for k in keys},
-           "at_bounds": [k for k in keys if min(abs(f.lin[k] - b) for b in pb.plant.bounds_lin[k])
-                         < 0.01 * (pb.plant.bounds_lin[k][1] - pb.plant.bounds_lin[k][0])],
+           "at_bounds": list(at_bounds(pb.plant.bounds_lin, f.lin, keys)),
            "fit": {"nrmse": float(np.sqrt(np.sum(r ** 2) / max(np.sum(yc ** 2), 1e-300))),
                    "residual_rms_m": float(np.sqrt(np.mean(r ** 2))), "holdout_residual_rms_m": hold,
                    "n_samples": rec.n, "fs_hz": rec.fs_hz},
