@@ -54,9 +54,10 @@ S_NEWEST, S_STALE, S_SLOTS = 0, 1, 2
 # cmd: SEQ (even: consistent), T (the period's deadline, ns), ACK (the safe count the kernel had seen), WAITER
 # (the valves' I/O waits for this period's commands: wake it), PERIOD (ns), then one command per mount
 C_SEQ, C_T, C_ACK, C_WAITER, C_PERIOD, C_VALUES = 0, 1, 2, 3, 4, 5
-# devices: one row each
-DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns")
-D_FAULT, D_BEAT, D_SILENT, D_SAMPLE = range(len(DEVICE_ROW))
+# devices: one row each: fault code (0 none), heartbeat, silence limit (0 none), the time of its newest sample or
+# event (the valves': the last SYNC), a count of requests to it (the port's: a valve fault reset)
+DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns", "request")
+D_FAULT, D_BEAT, D_SILENT, D_SAMPLE, D_REQUEST = range(len(DEVICE_ROW))
 _DW = len(DEVICE_ROW)
 TEXT_BYTES = 240                          # one device's fault line (UTF-8, NUL-padded)
 FUTEX_WORDS = 4                           # int32 words the processes sleep on (futex(2)): cmd, sync, spare

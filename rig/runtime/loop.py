@@ -207,8 +207,9 @@ class Loop:
         if DEVICE_SILENT <= code < BEHIND:
             d = code - DEVICE_SILENT
             lim = block.device_row(d)[2] / 1e6
-            return (f"device fault: {block.device_name(d)}: its I/O process has not reported for {what:.1f} ms "
-                    f"(limit {lim:g} ms)")
+            why = getattr(self.port, "silent_reason", lambda d: None)(d)
+            return (f"device fault: {block.device_name(d)}: {why or 'its I/O process has not reported'} "
+                    f"(nothing for {what:.1f} ms, limit {lim:g} ms)")
         if code == BEHIND:
             held = int(k.mem[k.mem_index("held_up")])
             return (f"the loop fell {held} conversions behind the accelerometer module (it replays at most "

@@ -4,6 +4,8 @@
                                           prints `PORT <n>` once listening on 127.0.0.1:<n>
                                           (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order)
   serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
+  plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a socketcand gateway; prints
+                                          `PORT <n>` once listening on 127.0.0.1:<n> (SPEC_FILE: pickled)
 The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
 """
 from __future__ import annotations
@@ -51,6 +53,9 @@ def main(argv: list[str]) -> int:
     elif kind == "serial":
         from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
         serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))
+    elif kind == "plant":
+        from sim_backend.emulators import canopen_valve          # lazy: this child runs canopen and the plant
+        canopen_valve.serve(state.arr, _Announce("PORT"), argv[2], int(argv[3]))
     else:
         print(f"unknown device kind {kind!r}", file=sys.stderr)
         return 2
