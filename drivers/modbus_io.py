@@ -34,6 +34,8 @@ from rig.runtime.rt import raise_priority
 
 N_LATEST = 10                   # 40001-40010: AI ch0-7, the counter, the status
 FIFO_CHUNK = 13                 # entries per request reaching further back after a stall (117 registers)
+STATUS_EVERY = 50               # with the FIFO: the status register (host watchdog) every this many polls
+MAX_BEHIND = 1024               # conversions taken after a stall at most (beyond the FIFO: interpolated)
 
 
 class AnalogIO(IODevice):
@@ -56,7 +58,8 @@ class AnalogIO(IODevice):
         self.sync_row = spec.get("sync_device")
         self.priority = int(spec.get("priority", 0))
         self.where = f"modbus_tcp {self.host}:{self.port} unit {self.unit}"
-        self.n_read = REG_FIFO + (self.every + 1) * FIFO_WIDTH if self.fifo else N_LATEST
+        self.first, self.n_read = (REG_FIFO, (self.every + 1) * FIFO_WIDTH) if self.fifo else (REG_AI, N_LATEST)
+        self._polls = 0
         self.client = None
         self.last_error = ""
         self.errors = 0
@@ -64,7 +67,6 @@ class AnalogIO(IODevice):
         self._c16 = -1                 # the module's 16-bit counter last seen
         self._c16_pub = -1             # ... and last published
         self._last = None              # its values (interpolation of lost ones)
-        self.lost_conversions = 0
         self.watchdog_tripped = False
         self.sample_ns = 0             # when the newest conversion came
         self.asked_ns = 0              # first request since the last new conversion (0 = none outstanding)
@@ -133,13 +135,17 @@ class AnalogIO(IODevice):
         self.beat()
 
     def poll(self) -> bool:
-        """One request (the counter, and the AI channels or the FIFO's newest entries); True when it brought a
-        new conversion (published, with any older ones it had not published)."""
+        """One request (with the FIFO: its newest entries, the newest first; without: AI ch0-7, the counter and
+        the status); True when it brought a new conversion (published, with any older ones it had not
+        published). With the FIFO the status (the host watchdog's bit) is read every STATUS_EVERY polls."""
         t0 = time.monotonic_ns()
         if not self.asked_ns:
             self.asked_ns = t0
+        self._polls += 1
+        if self.fifo and self._polls % STATUS_EVERY == 1 and not self._status():
+            return False
         try:
-            r = self.client.read_holding_registers(REG_AI, count=self.n_read, device_id=self.unit)
+            r = self.client.read_holding_registers(self.first, count=self.n_read, device_id=self.unit)
         except Exception as e:                      # noqa: BLE001 - timeouts, garbage, closed socket
             self.errors += 1
             text = str(e)
@@ -160,28 +166,43 @@ class AnalogIO(IODevice):
             self.errors += 1
             self.last_error = f"{len(regs)} registers (expected {self.n_read})"
             return False
-        if regs[REG_STATUS] & 1:
+        if not self.fifo and regs[REG_STATUS] & 1:
             self.watchdog_tripped = True            # latched in the module until open() clears it
-        c16 = regs[REG_COUNT]
+        c16 = regs[0] if self.fifo else regs[REG_COUNT]    # entry 0: the newest conversion
         if c16 == self._c16:
             return False                            # no new conversion yet
         self.last_error = ""
         self.asked_ns = 0
         self.sample_ns = t1
         self._ts[:] = t1
-        if not self.fifo or self._c16 < 0:
+        if not self.fifo:
             self._publish(c16, self._values([regs[REG_AI + ch] for ch in range(8)]))
+        elif self._c16 < 0:
+            self._publish(c16, self._values(regs[1:FIFO_WIDTH]))
         else:
             self._take_fifo(regs, c16)
         self._c16 = c16
+        return True
+
+    def _status(self) -> bool:
+        """The module's status register (the host watchdog's bit); False when the request failed."""
+        try:
+            r = self.client.read_holding_registers(REG_STATUS, count=1, device_id=self.unit)
+        except Exception as e:                      # noqa: BLE001 - as in poll
+            self.last_error = f"{e.__class__.__name__}: {e}"
+            return False
+        if r.isError():
+            return False
+        if r.registers[0] & 1:
+            self.watchdog_tripped = True            # latched in the module until open() clears it
         return True
 
     def _take_fifo(self, regs, newest: int) -> None:
         """The conversions after the last published one up to `newest`, from the FIFO entries (newest first):
         those in this reply, then after a stall the ones further back, in blocks; one not in the FIFO any more
         is interpolated (counted in lost_conversions)."""
-        want = (newest - self._c16) & 0xFFFF            # new conversions
-        got = self._entries(regs, REG_FIFO, self.every + 1, newest)
+        want = min((newest - self._c16) & 0xFFFF, MAX_BEHIND)    # new conversions
+        got = self._entries(regs, 0, self.every + 1, newest)
         entry = self.every + 1
         while len(got) < min(want, FIFO_DEPTH) and entry < FIFO_DEPTH:     # a stall: further back
             n = min(FIFO_CHUNK, FIFO_DEPTH - entry)
@@ -198,7 +219,7 @@ class AnalogIO(IODevice):
         values = [None if raw is None else self._values(raw) for _, raw in convs]
         for j, v in enumerate(values):                  # lost: on the line from the one before to the next known
             if v is None:
-                self.lost_conversions += 1
+                self.counted(0, 1)
                 k = next((k for k in range(j + 1, len(values)) if values[k] is not None), None)
                 a = values[j - 1] if j else self._last
                 b = values[k] if k is not None else a
@@ -232,6 +253,7 @@ class AnalogIO(IODevice):
         self.count = c16 if self.count < 0 else self.count + ((c16 - self._c16_pub) & 0xFFFF)
         self._c16_pub = c16
         self._last = values
+        self.counted(1)
         ex.put_conversion(self.io, float(self.count), self._ts, np.asarray(values, dtype=np.float64))
 
     def check(self, now_ns: int) -> str | None:

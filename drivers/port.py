@@ -181,6 +181,12 @@ class DriverPort(PortContext):
         return {"canopen_sync_to_tpdo": b.stats(VALVES).tolist(), "modbus_read": b.stats(ANALOG).tolist(),
                 "serial_frame": b.stats(TRANSDUCER).tolist()}
 
+    def counts(self) -> dict[str, tuple[int, int]]:
+        """Per device (samples or SYNCs so far, misses): the valves' late commands, the module's lost
+        conversions, the amplifier's requests without a new frame."""
+        return {name: (int(self.exchange.device_row(d)[ex.D_COUNT]), int(self.exchange.device_row(d)[ex.D_MISSED]))
+                for d, name in enumerate(DEVICES)}
+
     def sample_ages_us(self) -> np.ndarray:
         """(periods, 2): the accelerometer conversion's and the transducer sample's age when the loop used them."""
         return self.exchange.ages_us()

@@ -23,7 +23,6 @@ import time
 from rig.errors import DeviceError
 from rig.runtime import exchange as ex
 from rig.runtime.clock import MonotonicClock
-from rig.runtime.rt import raise_priority
 
 log = logging.getLogger("rig.drivers")
 
@@ -40,7 +39,7 @@ class IODevice:
         self.name = spec.get("name", f"device {self.d}")
         self.clock = MonotonicClock(0)
         self._fault_text = ""
-        row = block.device_row(self.d)
+        self._row = row = block.device_row(self.d)
         row[ex.D_SILENT] = float(spec.get("silent_s", 0.0)) * 1e9
         self.beat()
 
@@ -57,12 +56,18 @@ class IODevice:
     def stat(self, value_us: float) -> None:
         ex.add_stat(self.io, self.d, value_us)
 
+    def counted(self, samples: int = 1, missed: int = 0) -> None:
+        """Samples (SYNCs) done and missed so far, for the figures (`rig hil --bench`)."""
+        row = self._row
+        row[ex.D_COUNT] += samples
+        row[ex.D_MISSED] += missed
+
     def requests(self) -> float:
         """The count of the row's requests (the port's: e.g. a valve fault reset)."""
-        return float(self.block.device_row(self.d)[ex.D_REQUEST])
+        return float(self._row[ex.D_REQUEST])
 
     def sleep_until(self, t_ns: int) -> None:
-        self.clock.sleep_until(t_ns)
+        self.clock.sleep_until(int(t_ns))
 
 
 def _kinds():
@@ -92,7 +97,8 @@ def _say(text: str) -> None:
 def main() -> int:
     logging.basicConfig(level=logging.WARNING, format="rig drivers: %(message)s", stream=sys.stderr)
     spec = json.loads(sys.stdin.readline())
-    raise_priority(int(spec.get("priority", 0)))
+    # the set-up (imports, SDO, register writes) at normal priority: at SCHED_FIFO it would hold the other
+    # processes starting beside it off their CPU; each device's cycle raises itself (run)
     sys.setswitchinterval(2e-4)          # the device's threads (a CAN notifier) hand over the interpreter quickly
     block = ex.Block.attach(spec["block"], tuple(spec.get("devices", ())))
     kind = _kinds().get(spec["kind"])

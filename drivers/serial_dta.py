@@ -116,6 +116,7 @@ class TransducerIO(IODevice):
             if not got:
                 self.last_error = ("garbled frames (checksum or format)" if self.parser.bad_frames > bad0
                                    else f"no reply within {self.reply_timeout_s * 1e3:g} ms")
+                self.counted(0, 1)
         except Exception as e:                      # noqa: BLE001 - port gone, I/O error
             self.last_error = f"{e.__class__.__name__}: {e}"
             time.sleep(self.reply_timeout_s)
@@ -135,6 +136,7 @@ class TransducerIO(IODevice):
                 self.status = tuple(f.status[c.source] for c in self.chs)
                 values = conversion.apply(self.chs, f.position_m)
                 ex.put_sample(self.io, float(self.seq), float(t1), np.asarray(values, dtype=np.float64))
+                self.counted(1)
         elif f.kind == "E":
             self.device_error = ",".join(f.fields)
 

@@ -104,7 +104,7 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     try:
         stale = stale_s if stale_s is not None else cfg.hil.stale_s
         port = build_driver_port(cfg, "hil", can_interface="socketcand", can_channel="can0",
-                                 can_options={"host": "127.0.0.1", "port": emu.can_port, "tcp_tune": True},
+                                 can_options={"host": "127.0.0.1", "port": emu.can_port},
                                  modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,
                                  stale_s=stale, serial_stale_s=serial_stale_s if serial_stale_s is not None else
                                  (stale_s if stale_s is not None else cfg.hil.serial_stale_s),

@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from drivers.protocol.modbus_map import raw_to_volts, volts_to_raw
 from rig.config import layout_mounts
 from rig.errors import RigError
 from rig.port import Commands, Measurements, PortContext
@@ -89,7 +90,8 @@ class SimBackend(PortContext):
 
     def __init__(self, plant, dt: float, *, n_mounts: int | None = None, clock=None, seed: int = 0,
                  accel_noise_mps2: float = 1e-4, stroke_noise_m: float = 2e-9,
-                 cmd_delay_periods: int = 0, sample_driven: bool = False, stroke_stale_s: float = 0.0) -> None:
+                 cmd_delay_periods: int = 0, sample_driven: bool = False, stroke_stale_s: float = 0.0,
+                 adc: tuple[float, float] | None = None) -> None:
         self.plant = plant
         self.dt = float(dt)
         self.dt_ns = int(round(dt * 1e9))
@@ -121,6 +123,9 @@ class SimBackend(PortContext):
         io[self.exchange.part("stroke") + S_STALE] = stroke_stale_s * 1e9
         self._safe = self.exchange.part("safe")
         self._n, self._nf = n, nf
+        # adc: (accelerometer, floor accelerometer) V per m/s^2 through the analog module's 16-bit converter
+        # (drivers/protocol/modbus_map.py), as the drivers read them; None: the plant's values as they are
+        self._adc = adc
         self._conv = -1                           # the last conversion published (its counter)
         self._pub = (-1, -1)                      # (plant step, time stamp) of the last published sample
         self._draw = None                         # (read, noise index) of a read's noise draw
@@ -221,6 +226,10 @@ class SimBackend(PortContext):
             acc = [float(acc[m]) + na[(i + m) % L] for m in range(n)]
             xs = [float(xs[m]) + nx[(i + m) % L] for m in range(n)]
         ts = [t_ns] * n
+        if self._adc is not None:
+            ka, kf = self._adc
+            acc = [raw_to_volts(volts_to_raw(a * ka)) / ka for a in acc]
+            fl = [raw_to_volts(volts_to_raw(g * kf)) / kf for g in fl]
         if self._faults:
             meas = Measurements(t_ns, list(acc), list(xs), ts, [], None, None, (), list(fl))
             self._apply_faults(t_ns, meas)             # (the knobs edit the lists in place)

@@ -40,10 +40,12 @@ from numba.core import types
 from numba.extending import intrinsic
 
 # header words: where each part is and how big
+# (the compiled readers take every size from here, never from this module's constants: numba's cache keeps a
+# constant compiled into a caller's code after the constant changed)
 HEADER = ("n", "nf", "accel", "a_cap", "a_width", "stroke", "s_cap", "s_width", "cmd", "devices", "n_devices",
-          "ages", "ages_cap", "stats", "stats_cap", "safe", "futex", "size")
-(H_N, H_NF, H_ACCEL, H_ACAP, H_AWIDTH, H_STROKE, H_SCAP, H_SWIDTH, H_CMD, H_DEV, H_NDEV, H_AGES, H_AGESCAP,
- H_STATS, H_STATSCAP, H_SAFE, H_FUTEX, H_SIZE) = range(len(HEADER))
+          "d_width", "ages", "ages_cap", "stats", "stats_cap", "safe", "futex", "size")
+(H_N, H_NF, H_ACCEL, H_ACAP, H_AWIDTH, H_STROKE, H_SCAP, H_SWIDTH, H_CMD, H_DEV, H_NDEV, H_DWIDTH, H_AGES,
+ H_AGESCAP, H_STATS, H_STATSCAP, H_SAFE, H_FUTEX, H_SIZE) = range(len(HEADER))
 # accel: NEWEST (counter of the newest published conversion, -1: none yet), COUNTED (1: every conversion reaches
 # the controllers, in order; 0: the latest value only, a new one each period), then the slots
 A_NEWEST, A_COUNTED, A_SLOTS = 0, 1, 2
@@ -55,10 +57,11 @@ S_NEWEST, S_STALE, S_SLOTS = 0, 1, 2
 # (the valves' I/O waits for this period's commands: wake it), PERIOD (ns), then one command per mount
 C_SEQ, C_T, C_ACK, C_WAITER, C_PERIOD, C_VALUES = 0, 1, 2, 3, 4, 5
 # devices: one row each: fault code (0 none), heartbeat, silence limit (0 none), the time of its newest sample or
-# event (the valves': the last SYNC), a count of requests to it (the port's: a valve fault reset)
-DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns", "request")
-D_FAULT, D_BEAT, D_SILENT, D_SAMPLE, D_REQUEST = range(len(DEVICE_ROW))
-_DW = len(DEVICE_ROW)
+# event (the valves': the last SYNC), a count of requests to it (the port's: a valve fault reset), its samples
+# or SYNCs so far, and a count of its misses (the valves': SYNCs sent with the period before's commands; the
+# module: conversions interpolated, lost from its FIFO; the amplifier: requests without a new frame)
+DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns", "request", "count", "missed")
+D_FAULT, D_BEAT, D_SILENT, D_SAMPLE, D_REQUEST, D_COUNT, D_MISSED = range(len(DEVICE_ROW))
 TEXT_BYTES = 240                          # one device's fault line (UTF-8, NUL-padded)
 FUTEX_WORDS = 4                           # int32 words the processes sleep on (futex(2)): cmd, sync, spare
 
@@ -93,7 +96,8 @@ class Layout:
     def header(self) -> list:
         o = self.offsets()
         return [self.n, self.nf, o["accel"], self.accel_cap, 1 + 2 * self.n + self.nf, o["stroke"], self.stroke_cap,
-                2 + self.n, o["cmd"], o["devices"], len(self.devices), o["ages"], self.ages_cap, o["stats"],
+                2 + self.n, o["cmd"], o["devices"], len(self.devices), len(DEVICE_ROW), o["ages"], self.ages_cap,
+                o["stats"],
                 self.stats_cap, o["safe"], 8 * o["floats"], self.nbytes()]
 
 
@@ -349,7 +353,7 @@ def ask_wake(io):
 @numba.njit(cache=True)
 def beat(io, d, t_ns):
     """Device d's I/O is alive at t_ns (its heartbeat)."""
-    io[int(io[H_DEV]) + d * _DW + D_BEAT] = t_ns
+    io[int(io[H_DEV]) + d * int(io[H_DWIDTH]) + D_BEAT] = t_ns
 
 
 @numba.njit(cache=True)

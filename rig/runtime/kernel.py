@@ -341,7 +341,7 @@ def _take(mem, io, t_ns):
         return CHECK_STROKE_STALE
     dv, nd = int(io[ex.H_DEV]), int(io[ex.H_NDEV])
     for d in range(nd):
-        r = dv + d * len(ex.DEVICE_ROW)
+        r = dv + d * int(io[ex.H_DWIDTH])
         if io[r + ex.D_FAULT] != 0:
             return DEVICE_FAULT + d
         sil = io[r + ex.D_SILENT]

@@ -25,6 +25,7 @@ import pickle
 import random
 import select
 import socket
+import struct
 import sys
 import time
 
@@ -34,6 +35,7 @@ from sim_backend.emulators import shared as sh
 
 # per-node fault knobs
 VALVE_MODES = ("ok", "silence", "garbage", "stale", "fault", "hold")
+_ACTIVE_BITS = v4.BIT_D | v4.BIT_H | v4.BIT_M | v4.BIT_R      # DEVICE MODE ACTIVE (v4.state_of)
 
 
 class ValveNode:
@@ -52,6 +54,7 @@ class ValveNode:
         self.actual = 0.0
         self.counter = 0
         self.frozen: bytes | None = None
+        self._dt = None
         self._pdo_dirty = True
         self._rng = random.Random(node_id)
         self.node.add_write_callback(self._on_write)
@@ -70,10 +73,6 @@ class ValveNode:
             return int(round(self.actual))
         return None
 
-    @property
-    def operational(self) -> bool:
-        return self.node.nmt.state == "OPERATIONAL"
-
     def _apply_controlword(self, cw: int) -> None:
         if cw & v4.BIT_R and not self.controlword & v4.BIT_R and self.mode != "fault":
             self.statusword |= v4.BIT_R                     # rising edge of R: fault reset
@@ -88,66 +87,82 @@ class ValveNode:
         self.statusword = (self.statusword & ~0x7) | dhm
 
     def _reload_pdo(self) -> None:
-        """The host rewrote the PDO configuration by SDO: read it back from our own object dictionary, and
-        turn each mapping into (index, byte offset, bytes, signed) fields for the cyclic path."""
-        self.node.rpdo.read(from_od=False)
-        self.node.tpdo.read(from_od=False)
-        self._rp_fields = self._fields(self.node.rpdo[1])
-        self._tp_fields = self._fields(self.node.tpdo[1])
-        self._tp_len = sum(n for _, _, n, _ in self._tp_fields)
+        """The host rewrote the PDO configuration by SDO: read it back from our own object dictionary, and turn
+        each mapping into a struct format and its objects for the cyclic path (RPDO1 then comes to _on_rpdo)."""
+        node = self.node
+        node.rpdo.read(from_od=False)
+        node.tpdo.read(from_od=False)
+        rp, tp = node.rpdo[1], node.tpdo[1]
+        self._rp_fmt, self._rp_idx = self._layout(rp)
+        self._tp_fmt, self._tp_idx = self._layout(tp)
+        self._tp_cob = tp.cob_id
+        net = node.network
+        net.subscribers.get(rp.cob_id, []).clear()         # canopen's PDO map: the cyclic path is ours
+        net.subscribe(rp.cob_id, self._on_rpdo)
+        self._rx = self._rx_last = None
+        self._rp_size = struct.calcsize(self._rp_fmt)
+        self._standard = self._tp_idx == [v4.STATUSWORD, v4.ACTUAL, v4.SAMPLE_COUNTER]
         self._pdo_dirty = False
 
     @staticmethod
-    def _fields(pdo_map):
+    def _layout(pdo_map) -> tuple[str, list[int]]:
+        """The mapping as a little-endian struct format over its objects (byte-aligned, in order)."""
         import canopen
-        out = []
+        fmt, idx, at = "<", [], 0
         for v in pdo_map.map:
-            if v.offset % 8 or v.length % 8:
-                raise ValueError("emulated valve: only byte-aligned PDO mappings")
-            out.append((v.index, v.offset // 8, v.length // 8, v.od.data_type in canopen.objectdictionary.SIGNED_TYPES))
-        return out
+            if v.offset % 8 or v.length % 8 or v.offset // 8 != at:
+                raise ValueError("emulated valve: only byte-aligned, contiguous PDO mappings")
+            signed = v.od.data_type in canopen.objectdictionary.SIGNED_TYPES
+            fmt += {1: "b", 2: "h", 4: "i"}[v.length // 8].upper() if not signed else {1: "b", 2: "h", 4: "i"}[
+                v.length // 8]
+            idx.append(v.index)
+            at += v.length // 8
+        return fmt, idx
 
-    def on_sync(self, dt: float) -> int:
-        """The setpoint the valve applied over the step that ends at this SYNC (latched at the SYNC before);
-        then the setpoint received since is latched for the next step."""
-        if not self.operational:
-            return 0
+    def _on_rpdo(self, can_id, data, timestamp) -> None:
+        self._rx = bytes(data)
+
+    def on_sync(self, dt: float) -> None:
+        """The setpoint latched at the SYNC before acts over the step that ends at this SYNC (the spool follows
+        it); then the RPDO received since is taken (controlword, setpoint) for the next step."""
+        if self.node.nmt.state != "OPERATIONAL":
+            return
         if self._pdo_dirty:
             self._reload_pdo()
         if self.mode == "fault":
             self.statusword &= ~v4.BIT_R
         elif self.mode == "hold":
             self.statusword = (self.statusword & ~0x7) | v4.BIT_D
-        active = v4.state_of(self.statusword) == "ACTIVE"
-        applied = self.setpoint if active else 0            # HOLD/FAULT/DISABLED: spool to null
-        self.actual += (applied - self.actual) * (1.0 - math.exp(-self.w_spool * dt))
+        applied = self.setpoint if self.statusword & _ACTIVE_BITS == _ACTIVE_BITS else 0   # else: null
+        if dt != self._dt:
+            self._dt, self._follow = dt, 1.0 - math.exp(-self.w_spool * dt)
+        self.actual += (applied - self.actual) * self._follow
         self.counter = (self.counter + 1) & 0xFF
-        rp = self.node.rpdo[1]
-        if rp.is_received:
-            data = bytes(rp.data)
-            got = {idx: int.from_bytes(data[o:o + n], "little", signed=sg) for idx, o, n, sg in self._rp_fields
-                   if o + n <= len(data)}
-            if v4.CONTROLWORD in got:
-                self._apply_controlword(got[v4.CONTROLWORD])
-            if v4.SETPOINT in got:               # a short or odd RPDO keeps the last setpoint
-                self.setpoint = got[v4.SETPOINT]
-        return applied
+        data, self._rx = self._rx, None
+        if data is not None and data != self._rx_last and len(data) >= self._rp_size:   # (a short one: ignored)
+            self._rx_last = data
+            for idx, v in zip(self._rp_idx, struct.unpack_from(self._rp_fmt, data)):
+                if idx == v4.CONTROLWORD:
+                    if v != self.controlword:
+                        self._apply_controlword(v)
+                elif idx == v4.SETPOINT:
+                    self.setpoint = v
 
     def tpdo(self) -> tuple[int, bytes] | None:
         """The TPDO this SYNC answers with (cob id, data), or None (silent)."""
-        if not self.operational or self.mode == "silence":
+        if self.node.nmt.state != "OPERATIONAL" or self.mode == "silence":
             return None
-        cob = self.node.tpdo[1].cob_id
         if self.mode == "stale" and self.frozen is not None:
-            return cob, self.frozen
+            return self._tp_cob, self.frozen
         if self.mode == "garbage":
-            return cob, bytes([self._rng.getrandbits(8)])
-        vals = {v4.STATUSWORD: self.statusword, v4.ACTUAL: int(round(self.actual)), v4.SAMPLE_COUNTER: self.counter}
-        data = bytearray(self._tp_len)
-        for idx, o, n, sg in self._tp_fields:
-            data[o:o + n] = int(vals.get(idx, 0)).to_bytes(n, "little", signed=sg)
-        self.frozen = bytes(data)
-        return cob, self.frozen
+            return self._tp_cob, bytes([self._rng.getrandbits(8)])
+        if self._standard:
+            self.frozen = struct.pack(self._tp_fmt, self.statusword, int(round(self.actual)), self.counter)
+        else:
+            vals = {v4.STATUSWORD: self.statusword, v4.ACTUAL: int(round(self.actual)),
+                    v4.SAMPLE_COUNTER: self.counter}
+            self.frozen = struct.pack(self._tp_fmt, *(vals.get(i, 0) for i in self._tp_idx))
+        return self._tp_cob, self.frozen
 
 
 def _network(send):
@@ -318,9 +333,9 @@ def serve(arr, announce, spec_path: str, priority: int = 0) -> None:
     with open(spec_path, "rb") as f:
         spec = pickle.load(f)
     os.unlink(spec_path)
-    raise_priority(priority)
     server = PlantServer(arr, spec["plant"], spec["dt"], spec["node_ids"], spec["w_spool"], spec["max_V"],
                          spec["floor_sensors"], spec["trace_steps"])
+    raise_priority(priority)                 # (after the set-up: at SCHED_FIFO it would hold the others off)
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.bind(("127.0.0.1", 0))
     srv.listen(2)

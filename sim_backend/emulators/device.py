@@ -42,11 +42,10 @@ class _Announce:
 
 
 def main(argv: list[str]) -> int:
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     kind, path = argv[0], argv[1]
     state = SharedFile(path)
     if kind == "modbus":
-        from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only (pymodbus)
+        from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only
         floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))
         modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]), floor_V_per_mps2=floor[0],
                             floor_channels=floor[1])

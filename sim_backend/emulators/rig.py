@@ -3,7 +3,7 @@ each in a process of its own, none in the loop's:
 
   process  the plant and the four valve LocalNodes behind a socketcand gateway on 127.0.0.1:<ephemeral>
            (sim_backend/emulators/canopen_valve.py): the plant steps at each CAN SYNC to the SYNC instant
-  process  pymodbus TCP server on 127.0.0.1:<ephemeral>   (accelerometers, ADAM-6024-style map)
+  process  Modbus TCP server on 127.0.0.1:<ephemeral>    (accelerometers, ADAM-6024-style map)
   process  DTA-4 amplifier on a pty pair                    (displacement transducers, ASCII)
 
 The plant's state reaches the two device processes through one shared array (sim_backend/emulators/shared.py,

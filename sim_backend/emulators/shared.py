@@ -116,14 +116,18 @@ def snapshot(arr) -> tuple[int, float, list[float], list[float]]:
     return int(block[1]), block[0], block[2:6], block[6:10]
 
 
-def snapshot_fifo(arr) -> tuple[int, list[float], list[tuple[int, list[float]]]]:
-    """(counter, accel_mps2[4] + floor accel_mps2[4], FIFO as (counter, the same 8 values) per slot), one
-    consistent copy."""
+def read_fifo(arr, e0: int, e1: int) -> tuple[int, list[float], list[tuple[int, int, list[float]]]]:
+    """(counter, accel_mps2[4] + floor accel_mps2[4], [(entry, its counter, its 8 values)] for FIFO entries e0..e1-1,
+    entry e = conversion counter - e), one consistent copy (only the slots asked for)."""
+    w = FIFO_WIDTH
     for _ in range(1000):
         s0 = arr[SEQ]
-        block = arr[COUNT:VALVE_MODE]
+        count = int(arr[COUNT])
+        acc = arr[ACCEL:ACCEL + N_MOUNTS] + arr[FLOOR:FLOOR + N_MOUNTS]
+        slots = []
+        for e in range(e0, min(e1, FIFO_SLOTS)):
+            b = FIFO + w * ((count - e) % FIFO_SLOTS)
+            slots.append((e, int(arr[b]), arr[b + 1:b + w]))
         if s0 == arr[SEQ] and int(s0) % 2 == 0:
             break
-    f, w = FIFO - COUNT, FIFO_WIDTH
-    return (int(block[0]), block[ACCEL - COUNT:ACCEL - COUNT + N_MOUNTS] + block[FLOOR - COUNT:FLOOR - COUNT + N_MOUNTS],
-            [(int(block[f + w * j]), block[f + w * j + 1:f + w * (j + 1)]) for j in range(FIFO_SLOTS)])
+    return count, acc, slots
