@@ -21,13 +21,15 @@ MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 o
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
                       modbus_port: int, serial_port: str, stale_s: float, serial_stale_s: float | None = None,
                       on_close=None, priority: int | None = None, sample_driven: bool | None = None,
-                      can_options: dict | None = None, silent_s: float | None = None):
+                      can_options: dict | None = None, silent_s: float | None = None,
+                      period_s: float | None = None):
     """The three drivers as one port for the layout's mounts (nothing is opened here; the I/O processes start
     at open()). Mount i (rig.config.layout_mounts order): valve node valve_node_id_base + i, accelerometer AI
     ch i, transducer channel i + 1 (drivers/devicemaps/: the four-mount map in README.md, the prototype's in
     prototype.md). With floor accelerometers ([sensors] floor_accel) the analog module also reads [sensors]
     floor_channels, one per mount. can_options: further python-can arguments of the bus (a socketcand
-    gateway's host and port); silent_s: how long an I/O process may go without reporting (default stale_s)."""
+    gateway's host and port); silent_s: how long an I/O process may go without reporting (default stale_s);
+    period_s: the loop's period (default [loop] rate_hz's): the valves' SYNC and the module's fetch follow it."""
     d = cfg.drivers
     names = list(layout_mounts(cfg))
     n = len(names)
@@ -36,7 +38,7 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
                           f"{MAX_MOUNTS} (one DTA-4 amplifier, AI ch0-3)")
     prio = d.thread_priority if priority is None else priority
     fifo = d.accel_sync_fifo if sample_driven is None else sample_driven
-    period_s = 1.0 / cfg.loop.rate_hz
+    period_s = 1.0 / cfg.loop.rate_hz if period_s is None else period_s
     s = cfg.sensors
     floor = list(s.floor_channels)[:n] if s.floor_accel else []
     x_stale = serial_stale_s if serial_stale_s is not None else stale_s
@@ -59,7 +61,7 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     stroke = {"kind": "transducer", "device": TRANSDUCER, "name": f"serial DTA-4 {serial_port}",
               "port": serial_port, "baud": d.serial_baud, "names": names,
               "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)),
-              "stale_s": x_stale, "silent_s": max(silent, x_stale), "rate_hz": min(d.serial_rate_hz,
-                                                                                    cfg.loop.rate_hz), **common}
+              "stale_s": x_stale, "silent_s": max(silent, x_stale), "rate_hz": min(d.serial_rate_hz, 1.0 / period_s),
+              **common}
     return DriverPort(name, [valves, accel, stroke], n_mounts=n, floor_sensors=bool(floor), counted=fifo,
                       stroke_stale_s=x_stale, on_close=on_close)

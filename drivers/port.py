@@ -34,6 +34,7 @@ from rig.runtime import exchange as ex
 
 DEVICES = ("valves", "accelerometer module", "transducer amplifier")
 VALVES, ANALOG, TRANSDUCER = range(len(DEVICES))
+OPEN_ORDER = (ANALOG, TRANSDUCER, VALVES)
 
 
 class DriverPort(PortContext):
@@ -70,7 +71,8 @@ class DriverPort(PortContext):
                 self._procs[i] = p
                 p.stdin.write(json.dumps(spec) + "\n")
                 p.stdin.flush()
-            for i, p in enumerate(self._procs):
+            for i in OPEN_ORDER:                    # the sensors' answers first: their faults are named first
+                p = self._procs[i]
                 ready, _, _ = select.select([p.stdout], [], [], self.start_timeout_s)
                 line = p.stdout.readline().strip() if ready else ""
                 if line != "ready":

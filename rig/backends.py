@@ -108,7 +108,7 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
                                  modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,
                                  stale_s=stale, serial_stale_s=serial_stale_s if serial_stale_s is not None else
                                  (stale_s if stale_s is not None else cfg.hil.serial_stale_s),
-                                 on_close=emu.stop, priority=priority, sample_driven=True)
+                                 on_close=emu.stop, priority=priority, sample_driven=True, period_s=dt)
     except BaseException:
         emu.stop()
         raise

@@ -51,7 +51,7 @@ KIND_OFF = 0
 KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid",
          modes.KIND: "modes"}
 _ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.KIND
-OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
+OLDER_CAP = 128             # conversions taken in one period besides the newest (a hold-up of 64 ms at 2 kHz)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
 # the inputs, then MOUNT_INPUTS; state .. skipped: the row's flag columns (the lifecycle state, isolation on, the

@@ -212,8 +212,8 @@ class Loop:
                     f"(nothing for {what:.1f} ms, limit {lim:g} ms)")
         if code == BEHIND:
             held = int(k.mem[k.mem_index("held_up")])
-            return (f"the loop fell {held} conversions behind the accelerometer module (it replays at most "
-                    f"{OLDER_CAP}): held up for about {held * self.dt * 1e3:.0f} ms")
+            return (f"{held} accelerometer conversions came in one period (the loop takes at most {OLDER_CAP}): the "
+                    f"loop or the module's I/O was held up for about {held * self.dt * 1e3:.0f} ms")
         return "no measurement from the port yet (no accelerometer conversion or transducer sample)"
 
     def _t_s(self, t_ns: int) -> float:
