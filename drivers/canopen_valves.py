@@ -88,7 +88,7 @@ class ValveIO(IODevice):
 
         import can
         import canopen
-        logging.getLogger("canopen").setLevel(logging.WARNING)     # its INFO lines narrate every SDO
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)    # our own one-line faults say it
         logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)   # a frame split by TCP: normal
         net = canopen.Network()
         net.NOTIFIER_CYCLE = 0.01              # the notifier (set-up only) stops within 10 ms when run() begins

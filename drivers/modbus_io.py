@@ -73,6 +73,7 @@ class AnalogIO(IODevice):
         self.rail = ""
         self._ts = np.zeros(block.n)
         self._syncs = 0
+        self._said = ""
 
     def open(self) -> None:
         from pymodbus.client import ModbusTcpClient
@@ -132,6 +133,10 @@ class AnalogIO(IODevice):
 
     def _idle(self) -> None:
         self.report(self.check(time.monotonic_ns()))
+        self._row[ex.D_SAMPLE] = float(self.sample_ns)
+        if not self._fault_text and self.last_error != self._said:     # why it has nothing new, if it has not
+            self._said = self.last_error
+            self.block.set_text(self.d, self.last_error)
         self.beat()
 
     def poll(self) -> bool:

@@ -125,6 +125,18 @@ class DriverPort(PortContext):
                 out.append(f"{spec['name']}: its I/O process ended (exit code {p.returncode})")
         return out
 
+    def stale_reason(self, t_ns: int, limit_ns: float) -> str | None:
+        """A stale accelerometer sample in the loop's check, named as the module's fault when the module has
+        delivered nothing new for as long (its I/O may not have said so yet): its line, with its last error."""
+        row = self.exchange.device_row(ANALOG)
+        age = t_ns - row[ex.D_SAMPLE]
+        if row[ex.D_SAMPLE] <= 0 or age < limit_ns:
+            return None
+        why = self.exchange.text(ANALOG) if not row[ex.D_FAULT] else ""
+        return (f"device fault: {self.specs[ANALOG]['name']} unit {self.specs[ANALOG]['unit']}: no new sample for "
+                f"{age / 1e6:.1f} ms (limit {limit_ns / 1e6:g} ms); "
+                f"{'last error: ' + why if why else 'values not updating'}")
+
     def silent_reason(self, d: int) -> str | None:
         """Why device d stopped reporting, when its process ended (the loop's fault text)."""
         p = self._procs[d] if d < len(self._procs) else None

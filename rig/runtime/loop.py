@@ -188,7 +188,11 @@ class Loop:
         if code - code % 100 == CHECK_FLOOR:
             return floor_reason(code, self.names, m.floor_accel_mps2, k.floor_range)
         if code < LIMIT_NAN:
-            return self.check.reason(code, k.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
+            text = self.check.reason(code, k.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
+            named = getattr(self.port, "stale_reason", None)      # a port that knows which device went quiet
+            if named is not None and ": stale sample:" in text:
+                text = named(t_ns, float(self.check.stale_ns)) or text
+            return text
         if code >= LIMIT_OSC:
             return k.osc.reason(code, k.osc_state)
         return self.limiter.reason(code)
