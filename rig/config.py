@@ -205,7 +205,9 @@ class HilConfig:
     watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
     lag_limit_s: float = _f(0.1, "s", gt=0, le=10)       # lag limit of HIL runs (safety.lag_limit_s)
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
-    device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
+    # SCHED_FIFO of the emulated devices (0 = normal): above the drivers' I/O processes ([drivers] thread_priority),
+    # below the loop: real devices are never held up by the host's drivers
+    device_priority: int = _f(60, "", ge=0, le=99)
 
 
 @dataclass(frozen=True)
