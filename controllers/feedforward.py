@@ -32,7 +32,7 @@ that is why `rig design --identified DIR` designs it on the identified actuator 
 
 The law takes the actuator figures it needs as parameters (FeedforwardParams; from the config or from an
 identification), not the simulator. The step is a compiled function of float arrays (feedforward_step) that the
-runtime's period calls per mount (rig/kernel.py); FeedforwardFilter is its builder (coefficients, state,
+runtime's period calls per mount (rig/runtime/kernel.py); FeedforwardFilter is its builder (coefficients, state,
 switching) with the same interface as the controllers.
 """
 from __future__ import annotations
@@ -182,7 +182,7 @@ class FeedforwardFilter:
 def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_floor_mps2: float) -> float:
     """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain,
     which moves towards the switch request (0 or 1) with factor `fade` per period. Compiled (numba): the runtime's
-    period (rig/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
+    period (rig/runtime/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
     n = coef.shape[0] // 5
     o = 2 * n
     y, _, _ = sections_step(state, coef, 0, 0, n, accel_floor_mps2)

@@ -31,7 +31,7 @@ one without aliasing, and is exact at the prewarp frequency. The design is check
 was tuned, controllers/tune.py) on the *discrete* loop with the ZOH and one period of computation delay
 (controllers/analysis.py), which evaluates exactly the coefficients the compiled law runs.
 
-One implementation: `isolation_step` (numba) is the law; the runtime's period (rig/kernel.py) calls it for
+One implementation: `isolation_step` (numba) is the law; the runtime's period (rig/runtime/kernel.py) calls it for
 every isolation mount, and IsolationController.step calls it for design tools and tests. The controller
 object is the builder: coefficients (`coefficients()`), the named state layout (`state_names`), bumpless
 switching (`set_enabled`) and the transfer functions for analysis.
@@ -44,7 +44,7 @@ Saturation recovery (sat_reset_s, sat_resume_s): isolating with the output held 
 (longer than the clamp bursts of shocks the loop rides out, well below safety.saturation_s) suspends
 isolation bumplessly (centring alone, filters running) and resumes it by itself once the estimate has
 settled; see isolation_step. The usual cause of the latch: a scheduling gap leaves a velocity error in the double
-integration, which a 0.1 Hz blend forgets only over many seconds (tests/rig/test_saturation.py).
+integration, which a 0.1 Hz blend forgets only over many seconds (tests/rig/runtime/test_saturation.py).
 
 The defaults are rig/config.py's [controller] section; `rig design` prints the margins and isolation they
 give (README).
@@ -65,7 +65,7 @@ from controllers.state import step_law
 from rig.config import ControllerConfig, SafetyConfig, layout_mounts
 from sim_backend.linear import ActuatorParams
 
-KIND = 1                      # rig/kernel.py dispatches on it
+KIND = 1                      # rig/runtime/kernel.py dispatches on it
 
 # Named state: two states per filter section (transposed direct form II, in section order), then these scalars
 SCALAR_STATES = ("v", "pi_integral", "centring_integral", "stroke_prev_m", "fade_offset_V", "isolation_on",
@@ -197,7 +197,8 @@ class IsolationController:
         self._coef = self.coefficients()
 
     def coefficients(self) -> np.ndarray:
-        """The law's coefficients (COEFFICIENTS, then the sections): what rig/kernel.py copies into its block."""
+        """The law's coefficients (COEFFICIENTS, then the sections): what rig/runtime/kernel.py copies into its
+        block."""
         head = (len(self.sections), len(self.h_acc), len(self.f_str), 0.5 * self.dt, self.kp, self.ki, self.kc,
                 self.fade, self.limit, self.slew, self.sat_n, self.resume_n, self.resume_m, self.resume_a)
         return np.concatenate([np.array(head, dtype=np.float64), np.ravel(self.sections)])

@@ -10,11 +10,11 @@
 `modes_step` (numba) is the law of this controller kind: it runs the active mode's law on that mode's own
 state and coefficients (both kept in this controller's, one after the other). The isolation filters are
 stepped in every mode (their output discarded outside `isolate`), so that mode starts from an estimate that
-has followed the sensors all along. Switching (`switch`, between periods, from rig/kernel.py) is bumpless:
+has followed the sensors all along. Switching (`switch`, between periods, from rig/runtime/kernel.py) is bumpless:
 the new mode takes the valve from the command last written (`take_over` of the tracking and isolation
 builders) and a new reference starts from the current one; the kernel's slew limit stays the last word.
 The published state (`mode`, `reference_m`, `tracking_error_m`; NaN outside hold/track) becomes recording
-channels of their own (rig/layout.py).
+channels of their own (rig/runtime/layout.py).
 
 Requests as text (the control file, the command line, the console): `off`, `hold [POS]`, `track REFERENCE`,
 `isolate`, `mode NAME [ARG]`, `setpoint POS` (hold there). `parse_request` turns them into a ModeRequest.
@@ -36,7 +36,7 @@ from rig.config import layout_mounts
 from rig.errors import RigError
 from sim_backend.linear import ActuatorParams
 
-KIND = 4                      # rig/kernel.py dispatches on it
+KIND = 4                      # rig/runtime/kernel.py dispatches on it
 MODES = ("off", "hold", "track", "isolate")
 OFF, HOLD, TRACK, ISOLATE = range(len(MODES))
 
@@ -45,7 +45,7 @@ _MODE, _REF, _ERR = range(3)
 COEFFICIENTS = ("n_track_coef", "n_track_state", "n_iso_coef", "n_iso_state", "warm_isolation")
 _H = len(COEFFICIENTS)
 _S = len(SCALAR_STATES)
-# (channel name, unit, description, state index) published as recording channels (rig/layout.py)
+# (channel name, unit, description, state index) published as recording channels (rig/runtime/layout.py)
 PUBLISHED = (("mode", "", "operating mode: 0 off, 1 hold, 2 track, 3 isolate", _MODE),
              ("reference_m", "m", "position reference the loop closes on (NaN outside hold/track)", _REF),
              ("tracking_error_m", "m", "reference minus transducer position (NaN outside hold/track)", _ERR))

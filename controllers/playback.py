@@ -4,7 +4,7 @@ The signal is a table of samples, one per loop period, made off the hot path by 
 (rig/commands/chirp.py). The mount ignores its sensors. Playback starts from the first sample when the loop
 enables the controller at activation (set_enabled(state, True)); while disabled (INACTIVE, where the loop
 still steps every controller) it outputs null and does not advance; after the last sample it outputs null.
-`playback_step` (numba) is the law; rig/kernel.py runs it for a mount of this kind.
+`playback_step` (numba) is the law; rig/runtime/kernel.py runs it for a mount of this kind.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from controllers.state import step_law
 
-KIND = 2                      # rig/kernel.py dispatches on it
+KIND = 2                      # rig/runtime/kernel.py dispatches on it
 
 STATE_NAMES = ("sample", "running")
 _K, _RUN = range(2)

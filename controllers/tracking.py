@@ -22,7 +22,7 @@ The reference (controllers/reference.py requests): a hold position (`offset_m`) 
 that starts once the offset has arrived; a finished waveform is folded into the hold position. A new request
 starts from the current lead value, so the reference never jumps.
 
-`track_step` (numba) is the law, the one implementation: rig/kernel.py runs it for a mount of this kind (and
+`track_step` (numba) is the law, the one implementation: rig/runtime/kernel.py runs it for a mount of this kind (and
 controllers/modes.py inside the operating modes); TrackingPID builds the coefficients and the named state,
 checks and applies requests, and calls the same law for design tools and tests.
 """
@@ -42,7 +42,7 @@ from rig.config import ControllerConfig, SafetyConfig
 from rig.errors import RigError
 from sim_backend.linear import ActuatorParams, g_eha
 
-KIND = 3                      # rig/kernel.py dispatches on it
+KIND = 3                      # rig/runtime/kernel.py dispatches on it
 
 STATE_NAMES = ("integral_V", "error_m", "deriv_V", "cmd_prev_V", "reference_m", "feedforward_V", "lead_m",
                "lead_rate_mps", "offset_m", "offset_rate_mps", "target_m", "wave", "wave_t_s", "amp_m", "f0_hz",

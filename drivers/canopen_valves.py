@@ -13,7 +13,7 @@ import struct
 import time
 
 from drivers.protocol import valve408 as v4
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 from rig.errors import DeviceError
 
 SYNC_COB = 0x80

@@ -10,7 +10,7 @@ Sample-driven (accelerometer module converting on SYNC into a conversion FIFO, `
 the isolation controller double-integrates acceleration, so a sample that arrives a period late and is then
 skipped, or a period without a new sample, is a velocity error that the integration keeps (on a loaded
 machine Modbus replies come late in a few per cent of the periods, and a slip a second is enough to undo the
-isolation; tests/rig/test_sample_driven.py). read() therefore reports
+isolation; tests/rig/runtime/test_sample_driven.py). read() therefore reports
 how many conversions the module made since the last read (Measurements.new_samples; 0 = none yet) and hands
 over the ones before the newest (accel_older), so the loop steps the controllers once per conversion, in order.
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 
 
 class TriggeredPoller:

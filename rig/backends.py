@@ -7,7 +7,7 @@
 Every factory is factory(cfg, *, dt, clock, **options) -> a rig.port.Port; construction touches no device,
 open() does the slow set-up. Adding a backend: write its factory and add one line to BACKENDS.
 
-`devices(cfg, name)` names the physical devices a backend drives (one lock each, rig/lock.py: one process
+`devices(cfg, name)` names the physical devices a backend drives (one lock each, rig/runtime/lock.py: one process
 per rig); the sim and hil backends drive devices of their own, made for the run, and share none.
 `default_config(name)` is the configuration a backend runs without --config (hil: its own design, at the HIL
 rate).

@@ -7,7 +7,7 @@ import sys
 
 from rig.cliargs import ArgumentParser, check_outputs
 from rig.errors import RigError
-from rig.signals import hold_early
+from rig.runtime.signals import hold_early
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
 COMMANDS = {
@@ -41,7 +41,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal (rig/signals.py)
+    hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal (rig/runtime/signals.py)
     argv = sys.argv[1:] if argv is None else argv
     # Import only the module of the command asked for (hardware libraries stay unloaded otherwise).
     only = next((a for a in argv if a in COMMANDS), None)

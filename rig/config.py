@@ -18,7 +18,7 @@ from pathlib import Path
 from rig.errors import ConfigError
 
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
-MAX_MOUNTS = 8                 # the period kernel's limit (rig/kernel.py)
+MAX_MOUNTS = 8                 # the period kernel's limit (rig/runtime/kernel.py)
 PLANTS = ("machine", "stand")
 
 
@@ -107,7 +107,7 @@ class LoopConfig:
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Plausibility checks and limits applied every period (rig/safety.py)."""
+    """Plausibility checks and limits applied every period (rig/runtime/safety.py)."""
     valve_limit_V: float = _f(10.0, "V", gt=0, le=50)   # command clamp, <= valve.max_V
     slew_V_per_s: float = _f(1.0e4, "V/s", gt=0, le=1e8)        # command slew limit
     accel_range_mps2: float = _f(50.0, "m/s^2", gt=0, le=1e4)   # accelerometer range (<= ~1000 g)
@@ -117,14 +117,14 @@ class SafetyConfig:
     stuck_samples: int = _f(250, "", gt=1, le=10000000)         # same value over this many new samples = stuck
     watchdog_s: float = _f(0.05, "s", gt=0, le=10)              # loop silent for longer = fault, valve to null
     saturation_s: float = _f(1.0, "s", gt=0, le=3600)           # command at the clamp this long = not in control
-    # the loop's timing (rig/scheduler.py): how far behind real time it may run, the share of deadlines it may
+    # the loop's timing (rig/runtime/scheduler.py): how far behind real time it may run, the share of deadlines it may
     # miss over a window, and the share of its period one period's work may take (measured over the first
     # periods at start-up: above it the rate is refused)
     lag_limit_s: float = _f(0.05, "s", gt=0, le=10)      # period deadline this far behind real time = fault
     missed_limit: float = _f(0.5, "", gt=0, le=1)        # missed deadlines over missed_window_s = fault
     missed_window_s: float = _f(1.0, "s", gt=0, le=60)
     period_budget: float = _f(0.5, "", gt=0, le=1)       # a period's work (p50) / the period, at start-up
-    # limit cycle in the valve command (rig/safety.py check_oscillation): the command swinging between
+    # limit cycle in the valve command (rig/runtime/safety.py check_oscillation): the command swinging between
     # +-oscillation_level * valve_limit_V at oscillation_hz or faster, over oscillation_window_s
     oscillation_level: float = _f(0.5, "", gt=0, le=1)
     oscillation_hz: float = _f(30.0, "Hz", gt=0)
@@ -133,7 +133,7 @@ class SafetyConfig:
 
 @dataclass(frozen=True)
 class RecordingConfig:
-    """The HDF5 recorder (rig/recorder.py)."""
+    """The HDF5 recorder (rig/runtime/recorder.py)."""
     flush_s: float = _f(0.05, "s", gt=0, le=0.1)        # kill -9 loses at most this much
     ring_s: float = _f(2.0, "s", gt=0, le=60)           # ring capacity; the loop never blocks on it
     chunk_rows: int = _f(1024, "", gt=0, le=1000000)    # HDF5 chunk length, at most flush_s / 2 of rows

@@ -3,8 +3,8 @@
 Formats (all carry the same four signals, sampled uniformly at fs_hz):
 - CSV / CSV.gz (the shared recordings' format): header `time_s,valve_cmd_V,position_m,accel_mps2`
   (column order free, extra columns ignored), one row per sample.
-- HDF5 (`save_recording_h5`, and what rig.recorder writes for a chirp run): 1-D float64 datasets /time_s,
-  /valve_cmd_V, /position_m, /accel_mps2 at the root; root attributes fs_hz (rig.recorder: rate_hz) and source.
+- HDF5 (`save_recording_h5`, and what rig.runtime.recorder writes for a chirp run): 1-D float64 datasets /time_s,
+  /valve_cmd_V, /position_m, /accel_mps2 at the root; root attributes fs_hz (rig.runtime.recorder: rate_hz) and source.
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
   A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
@@ -310,7 +310,7 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 raise RecordingError(f"{source}: {group} is not a group")
             names = {c: c for c in COLUMNS}
             if "position_m" not in g and "stroke_m" in g:
-                names["position_m"] = "stroke_m"      # a rig.loop recording: the transducer is stroke_m
+                names["position_m"] = "stroke_m"      # a rig.runtime.loop recording: the transducer is stroke_m
             missing = [c for c in COLUMNS if names[c] not in g or not isinstance(g[names[c]], h5py.Dataset)]
             if missing:
                 have = ", ".join(sorted(g.keys()))[:120]
@@ -327,7 +327,7 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                     a = a[:, idx]
                 cols[c] = a
             if not bool(f.attrs.get("complete", True)):
-                # rig.recorder marks a run cut short (crash, kill): keep the rows every channel has
+                # rig.runtime.recorder marks a run cut short (crash, kill): keep the rows every channel has
                 n = min(a.shape[0] for a in cols.values())
                 cols = {c: a[:n] for c, a in cols.items()}
             meta = {}
@@ -363,7 +363,7 @@ def _feedback_rows(g, command) -> str:
     isolation law or the stroke centring: the valve follows the measured accel and stroke). '' otherwise."""
     if "lifecycle_state" not in g or "isolation_on" not in g:
         return ""                                   # a chirp (playback) or a foreign file: open loop
-    active = np.asarray(g["lifecycle_state"][()]).ravel() == 2      # rig.lifecycle.State.ACTIVE
+    active = np.asarray(g["lifecycle_state"][()]).ravel() == 2      # rig.runtime.lifecycle.State.ACTIVE
     if not active.any():
         return ""
     return (f"recorded by {command} with the feedback controller driving the valves in {int(active.sum())} of "
@@ -403,7 +403,7 @@ def _track_rows(g, mount, source):
 def _mount_index(ds, mount, source) -> int:
     if isinstance(mount, int):
         return mount
-    names = ds.attrs.get("labels", ds.attrs.get("mounts"))     # rig.recorder writes "labels"
+    names = ds.attrs.get("labels", ds.attrs.get("mounts"))     # rig.runtime.recorder writes "labels"
     if names is None:
         raise RecordingError(f"{source}: mount {mount!r} asked but the datasets have no 'labels' attribute")
     names = [n.decode() if isinstance(n, bytes) else str(n) for n in np.atleast_1d(names)]

@@ -21,8 +21,8 @@ import numpy as np
 
 from controllers.vibration_criteria import band_velocity_rms, plot_vc, vc_class
 from rig.errors import RecordingError
-from rig.lifecycle import State
-from rig.recorder import read_recording
+from rig.runtime.lifecycle import State
+from rig.runtime.recorder import read_recording
 
 MODES = ("off", "feedback", "feedback_feedforward")
 MIN_SECONDS = 2.0            # below this the 1 Hz band holds less than two cycles: no report for the mode

@@ -56,13 +56,13 @@ import time
 import numpy as np
 
 from rig import cliargs
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
 from rig.errors import RigError
-from rig.lifecycle import State
-from rig.rt import cpu_steal_ms, enter_realtime, leave_realtime
-from rig.session import Session
+from rig.runtime.lifecycle import State
+from rig.runtime.rt import cpu_steal_ms, enter_realtime, leave_realtime
+from rig.runtime.session import Session
 from sim_backend.bench import bench_sim as run_bench
 
 log = logging.getLogger("rig.bench")
@@ -672,8 +672,8 @@ def _print_both(out: dict, as_json: bool) -> None:
 def _kernel_us(cfg, mode) -> float:
     """The compiled period's own cost on the layout's controllers after a short run in simulated time: the
     least of five means over 20000 back-to-back calls with the last measurement (ACTIVE, no recorder)."""
-    from rig.clock import SimClock
-    from rig.kernel import MODE_ACTIVE
+    from rig.runtime.clock import SimClock
+    from rig.runtime.kernel import MODE_ACTIVE
     with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
         s.run(seconds=0.1, activate_after_s=0.01)
         k, m = s.loop.kernel, s.loop.last_meas

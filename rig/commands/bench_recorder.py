@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.clock import SimClock
-from rig.recorder import Recorder, read_recording
-from rig.session import Session
+from rig.runtime.clock import SimClock
+from rig.runtime.recorder import Recorder, read_recording
+from rig.runtime.session import Session
 
 MODES = {"none": None, "gzip": "gzip"}
 

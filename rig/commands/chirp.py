@@ -28,14 +28,14 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from controllers.playback import SignalPlayback
 from rig import cliargs, excitation
 from rig.backends import BACKENDS
-from rig.clock import MonotonicClock, SimClock
+from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
-from rig.lifecycle import State
-from rig.recorder import Channel, read_recording
+from rig.runtime.lifecycle import State
+from rig.runtime.recorder import Channel, read_recording
 from rig.recording import save_columns_csv
-from rig.session import Session
-from rig.tap import Columns
+from rig.runtime.session import Session
+from rig.runtime.tap import Columns
 from sim_backend.actuator import Effects, StandBank, StandPlant
 from sim_backend.linear import ActuatorParams
 
@@ -148,7 +148,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
               mount: str = "front_left", settle_s: float = 0.05, sim_time: bool | None = None, seed: int | None = None,
               stand_params=None, stand_effects=None, progress=None, on_session=None, levels_V=None,
               multisine: bool = False, period_s: float = 10.0) -> dict:
-    """Run the chirp through rig.loop and write the recording. Returns a summary dict.
+    """Run the chirp through rig.runtime.loop and write the recording. Returns a summary dict.
     levels_V: the same chirp at each level back to back; multisine: an odd random-phase multisine instead
     (both from rig.excitation, played back sample by sample).
     progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional

@@ -1,7 +1,7 @@
 """`rig demo`: the four-mount rig on the simulated plant under broadband floor vibration, isolation off, feedback,
 and feedback + floor feedforward, compared over the SAME floor motion.
 
-Runs the product's control loop (rig/session.py Session: read -> check -> controllers + feedforward -> limit ->
+Runs the product's control loop (rig/runtime/session.py Session: read -> check -> controllers + feedforward -> limit ->
 write) in simulated time over the sim backend (RigPlant + FloorMotion from [vibration], floor accelerometers
 with their own noise, one period of computation delay), three times from the same seed, once per isolation
 mode: each run sees the same floor realisation and the same sensor noise, so the reductions are the isolation
@@ -27,12 +27,12 @@ import scipy.signal
 
 from controllers.vibration_criteria import plot_vc, vc_report
 from rig import cliargs
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import load_config
 from rig.errors import RigError
-from rig.gate import ISOLATION_MODES as MODES
-from rig.lifecycle import State
-from rig.session import Session
+from rig.runtime.gate import ISOLATION_MODES as MODES
+from rig.runtime.lifecycle import State
+from rig.runtime.session import Session
 
 LABELS = {"off": "isolation off", "feedback": "feedback", "feedback_feedforward": "feedback + feedforward"}
 
@@ -83,7 +83,7 @@ def run(args) -> int:
     res["comparison"] = (f"three runs over the same floor realisation (seed {v.seed}) and sensor noise: the "
                          f"reductions are the isolation alone, table (or tool) rms with isolation over without")
     res["plant"] = plant
-    res["loop"] = {"periods": 3 * n, "wall_s": wall, "path": "rig.session.Session over SimBackend(RigPlant)"}
+    res["loop"] = {"periods": 3 * n, "wall_s": wall, "path": "rig.runtime.session.Session over SimBackend(RigPlant)"}
     if args.json:
         print(json.dumps(res, indent=2))
     else:

@@ -3,7 +3,7 @@
 
   rig drill [--backend sim|hil|both] [--only NAME ...] [--json] [--no-realtime]
 
-Sensor and device faults are driven through the backends' knobs (rig/inject.py: the simulated backend's
+Sensor and device faults are driven through the backends' knobs (rig/runtime/inject.py: the simulated backend's
 `inject`, the emulated devices' knobs behind the real drivers); the loop's own faults (a stall, a loop
 falling behind, a limit cycle of an unstable controller, a rate it cannot hold) and the recorder's death
 through the same injections or a configuration that provokes them. Every run records (HDF5, a temporary
@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from rig import inject
+from rig.runtime import inject
 from rig.backends import default_config
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import hil_run_config, load_config
 from rig.errors import ConfigError, RigError
-from rig.recorder import read_recording
+from rig.runtime.recorder import read_recording
 from controllers.isolation import make_isolation_controllers
-from rig.session import Session, check_stable
+from rig.runtime.session import Session, check_stable
 
 T_SIM = 0.5          # knob time on the simulated backend (activation at 0.05 s)
 T_HIL = 1.0          # on the emulated devices (activation at 0.05 s, drivers settled)

@@ -25,7 +25,7 @@ suffers first).
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording"} on
 stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130.
-Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/inject.py), e.g.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
   rig hil --layout prototype [--seconds N] ...  the prototype on its stand (drivers/devicemaps/prototype_hil.toml
@@ -47,16 +47,17 @@ import time
 import numpy as np
 
 from drivers.protocol import dta as proto
-from rig import cliargs, inject, operated
+from rig import cliargs, operated
+from rig.runtime import inject
 from rig.backends import default_config, make_port
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import RecordingError, RigError
-from rig.gate import ISOLATION_MODES
+from rig.runtime.gate import ISOLATION_MODES
 from rig.port import Commands
-from rig.recorder import read_recording
-from rig.rt import raise_priority
-from rig.session import Session
+from rig.runtime.recorder import read_recording
+from rig.runtime.rt import raise_priority
+from rig.runtime.session import Session
 
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate

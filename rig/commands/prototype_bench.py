@@ -23,8 +23,8 @@ import numpy as np
 from controllers.prototype import StandLoops, step_figures
 from controllers.tracking import tracking_from_config, tracking_response
 from rig import operated
-from rig.clock import SimClock
-from rig.session import Session
+from rig.runtime.clock import SimClock
+from rig.runtime.session import Session
 
 FREQS_HZ = (5.0, 20.0, 50.0, 95.0)
 

@@ -25,9 +25,9 @@ rate the loop cannot hold on this machine (measured over the first periods). Whi
 when it falls lag_limit_s behind real time, misses more than missed_limit of its deadlines over
 missed_window_s, when a valve command limit-cycles ([safety] oscillation_*), or when the recording's writer
 dies.
-Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T (repeatable; rig/inject.py lists the knobs), e.g.
+Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T (repeatable; rig/runtime/inject.py lists the knobs), e.g.
   rig run --seconds 3 --inject nan:front_left:accel@1.5
-One process per rig: a second one driving the same devices is refused, naming the first (rig/lock.py).
+One process per rig: a second one driving the same devices is refused, naming the first (rig/runtime/lock.py).
 
 The prototype (`--layout prototype`: drivers/devicemaps/prototype.toml, or prototype_hil.toml on the hil
 backend; any config with [layout] plant = "stand"): the actuator alone on its stand, operated in modes
@@ -56,14 +56,15 @@ import tempfile
 from pathlib import Path
 
 import drivers
-from rig import cliargs, inject, operated, report
+from rig import cliargs, operated, report
+from rig.runtime import inject
 from rig.backends import BACKENDS, default_config
-from rig.clock import MonotonicClock, SimClock
+from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
 from rig.console.runner import run_with_console
 from rig.errors import RecordingError, RigError
-from rig.lifecycle import State
-from rig.session import Session
+from rig.runtime.lifecycle import State
+from rig.runtime.session import Session
 
 DEVICEMAPS = Path(drivers.__file__).resolve().parent / "devicemaps"
 LAYOUTS = {"prototype": {"hil": DEVICEMAPS / "prototype_hil.toml", None: DEVICEMAPS / "prototype.toml"}}

@@ -34,8 +34,8 @@ import numpy as np
 from rig.console import browser
 from rig.console.link import Console
 from rig.errors import RigError
-from rig.lifecycle import State
-from rig.session import Session
+from rig.runtime.lifecycle import State
+from rig.runtime.session import Session
 
 TOGGLE_S = 0.5
 SETTLE_S = 1.0                  # after the page has connected, before the block's periods count

@@ -7,7 +7,7 @@ What runs here, and what it costs the loop:
   copies the recording's new rows into the live ring twenty times a second (a numpy copy; the loop's thread
   never waits for it).
 - The link thread: waits on the control socket (no interpreter lock held while waiting); applies each command
-  through the session's requests (rig/session.py: the lifecycle gate's thread-safe requests, applied at the
+  through the session's requests (rig/runtime/session.py: the lifecycle gate's thread-safe requests, applied at the
   next period boundary, the same path as SIGUSR1 and the control file) and logs it; ten times a second sends
   a status message (fault reason, counters, recording, the job's progress, new log records).
 - Nothing else: the web server, the JSON, the spectra run in the server's own process (rig/console/server.py),
@@ -40,9 +40,9 @@ from rig.config import MOUNTS
 from rig.console.live import LiveRing
 from rig.console.protocol import check_command, receive, send
 from rig.errors import RigError
-from rig.lifecycle import State
-from rig.recorder import Recorder
-from rig.rt import raise_priority
+from rig.runtime.lifecycle import State
+from rig.runtime.recorder import Recorder
+from rig.runtime.rt import raise_priority
 
 log = logging.getLogger("rig.console")
 

@@ -1,15 +1,15 @@
 """The live ring: the loop's recording rows, published in shared memory for the console's web server.
 
-The loop's side is the recorder interface the tap already drives (rig/tap.py): `ncols`, `ring_rows()`,
+The loop's side is the recorder interface the tap already drives (rig/runtime/tap.py): `ncols`, `ring_rows()`,
 `ring_header()`, `push_row()`, `event()`. Bound as the loop's recorder while no recording runs, the
-compiled period claims, writes and publishes every row in it (rig/ring.py), exactly as it does in a
+compiled period claims, writes and publishes every row in it (rig/runtime/ring.py), exactly as it does in a
 recording's ring; while a recording
 runs, the console copies the recording's new rows in here from another thread (`append`). Unlike a
 recording's ring it never waits for a reader and never drops: it overwrites the oldest row, and a reader that
 fell behind by more than the capacity skips ahead (and counts what it skipped).
 
 The memory is a memfd (an anonymous shared file), so the web server may be another process: it maps the
-same file descriptor (passed over the control socket) with `LiveReader`. Layout: rig/ring.py's header (its
+same file descriptor (passed over the control socket) with `LiveReader`. Layout: rig/runtime/ring.py's header (its
 HEADER words: head, rows published so far; tail NEVER_FULL; dropped; pending; then this ring's own two words,
 ncols and capacity in rows), then capacity x ncols float64 rows. Publication order: the row first, then the
 head (x86 does not reorder stores).
@@ -21,7 +21,7 @@ import os
 
 import numpy as np
 
-from rig import ring as rr
+from rig.runtime import ring as rr
 
 _NCOLS, _CAPACITY = len(rr.HEADER), len(rr.HEADER) + 1      # this ring's own header words
 

@@ -17,7 +17,7 @@ import math
 import socket
 
 # name -> (argument names and their types, what the button does). Every one goes through the session's
-# requests (rig/session.py), i.e. the lifecycle gate's thread-safe requests applied at a period boundary.
+# requests (rig/runtime/session.py), i.e. the lifecycle gate's thread-safe requests applied at a period boundary.
 COMMANDS = {
     "isolation": ({"on": bool}, "switch isolation on or off (bumpless, in the controllers)"),
     "activate": ({}, "INACTIVE -> ACTIVE (valve commands allowed)"),

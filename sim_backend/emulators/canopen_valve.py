@@ -11,7 +11,7 @@ import math
 import random
 
 from drivers.protocol import valve408 as v4
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 
 # per-node fault knobs
 VALVE_MODES = ("ok", "silence", "garbage", "stale", "fault", "hold")

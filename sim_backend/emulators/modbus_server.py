@@ -24,7 +24,7 @@ from pymodbus.constants import ExcCodes
 
 from drivers.protocol.modbus_map import (FIFO_WIDTH, N_AI, N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT,
                                         REG_FIFO, REG_STATUS, REG_WDOG, volts_to_raw)
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 class Module:

@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 from rig.errors import DeviceError
 from sim_backend.emulators import shared as sh
 

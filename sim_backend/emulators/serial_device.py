@@ -13,7 +13,7 @@ import time
 import tty
 
 from drivers.protocol import dta as proto
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 

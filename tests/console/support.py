@@ -15,11 +15,11 @@ import time
 import urllib.error
 import urllib.request
 
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import Config
 from rig.console.link import Console
-from rig.lifecycle import State
-from rig.session import Session
+from rig.runtime.lifecycle import State
+from rig.runtime.session import Session
 from tests.paths import REPO
 
 # the configured rate: the Table 1 controller is designed for it; at 1000 Hz `rig design` calls its loop unstable

@@ -10,7 +10,7 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from rig.lifecycle import State
+from rig.runtime.lifecycle import State
 from tests.console.support import base, command, http, live_run, state, wait
 
 

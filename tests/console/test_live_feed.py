@@ -10,13 +10,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rig import ring as rr
+from rig.runtime import ring as rr
 from rig.console import feed as feed_mod
 from rig.console.feed import Feed
 from rig.console.live import LiveReader, LiveRing
 from rig.console.protocol import COMMANDS, check_command
-from rig.layout import loop_channels
-from rig.lifecycle import State
+from rig.runtime.layout import loop_channels
+from rig.runtime.lifecycle import State
 
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
 
@@ -30,7 +30,7 @@ def test_rows_the_kernel_commits_reach_the_reader_in_order():
     rd = _reader(ring)
     hdr = ring.ring_header()
     rows = []
-    for k in range(10):                         # what the compiled period does (rig/ring.py): publish, claim
+    for k in range(10):                         # what the compiled period does (rig/runtime/ring.py): publish, claim
         rr.publish(hdr)
         ring.ring_rows()[rr.claim(hdr, ring.capacity)] = (k, 2 * k, 3 * k)
         new = rd.read()

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from rig.console.browser import wait_for
-from rig.lifecycle import State
-from rig.recorder import read_recording
+from rig.runtime.lifecycle import State
+from rig.runtime.recorder import read_recording
 from tests.console.support import base, live_run
 
 pytestmark = pytest.mark.browser

@@ -1,6 +1,6 @@
 """The compiled isolation law (controllers/isolation.py isolation_step) equals the plain-Python reference
 (tests/controllers/reference.py) sample for sample, over a run with isolation switching, clamp and slew, and
-the saturation recovery (suspend and resume); and so does the period kernel (rig/kernel.py) that runs it for
+the saturation recovery (suspend and resume); and so does the period kernel (rig/runtime/kernel.py) that runs it for
 any number of mounts, with its replay of skipped periods."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from controllers.isolation import make_isolation_controllers
 from controllers.playback import SignalPlayback
 from rig.config import Config, SafetyConfig, config_from_dict, mount_names
 from rig.errors import ConfigError
-from rig.kernel import MODE_INACTIVE, PeriodKernel
+from rig.runtime.kernel import MODE_INACTIVE, PeriodKernel
 from rig.port import Measurements
 from tests.controllers.reference import isolation_step as reference_step
 

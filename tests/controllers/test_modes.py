@@ -13,7 +13,7 @@ from controllers.modes import (MODES, ModeRequest, OperatingModes, make_operatin
 from rig.config import config_from_dict, load_config
 from rig.commands.run import LAYOUTS
 from rig.errors import RigError
-from rig.kernel import PeriodKernel
+from rig.runtime.kernel import PeriodKernel
 
 DT = 1.0 / 5000.0
 PROTO = load_config(LAYOUTS["prototype"][None])

@@ -23,7 +23,7 @@ def contract_config() -> Config:
 
 @pytest.fixture(scope="module", params=["sim", "hil"])
 def backend(request):
-    from rig.kernel import period_entry
+    from rig.runtime.kernel import period_entry
     period_entry(4, False)      # compiled before the port runs (cold numba cache: ~20 s the port would queue)
     port = make_port(contract_config(), request.param)
     port.open()
@@ -96,9 +96,9 @@ def test_safe_state_nulls_the_valves(backend):
 
 
 def test_runtime_loop_runs_through_the_port(backend):
-    """The runtime's loop (rig/loop.py) on this backend: INACTIVE then ACTIVE with a centring law."""
-    from rig.lifecycle import State
-    from rig.loop import Loop
+    """The runtime's loop (rig/runtime/loop.py) on this backend: INACTIVE then ACTIVE with a centring law."""
+    from rig.runtime.lifecycle import State
+    from rig.runtime.loop import Loop
     from tests.rig.support import CentringP
 
     _, port = backend

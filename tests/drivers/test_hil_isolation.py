@@ -109,8 +109,8 @@ def test_reduction_through_drivers_matches_lockstep_simulation(hil_run):
 
 def _lockstep_table_rms(cfg, mode: str, seconds: float) -> float:
     """The table's rms in lockstep simulated time (sim backend: one period of delay), after 1 s settling."""
-    from rig.clock import SimClock
-    from rig.session import Session
+    from rig.runtime.clock import SimClock
+    from rig.runtime.session import Session
     with Session(cfg, "sim", clock=SimClock(), isolation=mode != "off",
                  feedforward=mode == "feedback_feedforward") as s:
         s.loop.activate()

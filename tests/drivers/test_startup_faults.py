@@ -19,11 +19,11 @@ from drivers.canopen_valves import CanopenValves
 from drivers.modbus_io import ModbusAnalogIO
 from drivers.serial_dta import DisplacementAmplifier
 from rig.backends import make_hil_port
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import Config, HilConfig, VibrationConfig, config_from_dict, hil_run_config
 from rig.errors import DeviceError
-from rig.lifecycle import State
-from rig.loop import Loop
+from rig.runtime.lifecycle import State
+from rig.runtime.loop import Loop
 from sim_backend.emulators.rig import EmulatedRig
 from tests.paths import REPO
 from tests.rig.support import CentringP

@@ -1,9 +1,9 @@
-"""Pure-Python references of the safety rules (the runtime's are rig/safety.py's compiled check_sensors and
+"""Pure-Python references of the safety rules (the runtime's are rig/runtime/safety.py's compiled check_sensors and
 limit_commands): the first versions, kept so property tests can hold the compiled rules against them."""
 from __future__ import annotations
 
 from rig.config import Config
-from rig.safety import SensorCheck
+from rig.runtime.safety import SensorCheck
 
 
 class RefSensorCheck(SensorCheck):

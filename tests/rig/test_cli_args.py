@@ -155,7 +155,7 @@ def test_overwrite_replaces_a_recording_after_a_run(tmp_path, capsys):
     rec = tmp_path / "run.h5"
     rec.write_bytes(b"old")
     assert main(["run", "--sim-time", "--seconds", "0.2", "--quiet", "--record", str(rec), "--overwrite"]) == 0
-    from rig.recorder import read_recording
+    from rig.runtime.recorder import read_recording
     d = read_recording(rec)
     assert d["attrs"]["complete"] and len(d["time_s"]) >= 900
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]       # no partial file left

@@ -19,10 +19,10 @@ pytest.importorskip("controllers.analysis")
 
 from controllers.analysis import DiscreteRig, mimo                     # noqa: E402
 from controllers.isolation import make_isolation_controllers          # noqa: E402
-from rig.clock import SimClock                                         # noqa: E402
+from rig.runtime.clock import SimClock                                         # noqa: E402
 from rig.config import config_from_dict                                # noqa: E402
-from rig.lifecycle import State                                        # noqa: E402
-from rig.loop import Loop                                              # noqa: E402
+from rig.runtime.lifecycle import State                                        # noqa: E402
+from rig.runtime.loop import Loop                                              # noqa: E402
 from sim_backend.backend import make_sim_port                         # noqa: E402
 from sim_backend.rig_plant import I_TABLE, FloorMotion                # noqa: E402
 

@@ -5,7 +5,7 @@ the valves hold their last command and the plant moves on; that is the physics o
 runtime must ride out: the feedforward stays bounded (its filters see every conversion, so it never sees a
 jump), no command reaches the valve's clamp, and the table's isolation stays within 2 dB of the on-time run
 over the same floor. A late period of 50 ms leaves no slow table offset behind (the controllers step the
-missed conversions with the stroke interpolated across them, rig/kernel.py _catch_up)."""
+missed conversions with the stroke interpolated across them, rig/runtime/kernel.py _catch_up)."""
 from __future__ import annotations
 
 import math
@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.commands.hil import HIL_DEFAULT_CONFIG, hil_config
 from rig.config import load_config
-from rig.session import Session
+from rig.runtime.session import Session
 
 CFG = hil_config(load_config(HIL_DEFAULT_CONFIG))
 RATE = CFG.loop.rate_hz

@@ -1,4 +1,4 @@
-"""`rig chirp`: the identification run through rig.loop on the simulated stand (simulated time), its recording,
+"""`rig chirp`: the identification run through rig.runtime.loop on the simulated stand (simulated time), its recording,
 and identification from it."""
 from __future__ import annotations
 

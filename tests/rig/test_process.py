@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from rig.recorder import read_recording
+from rig.runtime.recorder import read_recording
 
 pytest.importorskip("controllers.isolation")
 pytest.importorskip("sim_backend.rig_plant")

@@ -10,13 +10,13 @@ import pytest
 from controllers.modes import MODES, OperatingModes
 from rig import operated
 from rig.commands import prototype_bench
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.commands.run import LAYOUTS
 from rig.config import config_from_dict, load_config
 from rig.errors import RigError
-from rig.kernel import _ENTRIES
+from rig.runtime.kernel import _ENTRIES
 from rig.recording import load_recording
-from rig.session import Session
+from rig.runtime.session import Session
 
 PROTO = load_config(LAYOUTS["prototype"][None])
 

@@ -1,4 +1,4 @@
-"""Recording loader: the shared CSV(.gz), our HDF5 (also as rig.recorder writes it), MATLAB .mat, and every kind
+"""Recording loader: the shared CSV(.gz), our HDF5 (also as rig.runtime.recorder writes it), MATLAB .mat, and every kind
 of bad input ending in one RecordingError line that names the file and the problem."""
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ def test_round_trip_each_format(tmp_path, name):
 
 
 def test_reads_what_rig_recorder_writes(tmp_path):
-    from rig.recorder import Channel, Recorder
+    from rig.runtime.recorder import Channel, Recorder
     path = tmp_path / "chirp.h5"
     r = Recorder(path, [Channel("time_s", "s"), Channel("valve_cmd_V", "V"), Channel("position_m", "m"),
                         Channel("accel_mps2", "m/s^2")], rate_hz=2000.0).start()

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.recorder import read_recording
+from rig.runtime.recorder import read_recording
 from tests.rig.support import Command
 
 PY = sys.executable
@@ -133,7 +133,7 @@ def test_a_second_process_driving_the_same_rig_is_refused_naming_the_holder(tmp_
     cfg.write_text('[drivers]\ncan_interface = "virtual"\ncan_channel = "rig-lock-test"\nmodbus_host = "127.0.0.1"\n'
                    f'modbus_port = 1\nserial_port = "{tmp_path / "no-tty"}"\n')
     holder = subprocess.Popen([PY, "-c", "import sys, time\nfrom rig.backends import devices\n"
-                               "from rig.config import load_config\nfrom rig.lock import RigLock\n"
+                               "from rig.config import load_config\nfrom rig.runtime.lock import RigLock\n"
                                f"with RigLock(devices(load_config({str(cfg)!r}), 'hardware'), 'rig run (holder)'):\n"
                                "    print('held', flush=True)\n    time.sleep(120)\n"],
                               stdout=subprocess.PIPE, text=True)
@@ -194,9 +194,9 @@ def test_rig_drill_rehearses_a_fault_and_reports_the_time_to_fault(tmp_path):
 # ---- messages ------------------------------------------------------------------------------------------------
 def test_the_status_line_shows_suspended_isolation():
     """Issue: with the valves at the clamp and isolation suspended, the status line said `iso=on`."""
-    from rig.clock import SimClock
+    from rig.runtime.clock import SimClock
     from rig.config import Config
-    from rig.session import Session, _StatusLine
+    from rig.runtime.session import Session, _StatusLine
     from controllers.isolation import SCALAR_STATES
     with Session(Config(), "sim", clock=SimClock()) as s:
         s.run(iterations=100, activate_after_s=0.005)

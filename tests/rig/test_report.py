@@ -10,10 +10,10 @@ import pytest
 
 from controllers.vibration_criteria import CRITERIA
 from rig import report
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config
 from rig.errors import RecordingError
-from rig.session import Session
+from rig.runtime.session import Session
 
 RANK = {name: i for i, (name, _, _) in enumerate(CRITERIA)}
 

@@ -1,12 +1,12 @@
 """The packages import downwards only (docs/ARCHITECTURE.md), checked by parsing every module's imports (ast).
 
 Layers, lowest first; a module may import its own layer and those below, never one above:
-  0 base          rig.errors, rig.config, rig.port, rig.clock, rig.rt, rig.lifecycle
+  0 base          rig.errors, rig.config, rig.port, rig.runtime.clock, rig.runtime.rt, rig.runtime.lifecycle
   1 models, maps  sim_backend physics (linear, actuator, machine, rig_plant, bench, data), drivers.protocol
   2 controllers   controllers.*  (laws, builders, design tools; may use the physics models)
-  3 runtime       rig kernel, safety, loop and its parts, recorder and recordings, analysis of recordings;
+  3 runtime       rig.runtime (kernel, safety, loop and its parts, recorder), recordings and their analysis;
                   ports beside it: drivers.*, sim_backend.backend, sim_backend.emulators.*
-  4 registry      rig.backends, rig.session (builds runs from the registry)
+  4 registry      rig.backends, rig.runtime.session (builds runs from the registry)
   5 commands      rig.commands.*, rig.cli, rig.console.* (the operator console: drives sessions as a command does)
 Within layer 3 the runtime knows no backend, the drivers know no simulator or emulator, and the simulated
 ports know no driver (only the shared protocol maps of layer 1).
@@ -26,8 +26,9 @@ from tests.paths import REPO
 PACKAGES = ("rig", "controllers", "drivers", "sim_backend")
 LAYER_PREFIXES = [                      # most specific first
     ("rig.commands", 5), ("rig.cli", 5), ("rig.console", 5),
-    ("rig.backends", 4), ("rig.session", 4),
-    ("rig.errors", 0), ("rig.config", 0), ("rig.port", 0), ("rig.clock", 0), ("rig.rt", 0), ("rig.lifecycle", 0),
+    ("rig.backends", 4), ("rig.runtime.session", 4),
+    ("rig.errors", 0), ("rig.config", 0), ("rig.port", 0),
+    ("rig.runtime.clock", 0), ("rig.runtime.rt", 0), ("rig.runtime.lifecycle", 0),
     ("drivers.protocol", 1), ("sim_backend.backend", 3), ("sim_backend.emulators", 3), ("sim_backend", 1),
     ("controllers", 2), ("drivers", 3), ("rig", 3),
 ]
@@ -118,7 +119,7 @@ def test_no_function_local_import_of_the_project():
     assert not bad, "\n".join(bad)
 
 
-@pytest.mark.parametrize("src", ["drivers/__init__.py", "rig/loop.py", "rig/kernel.py"])
+@pytest.mark.parametrize("src", ["drivers/__init__.py", "rig/runtime/loop.py", "rig/runtime/kernel.py"])
 def test_the_check_sees_imports(src):
     """The parser finds the imports it is meant to judge (a check that sees nothing passes everything)."""
     mod = src[:-3].replace("/", ".").removesuffix(".__init__")

@@ -173,7 +173,7 @@ def test_rows_dropped_on_the_real_clock_are_said_at_once_and_marked(tmp_path):
         writer = None
         end = time.monotonic() + 120
         while writer is None and time.monotonic() < end:
-            kids = [c for c in psutil.Process(proc.pid).children() if "rig.recorder" in " ".join(c.cmdline())]
+            kids = [c for c in psutil.Process(proc.pid).children() if "rig.runtime.recorder" in " ".join(c.cmdline())]
             writer = kids[0] if kids else None
             time.sleep(0.05)
         assert writer is not None, "no recorder writer process found"

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import pytest
 
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config, config_from_dict
 from rig.errors import RigError
-from rig.lifecycle import Lifecycle, State
-from rig.loop import Loop
+from rig.runtime.lifecycle import Lifecycle, State
+from rig.runtime.loop import Loop
 from sim_backend.backend import SimBackend
 from tests.rig.support import CentringP, TinyPlant
 

@@ -25,17 +25,17 @@ from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from controllers.modes import MODES, ModeRequest, make_operating_controllers, parse_request
 from rig.backends import devices, make_port
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import Config, layout_mounts, mount_names
 from rig.errors import ConfigError, RigError
-from rig.gate import ISOLATION_MODES
-from rig.kernel import period_entry
-from rig.lock import RigLock
-from rig.loop import Loop
-from rig.recorder import WRITER_PRIORITY, Recorder
-from rig.rt import enter_realtime, leave_realtime
-from rig.signals import take_held
-from rig.tap import Columns
+from rig.runtime.gate import ISOLATION_MODES
+from rig.runtime.kernel import period_entry
+from rig.runtime.lock import RigLock
+from rig.runtime.loop import Loop
+from rig.runtime.recorder import WRITER_PRIORITY, Recorder
+from rig.runtime.rt import enter_realtime, leave_realtime
+from rig.runtime.signals import take_held
+from rig.runtime.tap import Columns
 
 log = logging.getLogger("rig.session")
 
@@ -47,12 +47,12 @@ class Session:
     default hold). record: an HDF5 path (the loop's layout, or `columns`: a Columns selection of it);
     realtime: the loop thread's real-time set-up (real clock only); signals: SIGINT/SIGTERM stop the run
     safely, SIGUSR1 toggles isolation (operating modes: isolate <-> hold), SIGUSR2 (operating modes) off <->
-    hold (signals held since start-up are applied at the first period, rig/signals.py); status /
+    hold (signals held since start-up are applied at the first period, rig/runtime/signals.py); status /
     control_file: the status line on stderr, a control file polled for control words (`control`; its folder
     must exist; only changes after the start count); script: [(loop time s, control word)], applied at those
     period boundaries; stability_check: refuse isolation controllers `rig design` calls unstable; rate_check:
-    refuse a rate the loop cannot hold (measured over its first periods, rig/scheduler.py). The devices the
-    backend drives are locked for the session (rig/lock.py): a second process driving them is refused,
+    refuse a rate the loop cannot hold (measured over its first periods, rig/runtime/scheduler.py). The devices the
+    backend drives are locked for the session (rig/runtime/lock.py): a second process driving them is refused,
     naming the holder.
     Floor feedforward ([sensors] floor_accel, isolation controllers on every mount): built into the loop's
     period (controllers/feedforward.py, [controller] ff_*), off at the start unless feedforward=True; the
@@ -269,8 +269,8 @@ class Session:
         self.loop.request_active(on)
 
     def request_isolation_mode(self, mode: str) -> None:
-        """off / feedback / feedback_feedforward, bumpless, at the next period boundary (rig.gate.ISOLATION_MODES;
-        not an operating mode: request_mode)."""
+        """off / feedback / feedback_feedforward, bumpless, at the next period boundary
+        (rig.runtime.gate.ISOLATION_MODES; not an operating mode: request_mode)."""
         self.loop.request_isolation_mode(mode)
 
     def reset_fault(self) -> None:

@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import config_from_dict
-from rig.lifecycle import State
-from rig.loop import Loop
-from rig.recorder import Recorder, read_recording
+from rig.runtime.lifecycle import State
+from rig.runtime.loop import Loop
+from rig.runtime.recorder import Recorder, read_recording
 from sim_backend.backend import make_sim_port
 from tests.controllers.reference import isolation_step
 from tests.rig.reference import RefCommandLimiter

@@ -1,4 +1,4 @@
-"""The period kernel's rules (rig/safety.py check_sensors and limit_commands, compiled) decide exactly as the
+"""The period kernel's rules (rig/runtime/safety.py check_sensors and limit_commands, compiled) decide exactly as the
 plain-Python references (tests/rig/reference.py) for any sequence: the same fault text on the same period,
 the same counters; and the loop records every period, with its faults, also when the ring is full."""
 from __future__ import annotations
@@ -11,11 +11,11 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config, SafetyConfig
-from rig.loop import Loop
+from rig.runtime.loop import Loop
 from rig.port import Measurements
-from rig.safety import CommandLimiter, SensorCheck, check_sensors, limit_commands
+from rig.runtime.safety import CommandLimiter, SensorCheck, check_sensors, limit_commands
 from sim_backend.backend import make_sim_port
 from tests.rig.reference import RefCommandLimiter, RefSensorCheck
 P = 200_000
@@ -128,7 +128,7 @@ def test_loop_faults_on_the_period_the_rule_sees(knob, words, after):
 
 
 def _recorded(tmp_path, inject=(), ring_s=2.0):
-    from rig.recorder import Recorder, read_recording
+    from rig.runtime.recorder import Recorder, read_recording
     loop, port = _sim_loop(inject)
     path = tmp_path / "run.h5"
     rec = Recorder(path, loop.channels, rate_hz=1 / DT, ring_s=ring_s).start()
@@ -160,7 +160,7 @@ def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
     each, and the rows kept are the first ones."""
     import signal
 
-    from rig.recorder import Recorder, read_recording
+    from rig.runtime.recorder import Recorder, read_recording
     loop, port = _sim_loop()
     path = tmp_path / "full.h5"
     rec = Recorder(path, loop.channels, rate_hz=1 / DT, ring_s=0.0).start()     # the smallest ring: 4096 rows
@@ -199,7 +199,7 @@ def test_a_malformed_measurement_faults():
 def test_kernel_writes_the_ring_after_a_first_period_recorded_by_the_loop(tmp_path):
     """The first recorded period is a fault period (the loop records it itself); after the fault is reset the
     kernel must still write its rows into the ring directly, and every period is in the file."""
-    from rig.recorder import Recorder, read_recording
+    from rig.runtime.recorder import Recorder, read_recording
     loop, port = _sim_loop([dict(kind="device", at_s=0.0)])
     loop.stop_on_fault = False
     path = tmp_path / "first_fault.h5"

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import config_from_dict
-from rig.lifecycle import State
-from rig.loop import Loop
+from rig.runtime.lifecycle import State
+from rig.runtime.loop import Loop
 from sim_backend.backend import make_sim_port
 
 RATE = 5000.0
@@ -62,7 +62,7 @@ def test_without_recovery_the_gap_latches_the_clamp_and_faults():
 
 
 def test_recovery_returns_to_isolation_without_fault(caplog):
-    with caplog.at_level(logging.INFO, logger="rig.loop"):
+    with caplog.at_level(logging.INFO, logger="rig.runtime.loop"):
         loop, cmd, table, floor, suspended = run_stall({}, 15.0)
     assert loop.skipped == round(STALL_S / DT)
     assert loop.lc.fault_reason is None and loop.stop_reason == "time"

@@ -1,11 +1,11 @@
 """The recording row of a loop run: its channels, and the column offsets derived from them in one place.
 
-The period kernel (rig/kernel.py) writes the row with offsets from `RowLayout`, the recorder stores one
+The period kernel (rig/runtime/kernel.py) writes the row with offsets from `RowLayout`, the recorder stores one
 dataset per channel, and adapters that keep a few columns (rig/commands/chirp.py) look them up here too.
 """
 from __future__ import annotations
 
-from rig.recorder import Channel
+from rig.runtime.recorder import Channel
 
 # Per-row flag columns recorded after the per-mount channels.
 FLAG_CHANNELS = (

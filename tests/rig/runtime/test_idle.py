@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config
-from rig.loop import Loop
+from rig.runtime.loop import Loop
 from sim_backend.backend import make_sim_port
 from sim_backend.rig_plant import FloorMotion, RigPlant
 

@@ -8,12 +8,12 @@ import time
 import h5py
 import pytest
 
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config
 from rig.errors import ConfigError
-from rig.lifecycle import State
-from rig.recorder import read_recording
-from rig.session import Session
+from rig.runtime.lifecycle import State
+from rig.runtime.recorder import read_recording
+from rig.runtime.session import Session
 
 
 def test_session_builds_runs_records_and_tears_down(tmp_path):

@@ -1,7 +1,7 @@
 """The period kernel: sensor check -> controllers -> command limit -> recording row, one compiled call per
 period for any number of mounts (1..8), over one float64 memory block it owns.
 
-The rules are the compiled functions of their own modules (rig/safety.py: check_sensors, limit_commands;
+The rules are the compiled functions of their own modules (rig/runtime/safety.py: check_sensors, limit_commands;
 controllers/*.py: one law per controller kind); this module only arranges them and the memory. Per mount the
 kernel dispatches on the controller's kind (off, isolation, playback, PID, operating modes) with that mount's
 own named state and coefficients, so mounts can run different kinds. A controller may publish some of its
@@ -18,7 +18,7 @@ the limits. Its filters always run; switching it (set_feedforward) fades its out
 The block (`mem`), its parts named by the header below: the inputs of the period (packed by
 PeriodKernel.period in one struct call), the older conversions, the previous measurement, the safety limits
 and states, the mount table (kind, coefficients, state per mount), the coefficients, the controller states
-and the recording row (rig/layout.py RowLayout offsets). Passing one block instead of many scalars or arrays
+and the recording row (rig/runtime/layout.py RowLayout offsets). Passing one block instead of many scalars or arrays
 keeps numba's argument unboxing small: it is most of the cost of a call this size.
 """
 from __future__ import annotations
@@ -37,10 +37,10 @@ from controllers.playback import playback_step
 from controllers.tracking import track_step
 from rig.config import MAX_MOUNTS, Config
 from rig.errors import ConfigError
-from rig import ring as ring_rule
-from rig.layout import RowLayout, loop_channels
-from rig.recorder import Channel
-from rig.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
+from rig.runtime import ring as ring_rule
+from rig.runtime.layout import RowLayout, loop_channels
+from rig.runtime.recorder import Channel
+from rig.runtime.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
                         _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_floor, check_oscillation, check_sensors,
                         limit_commands)
 
@@ -58,7 +58,7 @@ INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step"
 MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
 (_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
  _IN_SKIP) = range(len(INPUTS))
-_FAULT_STATE = 3.0          # rig.lifecycle.State.FAULT (the row's fault column)
+_FAULT_STATE = 3.0          # rig.runtime.lifecycle.State.FAULT (the row's fault column)
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
@@ -72,7 +72,7 @@ _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds t
 FF_TABLE = ("coef", "n_sections", "state", "fade")
 
 
-# the recorder ring's producer rule (rig/ring.py), compiled into the period
+# the recorder ring's producer rule (rig/runtime/ring.py), compiled into the period
 _publish = numba.njit(cache=True, inline="always")(ring_rule.publish)
 _claim = numba.njit(cache=True, inline="always")(ring_rule.claim)
 
@@ -217,9 +217,9 @@ def _row_rest(mem, i, n, nf, row, flags):
 def run_period(mem, ring, hdr):
     """One period on the block: check the measurement; step the controllers (unless the port has no new
     conversion: they hold); limit the commands if ACTIVE, null if INACTIVE; fill the recording row; given a
-    recorder's ring (rows > 0) and its header (rig/ring.py), publish the row of the period before and write
+    recorder's ring (rows > 0) and its header (rig/runtime/ring.py), publish the row of the period before and write
     this one into the next row, claimed (a full ring: dropped and counted). FAULT: the row only.
-    0, or a rule's code (rig/safety.py): the caller then corrects the claimed row (its fault, null commands)
+    0, or a rule's code (rig/runtime/safety.py): the caller then corrects the claimed row (its fault, null commands)
     before the next period publishes it."""
     n = int(mem[_H_N])
     i = int(mem[_H_IN])
@@ -291,7 +291,7 @@ def native_entry(dispatcher):
 
 def ring_ok(ring, hdr) -> bool:
     """A recorder ring the kernel may write: 2-D C-contiguous float64 rows, and its header: C-contiguous
-    int64 of rig/ring.py HEADER's words (native_entry checks nothing)."""
+    int64 of rig/runtime/ring.py HEADER's words (native_entry checks nothing)."""
     return (isinstance(ring, np.ndarray) and ring.ndim == 2 and ring.dtype == np.float64
             and ring.flags.c_contiguous and ring.flags.writeable
             and isinstance(hdr, np.ndarray) and hdr.ndim == 1 and hdr.dtype == np.int64

@@ -1,5 +1,5 @@
 """Safety rules run inside the period: sensor plausibility (`check_sensors`) and command limits
-(`limit_commands`), compiled (numba) and called by the period kernel (rig/kernel.py); plus a watchdog thread
+(`limit_commands`), compiled (numba) and called by the period kernel (rig/runtime/kernel.py); plus a watchdog thread
 that sends the valve to null if the loop itself stops.
 
 SensorCheck, CommandLimiter and OscillationRule are the rules' builders: their limits from the config, their
@@ -28,7 +28,7 @@ import numba
 import numpy as np
 
 from rig.config import Config, mount_names
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 
 log = logging.getLogger("rig.safety")
 

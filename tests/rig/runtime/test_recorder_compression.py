@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rig.recorder import Channel, Recorder, chunk_rows_for, read_recording
+from rig.runtime.recorder import Channel, Recorder, chunk_rows_for, read_recording
 
 CHANNELS = [Channel("time_s", "s"), Channel("x", "m", 4, ("a", "b", "c", "d")), Channel("state", "", 20)]
 
@@ -56,7 +56,7 @@ def test_chunk_length_is_at_most_half_a_flush_interval():
 _CHILD = """
 import sys, time
 import numpy as np
-from rig.recorder import Channel, Recorder
+from rig.runtime.recorder import Channel, Recorder
 chans = [Channel("time_s", "s"), Channel("x", "", 4), Channel("state", "", 20)]
 rec = Recorder(sys.argv[1], chans, rate_hz=5000.0).start()
 print("ready", flush=True)

@@ -15,15 +15,15 @@ import scipy.signal
 
 from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import MOUNTS, Config, config_from_dict
 from rig.errors import ConfigError, RigError
-from rig.kernel import MODE_ACTIVE, PeriodKernel
-from rig.lifecycle import State
+from rig.runtime.kernel import MODE_ACTIVE, PeriodKernel
+from rig.runtime.lifecycle import State
 from rig.port import Measurements
-from rig.recorder import read_recording
-from rig.safety import CHECK_FLOOR
-from rig.session import Session
+from rig.runtime.recorder import read_recording
+from rig.runtime.safety import CHECK_FLOOR
+from rig.runtime.session import Session
 from tests.controllers.reference import feedforward_step, isolation_step
 
 DT = 1.0 / 5000

@@ -51,9 +51,9 @@ from pathlib import Path
 
 import numpy as np
 
-from rig import ring as rr
+from rig.runtime import ring as rr
 from rig.errors import RecordingError
-from rig.rt import raise_priority
+from rig.runtime.rt import raise_priority
 
 log = logging.getLogger("rig.recorder")
 
@@ -131,7 +131,7 @@ class Recorder:
                 "flush_s": self.flush_s, "chunk_rows": self.chunk_rows, "attrs": self.attrs,
                 "compression": self.compression, "priority": self.priority}
         try:
-            self._proc = subprocess.Popen([sys.executable, "-m", "rig.recorder"], stdin=subprocess.PIPE,
+            self._proc = subprocess.Popen([sys.executable, "-m", "rig.runtime.recorder"], stdin=subprocess.PIPE,
                                           stdout=subprocess.PIPE, text=True, bufsize=1,
                                           start_new_session=False)
             self._proc.stdin.write(json.dumps(spec) + "\n")

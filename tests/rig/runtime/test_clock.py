@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import time
 
-from rig.clock import MonotonicClock, SimClock
+from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import config_from_dict
-from rig.loop import Loop
+from rig.runtime.loop import Loop
 from sim_backend.backend import SimBackend
 from tests.rig.support import CentringP, TinyPlant
 

@@ -1,10 +1,10 @@
 """The fixed-rate control loop: read -> kernel (check, controllers, limit, row) -> write -> record, once per
 period. Loop puts together the parts, each with one concern:
 
-  rig/scheduler.py  deadlines, overrun policy, timing statistics, gap check and watchdog thread
-  rig/gate.py       the lifecycle gate: requests from other threads, activation, faults, safe stop
-  rig/kernel.py     the compiled period over its memory block (the rules: rig/safety.py, controllers/)
-  rig/tap.py        the recording tap (the kernel's row into the recorder's ring)
+  rig/runtime/scheduler.py  deadlines, overrun policy, timing statistics, gap check and watchdog thread
+  rig/runtime/gate.py       the lifecycle gate: requests from other threads, activation, faults, safe stop
+  rig/runtime/kernel.py     the compiled period over its memory block (the rules: rig/runtime/safety.py, controllers/)
+  rig/runtime/tap.py        the recording tap (the kernel's row into the recorder's ring)
 
 Controllers: one per mount, any kind the kernel runs (controllers/isolation.py, tracking.py, playback.py),
 built at the loop's period; anything else raises ConfigError here, at construction. Sample-driven ports
@@ -16,7 +16,7 @@ recovery suspending or resuming a mount's isolation is logged and recorded as an
 (checked at 10 Hz; on the real clock in the slack after a period, not in its time: rare code runs from cold
 caches, tens of us), and so is the recorder's writer process: if it dies while the loop records, the run
 faults at once (valves to null) and says so. A run stops through one INACTIVE period
-(rig/scheduler.py): its last recorded row has the valve at null. With floor feedforward filters (one per
+(rig/runtime/scheduler.py): its last recorded row has the valve at null. With floor feedforward filters (one per
 mount) the loop takes the port's floor accelerometers (Measurements.floor_accel_mps2) and the isolation mode
 (off / feedback / feedback_feedforward) is switched through the gate's requests.
 """
@@ -25,16 +25,16 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-from rig.clock import MonotonicClock
+from rig.runtime.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
-from rig.gate import LifecycleGate
-from rig.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
-from rig.lifecycle import State
+from rig.runtime.gate import LifecycleGate
+from rig.runtime.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
+from rig.runtime.lifecycle import State
 from rig.port import Commands
-from rig.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
-from rig.scheduler import Scheduler
-from rig.tap import RecordingTap
+from rig.runtime.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
+from rig.runtime.scheduler import Scheduler
+from rig.runtime.tap import RecordingTap
 
 log = logging.getLogger("rig.loop")
 

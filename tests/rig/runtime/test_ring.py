@@ -1,4 +1,4 @@
-"""The producer's rule of a shared row ring (rig/ring.py), as the compiled period and Recorder.push run it, and
+"""The producer's rule of a shared row ring (rig/runtime/ring.py), as the compiled period and Recorder.push run it, and
 a period that faults after the compiled call: its row corrected before it is published."""
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controllers.isolation import make_isolation_controllers
-from rig import ring as rr
-from rig.clock import SimClock
+from rig.runtime import ring as rr
+from rig.runtime.clock import SimClock
 from rig.config import Config
-from rig.loop import Loop
-from rig.recorder import Recorder, read_recording
+from rig.runtime.loop import Loop
+from rig.runtime.recorder import Recorder, read_recording
 from sim_backend.backend import make_sim_port
 
 DT = 2e-4

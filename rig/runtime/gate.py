@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 
-from rig.lifecycle import Lifecycle, State
+from rig.runtime.lifecycle import Lifecycle, State
 from rig.port import Commands
 
 log = logging.getLogger("rig.loop")

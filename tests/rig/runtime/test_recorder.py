@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rig.errors import RecordingError
-from rig.recorder import Channel, Recorder, read_recording
+from rig.runtime.recorder import Channel, Recorder, read_recording
 
 
 def test_chirp_layout_round_trip(tmp_path):
@@ -72,7 +72,7 @@ def test_bad_path_is_one_clear_error(tmp_path):
 def test_realtime_not_allowed_gives_one_note_and_carries_on(caplog):
     import threading
 
-    from rig.rt import enter_realtime, leave_realtime
+    from rig.runtime.rt import enter_realtime, leave_realtime
     out = {}
 
     def body():   # in a thread of its own: affinity and policy are per thread
@@ -95,7 +95,7 @@ def test_cpu_latency_request_is_held_for_the_run_and_dropped_after(tmp_path):
     import os
     import struct
 
-    import rig.rt as rt
+    import rig.runtime.rt as rt
     dev = tmp_path / "cpu_dma_latency"
     dev.write_bytes(b"")                                  # a plain file stands in for the device
     st = rt.RtState()

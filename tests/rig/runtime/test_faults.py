@@ -7,11 +7,11 @@ import math
 
 import pytest
 
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config, config_from_dict
-from rig.lifecycle import State
+from rig.runtime.lifecycle import State
 from controllers.playback import SignalPlayback
-from rig.loop import Loop
+from rig.runtime.loop import Loop
 from sim_backend.backend import SimBackend
 from tests.rig.support import CentringP, TinyPlant
 
@@ -135,7 +135,7 @@ def test_watchdog_thread_nulls_valve_when_the_loop_hangs():
     import threading
     import time
 
-    from rig.clock import MonotonicClock
+    from rig.runtime.clock import MonotonicClock
 
     cfg = config_from_dict({"safety": {"watchdog_s": 0.05}})
     clk = MonotonicClock()

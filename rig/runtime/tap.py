@@ -1,8 +1,8 @@
 """The recording tap: the kernel's row of each period into the recorder, without blocking the loop.
 
-With a recorder that offers its ring (rig.recorder.Recorder of the loop's layout, the console's live ring)
+With a recorder that offers its ring (rig.runtime.recorder.Recorder of the loop's layout, the console's live ring)
 the compiled period does the recording itself: it publishes the row of the period before and writes its
-own into the next row of the shared ring (rig/ring.py), so nothing of it runs in Python per period. A
+own into the next row of the shared ring (rig/runtime/ring.py), so nothing of it runs in Python per period. A
 period that faults after the compiled call (a port write that fails) has its row corrected here, in place,
 before the next period publishes it; the row of the run's last period is published when the run ends or the
 recorder changes. Any other recorder (an adapter keeping a few columns) gets push_row(row) after the period.
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from operator import itemgetter
 
-from rig import ring as rr
-from rig.kernel import ring_ok
+from rig.runtime import ring as rr
+from rig.runtime.kernel import ring_ok
 
 
 class RecordingTap:

@@ -20,15 +20,15 @@ from hypothesis import strategies as st
 
 from controllers.isolation import make_isolation_controllers
 from controllers.playback import SignalPlayback
-from rig.clock import MonotonicClock, SimClock
+from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import Config, SafetyConfig, config_from_dict
 from rig.errors import ConfigError
-from rig.lifecycle import State
-from rig.loop import Loop
-from rig.recorder import read_recording
-from rig.safety import LIMIT_OSC, OscillationRule, check_oscillation
-from rig.scheduler import RateRefused
-from rig.session import Session, check_stable
+from rig.runtime.lifecycle import State
+from rig.runtime.loop import Loop
+from rig.runtime.recorder import read_recording
+from rig.runtime.safety import LIMIT_OSC, OscillationRule, check_oscillation
+from rig.runtime.scheduler import RateRefused
+from rig.runtime.session import Session, check_stable
 from sim_backend.backend import make_sim_port
 from tests.rig.reference import RefOscillation
 
@@ -257,7 +257,7 @@ def test_a_stop_request_records_the_null_in_the_next_period(tmp_path):
 
 
 def _fifo_allowed() -> bool:
-    from rig.rt import raise_priority
+    from rig.runtime.rt import raise_priority
     got = []
     th = threading.Thread(target=lambda: got.append(raise_priority(1)))
     th.start()

@@ -5,7 +5,7 @@
   runs the late periods back to back. Counters: overruns (cycles that ended after their period), skipped.
   missed_deadline_fraction = (overruns + skipped) / (iterations + skipped).
 - The gap check: wake-ups further apart than watchdog_s are a fault. On the real clock a watchdog thread
-  (rig/safety.py Watchdog) also nulls the valve if the loop hangs inside a period.
+  (rig/runtime/safety.py Watchdog) also nulls the valve if the loop hangs inside a period.
 - The lag rule: a period whose wake-up comes more than lag_limit_s after its deadline is a fault (the loop
   runs behind real time: a controller acting on old data). Checked at every wake-up, so the fault comes in
   the period the limit is crossed.
@@ -32,8 +32,8 @@ import time
 import numpy as np
 
 from rig.errors import ConfigError
-from rig.lifecycle import State
-from rig.safety import Watchdog
+from rig.runtime.lifecycle import State
+from rig.runtime.safety import Watchdog
 
 _FAULT, _ACTIVE = State.FAULT, State.ACTIVE
 MISS_BLOCKS = 10            # blocks per missed-deadline window

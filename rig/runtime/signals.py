@@ -1,7 +1,7 @@
 """Signals that arrive before a run exists. The command line installs `hold_early` first thing, before the
 imports and the set-up of a run (1-2 s), so a SIGUSR1 sent meanwhile is held instead of taking the default
 action (which ends the process: exit 138). A session takes the held toggles over when it installs its own
-handlers (rig/session.py) and applies them at the loop's first period."""
+handlers (rig/runtime/session.py) and applies them at the loop's first period."""
 from __future__ import annotations
 
 import signal

@@ -1,4 +1,4 @@
-"""Sample-driven stepping (drivers/port.py, rig/loop.py): with an accelerometer module that converts on SYNC
+"""Sample-driven stepping (drivers/port.py, rig/runtime/loop.py): with an accelerometer module that converts on SYNC
 into a FIFO, late Modbus replies must not reach the controllers' double integration as timing slips. A port
 that delivers the same conversion stream late (some periods nothing new, the next period two or three) must
 leave the controllers exactly where on-time delivery leaves them; delivering it the naive way (repeat the last
@@ -10,9 +10,9 @@ import random
 import pytest
 
 from controllers.isolation import make_isolation_controllers
-from rig.clock import SimClock
+from rig.runtime.clock import SimClock
 from rig.config import Config
-from rig.loop import Loop
+from rig.runtime.loop import Loop
 from sim_backend.backend import make_sim_port
 
 RATE = 500.0
