@@ -1,6 +1,6 @@
 """Recording that never blocks the loop: a preallocated ring drained by a writer into HDF5 (h5py).
 
-The loop's compiled period writes one row of floats per period straight into the ring (rig/ring.py: the
+The loop's compiled period writes one row of floats per period straight into the ring (rig/runtime/ring.py: the
 producer's rule over the ring's header, the same functions Recorder.push runs; no allocation, no lock,
 single producer and single consumer). The writer appends the rows to
 chunked, resizable datasets, one per channel (width 1 -> shape (n,), width w -> (n, w)), with the unit as
@@ -191,13 +191,13 @@ class Recorder:
 
     # ---- the period -----------------------------------------------------------------------------------
     def ring_rows(self) -> np.ndarray:
-        """The ring as a (rows, ncols) float64 array on the shared map (rows claimed by rig/ring.py claim)."""
+        """The ring as a (rows, ncols) float64 array on the shared map (rows claimed by rig/runtime/ring.py claim)."""
         if self._ring is None:
             self._ring = rr.rows(self._mm, self._cap, self.ncols)
         return self._ring
 
     def ring_header(self) -> np.ndarray:
-        """The ring's header (rig/ring.py HEADER, int64 on the shared map): the producer's state. The loop's
+        """The ring's header (rig/runtime/ring.py HEADER, int64 on the shared map): the producer's state. The loop's
         compiled period claims, writes and publishes its rows through it."""
         return self._hdr
 

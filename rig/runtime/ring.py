@@ -1,4 +1,4 @@
-"""The producer's side of a shared row ring (a recording's, rig/recorder.py; the console's live ring,
+"""The producer's side of a shared row ring (a recording's, rig/runtime/recorder.py; the console's live ring,
 rig/console/live.py): which row a new row goes into, and when the reader may take it.
 
 The ring's state is its header, an int64 array on the shared memory (HEADER): rows published so far (the
@@ -10,7 +10,7 @@ published one period later, so a period that faults after the compiled call (a p
 corrected in place (fault flag, null commands) before any reader can see it.
 
 These are plain functions over the header array: the period kernel compiles these same functions into its
-one call (rig/kernel.py), and the Python producers (Recorder.push, the console's copies) run them as they
+one call (rig/runtime/kernel.py), and the Python producers (Recorder.push, the console's copies) run them as they
 are. One rule, one place.
 
 On a shared map the ring is HEADER_BYTES of header, then the rows. Both sides reach the header's words
