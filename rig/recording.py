@@ -34,6 +34,10 @@ from rig.errors import RecordingError
 COLUMNS = ("time_s", "valve_cmd_V", "position_m", "accel_mps2")
 MIN_SAMPLES = 100            # fewer cannot hold even one period of the chirp's lowest useful frequency
 UNIFORM_TOL = 0.05           # a step may differ from the median step by 5 % (clock jitter, 6-digit rounding)
+# Rows missing (a real-clock run whose writer fell behind drops rows and leaves whole steps out of time_s): a gap
+# of at most this many samples is bridged by linear interpolation (at the rig's rates a few samples are far
+# shorter than any dynamics the fits resolve); a longer one splits the recording, and its longest stretch is used
+BRIDGE_MAX_SAMPLES = 3
 
 _GZIP_MAGIC = b"\x1f\x8b"
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -58,6 +62,9 @@ class Recording:
     # then holds the command in that unit. accel_present False: the file has no accelerometer (accel zeros)
     command_unit: str = "V"
     accel_present: bool = True
+    # what the reader did about rows missing from the file (one line: gaps bridged, or the stretch it kept);
+    # "" when the file's time base was whole
+    gaps: str = ""
 
     @property
     def command(self) -> np.ndarray:
@@ -89,10 +96,72 @@ class Recording:
 
 # ---- validation -------------------------------------------------------------------------------------
 
+def mend_gaps(cols: dict[str, np.ndarray], source: str, time_label: str = "time_s") -> tuple[dict, str]:
+    """Rows missing from a recording (whole steps left out of time_s): bridge gaps of at most
+    BRIDGE_MAX_SAMPLES samples by linear interpolation, and keep the longest stretch between longer ones.
+    Every column of `cols` (same length as time_s) is mended alike; the samples recorded stay as they are.
+    Returns (cols, one line saying what was done, "" if nothing was). A time base that is irregular in any
+    other way is left for _validated to name."""
+    try:
+        t = np.asarray(cols["time_s"], dtype=float)
+        arrays = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
+    except (TypeError, ValueError):
+        return cols, ""
+    n = t.shape[0]
+    if t.ndim != 1 or n < 3 or any(a.shape != (n,) for a in arrays.values()):
+        return cols, ""
+    dt = np.diff(t)
+    if not np.isfinite(dt).all() or not (dt > 0).all():
+        return cols, ""
+    step = float(np.median(dt))
+    ratio = dt / step
+    whole = np.rint(ratio)
+    gap = (whole >= 2) & (np.abs(ratio - whole) <= UNIFORM_TOL * whole)
+    if not gap.any() or (np.abs(dt - step) > UNIFORM_TOL * step)[~gap].any():
+        return cols, ""
+    missing = whole.astype(np.int64) - 1
+    missing[~gap] = 0
+    cuts = np.flatnonzero(missing > BRIDGE_MAX_SAMPLES) + 1          # a long gap starts a new stretch here
+    bounds = np.concatenate(([0], cuts, [n]))
+    spans = [t[b - 1] - t[a] for a, b in zip(bounds[:-1], bounds[1:])]
+    k = int(np.argmax(spans))
+    a, b = int(bounds[k]), int(bounds[k + 1])
+    idx = np.concatenate(([0], np.cumsum(missing[a:b - 1] + 1)))      # each recorded sample's slot
+    m = int(idx[-1]) + 1
+    if m < MIN_SAMPLES:
+        raise RecordingError(
+            f"{source}: rows missing: {int(gap.sum())} gaps in {time_label}, and the longest stretch without a gap "
+            f"over {BRIDGE_MAX_SAMPLES} samples holds {m} samples, need at least {MIN_SAMPLES}: record again "
+            f"(rows are dropped when the recorder falls behind the real clock: free the CPU or lower --rate)")
+    holes = np.setdiff1d(np.arange(m), idx)
+    out = {}
+    for key, v in arrays.items():
+        seg = v[a:b]
+        full = np.empty(m)
+        full[idx] = seg
+        full[holes] = np.interp(holes, idx, seg)
+        out[key] = full
+    bridged = missing[a:b - 1]
+    nb, nbs = int((bridged > 0).sum()), int(bridged.sum())
+    first = f"first at t = {t[a + int(np.argmax(bridged > 0))]:.6g} s" if nb else ""
+    if len(bounds) == 2:
+        note = (f"{nb} gap{'s' * (nb != 1)} of at most {int(bridged.max())} sample{'s' * bool(bridged.max() != 1)} "
+                f"bridged by linear interpolation ({nbs} of {m} samples, {first})")
+    else:
+        left = int(missing.sum() - nbs)
+        note = (f"used the longest stretch without a gap over {BRIDGE_MAX_SAMPLES} samples: t = {t[a]:.6g} to "
+                f"{t[b - 1]:.6g} s ({m} of {n + int(missing.sum())} samples; {len(bounds) - 2} longer "
+                f"gap{'s' * (len(bounds) != 3)} ({left} samples) left out"
+                + (f"; {nb} short gap{'s' * (nb != 1)} of {nbs} samples bridged, {first})" if nb else ")"))
+    return out, f"{source}: rows missing in {time_label}: {note}"
+
+
 def _validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] | None = None) -> Recording:
     """The one set of rules every recording passes. labels: how the messages name each column (a plant file's
-    signal map names the file's own variables, rig/signalmap.py)."""
+    signal map names the file's own variables, rig/signalmap.py). Rows missing from the time base are mended
+    first (mend_gaps: bridged or the longest stretch kept; the Recording's `gaps` says which)."""
     lab = {c: c for c in COLUMNS} | (labels or {})
+    cols, gaps = mend_gaps({c: cols[c] for c in COLUMNS}, source, lab["time_s"])
     arrays = {}
     for name in COLUMNS:
         a = np.asarray(cols[name])
@@ -140,7 +209,7 @@ def _validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] 
     if not np.isfinite(fs) or fs <= 0:
         raise RecordingError(f"{source}: cannot determine a sample rate from {lab['time_s']}")
     return Recording(t_s=t, valve_cmd_V=arrays["valve_cmd_V"], position_m=arrays["position_m"],
-                     accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source)
+                     accel_mps2=arrays["accel_mps2"], fs_hz=float(fs), source=source, gaps=gaps)
 
 
 # Magnitudes no recording of this kind can hold (they break the arithmetic, not just the physics): a value
@@ -283,6 +352,8 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
     rec.meta = meta
     rec.closed_loop = closed
     if track is not None:
+        if rec.gaps:                 # the reference mended as the signals were (recorded samples kept as they are)
+            ref = np.interp(rec.t_s, np.asarray(cols["time_s"], dtype=float), np.asarray(ref, dtype=float))
         rec.closed_loop, rec.reference_m = "an operated run in track mode", ref
     return rec
 
@@ -415,10 +486,17 @@ def save_recording_h5(rec: Recording, path, *, attrs: dict | None = None) -> Pat
 
 def save_recording_csv(rec: Recording, path) -> Path:
     """Write the shared CSV format (gzip-compressed when the name ends in .gz)."""
+    return save_columns_csv({"time_s": rec.t_s, "valve_cmd_V": rec.valve_cmd_V, "position_m": rec.position_m,
+                             "accel_mps2": rec.accel_mps2}, path)
+
+
+def save_columns_csv(cols: dict, path) -> Path:
+    """The shared CSV format from the four columns as they are (e.g. a chirp's rows as recorded, any rows the
+    recorder dropped left out, not invented)."""
     path = Path(path)
     buf = io.StringIO()
     buf.write(",".join(COLUMNS) + "\n")
-    data = np.column_stack([rec.t_s, rec.valve_cmd_V, rec.position_m, rec.accel_mps2])
+    data = np.column_stack([np.asarray(cols[c], dtype=float) for c in COLUMNS])
     # time with enough digits for uniform steps at any fs up to 1 MHz; signals with 9 significant digits
     np.savetxt(buf, data, delimiter=",", fmt=["%.9f", "%.9g", "%.9g", "%.9g"])
     text = buf.getvalue().encode()

@@ -451,8 +451,9 @@ def load_mapped(path, smap: SignalMap) -> Recording:
               "accel_mps2": smap.acceleration.label() if smap.acceleration else "acceleration (zeros)"}
     ref = cols.pop("reference", None)
     rec = _validated(cols, source, labels)
-    if ref is not None:
-        _validated({**cols, "accel_mps2": ref}, source, {**labels, "accel_mps2": smap.reference.label()})
+    if ref is not None:        # checked as a signal, and mended as the signals were
+        ref = _validated({**cols, "accel_mps2": ref}, source,
+                         {**labels, "accel_mps2": smap.reference.label()}).accel_mps2
     if smap.time and smap.sample_rate_hz and abs(rec.fs_hz / smap.sample_rate_hz - 1) > UNIFORM_TOL:
         raise RecordingError(f"{source}: {smap.time.label()} gives {rec.fs_hz:.6g} Hz but [signals] sample_rate_hz "
                              f"= {smap.sample_rate_hz:g} in {smap.source}: inconsistent (leave one out)")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import threading
 import time
@@ -31,8 +32,8 @@ from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
 from rig.runtime.lifecycle import State
-from rig.runtime.recorder import Channel
-from rig.recording import load_recording, save_recording_csv
+from rig.runtime.recorder import Channel, read_recording
+from rig.recording import save_columns_csv
 from rig.runtime.session import Session
 from rig.runtime.tap import Columns
 from sim_backend.actuator import Effects, StandBank, StandPlant
@@ -173,7 +174,9 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     m_idx, names = _chirped_mount(cfg, backend, mount)
     samples = chirp_samples(amplitude_V, f0_hz, f1_hz, duration_s, dt) if signal is None else signal.cmd_V
     ctrls = [SignalPlayback(samples if i == m_idx else [], dt) for i in range(len(names))]
-    h5_path = out if not csv else out.with_name(out.name + ".part.h5")
+    # recorded beside the output and put in its place only when the chirp completes: a run that fails leaves
+    # nothing, and a file the user had there stays until a complete chirp replaces it
+    h5_path = out.with_name(out.name + ".part.h5")
     total = settle_s + duration_s + 0.05        # a short null tail after the chirp
     session = Session(cfg, backend, controllers=ctrls, clock=SimClock() if sim_time else MonotonicClock(),
                       rate_hz=rate, names=names, isolation=True,
@@ -186,22 +189,31 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
                                     "chirp": "linear" if signal is None else signal.kind,
                                     **({} if signal is None else signal.attrs())})
     wall0 = time.perf_counter()
-    reason = _run_with_progress(session, total, settle_s, progress, on_session)
-    loop, rec = session.loop, session.recorder
-    if progress and loop.t0_ns is not None:
-        progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9 + loop.dt), total)
-    wall = time.perf_counter() - wall0
-    if loop.lc.state is State.FAULT:
-        raise RigError(f"chirp stopped by a FAULT after {loop.iterations} periods: {loop.lc.fault_reason} "
-                       f"(partial recording in {h5_path})")
-    if csv:
-        save_recording_csv(load_recording(h5_path), out)
-        h5_path.unlink()
+    try:
+        reason = _run_with_progress(session, total, settle_s, progress, on_session)
+        loop, rec = session.loop, session.recorder
+        if progress and loop.t0_ns is not None:
+            progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9 + loop.dt), total)
+        wall = time.perf_counter() - wall0
+        if loop.lc.state is State.FAULT:
+            raise RigError(f"chirp stopped by a FAULT after {loop.iterations} periods: {loop.lc.fault_reason} "
+                           f"(nothing kept: run the chirp again once the cause is cleared)")
+        if reason != "time":      # stopped before the sweep ended: a part of a chirp identifies nothing well
+            raise RigError(f"chirp stopped early ({reason}) at t = {loop.iterations * loop.dt:.1f} s of "
+                           f"{total:.1f} s (nothing kept)")
+        if csv:             # the rows as recorded: rows the recorder dropped stay missing, not invented
+            save_columns_csv(read_recording(h5_path), out)
+        else:
+            os.replace(h5_path, out)
+    finally:
+        h5_path.unlink(missing_ok=True)
     tm = loop.timing_us()
     return {"recording": str(out), "format": "csv" if csv else "hdf5", "backend": backend, "rate_hz": loop.rate_hz,
             "periods": loop.iterations, "rows_written": rec.rows_written, "dropped_rows": rec.dropped_rows,
             "overruns": loop.overruns, "skipped_periods": loop.skipped, "stop_reason": reason,
             "wall_s": wall, "simulated_time": sim_time, "compute_us": tm["compute_us"]}
+
+
 
 
 def _chirped_mount(cfg, backend: str, mount: str) -> tuple[int, tuple[str, ...] | list[str]]:
@@ -266,9 +278,11 @@ def run(args) -> int:
     print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
           f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
           f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}", file=sys.stderr)
-    if s["skipped_periods"]:
-        print(f"WARNING: {s['skipped_periods']} loop periods were skipped (overruns): the recording's time is not "
-              f"uniform and rig identify will refuse it; lower --rate or free the CPU", file=sys.stderr)
-    else:
-        print(f"next: rig identify {s['recording']}", file=sys.stderr)
+    missing = s["skipped_periods"] + s["dropped_rows"]
+    if missing:
+        print(f"WARNING: the recording has gaps: {missing} rows missing ({s['skipped_periods']} loop periods skipped "
+              f"by overruns, {s['dropped_rows']} rows dropped by the recorder); rig identify bridges gaps of a few "
+              f"samples and otherwise uses the longest stretch without one. Lower --rate or free the CPU for a "
+              f"whole recording", file=sys.stderr)
+    print(f"next: rig identify {s['recording']}", file=sys.stderr)
     return 0

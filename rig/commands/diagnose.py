@@ -38,6 +38,8 @@ def run(args) -> int:
         from rig.plant.file import check_command_unit, load_plant
         plant = load_plant(args.plant, p0)                    # ConfigError: one line naming file and key
     rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    if rec.gaps:
+        print(f"note: {rec.gaps}", file=sys.stderr)
     if plant is not None:
         check_command_unit(args.plant, plant, rec)
     check_plausible(rec)

@@ -9,25 +9,21 @@ recording's ring it never waits for a reader and never drops: it overwrites the 
 fell behind by more than the capacity skips ahead (and counts what it skipped).
 
 The memory is a memfd (an anonymous shared file), so the web server may be another process: it maps the
-same file descriptor (passed over the control socket) with `LiveReader`. Layout: a 64-byte header (the
-producer's words of rig/runtime/ring.py HEADER: head, rows published so far, int64 @0; tail NEVER_FULL; dropped;
-pending; then ncols @32 and capacity in rows @40), then capacity x ncols float64 rows. Publication order:
-the row first, then the head (x86 does not reorder stores).
+same file descriptor (passed over the control socket) with `LiveReader`. Layout: rig/runtime/ring.py's header (its
+HEADER words: head, rows published so far; tail NEVER_FULL; dropped; pending; then this ring's own two words,
+ncols and capacity in rows), then capacity x ncols float64 rows. Publication order: the row first, then the
+head (x86 does not reorder stores).
 """
 from __future__ import annotations
 
 import mmap
 import os
-import struct
 
 import numpy as np
 
 from rig.runtime import ring as rr
 
-_HDR = 64
-_Q = struct.Struct("<q")
-_SHAPE = struct.Struct("<qq")           # ncols, capacity
-_SHAPE_AT = 8 * len(rr.HEADER)
+_NCOLS, _CAPACITY = len(rr.HEADER), len(rr.HEADER) + 1      # this ring's own header words
 
 
 class LiveRing:
@@ -38,15 +34,14 @@ class LiveRing:
             raise ValueError(f"live ring: ncols {ncols}, capacity {capacity_rows} rows")
         self.ncols = int(ncols)
         self.capacity = int(capacity_rows)
-        size = _HDR + 8 * self.ncols * self.capacity
+        size = rr.map_bytes(self.capacity, self.ncols)
         self.fd = os.memfd_create("rig-console-live", os.MFD_CLOEXEC)
         os.ftruncate(self.fd, size)
         self._mm = mmap.mmap(self.fd, size)
-        self._hdr = np.frombuffer(self._mm, dtype=np.int64, count=len(rr.HEADER))
+        self._hdr = rr.header(self._mm)
         self._hdr[rr.TAIL] = rr.NEVER_FULL
-        _SHAPE.pack_into(self._mm, _SHAPE_AT, self.ncols, self.capacity)
-        self._rows = np.frombuffer(self._mm, dtype=np.float64, count=self.capacity * self.ncols,
-                                   offset=_HDR).reshape(self.capacity, self.ncols)
+        self._hdr[_NCOLS], self._hdr[_CAPACITY] = self.ncols, self.capacity
+        self._rows = rr.rows(self._mm, self.capacity, self.ncols)
 
     # ---- the tap's recorder interface (the loop's thread) ----------------------------------------------
     def ring_rows(self) -> np.ndarray:
@@ -96,16 +91,16 @@ class LiveReader:
     def __init__(self, fd: int) -> None:
         size = os.fstat(fd).st_size
         self._mm = mmap.mmap(fd, size, prot=mmap.PROT_READ)
-        self.ncols, self.capacity = _SHAPE.unpack_from(self._mm, _SHAPE_AT)
-        if _HDR + 8 * self.ncols * self.capacity != size:
+        self._hdr = rr.header(self._mm)
+        self.ncols, self.capacity = int(self._hdr[_NCOLS]), int(self._hdr[_CAPACITY])
+        if rr.map_bytes(self.capacity, self.ncols) != size:
             raise ValueError(f"live ring: {size} bytes do not hold {self.capacity} rows of {self.ncols}")
-        self._rows = np.frombuffer(self._mm, dtype=np.float64, count=self.capacity * self.ncols,
-                                   offset=_HDR).reshape(self.capacity, self.ncols)
-        self.seen = _Q.unpack_from(self._mm, 0)[0]     # start at the present
+        self._rows = rr.rows(self._mm, self.capacity, self.ncols)
+        self.seen = self.head()          # start at the present
         self.skipped_rows = 0
 
     def head(self) -> int:
-        return _Q.unpack_from(self._mm, 0)[0]
+        return rr.published(self._hdr)
 
     def read(self, margin_rows: int = 0) -> np.ndarray:
         """Rows published since the last read (a copy). Rows the writer may be overwriting while they are
@@ -133,7 +128,7 @@ class LiveReader:
         return out
 
     def close(self) -> None:
-        self._rows = None
+        self._rows = self._hdr = None
         try:
             self._mm.close()
         except BufferError:

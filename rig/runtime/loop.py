@@ -244,11 +244,20 @@ class Loop:
 
     def _watch_recorder(self) -> None:
         """The recorder's writer gone while recording: FAULT now (the rows it had not flushed are lost; the
-        ring would fill and drop every row after them)."""
-        died = getattr(self.tap.recorder, "writer_died", None)
+        ring would fill and drop every row after them). Rows dropped since the last watch (the writer fell
+        behind the real clock): said at once, and an event in the recording where its time base has the gap."""
+        tap = self.tap
+        died = getattr(tap.recorder, "writer_died", None)
         text = died() if died is not None else None
         if text and self.gate.lc.state is not _FAULT:
             self.gate.fault(f"recorder: {text}")
+        dropped = tap.new_drops()
+        if dropped:
+            t_s = self._t_s(self.gate.t_ns)
+            text = (f"recorder: {dropped} rows dropped in the 0.1 s before t = {t_s:.3f} s (the writer fell behind; "
+                    f"{tap.dropped_seen} in all): the recording has a gap there")
+            log.warning("%s", text)
+            tap.event(t_s, text)
 
     # ---- the run --------------------------------------------------------------------------------------
     def configure(self) -> None:

@@ -1,6 +1,6 @@
 """Recording that never blocks the loop: a preallocated ring drained by a writer into HDF5 (h5py).
 
-The loop's compiled period writes one row of floats per period straight into the ring (rig/ring.py: the
+The loop's compiled period writes one row of floats per period straight into the ring (rig/runtime/ring.py: the
 producer's rule over the ring's header, the same functions Recorder.push runs; no allocation, no lock,
 single producer and single consumer). The writer appends the rows to
 chunked, resizable datasets, one per channel (width 1 -> shape (n,), width w -> (n, w)), with the unit as
@@ -57,8 +57,6 @@ from rig.runtime.rt import raise_priority
 
 log = logging.getLogger("rig.recorder")
 
-_HDR = 64                        # ring header: rig/ring.py HEADER (int64 words: head @0, tail @8, dropped, pending)
-_Q = struct.Struct("<q")
 WRITER_PRIORITY = 20             # SCHED_FIFO of the writer in real-time runs (loop 80, drivers 55, HIL devices 50)
 COMPRESSION = ("gzip", None)     # gzip: shuffle + deflate level 1 (see the module docstring); None: raw
 _GZIP_LEVEL = 1                  # higher levels gain little on float data for much more CPU (rig bench recorder)
@@ -122,9 +120,10 @@ class Recorder:
         shm_dir = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
         fd, ring_path = tempfile.mkstemp(prefix="rig-ring-", dir=shm_dir)
         try:
-            os.ftruncate(fd, _HDR + self._cap * self._rowbytes)
-            self._mm = mmap.mmap(fd, _HDR + self._cap * self._rowbytes)
-            self._hdr = np.frombuffer(self._mm, dtype=np.int64, count=len(rr.HEADER))
+            size = rr.map_bytes(self._cap, self.ncols)
+            os.ftruncate(fd, size)
+            self._mm = mmap.mmap(fd, size)
+            self._hdr = rr.header(self._mm)
         finally:
             os.close(fd)
         spec = {"path": str(self.path), "ring": ring_path, "cap": self._cap, "ncols": self.ncols,
@@ -192,14 +191,13 @@ class Recorder:
 
     # ---- the period -----------------------------------------------------------------------------------
     def ring_rows(self) -> np.ndarray:
-        """The ring as a (rows, ncols) float64 array on the shared map (rows claimed by rig/ring.py claim)."""
+        """The ring as a (rows, ncols) float64 array on the shared map (rows claimed by rig/runtime/ring.py claim)."""
         if self._ring is None:
-            self._ring = np.frombuffer(self._mm, dtype=np.float64, count=self._cap * self.ncols,
-                                       offset=_HDR).reshape(self._cap, self.ncols)
+            self._ring = rr.rows(self._mm, self._cap, self.ncols)
         return self._ring
 
     def ring_header(self) -> np.ndarray:
-        """The ring's header (rig/ring.py HEADER, int64 on the shared map): the producer's state. The loop's
+        """The ring's header (rig/runtime/ring.py HEADER, int64 on the shared map): the producer's state. The loop's
         compiled period claims, writes and publishes its rows through it."""
         return self._hdr
 
@@ -227,7 +225,7 @@ class Recorder:
         r = rr.claim(self._hdr, self._cap)
         if r < 0:
             return False
-        self._pack(self._mm, _HDR + r * self._rowbytes, *values)
+        self._pack(self._mm, rr.HEADER_BYTES + r * self._rowbytes, *values)
         rr.publish(self._hdr)
         return True
 
@@ -238,7 +236,7 @@ class Recorder:
         r = rr.claim(self._hdr, self._cap)
         if r < 0:
             return False
-        off = _HDR + r * self._rowbytes
+        off = rr.HEADER_BYTES + r * self._rowbytes
         self._mm[off:off + self._rowbytes] = row      # exact size or IndexError: the layout must match
         rr.publish(self._hdr)
         return True
@@ -278,7 +276,7 @@ class Recorder:
 
     def written(self) -> int:
         """Rows the writer has taken from the ring so far."""
-        return _Q.unpack_from(self._mm, 8)[0] if self._mm is not None else self.rows_written
+        return rr.taken(self._hdr) if self._hdr is not None else self.rows_written
 
 
 def _jsonable(v):
@@ -345,8 +343,8 @@ class _Writer:
         finally:
             os.close(fd)
         self.cap, self.ncols = spec["cap"], spec["ncols"]
-        self.view = np.frombuffer(self.mm, dtype=np.float64, count=self.cap * self.ncols,
-                                  offset=_HDR).reshape(self.cap, self.ncols)
+        self.hdr = rr.header(self.mm)
+        self.view = rr.rows(self.mm, self.cap, self.ncols)
         self.channels = [Channel(**{**c, "labels": tuple(c["labels"])}) for c in spec["channels"]]
         path = self.path = Path(spec["path"])
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -385,7 +383,7 @@ class _Writer:
         self.rows = 0
 
     def drain(self) -> None:
-        head = _Q.unpack_from(self.mm, 0)[0]
+        head = rr.published(self.hdr)
         n = head - self.tail
         if n <= 0:
             return
@@ -395,7 +393,7 @@ class _Writer:
         else:
             rows = np.concatenate([self.view[i0:], self.view[:n - (self.cap - i0)]])
         self.tail = head
-        _Q.pack_into(self.mm, 8, head)          # the slots are free again
+        rr.release(self.hdr, head)              # the slots are free again
         col, total = 0, self.rows + n
         for c, d, w in zip(self.channels, self.dsets, self.cols):
             # the extent covers the complete chunks only until close: a kill -9 then leaves no row unwritten

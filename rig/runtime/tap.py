@@ -23,6 +23,7 @@ class RecordingTap:
         self.ring, self.hdr = kernel.no_ring, kernel.no_hdr     # what the kernel writes (no rows: nothing)
         self.pushes = False             # the recorder takes push_row after the period (no ring of its own)
         self.waits = False              # simulated time: wait for the writer rather than drop
+        self.dropped_seen = 0           # the recorder's dropped rows already reported (new_drops)
 
     def bind(self, recorder) -> None:
         """Record into `recorder` from the next period on (None: nothing recorded). The row the old one got
@@ -40,6 +41,7 @@ class RecordingTap:
         self.ring, self.hdr = ring, hdr
         self.pushes = recorder is not None and ring is self.kernel.no_ring
         self.waits = bool(getattr(recorder, "wait_when_full", False)) and not self.pushes
+        self.dropped_seen = int(getattr(recorder, "dropped_rows", 0))
         self.recorder = recorder
 
     def publish(self) -> None:
@@ -75,6 +77,12 @@ class RecordingTap:
         if self.recorder is not None:
             self.recorder.event(t_s, text)
 
+    def new_drops(self) -> int:
+        """Rows the recorder dropped (its ring full: the real clock never waits) since the last call."""
+        n = int(getattr(self.recorder, "dropped_rows", 0)) - self.dropped_seen
+        self.dropped_seen += n
+        return n
+
 
 class Columns:
     """A recording of a few columns of the loop's row under channel names of their own, e.g. an
@@ -106,3 +114,7 @@ class _ColumnsRecorder:
 
     def writer_died(self) -> str | None:
         return self.rec.writer_died()
+
+    @property
+    def dropped_rows(self) -> int:
+        return self.rec.dropped_rows

@@ -14,7 +14,7 @@ import psutil
 import pytest
 
 from rig.console.browser import wait_for
-from tests.console.support import ask_for_chirp, http, open_when_active, rig_run_console, wait
+from tests.console.support import http, open_when_active, rig_run_console, wait
 from tests.paths import REPO
 
 
@@ -75,12 +75,16 @@ def test_a_busy_port_is_one_line():
 
 @pytest.mark.browser
 @pytest.mark.slow
-def test_chirp_identification_from_the_page(chromium, tmp_path):
-    with rig_run_console("--seconds", "300", cwd=tmp_path) as (proc, url, lines):
+def test_chirp_identification_from_the_page_with_its_defaults(chromium, tmp_path):
+    """The page's "Run chirp identification" as an operator presses it: the form's defaults (2 V, 0.1 -> 100 Hz,
+    100 s, on the real clock), then the identification, then the isolation run resumes."""
+    with rig_run_console("--seconds", "900", cwd=tmp_path) as (proc, url, lines):
         page = open_when_active(chromium, url)
-        ask_for_chirp(page, 1, 1, 60, 4)
+        assert [page.input_value(s) for s in ("#chirp-amp", "#chirp-f0", "#chirp-f1", "#chirp-dur")] == \
+            ["2", "0.1", "100", "100"]
+        page.click("#chirp-run")
         progress = []
-        end = time.monotonic() + 180
+        end = time.monotonic() + 600
         while page.locator("#ident-table").count() == 0 and time.monotonic() < end:
             progress.append((page.text_content("#chirp-text"), page.evaluate("+document.getElementById("
                                                                              "'chirp-progress').value")))

@@ -116,7 +116,10 @@ BAD_CASES = {
                   "line 82 has 3 fields, expected 4"),
     "time_backwards": (_csv_text(_good_rows()[:90] + [_good_rows()[88]] + _good_rows()[91:]).encode(),
                        "time_s not increasing at sample 90"),
-    "time_gap": (_csv_text(_good_rows()[:100] + _good_rows()[101:]).encode(), "time_s not uniform at sample 100"),
+    "time_jump": (_csv_text(_good_rows()[:100] + [f"{0.1004:.6f},0,0,0"] + _good_rows()[101:]).encode(),
+                  "time_s not uniform at sample 100"),
+    "rows_missing_everywhere": (_csv_text([r for i, r in enumerate(_good_rows(2000)) if i % 20 >= 8]).encode(),
+                                "the longest stretch without a gap over 3 samples holds 12 samples"),
     "too_short": (_csv_text(_good_rows(MIN_SAMPLES - 1)).encode(), f"too short: {MIN_SAMPLES - 1} samples"),
     "binary": (bytes(range(256)) * 20, "binary data"),
     "latin1": (_csv_text(_good_rows()).encode() + "\xe9\xff".encode("latin-1"), "binary data"),
@@ -175,6 +178,30 @@ def test_hdf5_and_mat_with_wrong_variables(tmp_path):
     scipy.io.savemat(m, {"time_s": np.arange(200) / 1e3, "x": np.zeros(200)})
     with pytest.raises(RecordingError, match="w.mat: wrong variables: missing valve_cmd_V"):
         load_recording(m)
+
+
+def test_rows_missing_are_bridged_or_the_longest_stretch_kept(tmp_path):
+    """Rows a real-clock run dropped: short gaps bridged (the recorded samples untouched), a long one splits the
+    recording and its longest stretch is kept; either way one line says what was done."""
+    rows = _good_rows(2000)
+    p = tmp_path / "bridged.csv"
+    p.write_text(_csv_text([r for i, r in enumerate(rows) if i not in (100, 700, 1200, 1201, 1202)]))
+    rec = load_recording(p)
+    assert rec.n == 2000 and rec.fs_hz == pytest.approx(1000.0)
+    assert "3 gaps of at most 3 samples bridged by linear interpolation (5 of 2000 samples, first at t = 0.099 s)" \
+        in rec.gaps and str(p) in rec.gaps
+    assert rec.valve_cmd_V[99] == pytest.approx(math.sin(9.9), abs=1e-6)            # recorded: as it was
+    assert rec.valve_cmd_V[100] == pytest.approx((math.sin(9.9) + math.sin(10.1)) / 2, abs=1e-6)   # bridged
+    assert rec.t_s[1201] == pytest.approx(1.201)
+    p = tmp_path / "split.csv"
+    p.write_text(_csv_text(rows[:500] + rows[800:]))
+    rec = load_recording(p)
+    assert rec.n == 1200 and rec.t_s[0] == pytest.approx(0.8) and rec.valve_cmd_V[0] == pytest.approx(math.sin(80))
+    assert "used the longest stretch without a gap over 3 samples: t = 0.8 to 1.999 s (1200 of 2000 samples; " \
+           "1 longer gap (300 samples) left out)" in rec.gaps
+    p = tmp_path / "whole.csv"
+    p.write_text(_csv_text(rows))
+    assert load_recording(p).gaps == ""
 
 
 def test_unequal_lengths_and_non_uniform_time_in_hdf5(tmp_path):

@@ -58,10 +58,11 @@ def test_absurd_value_is_one_line(tmp_path):
         assert "position_m" in lines[0] and "sample 1234" in lines[0] and str(path) in lines[0]
 
 
-def test_gap_in_time_names_the_first_gap(tmp_path):
+def test_rows_missing_everywhere_is_one_line_saying_what_to_do(tmp_path):
+    """Gaps too many to leave a usable stretch (a long gap every 60 samples): refused in one line. Fewer gaps
+    are mended (tests/rig/test_recording_loader.py, tests/test_uses.py)."""
     rec = _chirp(3.0)
-    keep = np.ones(rec.n, bool)
-    keep[1500:1530] = False
+    keep = np.arange(rec.n) % 60 < 50
     path = tmp_path / "gap.csv"
     with open(path, "w") as fh:
         fh.write("time_s,valve_cmd_V,position_m,accel_mps2\n")
@@ -71,7 +72,8 @@ def test_gap_in_time_names_the_first_gap(tmp_path):
     _no_traceback(res)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1
-    assert "gap of 0.031 s after t = 1.499 s" in lines[0] and "30 samples missing" in lines[0]
+    assert "rows missing" in lines[0] and "holds 50 samples, need at least 100" in lines[0]
+    assert "record again" in lines[0]
 
 
 def test_clipped_transducer_is_reported_and_left_out(tmp_path):
