@@ -116,6 +116,7 @@ def main() -> int:
         return 1
     stop = threading.Event()
     threading.Thread(target=_watch_stdin, args=(stop,), daemon=True).start()
+    dev.beat()                           # alive from now (the set-up took its time: the loop may start at once)
     _say("ready")
     try:
         dev.run(stop)
