@@ -23,6 +23,9 @@
                                                   on its page, alternating (rig/console/bench.py)
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
                                                   hour, gzip against none (rig/commands/bench_recorder.py)
+  rig bench stalls [--seconds N] [--json]         where stalls come from: an empty loop at real-time and at normal
+                                                  priority, a pty echo and a socket echo, side by side
+                                                  (rig/commands/bench_stalls.py)
   rig bench sim ...                               simulation speed of the plant
   rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
                                                   in simulated time (rig/commands/prototype_bench.py)
@@ -56,6 +59,7 @@ import time
 import numpy as np
 
 from rig import cliargs
+from rig.commands import bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
@@ -100,6 +104,10 @@ def add_arguments(p) -> None:
     pp.add_argument("--switches", type=cliargs.count(1, 100000), default=100, metavar="N", help="random mode switches (default 100)")
     pp.add_argument("--seed", type=cliargs.seed(), default=18, metavar="N", help="seed of the switches (default 18)")
     pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    st = sub.add_parser("stalls", help="where stalls come from: real-time and normal empty loops, pty and socket "
+                                       "echoes side by side")
+    _config_arg(st)
+    bench_stalls.add_arguments(st)
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
     rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
@@ -132,7 +140,9 @@ def run(args) -> int:
         return 0
     if what == "recorder":
         return bench_recorder(args)
-    raise RigError("bench: expected a benchmark: loop, sim, recorder or prototype (see rig bench --help)")
+    if what == "stalls":
+        return bench_stalls.run(args)
+    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls or prototype (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
