@@ -273,12 +273,16 @@ class ValveIO(IODevice):
         """The frames that came, through the network's notify (the TPDOs to _on_tpdo), until every valve
         answered this SYNC or until_ns."""
         recv, notify, pend = self._bus.recv, self.network.notify, self.pending_ns
+        tpdo, on_tpdo = self._tpdo_cob, self._on_tpdo
         while True:
             left = 0.0 if not any(pend) else (until_ns - time.monotonic_ns()) * 1e-9   # answered: what is in
             msg = recv(max(left, 0.0))
             if msg is None:
                 return
-            notify(msg.arbitration_id, msg.data, msg.timestamp)
+            if msg.arbitration_id in tpdo:         # (the one subscriber of a TPDO: straight to it)
+                on_tpdo(msg.arbitration_id, msg.data, msg.timestamp)
+            else:
+                notify(msg.arbitration_id, msg.data, msg.timestamp)
 
     def check(self, now_ns: int) -> str | None:
         """A one-line fault naming the valve, or None."""

@@ -34,6 +34,7 @@ from rig.runtime.rt import raise_priority
 
 N_LATEST = 10                   # 40001-40010: AI ch0-7, the counter, the status
 FIFO_CHUNK = 13                 # entries per request reaching further back after a stall (117 registers)
+DELAY_STEP_NS = 10_000          # the learnt fetch delay: +10 us after a request too early, -2 us after one in time
 STATUS_EVERY = 50               # with the FIFO: the status register (host watchdog) every this many polls
 MAX_BEHIND = 1024               # conversions taken after a stall at most (beyond the FIFO: interpolated)
 
@@ -54,7 +55,9 @@ class AnalogIO(IODevice):
         self.period_ns = int(round(spec["period_s"] * 1e9))
         self.fifo = bool(spec.get("fifo", True))
         self.every = max(1, int(spec.get("fetch_every", 1)))
-        self.delay_ns = int(round(spec.get("fetch_delay_s", 0.0) * 1e9))
+        # the request after a SYNC: fetch_delay_s at first, then learnt (a request that comes before the
+        # conversion costs a round trip for nothing; one that comes late delays the conversion)
+        self.delay_ns = self.min_delay_ns = int(round(spec.get("fetch_delay_s", 0.0) * 1e9))
         self.sync_row = spec.get("sync_device")
         self.priority = int(spec.get("priority", 0))
         self.where = f"modbus_tcp {self.host}:{self.port} unit {self.unit}"
@@ -111,6 +114,7 @@ class AnalogIO(IODevice):
         raise_priority(self.priority)
         P = self.period_ns
         block = self.block
+        sync_row = block.device_row(self.sync_row) if self.sync_row is not None else None
         due = time.monotonic_ns() + P
         while not stop.is_set():
             if self.fifo and self.sync_row is not None:    # each SYNC (or, without one, every other period)
@@ -120,11 +124,17 @@ class AnalogIO(IODevice):
                 if self._syncs % self.every:
                     self._idle()
                     continue
-                t_sync = int(block.device_row(self.sync_row)[ex.D_SAMPLE])
+                t_sync = int(sync_row[ex.D_SAMPLE])
                 self.sleep_until(max(t_sync + self.delay_ns, time.monotonic_ns()))
                 end = time.monotonic_ns() + P // 2
+                first = True
                 while not self.poll() and time.monotonic_ns() < end and not stop.is_set():
+                    if first:                                  # too early: ask later after the next SYNCs
+                        self.delay_ns = min(self.delay_ns + DELAY_STEP_NS, P // 2)
+                        first = False
                     self.sleep_until(time.monotonic_ns() + P // 8)     # not converted yet: once more
+                if first:                                      # in at once: try a little earlier next time
+                    self.delay_ns = max(self.delay_ns - DELAY_STEP_NS // 5, self.min_delay_ns)
             else:                                           # the latest value, once per loop period
                 self.sleep_until(due)
                 due += P

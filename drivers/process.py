@@ -44,7 +44,7 @@ class IODevice:
         self.beat()
 
     def beat(self) -> None:
-        ex.beat(self.io, self.d, float(time.monotonic_ns()))
+        self._row[ex.D_BEAT] = float(time.monotonic_ns())     # one aligned 8-byte store (ex.beat's rule)
 
     def report(self, text: str | None) -> None:
         """The device's fault line now (None: none): published when it changes."""

@@ -91,7 +91,7 @@ class SimBackend(PortContext):
     def __init__(self, plant, dt: float, *, n_mounts: int | None = None, clock=None, seed: int = 0,
                  accel_noise_mps2: float = 1e-4, stroke_noise_m: float = 2e-9,
                  cmd_delay_periods: int = 0, sample_driven: bool = False, stroke_stale_s: float = 0.0,
-                 adc: tuple[float, float] | None = None) -> None:
+                 adc: tuple[float, float] | None = None, stroke_timing: tuple[int, int] = (0, 1)) -> None:
         self.plant = plant
         self.dt = float(dt)
         self.dt_ns = int(round(dt * 1e9))
@@ -126,6 +126,11 @@ class SimBackend(PortContext):
         # adc: (accelerometer, floor accelerometer) V per m/s^2 through the analog module's 16-bit converter
         # (drivers/protocol/modbus_map.py), as the drivers read them; None: the plant's values as they are
         self._adc = adc
+        # stroke_timing: (delay, every): the transducer's sample taken every `every` plant steps and held between,
+        # arriving `delay` steps after it was taken (the drivers' serial line: rig.config.channel_delays)
+        self._x_delay, self._x_every = int(stroke_timing[0]), max(1, int(stroke_timing[1]))
+        self._x_line: list = []                   # the strokes of the last steps, newest last
+        self._x_held = None
         self._conv = -1                           # the last conversion published (its counter)
         self._pub = (-1, -1)                      # (plant step, time stamp) of the last published sample
         self._draw = None                         # (read, noise index) of a read's noise draw
@@ -226,6 +231,8 @@ class SimBackend(PortContext):
             acc = [float(acc[m]) + na[(i + m) % L] for m in range(n)]
             xs = [float(xs[m]) + nx[(i + m) % L] for m in range(n)]
         ts = [t_ns] * n
+        if self._x_delay or self._x_every > 1:
+            xs = self._stroke_as_read(xs)
         if self._adc is not None:
             ka, kf = self._adc
             acc = [raw_to_volts(volts_to_raw(a * ka)) / ka for a in acc]
@@ -244,6 +251,19 @@ class SimBackend(PortContext):
         put_conversion(io, float(self._conv), np.asarray(ts, dtype=np.float64), values)
         put_sample(io, float(self._k), float(max(ts)), np.asarray(xs, dtype=np.float64))
         self._pub = (self._k, t_ns)
+
+    def _stroke_as_read(self, xs):
+        """The transducer's sample as the drivers deliver it (stroke_timing): taken at steps that are multiples
+        of `every`, `delay` steps before it is read, held between."""
+        line = self._x_line
+        if not line or line[-1][0] != self._k:
+            line.append((self._k, list(xs)))
+            del line[:-self._x_delay - self._x_every - 1]
+        want = self._k - self._x_delay
+        taken = [x for k, x in line if k <= want and k % self._x_every == 0]
+        if taken:
+            self._x_held = taken[-1]
+        return self._x_held if self._x_held is not None else line[0][1]
 
     def read(self, t_ns: int) -> Measurements:
         """The Port protocol's read (callers of their own; the loop takes the block): update, then the newest

@@ -7,8 +7,10 @@ same RigPlant, floor and seed) takes those steps first, then runs the loop perio
 activation and the same isolation modes switched at the same loop times, and meters the same windows. The
 accelerometer conversions reach the controllers one period after their SYNC in both (the drivers' timing and the
 simulated backend's sample-driven rig mode), the command acts from the next SYNC; the lockstep run quantises the
-accelerations to the Modbus module's 16 bits, as the module does. What differs is the drivers: late or lost
-conversions, the transducer's own rate, the plant's catch-up steps when the loop fell behind.
+accelerations to the Modbus module's 16 bits, as the module does, and holds the transducer's samples at its
+rate and delay ([drivers] serial_rate_hz, serial_latency_s: rig.config.channel_delays). What differs is the
+drivers: late or lost conversions, the transducer's actual timing, the plant's catch-up steps when the loop
+fell behind.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import math
 import numpy as np
 import scipy.signal
 
+from rig.config import channel_delays
 from rig.runtime.clock import SimClock
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.session import Session
@@ -45,7 +48,10 @@ def lockstep(cfg, seconds: float, modes, settle_s: float, activate_after_s: floa
     rate = cfg.loop.rate_hz
     share = seconds / len(modes)
     adc = (cfg.drivers.accel_V_per_mps2, cfg.sensors.floor_V_per_mps2)
-    with Session(cfg, "sim", clock=SimClock(), isolation=False, port_options={"adc": adc}) as s:
+    da, ds = channel_delays(cfg, rate)
+    timing = (ds - da, max(1, int(round(rate / min(cfg.drivers.serial_rate_hz, rate)))))
+    with Session(cfg, "sim", clock=SimClock(), isolation=False,
+                 port_options={"adc": adc, "stroke_timing": timing}) as s:
         loop, plant = s.loop, s.port.plant
         null = [0.0] * loop.n
         for _ in range(pre_steps):
