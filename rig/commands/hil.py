@@ -257,7 +257,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
            "stop_reason": reason, "pre_steps": pre_steps,
            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
-    if compare and reason not in ("SIGINT", "SIGTERM"):
+    if compare and reason not in ("SIGINT", "SIGTERM") and not out["faults"]:
         if not quiet:
             print("rig hil: the same design and floor in lockstep simulated time", file=sys.stderr)
         ls = lockstep(cfg, seconds, modes, settle, activate, pre_steps)

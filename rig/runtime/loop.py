@@ -109,6 +109,16 @@ class Loop:
         self.exchange = block
         self._io = block.io
 
+    def slow_down(self, extra) -> None:
+        """extra() runs in every period before the port's update (fault rehearsal: rig/runtime/inject.py)."""
+        update = self._update
+
+        def slowed(t_ns: int) -> None:
+            extra()
+            if update is not None:
+                update(t_ns)
+        self._update = slowed
+
     # ---- one period ----------------------------------------------------------------------------------
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
         """The port's update -> kernel (takes the inputs from the exchange block, checks, controls, limits,
