@@ -303,6 +303,27 @@ def put_sample(io, seq, t_ns, values):
 
 
 @numba.njit(cache=True)
+def put_step(io, counter, ts, values, seq, t_ns, strokes):
+    """A conversion and a transducer sample at once (a simulated plant's step: put_conversion, put_sample)."""
+    put_conversion(io, counter, ts, values)
+    put_sample(io, seq, t_ns, strokes)
+
+
+_STEP_SIG = "void(float64[::1], float64, float64[::1], float64[::1], float64, float64, float64[::1])"
+_STEP: list = []
+
+
+def put_step_entry():
+    """put_step's own compiled entry for exactly its types (C-contiguous float64 arrays and floats), without the
+    dispatcher's type resolution: a simulated plant calls it at every step."""
+    if not _STEP:
+        put_step.compile(_STEP_SIG)
+        (sig,) = put_step.signatures
+        _STEP.append(put_step.overloads[sig].entry_point)
+    return _STEP[0]
+
+
+@numba.njit(cache=True)
 def put_commands(io, t_ns, values):
     """The loop's commands for the period at t_ns (the sequence lock; the kernel runs this same rule)."""
     c = int(io[H_CMD])
