@@ -58,7 +58,7 @@ MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTI
 # scheduler's overrun and skipped counts at the period's start)
 INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step", "state", "isolation",
           "overruns", "skipped")
-MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
+MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel", "stroke_t")   # n each; floor_accel: floor sensors
 (_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
  _IN_SKIP) = range(len(INPUTS))
 _FAULT_STATE = 3.0          # rig.runtime.lifecycle.State.FAULT (the row's fault column)
@@ -165,8 +165,9 @@ def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
     m0 = i + len(INPUTS)
     rc, rr = int(mem[_H_RC]), int(mem[_H_RR])
     lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
-    chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
-    code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
+    chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + len(CHECK_STATE) * n].reshape((len(CHECK_STATE), n))
+    code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[m0 + 3 * n + nf:m0 + 4 * n + nf],
+                         mem[i + _IN_T_NS])
     if code == 0 and nf:
         code = check_floor(fl, mem[int(mem[_H_FF])])
     if code != 0:
@@ -332,6 +333,7 @@ def _take(mem, io, t_ns):
         m0 = i + len(INPUTS)
         mem[m0 + n:m0 + 2 * n] = io[ss + 2:ss + 2 + n]
         t_x = io[ss + 1]
+        mem[m0 + 3 * n + nf:m0 + 4 * n + nf] = t_x
         ex.fence()
         if io[ss + ex.SLOT_COUNTER] == sn:
             break
@@ -455,7 +457,7 @@ class PeriodKernel:
         ff_nst = [len(f.initial_state()) for f in ffs]
         # the controllers' coefficients last: a tracking controller's profile table (track_profile_s of
         # samples) would otherwise sit between the parts every period touches
-        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n + nf, "older": OLDER_CAP * (n + nf),
+        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 4 * n + nf, "older": OLDER_CAP * (n + nf),
                  "prev": 2 * n + nf, "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
                  "pub": len(self.published) * n, "osc": n * self.osc.width,

@@ -48,7 +48,7 @@ def test_compiled_check_decides_like_the_reference(periods):
         m = Measurements(t, [p[0] for p in period], [p[1] for p in period], [t - p[2] * P for p in period])
         want = ref.check(m, t)
         code = check_sensors(state, lim, np.array(m.accel_mps2), np.array(m.stroke_m),
-                             np.array(m.sample_t_ns, dtype=float), float(t))
+                             np.array(m.sample_t_ns, dtype=float), np.array(m.sample_t_ns, dtype=float), float(t))
         got = chk.reason(code, state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t) if code else None
         assert got == want, (k, period)
         if want is not None:
