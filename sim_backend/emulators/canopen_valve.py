@@ -185,6 +185,7 @@ class Gateway:
         self.raw = False
         self.buf = b""
         self.out: list[bytes] = []
+        self.now = time.time()                 # the frames' time stamp (set per batch)
 
     def frames(self, data: bytes):
         """(can_id, data) of each frame the client sent; the handshake answered on the way."""
@@ -211,7 +212,7 @@ class Gateway:
                     continue
 
     def send(self, can_id: int, data: bytes) -> None:
-        self.out.append(b"< frame %03X %.6f %s >" % (can_id, time.time(), data.hex().encode()))
+        self.out.append(b"< frame %03X %.6f %s >" % (can_id, self.now, data.hex().encode()))
 
     def flush(self) -> None:
         if self.out:
@@ -318,8 +319,11 @@ class PlantServer:
                     self.gw.conn.close()
                     self.gw = None
                     continue
-                for can_id, frame in self.gw.frames(data):
-                    self.net.notify(can_id, frame, time.time())
+                subs = self.net.subscribers
+                now = self.gw.now = time.time()
+                for can_id, frame in self.gw.frames(data):     # (the network's notify, without its scanner)
+                    for cb in subs.get(can_id, ()):
+                        cb(can_id, frame, now)
                 self.gw.flush()
             else:
                 self._advance(time.monotonic(), sync=False)   # no SYNC came: the plant keeps pace
