@@ -171,7 +171,8 @@ def test_hardware_backend_constructs_and_fails_clearly_on_open():
     port.close()
 
 
-@pytest.mark.parametrize("name", ["hil.toml", "hil_1khz.toml"])
+@pytest.mark.parametrize("name", ["hil.toml", "hil_1khz.toml", "hil_2khz.toml", "prototype_hil.toml",
+                                  "prototype_hil_2khz.toml"])
 def test_shipped_hil_configs_load(name):
     """The HIL configs carry a [controller] section: they must still load when the controller changes."""
     from pathlib import Path
