@@ -24,7 +24,9 @@ keeps numba's argument unboxing small: it is most of the cost of a call this siz
 from __future__ import annotations
 
 import functools
+import hashlib
 import struct
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -46,6 +48,31 @@ from rig.runtime.recorder import Channel
 from rig.runtime.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
                         _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_floor, check_oscillation, check_sensors,
                         limit_commands)
+
+def _drop_stale_cache() -> None:
+    """numba's cache knows a compiled function by its own file only, and the period compiles in the exchange
+    block's and the safety rules' constants (rig/runtime/exchange.py, safety.py): when those files change, this
+    module's cached code is dropped, so it is compiled again with the new constants."""
+    here = Path(__file__).resolve()
+    deps = [here, here.with_name("exchange.py"), here.with_name("safety.py")]
+    stamp = hashlib.sha1(b"".join(p.read_bytes() for p in deps)).hexdigest()
+    cache = Path(numba.config.CACHE_DIR) if numba.config.CACHE_DIR else here.parent / "__pycache__"
+    mark = cache / f"{here.stem}.deps"
+    try:
+        if mark.read_text() == stamp:
+            return
+    except OSError:
+        pass
+    for f in cache.glob(f"{here.stem}.*.nb[ic]"):
+        f.unlink(missing_ok=True)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        mark.write_text(stamp)
+    except OSError:             # a read-only install: its cache came with it
+        pass
+
+
+_drop_stale_cache()
 
 KIND_OFF = 0
 KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid",
