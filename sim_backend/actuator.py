@@ -5,7 +5,7 @@ and (when the base mode is on) the stand's position x_b and velocity v_b. The co
 at the sample rate and integrated with fixed-step RK4 at an inner step well below 1/w_h.
 
 Measured outputs at each sample instant t_k (before the command u_k takes effect, as a DAC/ADC pair does):
-  position_m  = x_p         (absolute piston position: fits p03_base to the noise floor with m_b = 280 kg;
+  position_m  = x_p         (absolute piston position: fits p03_base to the noise floor with m_b = 5 M;
                              the relative x_p - x_b left a 3e-7 m residual at any stand mass)
   accel_mps2  = d2x_p/dt2   (accelerometer on the moving part, absolute)
 
@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, asdict
 import numpy as np
 import numba
 
+from rig.config import STAND_BASE_MASS_KG
 from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 
 FRICTION_V_SCALE = 2e-5     # m/s, the tanh smoothing of sign(v) used by the recordings' simulator
@@ -58,7 +59,7 @@ class Effects:
     friction_force_n: float = 0.0             # 0 = off
     base_frequency_hz: float = 0.0            # 0 = off
     base_damping_ratio: float = 0.03
-    base_mass_kg: float = 280.0               # fitted on p03_base (5 M); mass ratio M/m_b = 0.2
+    base_mass_kg: float = STAND_BASE_MASS_KG  # rig/config.py: 5 M, fitted on p03_base
     disturbance_frequency_hz: float = 0.0     # 0 = off
     disturbance_force_n: float = 0.0
     disturbance_phase_rad: float = 0.0
@@ -66,32 +67,6 @@ class Effects:
     accel_noise_mps2: float = 0.0
     seed: int = 0
     base_motion_rms_m: float = 0.0            # the floor under the stand (StandBank), 0 = still
-
-    @classmethod
-    def from_catalogue(cls, effects: dict, **extra) -> "Effects":
-        """Build from the recordings' answers.json style: {"transport_delay": {"delay_s": ...}, ...}."""
-        kw = dict(extra)
-        for name, prm in effects.items():
-            if name == "transport_delay":
-                kw["delay_s"] = prm["delay_s"]
-            elif name == "valve_saturation":
-                kw["saturation_limit_ma"] = prm["limit_ma"]
-            elif name == "valve_deadband":
-                kw["deadband_width_ma"] = prm["width_ma"]
-            elif name == "coulomb_friction":
-                kw["friction_force_n"] = prm["force_n"]
-            elif name == "base_resonance":
-                kw["base_frequency_hz"] = prm["frequency_hz"]
-                kw["base_damping_ratio"] = prm.get("damping_ratio", 0.03)
-                if "mass_kg" in prm:
-                    kw["base_mass_kg"] = prm["mass_kg"]
-            elif name == "periodic_disturbance":
-                kw["disturbance_frequency_hz"] = prm["frequency_hz"]
-                kw["disturbance_force_n"] = prm.get("force_n", 200.0)
-                kw["disturbance_phase_rad"] = prm.get("phase_rad", 0.0)
-            else:
-                raise ValueError(f"unknown effect {name!r}")
-        return cls(**kw)
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -41,12 +41,12 @@ from typing import Callable
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.signal import csd, welch
+from scipy.signal import welch
 
 from rig import closedloop
-from rig.diagnose import command as command_mod
+from rig.diagnose import catalogue, command as command_mod
 from rig.diagnose import evidence as evidence_mod, locate, noise as noise_mod, sensor as sensor_mod
-from rig.diagnose.lm import _POOL, lm_fit
+from rig.diagnose.lm import lm_fit
 from rig.diagnose.plants import at_bounds, model_for
 from rig.plant.model import Plant
 from rig.errors import RecordingError
@@ -167,7 +167,7 @@ class Problem:
         blk = np.arange(self.n) * n_blocks // self.n
         self.mfit = ((blk % 2) == 0) & self.use
         self.mhold = ((blk % 2) == 1) & self.use
-        self.peak_ma = self.plant.peak_effect_scale(self.cmd)     # eha: driver current mA; else the command
+        self.scale = self.plant.scale(self.cmd, self.fs)   # what effects' bounds and starts are relative to
         self.noise = 1.0
         self.n_eval = 0
         self.base_band = (5.0, 0.45 * self.fs)     # set to the excited band once known
@@ -223,7 +223,7 @@ class Problem:
 
     def free_response(self, lin: dict, fx: dict) -> np.ndarray:
         """The segment-state regressors' shape (response to each unit initial state), cached per model."""
-        key = (tuple(sorted(lin.items())), repr(fx.get("base_resonance")))
+        key = (tuple(sorted(lin.items())), repr(self.plant.matrices_key(fx)))
         if self._free[0] != key:
             L = int(np.max(self.shoot.ends - self.shoot.starts))
             self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
@@ -270,12 +270,12 @@ class Problem:
 
     def model(self, lin: dict, fx: dict) -> np.ndarray:
         self.n_eval += 1
-        sfx = {k: v for k, v in fx.items() if k != "periodic_disturbance"}
+        sfx = catalogue.simulated(fx)
         if self.proxy is not None:
             # superposition proxy: the exact slow model at its fit plus the change that the fast linear-sim
             # effects (delay, base, clip) and linear parameters make
             y_cur, base_c = self.proxy
-            fl = {k: v for k, v in sfx.items() if k in self.plant.linear_sim}
+            fl = catalogue.fast(sfx)
             return y_cur + self.simulate(lin, fl) - base_c
         return self.simulate(lin, sfx)
 
@@ -289,7 +289,7 @@ class Problem:
             self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
         X0 = self.shoot.X0[nx]
         y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
-        if not any(n in fx for n in self.plant.slow):
+        if not catalogue.slow_in(fx):
             return y            # linear in the initial state: the projection's correction is exact
         # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
         # and the sticking): Gauss-Newton steps on the segment states, the correction the projection finds from
@@ -302,7 +302,8 @@ class Problem:
 
     def _residual_full(self, lin: dict, fx: dict):
         r = self.y - self.model(lin, fx)
-        F = self.force_basis(lin, fx) if "periodic_disturbance" in fx else None
+        f_line = catalogue.line_frequency(fx)
+        F = self.force_basis(lin, fx) if f_line is not None else None
         state = None
         if self.shoot is not None:
             r, c, d, state = self._project_shooting(r, F, self.free_response(lin, fx))
@@ -310,8 +311,7 @@ class Problem:
             r, c, d = self._project(r, F)
         dist = None
         if F is not None:
-            f = fx["periodic_disturbance"]["frequency_hz"]
-            dist = (f, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
+            dist = (f_line, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
         return r, dist, c, state
 
     def residual(self, lin: dict, fx: dict):
@@ -325,7 +325,7 @@ class Problem:
         if self.shoot is not None:
             return self._residual_full(lin, fx)[0][self.mfit]
         rf = self.y[self.mfit] - self.model(lin, fx)[self.mfit]
-        Ff = self.force_basis(lin, fx)[self.mfit] if "periodic_disturbance" in fx else None
+        Ff = self.force_basis(lin, fx)[self.mfit] if catalogue.projected(fx) else None
         c, d = self._coef(rf, Ff)
         rf = rf - self._Bf @ c
         if Ff is not None:
@@ -335,21 +335,21 @@ class Problem:
     def force_basis(self, lin: dict, fx: dict) -> np.ndarray:
         """Position responses to a unit sin/cos load force at the disturbance frequency (linear model with
         the base mode if named; the nonlinear effects are not applied to this small line)."""
-        return self.plant.force_response(lin, fx, self.fs, fx["periodic_disturbance"]["frequency_hz"], self.n)
+        return self.plant.force_response(lin, fx, self.fs, catalogue.line_frequency(fx), self.n)
 
     def spec_keys(self, name: str) -> tuple[str, ...]:
-        return self.plant.specs[name].keys
+        return self.plant.effects[name].keys(self.plant.input_unit)
 
     def n_params(self, fx: dict) -> int:
         """Fitted physics parameters: the linear ones, each effect's keys, the disturbance's frequency + 2."""
-        return len(self.lin_keys) + sum(3 if n == "periodic_disturbance" else len(self.spec_keys(n)) for n in fx)
+        return len(self.lin_keys) + sum(catalogue.get(n).n_free for n in fx)
 
     def fit(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None, max_iter=20,
             rtol: float = 1e-5) -> Fit:
         """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
         keys."""
         free_lin = self.lin_keys if free_lin is None else tuple(k for k in free_lin if k in self.lin_keys)
-        free_fx = {n: self.spec_keys(n) for n in fx0 if n != "periodic_disturbance"} if free_fx is None else free_fx
+        free_fx = {n: self.spec_keys(n) for n in catalogue.simulated(fx0)} if free_fx is None else free_fx
         eha = self.plant.family == "eha"
         names, lo, hi, x0, scale = [], [], [], [], []
         for k in free_lin:
@@ -365,9 +365,7 @@ class Problem:
                 lo.append(blo); hi.append(bhi)
                 x0.append(lin0.get(k, nom)); scale.append(0.02 * (bhi - blo))
         for n, keys in free_fx.items():
-            bnd = self.plant.effect_bounds(n, self.fs, self.peak_ma)
-            if n == "base_resonance":     # a stand mode is only told apart (a pair) inside the excited band
-                bnd = [self.base_band] + list(bnd[1:])
+            bnd = self.effect_bounds(n)
             for key, (a, b) in zip(self.spec_keys(n), bnd):
                 if key not in keys:
                     continue
@@ -395,6 +393,13 @@ class Problem:
         else:
             lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
         return self.evaluate(lin, fx, k=self.n_params(fx))
+
+    def effect_bounds(self, name: str) -> list[tuple[float, float]]:
+        """The bounds of an effect's fitted keys on this recording (a mode seen as a pair only inside the excited
+        band: its frequency within it)."""
+        effect = catalogue.get(name)
+        bnd = effect.bounds(self.scale)
+        return [self.base_band] + list(bnd[1:]) if effect.in_band else bnd
 
     def evaluate(self, lin: dict, fx: dict, k: int) -> Fit:
         r, dist, c, state = self._residual_full(lin, fx)
@@ -431,108 +436,10 @@ def compare(pb: Problem, base: Fit, cand: Fit) -> dict:
 
 # ---- candidate initialisation -------------------------------------------------------------------------------
 
-def _grid_best(pb: Problem, lins: list[dict], fx_base: dict, name: str, key: str, grid) -> tuple[dict, dict, float]:
-    jobs = []
-    for lin in lins:
-        for g in grid:
-            fx = {n: dict(v) for n, v in fx_base.items()}
-            fx.setdefault(name, {})[key] = float(g)
-            jobs.append((lin, fx))
-
-    def rss(job):
-        r, _, _ = pb.residual(*job)
-        return float(np.sum(r[pb.mfit] ** 2))
-    costs = list(_POOL.map(rss, jobs))               # the simulators release the GIL
-    i = int(np.argmin(costs))
-    return jobs[i][0], jobs[i][1], costs[i]
-
-
-def _base_init(pb: Problem, lin: dict, fx_base: dict, f_lo: float, f_hi: float, y_clean: np.ndarray) -> dict:
-    """Stand-mode start from the FRF ratio measured / model: B(s) = (s^2+2zws+w^2) / ((1+mu) s^2+2zws+w^2)."""
-    yhat = pb.model(lin, {k: v for k, v in fx_base.items() if k != "base_resonance"})
-    w_use = pb.use.astype(float)
-    if pb.broadband:
-        # noise or steps: the command's content falls off fast, and one transform of the whole record (or a hard
-        # mask) mixes in jumps at the ends, which the stand mode does not shape. Welch's averaged
-        # H1 = S_my / S_mm of the continuous signals instead, the left-out samples filled with the model's
-        nper = int(min(pb.n // 4, 4.0 * pb.fs))
-        f, Smy = csd(yhat, np.where(pb.use, y_clean, yhat), fs=pb.fs, nperseg=nper)
-        _, Smm = welch(yhat, fs=pb.fs, nperseg=nper)
-        sel = np.flatnonzero((f > max(f_lo, 3.0)) & (f < f_hi) & (Smm > 0))
-        R = Smy[sel] / Smm[sel]; w = Smm[sel]
-    else:
-        Y = np.fft.rfft(y_clean * w_use); Ym = np.fft.rfft(yhat * w_use)
-        f = np.fft.rfftfreq(pb.n, 1.0 / pb.fs)
-        sel = np.flatnonzero((f > max(f_lo, 3.0)) & (f < f_hi) & (np.abs(Ym) > 0))
-        sel = sel[:: max(1, len(sel) // 4000)]
-        R = Y[sel] / Ym[sel]; w = np.abs(Ym[sel]) ** 2
-    s = 2j * math.pi * f[sel]
-    best = (np.inf, (0.5 * sum(pb.base_band), 0.03, 0.2))
-    fbs = np.geomspace(*pb.base_band, 160)
-    wb = 2 * math.pi * fbs[:, None]
-    ss_ = (s * s)[None, :]
-    for zb in (0.01, 0.03, 0.08):
-        num = ss_ + 2 * zb * wb * s[None, :] + wb * wb
-        for mu in (0.05, 0.1, 0.2, 0.4):
-            B = num / (num + mu * ss_)
-            c = np.abs(R[None, :] - B) ** 2 @ w
-            i = int(np.argmin(c))
-            if c[i] < best[0]:
-                best = (float(c[i]), (float(fbs[i]), zb, mu))
-    fb, zb, mu = best[1]
-    return {"frequency_hz": fb, "damping_ratio": zb, "mass_kg": pb.plant.moving_mass_kg(lin) / mu}
-
-
 def _init_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines,
                     y_clean: np.ndarray) -> tuple[dict, dict] | None:
-    slow = any(n in fx_base for n in pb.plant.slow)
-    if name == "transport_delay":
-        grid = np.r_[0.0, 0.5e-3, 1e-3, 1.5e-3, 2.2e-3, 3.2e-3, 4.5e-3] if slow else \
-            np.r_[0.0, 0.2e-3, np.arange(0.5e-3, 6.01e-3, 0.5e-3)]
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "delay_s", grid)
-        return lin, fx
-    key = pb.spec_keys(name)[0]
-    if name in ("valve_saturation", "input_saturation"):
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, key, pb.peak_ma * np.array([0.2, 0.35, 0.5, 0.6, 0.7, 0.8, 0.88, 0.94, 0.98]))
-        return lin, fx
-    if name == "valve_deadband":
-        grid = [0.15, 0.4, 1.0] if (pb.quick or slow) else [0.01, 0.08, 0.15, 0.3, 0.5, 0.7, 1.0, 1.5]
-        grid = [g for g in grid if g < 0.6 * pb.peak_ma] or [0.1 * pb.peak_ma]
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "width_ma", grid)
-        return lin, fx
-    if name == "input_deadband":        # a fraction of the peak command (the model is static: no quick grid)
-        grid = pb.peak_ma * np.array([0.003, 0.01, 0.03, 0.06, 0.1, 0.2, 0.35])
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, key, grid)
-        return lin, fx
-    if name == "coulomb_friction" and pb.plant.family == "eha":
-        grid = [60, 200, 600] if (pb.quick or slow) else [3, 40, 100, 200, 400, 800, 1400]
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", grid)
-        return lin, fx
-    if name == "coulomb_friction":      # a fraction of the peak drive force
-        frac = [0.01, 0.05, 0.2] if (pb.quick or slow) else [0.003, 0.01, 0.03, 0.07, 0.15, 0.3, 0.6]
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", pb.plant.peak_force_n(pb.cmd) * np.array(frac))
-        return lin, fx
-    if name == "constant_force":        # linear in the force: a coarse start, the fit does the rest
-        frac = [-0.1, -0.03, -0.01, 0.0, 0.01, 0.03, 0.1]
-        lin, fx, _ = _grid_best(pb, lins, fx_base, name, "force_n", pb.plant.peak_force_n(pb.cmd) * np.array(frac))
-        return lin, fx
-    if name == "base_resonance":
-        best = None
-        for lin in lins:
-            fx = {n: dict(v) for n, v in fx_base.items()}
-            fx[name] = _base_init(pb, lin, fx_base, min(band[0], pb.base_band[0]), pb.base_band[1] * 1.03, y_clean)
-            r, _, _ = pb.residual(lin, fx)
-            s = float(np.sum(r[pb.mfit] ** 2))
-            if best is None or s < best[2]:
-                best = (lin, fx, s)
-        return best[0], best[1]
-    if name == "periodic_disturbance":
-        if not lines:
-            return None
-        fx = {n: dict(v) for n, v in fx_base.items()}
-        fx[name] = {"frequency_hz": lines[0]["frequency_hz"]}
-        return lins[0], fx
-    raise KeyError(name)
+    """The start of an effect's fit, as its definition's start says (rig/diagnose/starts.py)."""
+    return catalogue.get(name).start.initial(pb, name, lins, fx_base, band, lines, y_clean, catalogue.slow_in(fx_base))
 
 
 def _with_prior(pb: Problem, name: str, init, fx_base: dict, prior: dict | None):
@@ -550,21 +457,21 @@ def _with_prior(pb: Problem, name: str, init, fx_base: dict, prior: dict | None)
 
 def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, second=False,
                    skip_above: float | None = None, prior: dict | None = None) -> Fit | None:
-    if second and name not in pb.plant.slow and any(n in fx_base for n in pb.plant.slow):
+    if second and not catalogue.get(name).slow and catalogue.slow_in(fx_base):
         return _fit_by_proxy(pb, name, lins, fx_base, band, lines, y_clean, prior)
     init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
     if init is None:
         return None
     lin0, fx0 = init
-    slow = any(n in fx0 for n in pb.plant.slow)
-    if (slow or name == "valve_saturation") and skip_above is not None:
+    slow = catalogue.slow_in(fx0)
+    if (slow or catalogue.get(name).costly_start) and skip_above is not None:
         # another candidate already reached the noise, or nothing calls for this one: refine only a start
         # that is already competitive
         st = pb.evaluate(lin0, fx0, k=0)
         if st.rss_fit > skip_above:
             return Fit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=pb.n_params(fx0), coef=st.coef, state=st.state)
     if slow and second:   # on a slow model: the effects with the gain and lag; the polish frees all
-        return pb.fit(lin0, fx0, free_lin=("K_Q", "K_C") if pb.plant.family == "eha" else None, max_iter=6,
+        return pb.fit(lin0, fx0, free_lin=pb.plant.slow_second_lin, max_iter=6,
                       rtol=SLOW_RTOL)
     if slow:
         return pb.fit(lin0, fx0, max_iter=6, rtol=SLOW_RTOL)
@@ -577,14 +484,14 @@ def _fit_by_proxy(pb: Problem, name: str, lins: list[dict], fx_base: dict, band,
     simulation), then score the result with the exact slow model."""
     lin_c = lins[0]
     y_cur = pb.model(lin_c, fx_base)
-    base_c = pb.simulate(lin_c, {k: v for k, v in fx_base.items() if k in pb.plant.linear_sim})
+    base_c = pb.simulate(lin_c, catalogue.fast(fx_base))
     pb.proxy = (y_cur, base_c)
     try:
         init = _with_prior(pb, name, _init_candidate(pb, name, lins, fx_base, band, lines, y_clean), fx_base, prior)
         if init is None:
             return None
         lin0, fx0 = init
-        free_fx = {n: pb.spec_keys(n) for n in fx0 if n in pb.plant.linear_sim}
+        free_fx = {n: pb.spec_keys(n) for n in catalogue.fast(fx0)}
         f = pb.fit(lin0, fx0, free_fx=free_fx, max_iter=12)
     finally:
         pb.proxy = None
@@ -595,7 +502,7 @@ def _active(pb: Problem, f: Fit, name: str) -> bool:
     """Does the fitted effect itself carry the gain? The candidate with the effect taken out (everything else as
     fitted) must be worse on the held-out blocks by the same likelihood-ratio margin; a deadband of width 0 that
     passed a test would be the linear parameters' extra iterations, not the effect."""
-    if name == "periodic_disturbance":
+    if catalogue.get(name).projected:
         return True
     without = {k: v for k, v in f.fx.items() if k != name}
     r, _, _ = pb.residual(f.lin, without)
@@ -609,10 +516,9 @@ def _at_edge(pb: Problem, f: Fit, name: str) -> bool:
     damping ratio or the base's mass at a bound) is three free parameters spent on what is not a mode: a clean
     closed-loop run's fed-back noise fitted by a 161 Hz mode of damping 0.003 on a base of 100 x the axis's mass.
     Only the stand mode: a one-parameter effect at its bound is inactive or a real extreme."""
-    if name != "base_resonance":
+    if not catalogue.get(name).edge_test:
         return False
-    bnd = [pb.base_band] + list(pb.plant.effect_bounds(name, pb.fs, pb.peak_ma)[1:])
-    for key, (lo, hi) in zip(pb.spec_keys(name), bnd):
+    for key, (lo, hi) in zip(pb.spec_keys(name), pb.effect_bounds(name)):
         v = f.fx[name][key]
         if min(abs(math.log(v / lo)), abs(math.log(hi / v))) < 0.01:
             return True
@@ -621,18 +527,18 @@ def _at_edge(pb: Problem, f: Fit, name: str) -> bool:
 
 def _polish(pb: Problem, f: Fit) -> Fit:
     """All linear and effect parameters together (the disturbance frequency refined after)."""
-    slow = any(n in f.fx for n in pb.plant.slow)
+    slow = catalogue.slow_in(f.fx)
     pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=5 if slow else 15, rtol=SLOW_RTOL if slow else 1e-5))
     return pol if pol.rss_fit < f.rss_fit else f
 
 
 def _refine_disturbance(pb: Problem, f: Fit) -> Fit:
-    if "periodic_disturbance" not in f.fx:
+    line = catalogue.projected(f.fx)
+    if line is None:
         return f
     fx = {n: {k: v for k, v in d.items()} for n, d in f.fx.items()}
     r = pb.y - pb.model(f.lin, fx) - pb.basis.B @ f.coef - (f.state if f.state is not None else 0.0)
-    fx["periodic_disturbance"]["frequency_hz"] = locate.refine_line(r * pb.use, pb.fs,
-                                                                    fx["periodic_disturbance"]["frequency_hz"])
+    fx[line]["frequency_hz"] = locate.refine_line(r * pb.use, pb.fs, fx[line]["frequency_hz"])
     out = pb.evaluate(f.lin, fx, f.k)
     return out if out.rss_fit <= f.rss_fit else f
 
@@ -754,7 +660,7 @@ def _metrics(pb: Problem, yhat: np.ndarray) -> dict:
 
 def _public_params(pb: Problem, name: str, f: Fit) -> dict:
     prm = dict(f.fx.get(name, {}))
-    if name == "periodic_disturbance" and f.dist is not None:
+    if catalogue.get(name).projected and f.dist is not None:
         fq, a, b = f.dist
         line = pb.force_basis(f.lin, f.fx) @ np.array([a, b])
         tail = line[-max(10, int(pb.fs)):]                      # steady state: the last second
@@ -764,24 +670,13 @@ def _public_params(pb: Problem, name: str, f: Fit) -> dict:
 
 
 def _evidence(name: str, st: dict, mm: dict, extra: str = "") -> str:
-    sig = {
-        "transport_delay": "phase lag growing with frequency, magnitude unchanged",
-        "base_resonance": "local resonance/antiresonance pair in the FRF",
-        "valve_saturation": "gain loss at large command with odd distortion",
-        "valve_deadband": "gain loss at small command, distortion at command zero crossings",
-        "coulomb_friction": "distortion at velocity reversals, largest at low velocity",
-        "input_saturation": "gain loss at large command with odd distortion",
-        "input_deadband": "gain loss at small command, distortion at command zero crossings",
-        "constant_force": "a residual that a constant force on the load explains (position drifting one way "
-                          "under the same command)",
-        "periodic_disturbance": "spectral line not coherent with the command",
-    }[name]
+    effect = catalogue.get(name)
+    sig = effect.evidence.signature
     h = mm.get("harmonics", {})
     ms = mm.get("multisine_lines", {})
-    nonlinear = ("valve_saturation", "valve_deadband", "input_saturation", "input_deadband", "coulomb_friction")
-    if name in nonlinear and h:
+    if effect.nonlinear and h:
         sig += f"; odd harmonics {h.get('odd_over_noise', 0):.0f}x noise, even {h.get('even_over_noise', 0):.0f}x"
-    if name in nonlinear and ms and ms.get("odd_over_noise") is not None:
+    if effect.nonlinear and ms and ms.get("odd_over_noise") is not None:
         sig += (f"; unexcited odd lines of the multisine {ms['odd_over_noise']:.2f}x noise rms ({ms['odd_z']:.0f} "
                 f"standard errors above noise alone), even lines {ms.get('even_over_noise') or 0:.2f}x: odd "
                 f"distortion" if (ms.get("odd_z") or 0) > 5 else "")
@@ -1075,7 +970,7 @@ def _search(R: _Run) -> None:
     if R.no_claim:
         R.say(f"no claim: {R.no_claim}")
         return
-    screen = [n for n in pb.plant.catalogue if n != "periodic_disturbance" or R.lines]
+    screen = [n for n, e in pb.plant.effects.items() if not e.projected or R.lines]
     harmonic_now = True if R.nonlinear_hint is None else R.nonlinear_hint
     # a broadband command's nonlinear distortion is not coherent with it and counts in its noise floor: there,
     # no round is skipped for having reached "the noise"
@@ -1083,7 +978,7 @@ def _search(R: _Run) -> None:
     round1: dict[str, dict] = {}
     for step in range(MAX_EFFECTS):
         over = math.sqrt(R.current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
-        explained = EXPLAINED_SLOW if any(n in R.current.fx for n in pb.plant.slow) else EXPLAINED
+        explained = EXPLAINED_SLOW if catalogue.slow_in(R.current.fx) else EXPLAINED
         R.say(f"round {step + 1}: held-out residual {over:.3f} x noise")
         results = _round(R, screen, harmonic_now, stop_at_noise and over < explained, explained, round1)
         if not R.chosen:
@@ -1105,8 +1000,8 @@ def _search(R: _Run) -> None:
         key, _, now = _distortion(R, r_cur, r_cur)       # distortion the current model leaves
         if key:
             harmonic_now = bool(now)
-        if "periodic_disturbance" in R.chosen and "periodic_disturbance" in screen:
-            screen.remove("periodic_disturbance")
+        if catalogue.get(name).projected and name in screen:
+            screen.remove(name)         # one line at a time
     if getattr(pb.plant, "axis_search", False):
         # the polish frees everything at once: an effect it made inactive (a deadband polished to width 0 once
         # friction came in beside it) is no longer a finding
@@ -1135,14 +1030,14 @@ def _pairs(R: _Run) -> bool:
     nh = max(int(pb.mhold.sum()), 1)
     if math.sqrt(R.current.rss_hold / nh) / pb.noise <= VERDICT_AT_NOISE:
         return False
-    names = [n for n in pb.plant.catalogue if n in R.round1 and n != "periodic_disturbance"
+    names = [n for n, e in pb.plant.effects.items() if n in R.round1 and not e.projected
              and len(pb.spec_keys(n)) == 1]
     fits = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             fa, fb = R.round1[a], R.round1[b]
             fx0 = {a: dict(fa.fx[a]), b: dict(fb.fx[b])}
-            slow = any(n in fx0 for n in pb.plant.slow)
+            slow = catalogue.slow_in(fx0)
             R.say(f"pair {a}+{b}")
             f = pb.fit(min((fa, fb), key=lambda g: g.rss_fit).lin, fx0, max_iter=10,
                        rtol=SLOW_RTOL if slow else 1e-5)
@@ -1156,7 +1051,7 @@ def _pairs(R: _Run) -> bool:
         for x, other in ((a, b), (b, a)):
             if not _active(pb, f, x):
                 break
-            slow = other in pb.plant.slow
+            slow = catalogue.get(other).slow
             alone = pb.fit(f.lin, {other: dict(f.fx[other])}, max_iter=6 if slow else 10,
                            rtol=SLOW_RTOL if slow else 1e-5)
             st = compare(pb, alone, f)
@@ -1182,12 +1077,13 @@ def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, expla
     for name in screen:
         if name in chosen:
             continue
-        if name != "periodic_disturbance" and at_noise and not (harmonic_now and name in pb.plant.nonlinear):
+        effect = catalogue.get(name)
+        if not effect.projected and at_noise and not (harmonic_now and effect.nonlinear):
             continue        # the held-out residual is already at the noise: nothing left to explain
         R.say(f"candidate {'+'.join(chosen + [name])}")
         lins = [current.lin] if chosen else [R.refit.lin, R.nominal_lin]
         floor_ = [g.rss_fit for _, g, _ in results if math.sqrt(g.rss_hold / pb.mhold.sum()) / pb.noise < explained]
-        slow_name = name in pb.plant.slow
+        slow_name = effect.slow
         if floor_ and slow_name and not harmonic_now:
             continue        # a cheap candidate already reached the noise and nothing calls for these
         pb.quick = not harmonic_now
@@ -1200,12 +1096,12 @@ def _round(R: _Run, screen: list[str], harmonic_now: bool, at_noise: bool, expla
             skip = min(skip or np.inf, (0.95 if slow_name else 0.999) * current.rss_fit)
         prior = round1.get(name) if chosen else None
         f = _fit_candidate(pb, name, lins, current.fx, R.band, R.lines, y_clean, second=bool(chosen),
-                           skip_above=skip, prior=prior if name != "periodic_disturbance" else None)
+                           skip_above=skip, prior=prior if not effect.projected else None)
         if f is None:
             continue
         f = _refine_disturbance(pb, f)
         st = compare(pb, base, f)
-        if st["passed"] and chosen and any(n in current.fx for n in pb.plant.slow) and null is None:
+        if st["passed"] and chosen and catalogue.slow_in(current.fx) and null is None:
             # a slow model's polish may stop short: a candidate must beat the current model given the same
             # extra iterations, not the extra iterations themselves (fitted once, when needed)
             null = pb.fit(current.lin, current.fx, max_iter=6, rtol=SLOW_RTOL)
@@ -1328,7 +1224,7 @@ def _conclude(R: _Run, sensor: sensor_mod.SensorTerms, t_start: float) -> Diagno
     effects = []
     for name in R.chosen:
         st = R.stats_of[name]
-        extra = R.lines[0]["evidence"] if name == "periodic_disturbance" and R.lines else ""
+        extra = R.lines[0]["evidence"] if catalogue.get(name).projected and R.lines else ""
         effects.append({"name": name, "parameters": _public_params(pb, name, augmented),
                         "evidence": _evidence(name, st, mm, extra), "score": float(st["lr_holdout"])})
     verdict = _verdict(pb, R.rec, R.no_claim, effects, fit, R.refit, R.cmd_info, R.check, R.use, R.r_ref)

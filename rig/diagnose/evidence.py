@@ -19,7 +19,7 @@ import math
 import numpy as np
 from scipy.signal import csd, welch
 
-from rig.diagnose import locate
+from rig.diagnose import catalogue, locate
 
 
 def _decimate_for_plot(t: np.ndarray, x: np.ndarray, fs: float, win_s: float = 0.5, max_pts: int = 2000):
@@ -200,31 +200,25 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
         ev["levels"] = lv
     for e in effects:
         name = e["name"]
-        if name in ("valve_saturation", "valve_deadband", "input_saturation", "input_deadband"):
+        effect = catalogue.get(name)
+        kind = effect.evidence.kind
+        if kind == "amplitude":
             # several levels: gain by level; one level: the distortion the sweep or multisine shows; else the
             # residual by command magnitude
             ev["effects"][name] = ({"kind": "levels", **lv} if lv else
                                    distortion(pb, cmd_info, r_ref, r_aug, noise_floor)
                                    or {"kind": "command", **residual_by_command(pb, r_ref, r_aug)})
-        elif name in ("coulomb_friction", "constant_force"):
+        elif kind == "velocity":
             ev["effects"][name] = {"kind": "velocity", **residual_by_velocity(pb, y_lin, r_ref, r_aug)}
-        elif name in ("transport_delay", "base_resonance"):
-            fx = {k: v for k, v in augmented.fx.items() if k not in (name, "periodic_disturbance")}
+        elif kind == "frf":
+            fx = {k: v for k, v in catalogue.simulated(augmented.fx).items() if k != name}
             y_wo = pb.model(augmented.lin, fx)
             fr = frf_ratio(pb, y_clean - (y_aug - pb.model(augmented.lin, augmented.fx)), y_wo,
                            pb.model(augmented.lin, augmented.fx), band)
             if fr:
-                if name == "transport_delay":
-                    tau = e["parameters"].get("delay_s", 0.0)
-                    fr["finding"] = (f"the measured phase falls behind the model without the delay linearly with "
-                                     f"frequency, by {360 * tau * band[1]:.0f} deg at {band[1]:.0f} Hz "
-                                     f"(a {tau * 1e3:.2f} ms dead time), with the magnitude unchanged")
-                else:
-                    fb = e["parameters"].get("frequency_hz", 0.0)
-                    fr["finding"] = (f"the measured response over the model without the stand mode shows a "
-                                     f"resonance/antiresonance pair at {fb:.1f} Hz")
+                fr["finding"] = effect.evidence.finding(e["parameters"], band)
             ev["effects"][name] = {"kind": "frf", "effect": name, **fr}
-        elif name == "periodic_disturbance":
+        elif kind == "line":
             f = e["parameters"].get("frequency_hz", 0.0)
             a_res = acc - check.gain.real * acc_model - np.mean(acc) if (check is not None and check.usable
                                                                         and acc_model is not None) else None

@@ -1,7 +1,8 @@
 """Blind proof of the diagnosis (issue 7): make recordings that hide known effects, diagnose them, grade.
 
 Cases are drawn from a seed: the paper's Table 1 model with its six identified parameters moved +-15 %, zero,
-one or two effects from the catalogue (rig/diagnose/effects.py) with physically plausible parameters,
+one or two effects from the catalogue (rig/diagnose/catalogue/: each effect's "stand" draw) with physically
+plausible parameters,
 and the recordings' sensor noise. They are simulated with sim_backend.actuator.simulate_stand (the physics that
 matches the reference recordings), diagnosed without the truth, and graded:
   right  = the named set of effects is exactly the true set ("none" when both are empty)
@@ -22,15 +23,15 @@ from typing import Callable
 import numpy as np
 
 from rig import excitation as ex
+from rig.diagnose import catalogue
 from rig.diagnose.engine import diagnose
 from rig.errors import RigError
 from rig.recording import Recording, load_recording
-from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
 from sim_backend.sensors import Line, SensorHabits
 
-CATALOGUE = ("transport_delay", "base_resonance", "valve_saturation", "valve_deadband", "coulomb_friction",
-             "periodic_disturbance")
+CATALOGUE = catalogue.for_proof("stand")      # the effects drawn, in the draws' order
 NONE = "none"
 POSITION_NOISE_M = 2e-8          # rms, as the shared recordings (README)
 ACCEL_NOISE_MPS2 = 2e-4
@@ -76,8 +77,8 @@ def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float, bas
     n = int(fs * max(1.0, 40.0 / f_hz))
     if base:
         n = max(n, int(fs * 8.0 / (base["damping_ratio"] * base["frequency_hz"])))    # past its ring-down
-    fx = Effects.from_catalogue({"base_resonance": base} if base else {},
-                                disturbance_frequency_hz=f_hz, disturbance_force_n=1.0)
+    fx = catalogue.stand_effects({"base_resonance": base} if base else {},
+                                 disturbance_frequency_hz=f_hz, disturbance_force_n=1.0)
     y = simulate_stand(p, np.zeros(n), fs, fx)
     tail = y["position_m"][n // 2:]                    # past the start transient
     t = np.arange(n)[n // 2:] / fs
@@ -86,28 +87,36 @@ def _disturbance_force_n(p: ActuatorParams, f_hz: float, amplitude_m: float, bas
     return amplitude_m / max(float(np.hypot(c[0], c[1])), 1e-15)
 
 
-def _draw_effect(name: str, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float,
-                 base: dict | None = None) -> tuple[dict, dict]:
-    """Plausible parameters for one effect: (catalogue parameters, simulator-only extras)."""
-    if name == "transport_delay":
-        return {"delay_s": round(float(rng.uniform(0.5e-3, 3.0e-3)), 5)}, {}
-    if name == "base_resonance":
-        return ({"frequency_hz": round(float(rng.uniform(30.0, 90.0)), 2),
-                 "damping_ratio": round(float(rng.uniform(0.02, 0.05)), 4)},
-                {"mass_kg": round(float(rng.uniform(150.0, 300.0)), 1)})
-    if name == "valve_saturation":
-        peak_ma = p.K_v * amplitude_V
-        return {"limit_ma": round(float(rng.uniform(0.5, 0.85) * peak_ma), 3)}, {}
-    if name == "valve_deadband":
-        return {"width_ma": round(float(rng.uniform(0.2, 1.0)), 3)}, {}
-    if name == "coulomb_friction":
-        return {"force_n": round(float(rng.uniform(150.0, 600.0)), 1)}, {}
-    if name == "periodic_disturbance":
-        f = round(float(rng.uniform(10.0, 90.0)), 2)
-        line_m = float(rng.uniform(3.0, 6.0)) * POSITION_NOISE_M     # clearly above the noise
-        return {"frequency_hz": f}, {"force_n": round(_disturbance_force_n(p, f, line_m, base), 1),
-                                     "phase_rad": round(float(rng.uniform(-math.pi, math.pi)), 3)}
-    raise ValueError(f"unknown effect {name!r}")
+@dataclass(frozen=True)
+class DrawContext:
+    """What an effect's draw for this proof knows (rig/diagnose/catalogue: Draw): the case's actuator, the
+    command's peak, the position noise, the effects drawn before it (with their simulator-only extras) and the
+    force that gives a position line of a given amplitude."""
+    p: ActuatorParams
+    amplitude_V: float
+    position_noise_m: float
+    drawn: dict
+
+    def line_force_n(self, f_hz: float, amplitude_m: float, base: dict | None) -> float:
+        return _disturbance_force_n(self.p, f_hz, amplitude_m, base)
+
+
+def _draw_effects(names, rng: np.random.Generator, p: ActuatorParams, amplitude_V: float,
+                  sens: dict) -> tuple[dict, dict]:
+    """Plausible parameters of each effect named (catalogue parameters, simulator-only extras), a line drawn
+    apart from the pickup lines (mixed lines are out of scope)."""
+    effects, hidden = {}, {}
+    for name in sorted(names):
+        draw = catalogue.get(name).draws["stand"]
+        ctx = DrawContext(p, amplitude_V, POSITION_NOISE_M, {n: {**v, **hidden.get(n, {})} for n, v in effects.items()})
+        for _ in range(20):
+            effects[name], extra = draw.draw(rng, ctx)
+            f_d = effects[name].get("frequency_hz") if draw.apart_from_pickup else None
+            if f_d is None or all(abs(f_d - l["frequency_hz"]) > 2.0 for l in sens.get("position_lines", [])):
+                break
+        if extra:
+            hidden[name] = extra
+    return effects, hidden
 
 
 EXCITATIONS = ("linear_chirp", "log_sweep", "multilevel_chirp", "odd_multisine", "band_noise", "steps")
@@ -224,17 +233,7 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 100.0, p0: ActuatorPara
             if rng.random() < 0.35:
                 pre = round(float(rng.uniform(2.0, 0.3 * dur)), 2)
                 tags.append("mid-run")
-        effects, hidden = {}, {}
-        for name in sorted(names):
-            base = {**effects["base_resonance"], **hidden.get("base_resonance", {})} \
-                if "base_resonance" in effects else None
-            for _ in range(20):        # a force line apart from the pickup lines (mixed lines are out of scope)
-                effects[name], extra = _draw_effect(name, rng, p, amplitude, base)
-                f_d = effects[name].get("frequency_hz") if name == "periodic_disturbance" else None
-                if f_d is None or all(abs(f_d - l["frequency_hz"]) > 2.0 for l in sens.get("position_lines", [])):
-                    break
-            if extra:
-                hidden[name] = extra
+        effects, hidden = _draw_effects(names, rng, p, amplitude, sens)
         tag = "+".join(effects) or "nominal"
         cases.append(Case(name=f"c{i + 1:02d}_{tag}", effects=effects, linear=lin, fs_hz=fs,
                           duration_s=dur, amplitude_V=amplitude, seed=int(rng.integers(2 ** 31)),
@@ -261,12 +260,12 @@ def simulate_case(case: Case, p0: ActuatorParams | None = None):
     full = {name: {**prm, **case.hidden.get(name, {})} for name, prm in case.effects.items()}
     if not case.excitation and not case.sensor and not case.pre_s:
         t, cmd = linear_chirp(case.fs_hz, case.duration_s, 0.1, 100.0, case.amplitude_V)
-        fx = Effects.from_catalogue(full, position_noise_m=POSITION_NOISE_M, accel_noise_mps2=ACCEL_NOISE_MPS2,
-                                    seed=case.seed)
+        fx = catalogue.stand_effects(full, position_noise_m=POSITION_NOISE_M, accel_noise_mps2=ACCEL_NOISE_MPS2,
+                                     seed=case.seed)
         y = simulate_stand(p, cmd, case.fs_hz, fx)
         return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=case.fs_hz, source=case.name)
     cmd = excitation_of(case).cmd_V
-    y = simulate_stand(p, cmd, case.fs_hz, Effects.from_catalogue(full))
+    y = simulate_stand(p, cmd, case.fs_hz, catalogue.stand_effects(full))
     kw = dict(case.sensor)
     for key in ("position_lines", "accel_lines"):
         kw[key] = tuple(Line(**l) for l in kw.get(key, []))
@@ -568,9 +567,7 @@ def _fmt(v, spec=".3f") -> str:
 
 def _short_key(k: str) -> str:
     eff, key = k.split(".", 1)
-    short = {"transport_delay": "delay", "base_resonance": "base", "valve_saturation": "sat",
-             "valve_deadband": "dead", "coulomb_friction": "fric", "periodic_disturbance": "dist",
-             "input_saturation": "sat", "input_deadband": "dead", "constant_force": "force"}.get(eff, eff)
+    short = catalogue.short(eff)
     return f"{short}.{key.replace('_hz', '').replace('_s', '').replace('_ma', '').replace('_n', '')}"
 
 

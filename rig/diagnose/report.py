@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.diagnose import catalogue
+
 MODELS = ("nominal", "refit", "augmented")
 FIT_COLUMNS = ("time_s", "measured_m", "nominal_m", "refit_m", "augmented_m", "augmented_sensor_m", "used")
 COLORS = {"measured": "k", "nominal": "tab:red", "refit": "tab:orange", "augmented": "tab:blue"}
@@ -114,10 +116,7 @@ def write_fit_csv(path: Path, diag, rec) -> Path:
 
 
 # ---- text --------------------------------------------------------------------------------------------
-_UNITS = {"delay_s": (1e3, "ms"), "frequency_hz": (1.0, "Hz"), "damping_ratio": (1.0, ""),
-          "limit_ma": (1.0, "mA"), "width_ma": (1.0, "mA"), "limit_V": (1.0, "V"), "width_V": (1.0, "V"),
-          "limit_N": (1.0, "N"), "width_N": (1.0, "N"), "limit_A": (1.0, "A"), "width_A": (1.0, "A"), "force_n": (1.0, "N"), "phase_rad": (1.0, "rad"),
-          "mass_kg": (1.0, "kg"), "amplitude_m": (1e9, "nm")}
+_UNITS = catalogue.display_units()      # parameter key -> (scale, unit), from the effects' definitions
 
 
 def format_parameters(prm: dict) -> str:

@@ -3,10 +3,11 @@ the fast candidate models against the simulator, a clean case (must say none) an
 import numpy as np
 import pytest
 
+from rig.diagnose.catalogue import stand_effects
 from rig.diagnose.engine import diagnose
 from rig.diagnose.models import sim_linear, sim_reduced
 from rig.recording import Recording
-from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 
 pytestmark = pytest.mark.slow
@@ -17,7 +18,7 @@ P_TRUE = ActuatorParams().with_(K_L=6.2e8, K_C=7.2e-11, K_Q=1.80e-6, w_nv=560.0,
 
 def _rec(p, effects, duration_s=50.0, amplitude_V=2.0, seed=3, fs=FS):
     t, cmd = linear_chirp(fs, duration_s, 0.1, 100.0, amplitude_V)
-    fx = Effects.from_catalogue(effects, position_noise_m=2e-8, seed=seed)
+    fx = stand_effects(effects, position_noise_m=2e-8, seed=seed)
     y = simulate_stand(p, cmd, fs, fx)
     return Recording.from_signals(cmd, y["position_m"], y["accel_mps2"], fs_hz=fs, source="sim")
 
@@ -29,7 +30,7 @@ def _rec(p, effects, duration_s=50.0, amplitude_V=2.0, seed=3, fs=FS):
 ])
 def test_exact_linear_model_matches_simulator(effects):
     t, cmd = linear_chirp(FS, 20.0, 0.1, 100.0, 2.0)
-    ref = simulate_stand(P_TRUE, cmd, FS, Effects.from_catalogue(effects))["position_m"]
+    ref = simulate_stand(P_TRUE, cmd, FS, stand_effects(effects))["position_m"]
     b = effects.get("base_resonance")
     got = sim_linear(P_TRUE, cmd, FS, delay_s=effects.get("transport_delay", {}).get("delay_s", 0.0),
                      sat_ma=effects.get("valve_saturation", {}).get("limit_ma", 0.0),
@@ -42,7 +43,7 @@ def test_reduced_model_matches_simulator():
     t, cmd = linear_chirp(FS, 20.0, 0.1, 100.0, 2.0)
     eff = {"valve_deadband": {"width_ma": 0.4}, "coulomb_friction": {"force_n": 300.0},
            "transport_delay": {"delay_s": 0.8e-3}}
-    ref = simulate_stand(P_TRUE, cmd, FS, Effects.from_catalogue(eff))["position_m"]
+    ref = simulate_stand(P_TRUE, cmd, FS, stand_effects(eff))["position_m"]
     got = sim_reduced(P_TRUE, cmd, FS, delay_s=0.8e-3, dead_ma=0.4, fric_n=300.0)
     lin = sim_linear(P_TRUE, cmd, FS, delay_s=0.8e-3)
     err = np.sqrt(np.mean((got - ref) ** 2))
