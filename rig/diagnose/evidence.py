@@ -184,7 +184,25 @@ def line_spectra(pb, r_pos: np.ndarray, acc_res: np.ndarray | None, f_hz: float,
     return out
 
 
-def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np.ndarray, acc_use: np.ndarray,
+def signature_line(e, mismatch) -> str:
+    """What a named effect's data show (its definition's signature), with the distortion the command's structure
+    measured for a nonlinear one and the two-sensor finding for a line."""
+    effect = catalogue.get(e.name)
+    sig = effect.evidence.signature
+    h = mismatch.harmonics or {}
+    ms = mismatch.multisine_lines or {}
+    if effect.nonlinear and h:
+        sig += f"; odd harmonics {h.get('odd_over_noise', 0):.0f}x noise, even {h.get('even_over_noise', 0):.0f}x"
+    if effect.nonlinear and ms and ms.get("odd_over_noise") is not None:
+        sig += (f"; unexcited odd lines of the multisine {ms['odd_over_noise']:.2f}x noise rms ({ms['odd_z']:.0f} "
+                f"standard errors above noise alone), even lines {ms.get('even_over_noise') or 0:.2f}x: odd "
+                f"distortion" if (ms.get("odd_z") or 0) > 5 else "")
+    if e.line_evidence:
+        sig += f"; {e.line_evidence}"
+    return sig
+
+
+def collect(pb, cmd_info, refit, augmented, effects, mismatch, sensor, acc: np.ndarray, acc_use: np.ndarray,
             check, acc_model: np.ndarray | None, noise_floor) -> dict:
     """Plot data and a one-line finding for each named effect and each sensor term."""
     ev: dict = {"effects": {}, "sensor": {}}
@@ -199,7 +217,7 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
     if lv:
         ev["levels"] = lv
     for e in effects:
-        name = e["name"]
+        name = e.name
         effect = catalogue.get(name)
         kind = effect.evidence.kind
         if kind == "amplitude":
@@ -216,15 +234,15 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
             fr = frf_ratio(pb, y_clean - (y_aug - pb.model(augmented.lin, augmented.fx)), y_wo,
                            pb.model(augmented.lin, augmented.fx), band)
             if fr:
-                fr["finding"] = effect.evidence.finding(e["parameters"], band)
+                fr["finding"] = effect.evidence.finding(e.parameters, band)
             ev["effects"][name] = {"kind": "frf", "effect": name, **fr}
         elif kind == "line":
-            f = e["parameters"].get("frequency_hz", 0.0)
+            f = e.parameters.get("frequency_hz", 0.0)
             a_res = acc - check.gain.real * acc_model - np.mean(acc) if (check is not None and check.usable
                                                                         and acc_model is not None) else None
             r_pos = pb.y - pb.series(augmented) + (y_aug - pb.model(augmented.lin, augmented.fx))
             ls = line_spectra(pb, r_pos, a_res, f, check.gain if check is not None else 1.0, acc_use)
-            ls["finding"] = e.get("evidence", "").split("; fit-block")[0]
+            ls["finding"] = signature_line(e, mismatch)
             ev["effects"][name] = {"kind": "line", **ls}
     ev["sensor"] = sensor_evidence(pb, augmented, sensor, acc, acc_use, check, acc_model, y_aug, r_aug, band)
     return ev

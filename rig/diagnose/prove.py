@@ -23,8 +23,9 @@ from typing import Callable
 import numpy as np
 
 from rig import excitation as ex
-from rig.diagnose import catalogue
+from rig.diagnose import catalogue, report
 from rig.diagnose.engine import diagnose
+from rig.diagnose.results import MODELS
 from rig.errors import RigError
 from rig.recording import Recording, load_recording
 from sim_backend.actuator import linear_chirp, simulate_stand
@@ -278,8 +279,8 @@ def simulate_case(case: Case, p0: ActuatorParams | None = None):
 
 
 # ---- grading -----------------------------------------------------------------------------------------
-def _fit_figure(fit: dict, model: str, key: str) -> float | None:
-    v = (fit.get(model) or {}).get(key)
+def _fit_figure(diag, model: str, key: str) -> float | None:
+    v = getattr(diag.fit.model(model), key)
     return None if v is None else float(v)
 
 
@@ -289,7 +290,7 @@ LINE_FOUND = 0.05               # a reported line within 5 % of a true one is th
 def _line_grades(true_hz: list[float], diag, true_m: list[float] | None = None) -> dict:
     """Each true pickup line: reported among the sensor's position lines, and within 1 % of its frequency?
     errors: relative frequency error of the nearest reported line (None when none is within 5 %: missed)."""
-    rep = [l.frequency_hz for l in getattr(getattr(diag, "sensor", None), "lines", []) if l.channel == "position_m"]
+    rep = [l.frequency_hz for l in diag.sensor.lines if l.channel == "position_m"]
     errs = []
     for f in true_hz:
         near = min((abs(r - f) / f for r in rep), default=None)
@@ -306,7 +307,7 @@ def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elap
           pickup_m: list[float] | None = None, habits: list[str] | None = None, duration_s: float | None = None,
           fs_hz: float | None = None) -> dict:
     """One row of the proof table from the true effects (answers.json style) and a Diagnosis."""
-    named = {e["name"]: dict(e.get("parameters", {})) for e in diag.effects}
+    named = {e.name: dict(e.parameters) for e in diag.effects}
     errors = {}
     for eff, prm in truth.items():
         if eff not in named:
@@ -321,9 +322,7 @@ def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elap
         errs = [abs(float(diag.params_refit[k]) - v) / abs(v) for k, v in true_linear.items()
                 if k in diag.params_refit and v]
         lin_err = max(errs) if errs else None
-    fit = diag.fit or {}
-    aug_rms = _fit_figure(fit, "augmented", "residual_rms_m")
-    verdict = getattr(diag, "verdict", None)
+    aug_rms = _fit_figure(diag, "augmented", "residual_rms_m")
     return {
         "case": name,
         "habits": list(habits or []),
@@ -334,20 +333,19 @@ def grade(name: str, truth: dict, diag, *, true_linear: dict | None = None, elap
         "named_parameters": named,
         "parameter_errors": errors,
         "linear_max_error": lin_err,
-        "groups": [list(g) for g in (diag.group or [])],
-        "nrmse": {m: _fit_figure(fit, m, "nrmse") for m in ("nominal", "refit", "augmented")},
-        "residual_over_noise": {m: _fit_figure(fit, m, "residual_over_noise")
-                                for m in ("nominal", "refit", "augmented")},
+        "groups": [list(g) for g in diag.groups],
+        "nrmse": {m: _fit_figure(diag, m, "nrmse") for m in MODELS},
+        "residual_over_noise": {m: _fit_figure(diag, m, "residual_over_noise") for m in MODELS},
         "true_noise_m": noise_m,
         "residual_over_true_noise": (aug_rms / noise_m) if (aug_rms is not None and noise_m) else None,
-        "holdout_nrmse": {m: _fit_figure(fit, m, "nrmse_holdout") for m in ("nominal", "refit", "augmented")},
+        "holdout_nrmse": {m: _fit_figure(diag, m, "nrmse_holdout") for m in MODELS},
         "pickup_lines": _line_grades(pickup_hz or [], diag, pickup_m),
-        "verdict": verdict.status if verdict is not None else None,
+        "verdict": diag.verdict.status,
         "elapsed_s": elapsed_s,
         "cpu_s": cpu_s,
         "duration_s": duration_s,
         "fs_hz": fs_hz,
-        "summary": diag.summary,
+        "summary": report.summary(diag),
     }
 
 

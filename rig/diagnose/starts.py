@@ -41,8 +41,9 @@ class Grid:
     model; coarse: nothing calls for a nonlinearity (a short grid)."""
     values: Callable[[Scale, bool, bool], Sequence[float]]
 
-    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool):
-        grid = self.values(pb.scale, slow, pb.quick)
+    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool,
+                coarse: bool):
+        grid = self.values(pb.scale, slow, coarse)
         lin, fx, _ = grid_best(pb, lins, fx_base, name, pb.spec_keys(name)[0], grid)
         return lin, fx
 
@@ -93,7 +94,8 @@ class StandMode:
     """A mode of what the plant stands on, from the measured FRF over the model's (for each start of the linear
     parameters; the best by the fit blocks' rss)."""
 
-    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool):
+    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool,
+                coarse: bool):
         best = None
         for lin in lins:
             fx = {n: dict(v) for n, v in fx_base.items()}
@@ -110,7 +112,8 @@ class StandMode:
 class ForceLine:
     """The strongest force line (lines: the two-sensor test's, strongest first); none: nothing to start from."""
 
-    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool):
+    def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool,
+                coarse: bool):
         if not lines:
             return None
         fx = {n: dict(v) for n, v in fx_base.items()}

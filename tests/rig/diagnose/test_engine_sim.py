@@ -5,6 +5,7 @@ import pytest
 
 from rig.diagnose.catalogue import stand_effects
 from rig.diagnose.engine import diagnose
+from rig.diagnose.report import effect_evidence, summary
 from rig.diagnose.models import sim_linear, sim_reduced
 from rig.recording import Recording
 from sim_backend.actuator import linear_chirp, simulate_stand
@@ -53,22 +54,22 @@ def test_reduced_model_matches_simulator():
 
 def test_clean_recording_says_none():
     d = diagnose(_rec(P_TRUE, {}), ActuatorParams())
-    assert d.effects == [], d.summary
-    assert "none" in d.summary
-    assert d.fit["nominal"]["residual_over_noise"] > 3          # the parameters did move ...
-    assert d.fit["refit"]["residual_over_noise"] < 1.1          # ... and the refit explains it
+    assert d.effects == (), summary(d)
+    assert "none" in summary(d)
+    assert d.fit.nominal.residual_over_noise > 3          # the parameters did move ...
+    assert d.fit.refit.residual_over_noise < 1.1          # ... and the refit explains it
 
 
 def test_pair_delay_and_base_found():
     truth = {"transport_delay": {"delay_s": 1.2e-3},
              "base_resonance": {"frequency_hz": 66.0, "damping_ratio": 0.03, "mass_kg": 200.0}}
     d = diagnose(_rec(P_TRUE, truth), ActuatorParams())
-    assert d.names() == ["base_resonance", "transport_delay"], d.summary
-    got = {e["name"]: e["parameters"] for e in d.effects}
+    assert d.names() == ["base_resonance", "transport_delay"], summary(d)
+    got = {e.name: e.parameters for e in d.effects}
     assert abs(got["transport_delay"]["delay_s"] - 1.2e-3) < 0.2 * 1.2e-3
     assert abs(got["base_resonance"]["frequency_hz"] - 66.0) < 0.05 * 66.0
-    assert d.fit["augmented"]["residual_over_noise"] < 1.3
-    assert all(e["score"] > 0 and e["evidence"] for e in d.effects)
+    assert d.fit.augmented.residual_over_noise < 1.3
+    assert all(e.score > 0 and effect_evidence(e, d.mismatch) for e in d.effects)
 
 
 def test_constant_command_is_a_clear_error():
@@ -86,9 +87,9 @@ def test_disturbance_beside_a_stand_mode_with_its_start_transient():
     truth = {"base_resonance": {"frequency_hz": 45.0, "damping_ratio": 0.01, "mass_kg": 250.0},
              "periodic_disturbance": {"frequency_hz": 47.0, "force_n": 40.0, "phase_rad": 1.0}}
     d = diagnose(_rec(P_TRUE, truth, duration_s=40.0), ActuatorParams())
-    assert d.names() == ["base_resonance", "periodic_disturbance"], d.summary
-    got = {e["name"]: e["parameters"] for e in d.effects}
+    assert d.names() == ["base_resonance", "periodic_disturbance"], summary(d)
+    got = {e.name: e.parameters for e in d.effects}
     assert abs(got["periodic_disturbance"]["frequency_hz"] - 47.0) < 0.05
     assert abs(got["periodic_disturbance"]["force_n"] - 40.0) < 4.0
     assert abs(got["base_resonance"]["frequency_hz"] - 45.0) < 0.05 * 45.0
-    assert d.fit["augmented"]["residual_over_noise_fit"] < 1.3
+    assert d.fit.augmented.residual_over_noise_fit < 1.3

@@ -5,6 +5,9 @@ import numpy as np
 import pytest
 
 from rig.diagnose import prove
+from rig.diagnose.command import analyse
+from rig.diagnose.results import Diagnosis, Fit, FitFigures, Mismatch, NamedEffect, Verdict
+from rig.diagnose.sensor import SensorTerms
 from sim_backend.actuator import Effects, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
 
@@ -107,14 +110,22 @@ def test_confusion_and_score_by_hand():
     assert md.count("\n") == 2 + len(prove.CATALOGUE) + 1
 
 
+def _figures(nrmse: float, over: float = 2.0) -> FitFigures:
+    return FitFigures(nrmse, 1e-7, over, nrmse, nrmse, over, over, 5, 2)
+
+
 def test_grade_parameter_errors():
-    class D:
-        effects = [{"name": "transport_delay", "parameters": {"delay_s": 2.2e-3}, "evidence": "", "score": 1.0},
-                   {"name": "valve_saturation", "parameters": {"limit_ma": 3.0}, "evidence": "", "score": 1.0}]
-        group, params_refit, summary = [], {"K_L": 7.7e8}, ""
-        fit = {"nominal": {"nrmse": 0.3}, "refit": {"nrmse": 0.1}, "augmented": {"nrmse": 0.02,
-                                                                               "residual_over_noise": 1.0}}
-    r = prove.grade("x", {"transport_delay": {"delay_s": 2e-3}}, D(), true_linear={"K_L": 7e8})
+    stats = {"delta_bic_fit": 10.0, "lr_holdout": 1.0, "lr_needed": 0.5, "holdout_gain": 0.1, "dk": 1}
+    mm = Mismatch(uncorrelated={"lines": []}, command={}, bands_hz=[], windows_s=[], after_refit={"bands_hz": []},
+                  after_augmented={"bands_hz": []}, regimes={}, worst_windows={}, chirp_band_hz=[0.1, 100.0],
+                  notes=())
+    D = Diagnosis(effects=(NamedEffect("transport_delay", {"delay_s": 2.2e-3}, 1.0, stats),
+                           NamedEffect("valve_saturation", {"limit_ma": 3.0}, 1.0, stats)),
+                  groups=(), mismatch=mm, fit=Fit(_figures(0.3), _figures(0.1), _figures(0.02, 1.0)),
+                  params_refit={"K_L": 7.7e8}, noise_m=2e-8, verdict=Verdict("explained", 1.0, 2.0, True),
+                  sensor=SensorTerms(), command=analyse(np.sin(np.arange(5000) / 30.0), 1000.0), plant={},
+                  candidates=())
+    r = prove.grade("x", {"transport_delay": {"delay_s": 2e-3}}, D, true_linear={"K_L": 7e8})
     assert r["right"] is False and r["named"] == ["transport_delay", "valve_saturation"]
     assert r["parameter_errors"] == {"transport_delay.delay_s": pytest.approx(0.1)}
     assert r["linear_max_error"] == pytest.approx(0.1)
