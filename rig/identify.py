@@ -31,7 +31,7 @@ import scipy.optimize
 from rig import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
-from rig.recording import Recording, check_plausible
+from rig.recordings.recording import Recording, check_plausible
 from sim_backend.linear import IDENTIFIED, ActuatorParams, discretize_zoh, g_eha_frf, zoh_delay
 
 # Bounds as ratios to the design value (p0). K_L +-50 % (issue 6); the valve's by realistic ranges for a

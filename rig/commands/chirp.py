@@ -33,7 +33,7 @@ from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import Channel, read_recording
-from rig.recording import save_columns_csv
+from rig.recordings.rigformat import save_columns_csv
 from rig.runtime.session import Session
 from rig.runtime.tap import Columns
 from sim_backend.actuator import Effects, StandBank, StandPlant

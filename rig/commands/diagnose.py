@@ -27,8 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from rig.config import load_config
-    from rig.recording import check_plausible
-    from rig.signalmap import load_recording_for
+    from rig.recordings.recording import check_plausible
+    from rig.recordings.signalmap import load_recording_for
     from sim_backend.linear import ActuatorParams
 
     cfg = load_config(args.config) if args.config else None
@@ -57,7 +57,7 @@ def run(args) -> int:
     progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
              f"{plant.describe() if plant is not None else ('Table 1' if cfg is None else cfg.source)}")
     if rec.closed_loop:
-        from rig.recording import CLOSED_LOOP_NOTE
+        from rig.recordings.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
     diag = diagnose(rec, plant if plant is not None else p0, progress=progress, seed=args.seed)
     progress("writing outputs")

@@ -174,8 +174,8 @@ def _run_plant(args, rec, plant, t0: float) -> int:
 def run(args) -> int:
     from rig.config import load_config
     from rig.identify import identify
-    from rig.recording import check_plausible
-    from rig.signalmap import load_recording_for
+    from rig.recordings.recording import check_plausible
+    from rig.recordings.signalmap import load_recording_for
     from sim_backend.linear import ActuatorParams
 
     if args.starts < 1:
@@ -209,7 +209,7 @@ def run(args) -> int:
 
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
     if rec.closed_loop:
-        from rig.recording import CLOSED_LOOP_NOTE
+        from rig.recordings.recording import CLOSED_LOOP_NOTE
         print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)

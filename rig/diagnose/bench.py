@@ -22,7 +22,8 @@ import numpy as np
 
 from rig.diagnose import catalogue, prove
 from rig.diagnose.engine import diagnose
-from rig.recording import Recording, load_recording
+from rig.recordings.recording import Recording
+from rig.recordings.rigformat import load_recording
 from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 

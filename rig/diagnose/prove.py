@@ -27,7 +27,8 @@ from rig.diagnose import catalogue, report
 from rig.diagnose.engine import diagnose
 from rig.diagnose.results import MODELS
 from rig.errors import RigError
-from rig.recording import Recording, load_recording
+from rig.recordings.recording import Recording
+from rig.recordings.rigformat import load_recording
 from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
 from sim_backend.sensors import Line, SensorHabits

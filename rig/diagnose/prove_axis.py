@@ -24,7 +24,7 @@ from rig.diagnose.prove import Case, grade, run_jobs
 from rig.errors import RigError
 from rig.plant.file import parse_plant
 from rig.plant.model import Plant
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.axis import Axis, Loop, Sensor, simulate_axis, trapezoid_program
 
 AXIS_CATALOGUE = catalogue.for_proof("axis")      # the effects drawn, in the draws' order

@@ -17,7 +17,7 @@ from rig.diagnose.problem import Problem
 from rig.diagnose.plants import at_bounds
 from rig.errors import RecordingError
 from rig.plant.model import Plant
-from rig.recording import check_plausible
+from rig.recordings.recording import check_plausible
 
 
 def identify_plant(rec, plant: Plant, progress=None) -> dict:

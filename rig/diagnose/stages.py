@@ -26,7 +26,7 @@ from rig.diagnose.results import Fit, FitFigures
 from rig.diagnose.search import Selection
 from rig.diagnose.verdict import no_claim_reason
 from rig.errors import RecordingError
-from rig.recording import check_plausible
+from rig.recordings.recording import check_plausible
 
 HARMONIC_SCREEN = 4.0              # nonlinear distortion / noise that makes nonlinear candidates worth fitting
 MIN_SNR = 3.0                      # motion rms / noise below which the recording is too poorly excited

@@ -7,7 +7,7 @@ from rig.diagnose.engine import diagnose
 from rig.diagnose.report import diagnosis_dict, summary, summary_text
 from rig.errors import RecordingError
 from rig.plant.file import load_plant, parse_plant
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.axis import EMPS, Axis, Sensor, emps_like, simulate_axis
 from tests.paths import REPO
 

@@ -6,7 +6,7 @@ import pytest
 
 from rig.diagnose.engine import diagnose
 from rig.diagnose.report import summary
-from rig.recording import load_recording
+from rig.recordings.rigformat import load_recording
 from sim_backend.linear import ActuatorParams
 from tests.paths import RECORDINGS
 

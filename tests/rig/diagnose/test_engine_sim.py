@@ -7,7 +7,7 @@ from rig.diagnose.catalogue import stand_effects
 from rig.diagnose.engine import diagnose
 from rig.diagnose.report import effect_evidence, summary
 from rig.diagnose.models import sim_linear, sim_reduced
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from rig.diagnose import prove
-from rig.recording import save_recording_csv
+from rig.recordings.rigformat import save_recording_csv
 
 RIG = [sys.executable, "-m", "rig.cli"]
 

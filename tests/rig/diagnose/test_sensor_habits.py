@@ -12,7 +12,7 @@ from rig.diagnose import prove
 from rig.diagnose.engine import diagnose
 from rig.diagnose.report import diagnosis_dict, fit_columns
 from rig.diagnose.report import effect_evidence, summary
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.linear import ActuatorParams
 
 P0 = ActuatorParams()
