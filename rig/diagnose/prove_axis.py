@@ -20,7 +20,8 @@ import numpy as np
 from rig import excitation as ex
 from rig.diagnose import catalogue
 from rig.diagnose.engine import diagnose
-from rig.diagnose.prove import Case, grade, run_jobs
+from rig.diagnose.grading import grade
+from rig.diagnose.prove import Case, run_jobs
 from rig.errors import RigError
 from rig.plant.file import parse_plant
 from rig.plant.model import Plant

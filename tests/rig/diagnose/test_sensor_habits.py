@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from rig.diagnose import prove
+from rig.diagnose.catalogue.periodic_disturbance import force_for_line
 from rig.diagnose.engine import diagnose
 from rig.diagnose.report import diagnosis_dict, fit_columns
 from rig.diagnose.report import effect_evidence, summary
@@ -59,7 +60,7 @@ def test_offset_drift_and_pickup_are_sensor_terms_not_physics():
 
 def test_force_line_is_physics_pickup_line_is_not():
     """A 50 Hz force moves the mass (both sensors), a 60 Hz pickup only the transducer."""
-    f_n = prove._disturbance_force_n(P0.with_(**LIN), 50.0, 8e-8)
+    f_n = force_for_line(P0.with_(**LIN), 50.0, 8e-8)
     c, rec = _case({"periodic_disturbance": {"frequency_hz": 50.0}},
                    {"position_lines": _pickup((60.0, 8e-8, 0.5))},
                    hidden={"periodic_disturbance": {"force_n": f_n, "phase_rad": 0.2}})
