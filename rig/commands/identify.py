@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from rig import cliargs
+from rig.identify import UNITS
 from rig.errors import RigError
 
-UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s/mA", "K_C": "m^3/s/Pa"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.commands.identify import UNITS
+from rig.identify import UNITS
 from rig.config import MOUNTS
 from rig.console.live import LiveRing
 from rig.console.protocol import check_command, receive, send

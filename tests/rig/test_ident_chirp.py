@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from controllers.playback import SignalPlayback
-from rig.commands.chirp import chirp_samples, run_chirp
+from rig.chirp import chirp_samples, run_chirp
 from rig.config import Config
 from rig.identify import identify, simulate_linear
 from rig.recordings.rigformat import load_recording
