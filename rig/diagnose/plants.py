@@ -152,8 +152,9 @@ class AxisModel:
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None, X0=None) -> np.ndarray:
         """Position [m] at the samples; with starts/X0 the state is set to X0[s] at sample starts[s]."""
         A, B, Bf, C, Cv = self.matrices(lin, fx)
-        kw = self._terms(fx)
-        delay, fric, f0 = kw.get("delay_s", 0.0), kw.get("friction_n", 0.0), kw.get("force_n", 0.0)
+        kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
+        kw.pop("base", None)                   # (in the matrices)
+        delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
         n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if fric > 0 else 1
         Ah, Bnew, Bold, m = substeps(A, B, 1.0 / fs, n_sub, delay)
         Gf = phi(A, Bf, 1.0 / (fs * n_sub))[1] if (fric > 0 or f0 != 0) else np.zeros(len(B))
@@ -161,10 +162,10 @@ class AxisModel:
         if fric > 0:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        cmd = self.shaped_command(cmd, kw.get("saturation", 0.0), kw.get("deadband", 0.0))
+        cmd = self.shaped_command(cmd, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
         return run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
                             smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
-                            fine=fine)
+                            fine=fine, **kw)   # a new effect's term: run_segments' own keyword
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""
