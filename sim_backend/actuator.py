@@ -88,6 +88,16 @@ def inner_step_s(p: ActuatorParams, fx: Effects) -> float:
     return h
 
 
+def stand_prm(p: ActuatorParams, fx: Effects) -> np.ndarray:
+    """The compiled plant's parameter vector (the layout _deriv reads): the actuator, then the effects' terms."""
+    m_b = fx.base_mass_kg
+    w_b = 2 * math.pi * fx.base_frequency_hz
+    return np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
+                     fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
+                     1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
+                     2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+
+
 @numba.njit(cache=True, fastmath=False)
 def _deriv(y, i_cmd, f_dist, xg, vg, prm, out):
     # prm: M A_p C V_t K_L K_Q K_C w_nv zeta beta sat dead fric base_on m_b k_b c_b; xg, vg: the floor
@@ -146,12 +156,7 @@ def simulate_stand(p: ActuatorParams, cmd_V: np.ndarray, fs: float, fx: Effects 
     cmd = np.ascontiguousarray(cmd_V, dtype=float)
     h = inner_step or inner_step_s(p, fx)
     n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
-    m_b = fx.base_mass_kg
-    w_b = 2 * math.pi * fx.base_frequency_hz
-    prm = np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
-                    fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
-                    1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
-                    2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+    prm = stand_prm(p, fx)
     n = cmd.shape[0]
     pos = np.empty(n); acc = np.empty(n); spool = np.empty(n)
     _simulate(cmd, float(fs), n_sub, fx.delay_s, p.K_v, fx.saturation_limit_ma, prm,
@@ -263,12 +268,7 @@ class StandPlant:
             self._ca, self._da = np.ascontiguousarray(C[1]), np.ascontiguousarray(D[1, 1:])
         h = inner_step or inner_step_s(p, fx)
         self.n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
-        m_b = fx.base_mass_kg
-        w_b = 2 * math.pi * fx.base_frequency_hz
-        self.prm = np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
-                             fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
-                             1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
-                             2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+        self.prm = stand_prm(p, fx)
         self.hist = np.zeros(int(math.ceil(fx.delay_s * fs)) + 4)
         self.y = np.zeros(7)
         self.k = 0
