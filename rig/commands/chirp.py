@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from rig import cliargs
+from rig.backends import BACKENDS
 from rig.chirp import run_chirp
 from rig.config import load_config
 from rig.errors import RigError

@@ -263,10 +263,10 @@ def pairs(pb: Problem, sel: Selection, say: Callable[[str], None]) -> tuple[Sele
 
 
 def _round(R: _Search, screen: list[str], harmonic_now: bool, at_noise: bool, explained: float,
-           round1: dict) -> list[tuple[str, Fit, dict]]:
+           round1: dict) -> list[tuple[str, ModelFit, dict]]:
     """One round of the forward selection: each screened candidate on top of the current model, tested."""
     pb, current, chosen = R.pb, R.current, R.chosen
-    results: list[tuple[str, Fit, dict]] = []
+    results: list[tuple[str, ModelFit, dict]] = []
     # the measurement without its sensor terms and without the fitted disturbance's response
     y_clean = pb.y - pb.basis.B @ current.coef - (pb.physics(current) - pb.model(current.lin, current.fx))
     base, null = current, None
