@@ -28,7 +28,7 @@ import numba
 import numpy as np
 import scipy.optimize
 
-from rig import closedloop
+from rig.recordings import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
 from rig.recordings.recording import Recording, check_plausible

@@ -28,7 +28,7 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
                                 sel.stats[name],
                                 R.lines[0]["evidence"] if catalogue.get(name).projected and R.lines else "")
                     for name in sel.chosen)
-    v = judge(pb, P.rec, T.screened.no_claim, bool(effects), L.fit, T.refit, R.check)
+    v = judge(pb, T.screened.no_claim, bool(effects), L.fit, T.refit, R.check)
     not_claimed = ()
     if v.status == "not_described" and effects:
         not_claimed, effects = effects, ()

@@ -151,9 +151,8 @@ class AxisModel:
 
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None, X0=None) -> np.ndarray:
         """Position [m] at the samples; with starts/X0 the state is set to X0[s] at sample starts[s]."""
-        A, B, Bf, C, Cv = self.matrices(lin, fx)
         kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
-        kw.pop("base", None)                   # (in the matrices)
+        A, B, Bf, C, Cv = self.plant.state_space(self.values(lin), kw.pop("base", None))
         delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
         n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if fric > 0 else 1
         Ah, Bnew, Bold, m = substeps(A, B, 1.0 / fs, n_sub, delay)

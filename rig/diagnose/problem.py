@@ -220,12 +220,13 @@ class Problem:
         data's state at each segment start."""
         if self.shoot is None:
             return self.plant.simulate(lin, self.cmd, self.fs, fx)
+        slow = catalogue.slow_in(fx)
         nx = self.plant.matrices(lin, fx)[0].shape[0]
         if nx not in self.shoot.X0:
             self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
         X0 = self.shoot.X0[nx]
         y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
-        if not catalogue.slow_in(fx):
+        if not slow:
             return y            # linear in the initial state: the projection's correction is exact
         # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
         # and the sticking): Gauss-Newton steps on the segment states, the correction the projection finds from

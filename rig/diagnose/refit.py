@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from rig import closedloop
+from rig.recordings import closedloop
 from rig.diagnose.problem import Problem
 from rig.diagnose.plants import at_bounds
 from rig.errors import RecordingError

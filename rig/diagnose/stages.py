@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from rig import closedloop
+from rig.recordings import closedloop
 from rig.diagnose import command as command_mod, locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.lines import choose_wander, residual_lines
 from rig.diagnose.plants import model_for
@@ -148,6 +148,9 @@ def prepare(rec, p0, say: Callable[[str], None]) -> Prepared:
     """Read the command and choose the samples every fit leaves out (clipped, the start transient)."""
     cmd, pos, acc = _validate(rec)
     fs = float(rec.fs_hz)
+    # was the command computed from the measured position? (named in the verdict; a plant file's axis also
+    # estimates its noise floor accordingly)
+    loop = closedloop.check(cmd, pos, fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     notes: list[str] = []
     say("reading the command")
     cmd_info = command_mod.analyse(cmd, fs, unit=getattr(rec, "command_unit", "V"))
@@ -175,9 +178,6 @@ def prepare(rec, p0, say: Callable[[str], None]) -> Prepared:
         raise RecordingError(f"{rec.source}: fewer than 50 usable samples after the start transient and the "
                              "clipped samples")
     band, base_band = _excited_band(cmd_info, fs)
-    loop = None
-    if plant.family != "eha":
-        loop = closedloop.check(cmd, pos, fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
     pb = Problem(cmd, pos, fs, p0, use, base_band=base_band, broadband=cmd_info.kind in ("noise", "steps"),
                  loop=loop)
     return Prepared(rec=rec, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=tuple(notes), use=use,

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 
-from rig import closedloop
 from rig.diagnose import command as command_mod
 from rig.diagnose.plants import at_bounds
 from rig.diagnose.problem import LIN_BOUNDS, ModelFit, Problem
@@ -47,12 +46,11 @@ def file_bound_hints(pb, refit) -> list[str]:
     return hints
 
 
-def verdict(pb: Problem, rec, no_claim: str, named: bool, fit: Fit, refit: ModelFit, check) -> Verdict:
+def verdict(pb: Problem, no_claim: str, named: bool, fit: Fit, refit: ModelFit, check) -> Verdict:
     """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
     is named whatever the verdict: the fits assume the command is independent of the noise."""
     sugg = []
-    loop = pb.loop or closedloop.check(pb.cmd, pb.y, pb.fs, getattr(rec, "meta", None),
-                                       stated=getattr(rec, "closed_loop", ""))
+    loop = pb.loop
     if loop.closed and pb.plant.family == "eha":
         sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
                     "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")

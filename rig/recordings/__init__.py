@@ -5,4 +5,5 @@
   rigformat.py   rig's own formats (time_s, valve_cmd_V, position_m, accel_mps2): the loader and the writers
   signalmap.py   a plant file's [signals]: another lab's file read as it is, in SI units; load_recording_for,
                  what the commands call
+  closedloop.py  was the recording made in closed loop (the command computed from the measurement)?
 """

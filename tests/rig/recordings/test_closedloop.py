@@ -2,7 +2,7 @@
 import numpy as np
 from scipy.signal import lfilter
 
-from rig import closedloop
+from rig.recordings import closedloop
 
 FS = 2000.0
 
