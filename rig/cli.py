@@ -32,7 +32,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
-        mod = importlib.import_module(module) if only is None or only == name else None
+        mod = importlib.import_module(module) if only == name else None      # `rig --help` imports none
         p.add_argument("--config", metavar="FILE", default=None,
                        help=getattr(mod, "CONFIG_HELP", "TOML configuration (default: the paper's Table 1 values)"))
         if mod is not None:
