@@ -196,7 +196,7 @@ class Problem:
             sol = np.linalg.solve(Gn, b / d) / d
         except np.linalg.LinAlgError:
             sol = np.linalg.lstsq(Gn, b / d, rcond=None)[0] / d
-        state = np.empty(self.n)
+        state = np.zeros(self.n)          # before the first segment (samples no fit uses): no state
         for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
             state[a:e] = O[:e - a] @ sol[q + s * nx:q + (s + 1) * nx]
         out = r - E @ sol[:q] - state
