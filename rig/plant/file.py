@@ -152,14 +152,6 @@ def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
     return parse_plant(data["plant"], str(path), p0)
 
 
-def check_command_unit(path, plant: Plant, rec) -> None:
-    """One line when the recording's command (in the unit its signal map gave) is not the plant's input."""
-    if plant.input_unit != rec.command_unit:
-        what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
-        raise ConfigError(f"{path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's input "
-                          f"is {what}")
-
-
 @dataclass(frozen=True)
 class Subject:
     """A recording and the plant a command holds it against: the plant file's, else the eha actuator of the
@@ -177,7 +169,9 @@ def load_subject(recording, plant_path=None, config_path=None) -> Subject:
     p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(p0, cfg.source if cfg else "Table 1")
     rec = load_recording_for(recording, plant_path)
-    if plant_path is not None:
-        check_command_unit(plant_path, plant, rec)
+    if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
+        what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
+        raise ConfigError(f"{plant_path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's "
+                          f"input is {what}")
     check_plausible(rec)
     return Subject(rec, plant, plant.describe() if plant_path is not None else plant.source)
