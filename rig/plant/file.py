@@ -165,9 +165,9 @@ def load_subject(recording, plant_path=None, config_path=None) -> Subject:
     """Read the recording (through the plant file's signal map when it has one) and the plant, and check them
     together: the command's unit is the plant's input, the values plausible. One line for any problem
     (ConfigError, RecordingError)."""
-    cfg = load_config(config_path) if config_path else None
-    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
-    plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(p0, cfg.source if cfg else "Table 1")
+    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
+    plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(
+        p0, str(Path(config_path)) if config_path else "Table 1")
     rec = load_recording_for(recording, plant_path)
     if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
