@@ -4,7 +4,8 @@
   envelope in buckets of 1 / BUCKETS_PER_S seconds (two points a bucket, in the order they occurred), so a
   spike or a command at the clamp stays visible however the rate compares with the screen's pixels.
 - Lifecycle state, isolation, fault, counters: the newest row's flag columns; isolation switches become
-  events with their loop time.
+  events, stamped with the wall-clock time of their row as the loop's log records are (one clock in the
+  page's event log), their loop time in the text.
 - Loop timing: p50/p99/max of the rows' wake latency and compute time over the last TIMING_S seconds.
 - Table motion spectrum: the table's heave acceleration (the mean of the mounts' accelerometers) sorted by
   what the isolation was doing (on: ACTIVE with isolation on; off: INACTIVE, or ACTIVE with isolation off),
@@ -12,6 +13,8 @@
   spectral density of each (Welch) every SPECTRUM_EVERY_S, from the last SPECTRUM_S seconds of each.
 - VC curves: one-third-octave rms velocity against the vibration criteria (controllers/vibration_criteria.py)
   from the same spectra, and the class each meets.
+A chirp identification's run (layout kind "chirp") has traces and flags, but no spectra: it plays a chirp,
+not isolation.
 """
 from __future__ import annotations
 
@@ -81,6 +84,7 @@ class Feed:
         self._new_events: list[dict] = []
         self._iso = None
         self.rows_seen = 0
+        self.spectra = layout.get("kind", "run") != "chirp"
         self.changed = set()               # parts recomputed since the last delta
 
     # ---- rows in ------------------------------------------------------------------------------------------
@@ -91,7 +95,8 @@ class Feed:
         self.rows_seen += len(rows)
         self._flags(rows)
         self._timing_rows(rows)
-        self._spectrum_rows(rows)
+        if self.spectra:
+            self._spectrum_rows(rows)
         rows = np.concatenate([self._pending, rows]) if len(self._pending) else rows
         nb = len(rows) // self.bucket
         if nb:
@@ -128,12 +133,16 @@ class Feed:
         iso = rows[:, c["isolation_on"]] > 0.5
         prev = self._iso if self._iso is not None else bool(iso[0])
         switches = np.flatnonzero(np.diff(np.concatenate(([prev], iso))))
+        wall, t_last = time.time(), float(last[c["time_s"]])
         for i in switches:
-            self._event(float(rows[i, c["time_s"]]), f"isolation {'on' if iso[i] else 'off'}", "flag")
+            t_s = float(rows[i, c["time_s"]])
+            # the newest row is about now: the switch's row was t_last - t_s of loop time before it
+            self._event(t_s, wall - max(0.0, t_last - t_s), f"isolation {'on' if iso[i] else 'off'} "
+                                                             f"(loop t = {t_s:.3f} s)", "flag")
         self._iso = bool(iso[-1])
 
-    def _event(self, t_s: float, text: str, source: str) -> None:
-        self._new_events.append({"t_s": t_s, "wall": time.time(), "text": text, "source": source, "level": "INFO"})
+    def _event(self, t_s: float, wall: float, text: str, source: str) -> None:
+        self._new_events.append({"t_s": t_s, "wall": wall, "text": text, "source": source, "level": "INFO"})
 
     def _timing_rows(self, rows: np.ndarray) -> None:
         self._wake.put(rows[:, [self.col["wake_latency_us"]]])

@@ -74,8 +74,13 @@ class ConsoleState:
         self.tick_ms = collections.deque(maxlen=400)      # the server's own work per update (CPU time)
         self.events: list[dict] = []      # the loop's log records and the isolation switches, oldest first
         self._new_events: list[dict] = []
+        self._event_seq = 0
 
     def add_events(self, events) -> None:
+        """Events in, each numbered: a page that got an event in a full state skips it in the next delta."""
+        for e in events:
+            self._event_seq += 1
+            e["seq"] = self._event_seq
         self.events.extend(events)
         self._new_events.extend(events)
         del self.events[:-200]

@@ -2,8 +2,10 @@
 feed that turns rows into what the page draws, and the command check."""
 from __future__ import annotations
 
+import json
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from rig.console import feed as feed_mod
 from rig.console.feed import Feed
 from rig.console.live import LiveReader, LiveRing
 from rig.console.protocol import COMMANDS, check_command
+from rig.console.server import ConsoleState
 from rig.runtime.layout import loop_channels
 from rig.runtime.lifecycle import State
 
@@ -133,7 +136,11 @@ def test_isolation_switches_are_events_and_the_newest_row_is_the_state():
     rows[:, f.col["isolation_on"]] = iso
     f.add(rows)
     d = f.take_delta()
-    assert [(e["text"], e["t_s"]) for e in d["events"]] == [("isolation off", 0.05), ("isolation on", 0.1)]
+    assert [(e["text"], e["t_s"]) for e in d["events"]] == [("isolation off (loop t = 0.050 s)", 0.05),
+                                                            ("isolation on (loop t = 0.100 s)", 0.1)]
+    # stamped on the log records' clock (wall), the newest row being now: 69 and 19 ms of loop time before it
+    walls = [e["wall"] for e in d["events"]]
+    assert walls[1] - walls[0] == pytest.approx(0.05, abs=1e-6) and abs(time.time() - 0.019 - walls[1]) < 1.0
     assert d["now"]["state"] == "ACTIVE" and d["now"]["isolation"] is True
     assert d["timing"]["compute_us"]["max"] == 20.0 and d["timing"]["wake_latency_us"]["p99"] == 5.0
 
@@ -189,3 +196,22 @@ def test_every_command_has_a_handler_and_well_formed_ones_pass():
 def test_anything_else_is_one_line_never_an_exception(msg):
     r = check_command(msg)
     assert isinstance(r, str) and "\n" not in r or isinstance(r, tuple)
+
+
+def test_event_numbers_let_a_page_skip_what_a_full_state_already_gave():
+    """The server numbers its events: the delta after a snapshot repeats the pending ones with the same
+    numbers (the page skips numbers it has shown)."""
+    st = ConsoleState(control=None)
+    sent = []
+    st.clients.add(type("Page", (), {"put": lambda self, text: sent.append(text)})())
+    st.add_events([{"t_s": None, "wall": 1.0, "text": "lifecycle: configure -> INACTIVE", "level": "INFO"}])
+    snap = st.snapshot()
+    st.tick()
+    st.add_events([{"t_s": None, "wall": 2.0, "text": "lifecycle: activate -> ACTIVE", "level": "INFO"}])
+    st.tick()
+    deltas = [json.loads(x) for x in sent]
+    shown = [e["seq"] for e in snap["events"]]
+    later = [e["seq"] for d in deltas for e in d.get("events", ())]
+    assert shown == [1] and later == [1, 2]
+    new = [n for n in later if n > max(shown)]
+    assert new == [2]
