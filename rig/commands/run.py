@@ -33,7 +33,7 @@ The prototype (`--layout prototype`: drivers/devicemaps/prototype.toml, or proto
 backend; any config with [layout] plant = "stand"): the actuator alone on its stand, operated in modes
 (controllers/modes.py), switchable while live and bumpless:
   --mode off|hold|track|isolate    the mode at activation (default hold: the piston held where it is)
-  --position POS                   hold there (e.g. 5um)
+  --position POS                   hold there, with its unit (e.g. 5um; a bare 5 would be metres: refused)
   --reference REF                  track it: setpoint:x=5um, step:amp=2um, sine:amp=10um,freq=5,
                                    chirp:amp=1um,f0=1,f1=100,duration=20, csv:profile.csv (time_s,position_m)
   --control FILE                   write `hold 5um`, `track sine:amp=10um,freq=5`, `isolate`, `off`, `stop`
@@ -121,7 +121,8 @@ def add_arguments(p) -> None:
                         "(drivers/devicemaps/prototype.toml, prototype_hil.toml on hil) unless --config names one")
     p.add_argument("--mode", choices=("off", "hold", "track", "isolate"), default=None,
                    help="stand layout: the mode at activation (default hold)")
-    p.add_argument("--position", default=None, metavar="POS", help="hold mode: the position, e.g. 5um")
+    p.add_argument("--position", type=cliargs.length, default=None, metavar="POS",
+                   help="hold mode: the position with its unit, e.g. 5um or 0.005mm (a bare number is refused)")
     p.add_argument("--reference", default=None, metavar="REF",
                    help="track mode: setpoint:x=POS, step:amp=DX, sine:amp=A,freq=F[,offset=POS][,seconds=S], "
                         "chirp:amp=A,f0=F0,f1=F1,duration=T, csv:FILE")
