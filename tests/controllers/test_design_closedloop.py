@@ -188,3 +188,31 @@ def test_rig_demo_bad_model_error_is_one_line(capsys):
     assert main(["demo", "--model-error", "80"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["rig demo: error: --model-error: expected >= 0 % and <= 50 %, got '80'"]
+
+
+def test_rig_design_prints_its_figures_on_stdout_and_the_verdict_in_words():
+    """`rig design` as a user runs it (issue 29): the figures on stdout (they were all on stderr), the progress on
+    stderr, and a verdict in words where a Python dict was."""
+    import subprocess
+    import sys
+    from tests.paths import REPO
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "design", "--robust", "0"], cwd=REPO, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = r.stdout.strip().splitlines()
+    assert [ln.split()[0] for ln in out[:4]] == list(MOUNTS) and all("stable: yes, GM" in ln for ln in out[:4])
+    assert out[-1] == ("meets the paper: yes: every mount at or above the paper's attenuation in every band; "
+                       "GM >= 6 dB and PM >= 35 deg on every mount; all 48 plants of the robustness check stable")
+    assert not any("{" in ln or "rig design:" in ln for ln in out)
+    err = r.stderr.strip().splitlines()
+    assert err and all(ln.startswith("rig design: ") for ln in err)
+    assert not any("meets the paper" in ln or "GM" in ln for ln in err)
+
+
+def test_the_verdict_names_what_fails():
+    from rig.commands.design import verdict
+    res = {"meets_paper": {"bands": False, "margins": True, "robust": False},
+           "robust": {"corners": 48, "random": 100}}
+    assert verdict(res) == ("meets the paper: NO: a mount below the paper's attenuation in a band (see the lines "
+                            "above); GM >= 6 dB and PM >= 35 deg on every mount; unstable on some of the 148 plants "
+                            "of the robustness check")
