@@ -216,3 +216,26 @@ def test_the_verdict_names_what_fails():
     assert verdict(res) == ("meets the paper: NO: a mount below the paper's attenuation in a band (see the lines "
                             "above); GM >= 6 dB and PM >= 35 deg on every mount; unstable on some of the 148 plants "
                             "of the robustness check")
+
+
+def test_every_design_figure_has_labelled_axes(tmp_path, monkeypatch):
+    """`rig design --out DIR` (issue 29: fig14_cross_*.png had no axis labels): every panel of every figure
+    names its y quantity, and its x quantity unless it shares its x axis with a panel that does."""
+    from controllers import figures
+    from rig.cli import main
+    seen = {}
+    save = figures._Saver.__call__
+
+    def spy(self, fig, name):
+        seen[name] = [(ax, ax.get_xlabel(), ax.get_ylabel()) for ax in fig.axes]
+        missing = []
+        for ax, xl, yl in seen[name]:
+            shared = [a for a in ax.get_shared_x_axes().get_siblings(ax) if a.get_xlabel()]
+            if not yl or not (xl or shared):
+                missing.append(ax.get_title() or "(untitled)")
+        seen[name] = missing
+        return save(self, fig, name)
+    monkeypatch.setattr(figures._Saver, "__call__", spy)
+    assert main(["design", "--robust", "0", "--out", str(tmp_path)]) == 0
+    assert "fig14_cross_front_left.png" in seen and len(seen) >= 8
+    assert {k: v for k, v in seen.items() if v} == {}
