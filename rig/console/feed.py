@@ -3,9 +3,9 @@
 - Traces: per mount acceleration, stroke and valve command, kept for the last TRACE_S seconds as a min/max
   envelope in buckets of 1 / BUCKETS_PER_S seconds (two points a bucket, in the order they occurred), so a
   spike or a command at the clamp stays visible however the rate compares with the screen's pixels.
-- Lifecycle state, isolation, fault, counters: the newest row's flag columns; isolation switches become
-  events, stamped with the wall-clock time of their row as the loop's log records are (one clock in the
-  page's event log), their loop time in the text.
+- Lifecycle state, isolation, fault, counters: the newest row's flag columns. (An isolation switch is an
+  event through the loop's own log record, `isolation on`, logged where the gate applies it: the page's
+  event log has each event once, on one clock.)
 - Loop timing: p50/p99/max of the rows' wake latency and compute time over the last TIMING_S seconds.
 - Table motion spectrum: the table's heave acceleration (the mean of the mounts' accelerometers) sorted by
   what the isolation was doing (on: ACTIVE with isolation on; off: INACTIVE, or ACTIVE with isolation off),
@@ -81,8 +81,6 @@ class Feed:
         self.timing: dict | None = None
         self.spectrum: dict | None = None
         self.vc: dict | None = None
-        self._new_events: list[dict] = []
-        self._iso = None
         self.rows_seen = 0
         self.spectra = layout.get("kind", "run") != "chirp"
         self.changed = set()               # parts recomputed since the last delta
@@ -130,19 +128,6 @@ class Feed:
                     "isolation": bool(last[c["isolation_on"]] > 0.5), "fault": bool(last[c["fault"]] > 0.5),
                     "overruns": int(last[c["overruns"]]), "skipped_periods": int(last[c["skipped_periods"]]),
                     "cmd_limited": bool(last[c["cmd_limited"]] > 0.5)}
-        iso = rows[:, c["isolation_on"]] > 0.5
-        prev = self._iso if self._iso is not None else bool(iso[0])
-        switches = np.flatnonzero(np.diff(np.concatenate(([prev], iso))))
-        wall, t_last = time.time(), float(last[c["time_s"]])
-        for i in switches:
-            t_s = float(rows[i, c["time_s"]])
-            # the newest row is about now: the switch's row was t_last - t_s of loop time before it
-            self._event(t_s, wall - max(0.0, t_last - t_s), f"isolation {'on' if iso[i] else 'off'} "
-                                                             f"(loop t = {t_s:.3f} s)", "flag")
-        self._iso = bool(iso[-1])
-
-    def _event(self, t_s: float, wall: float, text: str, source: str) -> None:
-        self._new_events.append({"t_s": t_s, "wall": wall, "text": text, "source": source, "level": "INFO"})
 
     def _timing_rows(self, rows: np.ndarray) -> None:
         self._wake.put(rows[:, [self.col["wake_latency_us"]]])
@@ -207,8 +192,7 @@ class Feed:
 
     # ---- out to the page --------------------------------------------------------------------------------
     def take_delta(self) -> dict:
-        """What changed since the last call (trace points, flags, figures recomputed, events: the isolation
-        switches seen in the rows)."""
+        """What changed since the last call (trace points, flags, figures recomputed)."""
         msg = {"now": self.now, "rows_seen": self.rows_seen}
         if self._new_t:
             t = np.concatenate(self._new_t)
@@ -218,9 +202,6 @@ class Feed:
         for part in self.changed:
             msg[part] = getattr(self, part)
         self.changed = set()
-        if self._new_events:
-            msg["events"] = self._new_events
-            self._new_events = []
         return msg
 
     def full(self) -> dict:
