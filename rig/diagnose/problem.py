@@ -74,7 +74,7 @@ def _n_blocks(plant, n: int, fs: float) -> int:
 class Problem:
     """cmd, y: the recorded command and position; plant: rig.diagnose.plants model_for's argument; use: the
     samples every fit uses; base_band: where a mode can be told apart (the excited band); broadband: a noise or
-    steps command; loop: rig.closedloop's evidence of feedback; noise: what the residuals are weighed by."""
+    steps command; loop: rig.recordings.closedloop's evidence of feedback; noise: what the residuals are weighed by."""
 
     def __init__(self, cmd: np.ndarray, y: np.ndarray, fs: float, p0, use: np.ndarray, *,
                  base_band: tuple[float, float] | None = None, broadband: bool = False, loop=None,

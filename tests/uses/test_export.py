@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from rig.recording import load_recording
+from rig.recordings.rigformat import load_recording
 
 RIG = [sys.executable, "-m", "rig.cli"]
 

@@ -1,4 +1,4 @@
-"""rig.closedloop: feedback from the measured position to the command, from the file's attributes or the data."""
+"""rig.recordings.closedloop: feedback from the measured position to the command, from the file's attributes or the data."""
 import numpy as np
 from scipy.signal import lfilter
 
