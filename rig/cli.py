@@ -22,6 +22,8 @@ COMMANDS = {
     "diagnose": ("rig.commands.diagnose", "find and model the physics a recording shows but the model lacks"),
     "prove": ("rig.commands.prove", "blind proof of diagnosis on simulated or given recordings"),
     "report": ("rig.commands.report", "vibration-criterion (VC) report of a run recording, per isolation mode"),
+    "export": ("rig.commands.export", "a recording for MATLAB (.mat) or a spreadsheet (.csv), with its units and "
+                                      "metadata"),
     "drill": ("rig.commands.drill", "fault drill: each fault rehearsed, what the rig does, time to FAULT"),
 }
 
