@@ -32,9 +32,10 @@ import sys
 
 import numpy as np
 
-from controllers.analysis import DiscreteRig, mimo, siso
+from controllers.analysis import DiscreteRig, mimo, predicted_rms, siso
+from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import IsolationController, params_from_config
-from rig.config import Config
+from rig.config import Config, load_config
 from sim_backend.rig_plant import I_TABLE, FloorMotion, RigPlant
 
 KEYS = ("blend_hz", "kp_V_per_m", "pi_corner_hz", "lead1_zero_hz", "lead1_pole_hz", "lead2_zero_hz", "lead2_pole_hz",
@@ -139,8 +140,6 @@ def combined(cfg, dt: float, params, delay, lsb_mps2: float) -> tuple[float, flo
     """(feedback, feedback + floor feedforward) predicted reductions of the table's rms in 1-100 Hz on the
     discrete rig with all four loops closed (controllers/analysis.py predicted_rms), the accelerometers'
     noise with the Modbus module's 16-bit quantisation, the delay per channel."""
-    from controllers.analysis import predicted_rms
-    from controllers.feedforward import make_feedforward_filters
     nd = math.sqrt(RigPlant.ACCEL_NOISE_DENSITY ** 2 + lsb_mps2 ** 2 / 12 / (0.5 / dt))
     noise = {"accel_noise_density": nd, "floor_accel_noise_density": nd}
     ctrls = [IsolationController(params, dt) for _ in range(4)]
@@ -228,7 +227,6 @@ def main(argv) -> int:
     extra = int(opts.get("--stroke-delay", 0))
     cfg, start, ff = None, None, "--feedforward" in opts
     if ff:                    # the floor, sensors and feedforward settings (and a start) from a configuration
-        from rig.config import load_config
         cfg = load_config(opts["--feedforward"])
         start = params_from_config(cfg)
 

@@ -72,8 +72,8 @@ class IODevice:
 
 def _kinds():
     from drivers.canopen_valves import ValveIO          # lazy: each I/O process loads its own stack only
-    from drivers.modbus_io import AnalogIO
-    from drivers.serial_dta import TransducerIO
+    from drivers.modbus_io import AnalogIO              # lazy: as above
+    from drivers.serial_dta import TransducerIO         # lazy: as above
     return {"valves": ValveIO, "analog": AnalogIO, "transducer": TransducerIO}
 
 

@@ -109,7 +109,8 @@ def test_every_conversion_once_in_order(port):
         assert len(m.accel_older) == max(0, m.new_samples - 1)
         time.sleep(0.01)
     steps = port.rig.steps - steps0
-    assert abs(seen - steps) <= 3, (seen, steps)              # (the reads and the plant are not in step)
+    # at either end the module's fetch has a few conversions in flight (its block period): none lost, none twice
+    assert abs(seen - steps) <= 10, (seen, steps)
 
 
 # ---- fault knobs through the whole port -------------------------------------------------------------------------
