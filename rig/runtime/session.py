@@ -29,7 +29,7 @@ from rig.runtime.clock import MonotonicClock
 from rig.config import Config, layout_mounts, mount_names
 from rig.errors import ConfigError, RigError
 from rig.runtime.gate import ISOLATION_MODES
-from rig.runtime.kernel import period_entry
+from rig.runtime.kernel import io_entry
 from rig.runtime.lock import RigLock
 from rig.runtime.loop import Loop
 from rig.runtime.recorder import WRITER_PRIORITY, Recorder
@@ -113,7 +113,7 @@ class Session:
             ffs = self._feedforward(ctrls)
             # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
             # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
-            period_entry(len(ctrls), bool(ffs))
+            io_entry()
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             kw = dict(self._loop_kw)

@@ -38,7 +38,7 @@ NAMES = {0: "base", 1: "models and maps", 2: "controllers", 3: "runtime and port
 SIDEWAYS = [("rig", "drivers"), ("rig", "sim_backend.backend"), ("rig", "sim_backend.emulators"),
             ("drivers", "sim_backend"), ("sim_backend", "drivers.port"), ("sim_backend", "drivers.modbus_io"),
             ("sim_backend", "drivers.canopen_valves"), ("sim_backend", "drivers.serial_dta"),
-            ("sim_backend", "drivers.rt")]
+            ("sim_backend", "drivers.process"), ("sim_backend", "drivers.conversion")]
 LOCAL_IMPORTS_ALLOWED = ("rig.cli", "rig.backends", "rig.commands")
 # modules another branch is reworking now (controller design): their local imports are left to it
 LOCAL_IMPORTS_LATER = ("controllers.tune", "controllers.analysis")
