@@ -172,7 +172,7 @@ def _run_plant(args, rec, plant, t0: float) -> int:
 
 
 def run(args) -> int:
-    from rig.identify import identify
+    from rig.identify import identify, refuse_feedback_only
     from rig.plant.file import load_subject
 
     if args.starts < 1:
@@ -185,12 +185,7 @@ def run(args) -> int:
     if plant.family != "eha":
         return _run_plant(args, rec, plant, t0)
     p0 = plant.actuator
-    if rec.closed_loop and rec.reference_m is None:
-        # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
-        # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.
-        # A track run has its reference as external excitation: identified, with CLOSED_LOOP_NOTE below
-        raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
-                       "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
+    refuse_feedback_only(rec)
 
     def progress(stage: str, frac: float) -> None:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)

@@ -161,13 +161,19 @@ class Subject:
     against: str
 
 
+def plant_for(plant_path=None, config_path=None) -> Plant:
+    """The plant a recording is held against: the plant file's, else the eha actuator of the configuration's
+    [actuator] (default Table 1)."""
+    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
+    return load_plant(plant_path, p0) if plant_path is not None else eha_plant(
+        p0, str(Path(config_path)) if config_path else "Table 1")
+
+
 def load_subject(recording, plant_path=None, config_path=None) -> Subject:
     """Read the recording (through the plant file's signal map when it has one) and the plant, and check them
     together: the command's unit is the plant's input, the values plausible. One line for any problem
     (ConfigError, RecordingError)."""
-    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
-    plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(
-        p0, str(Path(config_path)) if config_path else "Table 1")
+    plant = plant_for(plant_path, config_path)
     rec = load_recording_for(recording, plant_path)
     if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
