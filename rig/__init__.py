@@ -9,6 +9,6 @@ __all__ = list(_API)
 
 def __getattr__(name: str):
     if name in _API:
-        from rig import api
+        from rig import api        # lazy: `import rig` loads nothing heavy until an API function is used
         return getattr(api, name)
     raise AttributeError(f"module 'rig' has no attribute {name!r}")

@@ -13,6 +13,9 @@ import time
 import numpy as np
 import scipy.signal
 
+from controllers.analysis import worst_model_error
+from controllers.feedforward import make_feedforward_filters
+from controllers.isolation import make_isolation_controllers
 from controllers.vibration_criteria import vc_report
 from rig.config import load_config
 from rig.errors import RigError
@@ -45,9 +48,6 @@ def demo_config(config=None, *, rms_um: float | None = None, model_error_pct: fl
         pe = dataclasses.asdict(cfg.plant_error)
         return cfg, {"model_error_pct": 0.0, "factors": pe,
                      "chosen": "as configured ([plant_error])" if any(x != 1 for x in pe.values()) else "as modelled"}
-    from controllers.analysis import worst_model_error
-    from controllers.feedforward import make_feedforward_filters
-    from controllers.isolation import make_isolation_controllers
     dt = 1.0 / cfg.loop.rate_hz
     t0 = time.perf_counter()
     fac, db = worst_model_error(cfg, dt, make_isolation_controllers(cfg, dt), make_feedforward_filters(cfg, dt),
