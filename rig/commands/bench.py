@@ -59,7 +59,7 @@ import time
 import numpy as np
 
 from rig import cliargs
-from rig.commands import bench_stalls
+from rig.commands import bench_cli, bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
@@ -108,6 +108,8 @@ def add_arguments(p) -> None:
                                        "echoes side by side")
     _config_arg(st)
     bench_stalls.add_arguments(st)
+    cp = sub.add_parser("cli", help="the command line's --help time against a bare interpreter start")
+    bench_cli.add_arguments(cp)
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
     rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
@@ -142,7 +144,9 @@ def run(args) -> int:
         return bench_recorder(args)
     if what == "stalls":
         return bench_stalls.run(args)
-    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls or prototype (see rig bench --help)")
+    if what == "cli":
+        return bench_cli.run(args)
+    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, cli or prototype (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
