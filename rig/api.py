@@ -39,7 +39,7 @@ def load_recording(path, *, plant=None, config=None) -> Recording:
 
 def record_chirp(path, *, seconds: float = 100.0, amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
                  config=None, seed: int | None = None) -> Recording:
-    """A chirp on the simulated actuator on its stand in simulated time, as `rig chirp --out PATH` (the same
+    """A chirp on the simulated actuator on its stand in simulated time, as `rig chirp --record PATH` (the same
     defaults: 0.1-100 Hz, 2 V, 100 s); the recording written to path and returned. Nothing is kept if the run
     fails."""
     from rig.chirp import run_chirp
