@@ -160,9 +160,9 @@ def _done_before(folder: Path, key: dict) -> dict | None:
 
 def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, scheduler: str | None = None,
               client=None, overwrite: bool = False,
-              on_row: Callable[[dict, int, int], None] | None = None) -> Outcome:
-    """Do job to every recording of paths into out_root/<name>/; on_row(row, finished, total) hears each one
-    finished (or skipped, done before). The summary (rig.batch.summary) is rewritten after each."""
+              on_row: Callable[[dict, int, int, bool], None] | None = None) -> Outcome:
+    """Do job to every recording of paths into out_root/<name>/; on_row(row, finished, total, resumed) hears
+    each one finished (resumed: skipped, done before). The summary (rig.batch.summary) is rewritten after each."""
     out_root = Path(out_root)
     _open_folder(out_root, job, overwrite)
     names = inputs.output_names(paths)
@@ -183,7 +183,7 @@ def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, 
         if r is not None:
             finished += 1
             if on_row:
-                on_row(r, finished, len(paths))
+                on_row(r, finished, len(paths), True)
 
     def record(i: int, row: dict) -> None:
         nonlocal finished
@@ -193,7 +193,7 @@ def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, 
         res.failed += row["status"] != "ok"
         summary.write(out_root, job.command, [r for r in rows if r is not None])
         if on_row:
-            on_row(row, finished, len(paths))
+            on_row(row, finished, len(paths), False)
 
     own = pool.connect(scheduler) if scheduler is not None and client is None else None
     client = client or own
