@@ -11,7 +11,7 @@ from pathlib import Path
 
 from rig import cliargs
 from rig.batch import inputs, pool, trends
-from rig.batch.run import MANIFEST, Job, Outcome, run_batch
+from rig.batch.run import MANIFEST, Job, Outcome, open_folder, run_batch
 from rig.errors import RigError
 
 
@@ -82,6 +82,7 @@ def run(job: Job, args) -> int:
     else:
         workers = args.workers or pool.cores()
         where = f"on {min(workers, len(paths))} process(es)"
+    open_folder(out, job, args.overwrite)           # a folder of another batch: refused before anything runs
     print(f"rig {job.command}: {len(paths)} recording(s) -> {out} {where}", file=sys.stderr, flush=True)
     progress = Progress(job.command, len(paths))
     res: Outcome = run_batch(job, paths, out, workers=workers, scheduler=args.scheduler,

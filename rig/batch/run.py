@@ -125,7 +125,7 @@ def _failed_row(name: str, path: str, error: str, run_id: str) -> dict:
             "worker_peak_rss_mb": 0.0, "run": run_id}
 
 
-def _open_folder(out_root: Path, job: Job, overwrite: bool) -> None:
+def open_folder(out_root: Path, job: Job, overwrite: bool) -> None:
     """The batch's folder: new, or one of the same command and options (resumed); else one line."""
     try:
         out_root.mkdir(parents=True, exist_ok=True)
@@ -164,7 +164,7 @@ def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, 
     """Do job to every recording of paths into out_root/<name>/; on_row(row, finished, total, resumed) hears
     each one finished (resumed: skipped, done before). The summary (rig.batch.summary) is rewritten after each."""
     out_root = Path(out_root)
-    _open_folder(out_root, job, overwrite)
+    open_folder(out_root, job, overwrite)
     names = inputs.output_names(paths)
     run_id = _utc_now()
     t0 = time.perf_counter()
