@@ -63,17 +63,19 @@ def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
             except Exception as e:              # noqa: BLE001 -- handed to the caller, who decides
                 yield i, e
         return
+    # spawned processes start at a submit (and again after one died), not with the pool: the setting holds
+    # while the pool lives
     with _one_thread_each():
         pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=get_context("spawn"))
-    try:
-        futs = {pool.submit(fn, *args): i for i, (fn, args) in enumerate(tasks)}
-        for fut in as_completed(futs):
-            try:
-                yield futs[fut], fut.result()
-            except Exception as e:              # noqa: BLE001 -- a task's exception, or its process died
-                yield futs[fut], e
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        try:
+            futs = {pool.submit(fn, *args): i for i, (fn, args) in enumerate(tasks)}
+            for fut in as_completed(futs):
+                try:
+                    yield futs[fut], fut.result()
+                except Exception as e:              # noqa: BLE001 -- a task's exception, or its process died
+                    yield futs[fut], e
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def check_address(address: str) -> str:
@@ -144,7 +146,7 @@ def _dask(tasks: list[Task], client) -> Iterator[tuple[int, object]]:
     futs = [client.submit(fn, *args, pure=False, priority=len(tasks) - i) for i, (fn, args) in enumerate(tasks)]
     index = {f.key: i for i, f in enumerate(futs)}
     try:
-        for fut in dask_completed(futs):
+        for fut in dask_completed(futs, loop=client.loop):
             try:
                 out = fut.result()
             except Exception as e:              # noqa: BLE001 -- a task's exception, or its worker died

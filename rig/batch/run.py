@@ -257,7 +257,9 @@ def _after_break(broken, out_root: Path, names, paths, run_id: str, record) -> l
 def _check_shared(client, out_root: Path, paths: list[Path]) -> None:
     """On a cluster the workers read the recordings and write the outputs themselves: one line when a worker
     does not see the folders at the same path."""
-    for folder, what in ((out_root, "the output folder"), (paths[0].parent, "the recordings' folder")):
+    folders = [(out_root, "the output folder")]
+    folders += [(f, "the recordings' folder") for f in sorted({p.resolve().parent for p in paths})]
+    for folder, what in folders:
         blind = pool.workers_see(client, folder)
         if blind:
             raise RigError(f"--scheduler: the Dask worker(s) {', '.join(blind)} do not see {what} "
