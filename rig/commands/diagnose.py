@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="folder for diagnosis.json, fit.csv, report.md and the PNG plots (a batch: one folder "
                             "per recording in it, and the summary; run again into it, a batch resumes)")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
-    p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
+    p.add_argument("--json", action="store_true",
+                   help="print only diagnosis.json on stdout (a batch: its summary rows and trends as JSON)")
     p.add_argument("--plant", metavar="FILE", type=Path, default=None,
                    help="plant file (TOML, docs/PLANT.md): the model family and its parameters (default: the eha "
                         "actuator of --config or Table 1), and [signals] naming REC's own columns or variables "
