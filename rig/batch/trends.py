@@ -97,7 +97,7 @@ def line(judged: dict, n: int) -> str:
     return f"trends over {n} recordings: changed beyond the confidence interval: " + "; ".join(parts)
 
 
-def _plot(path: Path, t: np.ndarray, ser: dict, judged: dict, dates: list[str]) -> Path:
+def _plot(path: Path, t: np.ndarray, ser: dict, judged: dict, dates: list[str], title: str) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -123,6 +123,7 @@ def _plot(path: Path, t: np.ndarray, ser: dict, judged: dict, dates: list[str]) 
         ax.axis("off")
     for ax in axes[-1]:
         ax.set_xlabel(f"days since {dates[0][:10]}", fontsize=7)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -137,7 +138,8 @@ def write(out_root: Path, rows: list[dict]) -> dict:
         return {}
     out_root = Path(out_root)
     dates = sorted(r["date_utc"] for r in rows if r["status"] == "ok" and r.get("date_utc"))
-    paths = {"plot": _plot(out_root / "trends.png", t, ser, judged, dates), "csv": out_root / "trends.csv"}
+    text = line(judged, len(t))
+    paths = {"plot": _plot(out_root / "trends.png", t, ser, judged, dates, text), "csv": out_root / "trends.csv"}
     with paths["csv"].open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["quantity", "unit", "first_on_line", "last_on_line", "change", "change_std_error", "t",
@@ -146,4 +148,4 @@ def write(out_root: Path, rows: list[dict]) -> dict:
             w.writerow([q, ser[q]["unit"], repr(j["first"]), repr(j["last"]), repr(j["change"]), repr(j["sigma"]),
                         f"{j['t']:.3g}", int(j["changed"])])
     changed = [q for q, j in sorted(judged.items(), key=lambda qj: -qj[1]["t"]) if j["changed"]]
-    return {**paths, "line": line(judged, len(t)), "changed": changed}
+    return {**paths, "line": text, "changed": changed}

@@ -1,8 +1,8 @@
 """Batches of recordings as a user runs them (issue 30): `rig diagnose FOLDER --out DIR` killed half-way and run
 again (it resumes), its summary against one-by-one `rig diagnose`, the trend that names a delay growing over the
-recordings' dates, a recording that fails as one line; `rig identify` on a real Dask LocalCluster (127.0.0.1, two
-worker processes) against the local pool: the same summary. The recordings are made by the simulated plant
-(short chirps, so the batch takes a minute)."""
+recordings' dates, a recording that fails as one line; `rig identify` and `rig prove` on a real Dask LocalCluster
+(127.0.0.1, two worker processes) against the local pool: the same summary, the same proof. The recordings are
+made by the simulated plant (short chirps, so that the batch takes a minute)."""
 from __future__ import annotations
 
 import json
@@ -114,7 +114,7 @@ def test_a_batch_with_other_options_is_refused_in_one_line(recordings, tmp_path)
     assert res.returncode == 2 and "expected tcp://HOST:PORT" in res.stderr
 
 
-def test_identify_batch_on_a_dask_local_cluster_equals_the_local_pool(recordings, tmp_path):
+def test_identify_and_prove_on_a_dask_local_cluster_equal_the_local_pool(recordings, tmp_path):
     from distributed import LocalCluster
 
     picked = tmp_path / "runs"
@@ -128,6 +128,14 @@ def test_identify_batch_on_a_dask_local_cluster_equals_the_local_pool(recordings
         address = cluster.scheduler_address
         assert address.startswith("tcp://127.0.0.1:")
         dask = _rig("identify", picked, "--out", tmp_path / "dask", "--scheduler", address, "--json")
+        proof = _rig("prove", "--n", "2", "--duration", "12", "--seed", "3", "--scheduler", address, "--json")
+    assert proof.returncode == 0, proof.stderr[-2000:]
+    assert f"on the Dask cluster at {address}" in proof.stderr
+    local_proof = _rig("prove", "--n", "2", "--duration", "12", "--seed", "3", "--json")
+    assert local_proof.returncode == 0, local_proof.stderr[-2000:]
+    graded = [[(r["case"], r["named"], r["named_parameters"], r["verdict"], r["nrmse"])
+               for r in json.loads(out)["rows"]] for out in (proof.stdout, local_proof.stdout)]
+    assert graded[0] == graded[1] and len(graded[0]) == 2
     assert dask.returncode == 0, dask.stderr[-2000:]
     assert f"on the Dask cluster at {address}" in dask.stderr
     a, b = json.loads(local.stdout)["rows"], json.loads(dask.stdout)["rows"]
