@@ -25,7 +25,7 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
     sensor, clip_notes = sensor_terms(L)
     unit = sensor.unit
     mm = L.mismatch
-    stand = uncertainty.standings(pb, augmented, T.refit, sel.chosen)
+    stand = uncertainty.standings(pb, augmented, T.refit, sel.chosen, sel.round1)
     effects = tuple(sorted((NamedEffect(name, public_params(pb, name, augmented), float(sel.stats[name]["lr_holdout"]),
                                         sel.stats[name],
                                         R.lines[0]["evidence"] if catalogue.get(name).projected and R.lines else "",

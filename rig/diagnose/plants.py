@@ -165,10 +165,12 @@ class AxisModel:
         if fric > 0:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        cmd = self.shaped_command(cmd, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
-        return run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
-                            smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
-                            fine=fine, **kw)   # a new effect's term: run_segments' own keyword
+        rectify, bias = kw.pop("rectify", False), kw.pop("bias", 0.0)
+        cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
+        y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
+                         smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
+                         fine=fine, **kw)   # a new effect's term: run_segments' own keyword
+        return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""

@@ -5,10 +5,13 @@
              of the blocks it drew). Blocks, not samples: a real recording's residual is correlated within a
              block, and resampling samples would hide it; the linear parameters and the other effects are free in
              every step, so what they trade with the effect widens its interval.
-  share      the part of the refit's held-out residual variance the effect removes, the others kept (the model
-             with the effect taken out, every other parameter as fitted).
-  evidence   the held-out log-likelihood ratio of taking it out (the independent samples of the residual
-             counted): the effects are ranked by it.
+  share      the part of the refit's held-out residual variance the effect removes, the others kept: the held-out
+             residual of the model without it, fitted again (the others alone, as the search's first round fitted
+             them; one effect alone: the refit), less the augmented model's, over the refit's. The linear
+             parameters are fitted again because, fitted beside the effect, they lean on it: taken out with them
+             frozen, a delay would "remove" 400 % of the refit's residual.
+  evidence   the held-out log-likelihood ratio of taking it out (the same two models, the independent samples
+             of the residual counted): the effects are ranked by it.
 """
 from __future__ import annotations
 
@@ -83,14 +86,26 @@ def intervals(pb: Problem, f: ModelFit, effects, seed: int = 0) -> dict[str, dic
     return out
 
 
-def standings(pb: Problem, f: ModelFit, refit: ModelFit, effects, seed: int = 0) -> dict[str, Standing]:
-    """Each named effect's interval, share and evidence (see the module's docstring)."""
+def _without(pb: Problem, f: ModelFit, refit: ModelFit, name: str, round1: dict) -> ModelFit:
+    """The model without the effect name, its linear parameters fitted again (see the module's docstring)."""
+    others = [k for k in f.fx if k != name]
+    if not others:
+        return refit
+    if len(others) == 1 and others[0] in round1:
+        return round1[others[0]]
+    without = {k: v for k, v in f.fx.items() if k != name}
+    return pb.fit(f.lin, without, max_iter=6, rtol=1e-4)
+
+
+def standings(pb: Problem, f: ModelFit, refit: ModelFit, effects, round1: dict | None = None,
+              seed: int = 0) -> dict[str, Standing]:
+    """Each named effect's interval, share and evidence (see the module's docstring); round1: each effect alone,
+    fitted (the search's first round)."""
     iv = intervals(pb, f, effects, seed) if effects else {}
     nh = n_eff(int(pb.mhold.sum()), f)
     out = {}
     for name in effects:
-        without = {k: v for k, v in f.fx.items() if k != name}
-        wo = pb.evaluate(f.lin, without, pb.n_params(without))
+        wo = _without(pb, f, refit, name, round1 or {})
         share = (wo.rss_hold - f.rss_hold) / max(refit.rss_hold, 1e-300)
         lr = nh * math.log(max(wo.rss_hold, 1e-300) / max(f.rss_hold, 1e-300))
         keys = pb.spec_keys(name) if not catalogue.get(name).projected else ("frequency_hz",)
