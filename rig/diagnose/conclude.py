@@ -57,6 +57,15 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
                      timing_s=clock() - t_start)
 
 
+def _moves_under(pred: np.ndarray, at: np.ndarray) -> float:
+    """How far the model's response moves, at the median, within the runs where the reading sits exactly flat at
+    its extreme (a slow peak's dwell on a quantised level moves it by about one step; a clip, by its whole
+    excursion beyond the range)."""
+    d = np.diff(np.r_[0, at.astype(int), 0])
+    runs = [pred[a:b] for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
+    return float(np.median([np.ptp(r) for r in runs])) if runs else 0.0
+
+
 def rest_of(mm: dict, fit) -> tuple[str, ...]:
     """Where the residual the augmented model leaves lies: the bands still off, the worst time windows, the regimes
     where it is largest (each a phrase)."""
@@ -87,6 +96,9 @@ def public_params(pb: Problem, name: str, f: ModelFit) -> dict:
         tail = line[-max(10, int(pb.fs)):]                      # steady state: the last second
         prm.update(force_n=math.hypot(a, b), phase_rad=math.atan2(b, a),
                    amplitude_m=float(math.sqrt(2.0) * np.sqrt(np.mean(tail ** 2))))
+    derived = catalogue.get(name).derived
+    if derived is not None:
+        prm.update(derived(prm, pb.fs))
     return {k: float(v) for k, v in prm.items()}
 
 
@@ -104,12 +116,13 @@ def _residual_spectra(pb: Problem, models: dict) -> dict:
 
 
 def _clips(L: Located) -> tuple[list[sensor_mod.Clip], list[str]]:
-    """Flat tops of the position that the refit goes beyond (a converter's range), and of the accelerometer; the
-    notes that say so."""
+    """Flat tops of the measured output that the refit goes beyond, or moves under (a converter's or a sensor's
+    range: an output clip), and of the accelerometer; the notes that say so."""
     T = L.settled
     R = T.screened.fitted
     P = R.prep
     pb, pos, fs = T.pb, P.pos, P.fs
+    unit = getattr(P.rec, "output_unit", "m")
     clip_cand, clip_lo, clip_hi = P.clip
     clips, notes = [], []
     if clip_cand.any():
@@ -119,13 +132,16 @@ def _clips(L: Located) -> tuple[list[sensor_mod.Clip], list[str]]:
                 continue
             at = clip_cand & ((pos >= lvl - 1e-9 * abs(lvl)) if side > 0 else (pos <= lvl + 1e-9 * abs(lvl)))
             beyond = float(np.mean((pred[at] - lvl) * side)) if at.any() else 0.0
-            if beyond > max(3 * pb.noise, R.q):
+            if beyond > max(3 * pb.noise, R.q) or _moves_under(pred, at) > max(3 * pb.noise, 2 * R.q):
                 clips.append(sensor_mod.Clip("position_m", lvl if side < 0 else None, lvl if side > 0 else None,
                                              int(at.sum()), float(np.argmax(at) / fs)))
         if clips:
-            notes.append("position clipped at " + ", ".join(
-                f"{(c.high if c.high is not None else c.low):.4g} m ({c.samples} samples, first at {c.first_s:.3f} s)"
-                for c in clips) + ": the clipped samples are left out of the fit")
+            what = "position" if unit in ("m", "rad") else "output"
+            notes.append(f"{what} clipped at " + ", ".join(
+                f"{units.amount(c.high if c.high is not None else c.low, unit, '.4g')} ({c.samples} samples, first "
+                f"at {c.first_s:.4g} s)" for c in clips) + ": an output clip (the sensor's or its converter's "
+                "range: the model's response goes on beyond or under it while the reading stays exactly flat); the "
+                "clipped samples are left out of the fit")
     if R.acc_clip.any():
         clips.append(sensor_mod.Clip("accel_mps2", float(np.min(P.acc)), float(np.max(P.acc)),
                                      int(R.acc_clip.sum()), float(np.argmax(R.acc_clip) / fs)))

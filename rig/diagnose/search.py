@@ -308,6 +308,8 @@ def _round(R: _Search, screen: list[str], harmonic_now: bool, at_noise: bool, ex
             st = {**st, "passed": False, "inactive": True}
         if st["passed"] and getattr(pb.plant, "axis_search", False) and _at_edge(pb, f, name):
             st = {**st, "passed": False, "at_edge": True}
+        if st["passed"] and effect.check is not None and not effect.check(pb, f, name):
+            st = {**st, "passed": False, "not_in_the_data": True}
         R.tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
         results.append((name, f, st))
     return results

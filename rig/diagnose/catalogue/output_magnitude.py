@@ -7,6 +7,28 @@ import numpy as np
 from rig.diagnose.catalogue.effect import Effect, Evidence, Param
 from rig.diagnose.starts import Grid
 
+MIN_SIDE = 0.2            # the fitted output runs each way at least a fifth of the time
+MIN_CROSSINGS = 4
+
+
+def _runs_both_ways(pb, f, name: str) -> bool:
+    """A sensor blind to the sign shows only on a motion that runs both ways: the fitted model's output, before the
+    magnitude, must change sign at least MIN_CROSSINGS times and spend at least MIN_SIDE of the used samples on
+    each side. A V-shaped bend fitted to a plant nonlinear some other way (a tank's square-root outflow: an output
+    on one side 95 % of the time) is no sensor's."""
+    bias = f.fx[name][pb.spec_keys(name)[0]]
+    others = {k: v for k, v in catalogue_simulated(f.fx).items() if k != name}
+    y = pb.plant.simulate(f.lin, pb.cmd + bias, pb.fs, others)[pb.use]
+    crossings = int(np.sum(np.sign(y[1:]) != np.sign(y[:-1])))
+    up = float(np.mean(y > 0))
+    return crossings >= MIN_CROSSINGS and min(up, 1.0 - up) >= MIN_SIDE
+
+
+def catalogue_simulated(fx: dict) -> dict:
+    from rig.diagnose.catalogue import simulated       # the registry imports this module
+    return simulated(fx)
+
+
 EFFECT = Effect(
     name="output_magnitude", short="|y|", order=95, families=("mechanical_axis", "transfer_function"),
     params=(Param("bias_{u}", "{u}"),),
@@ -14,7 +36,7 @@ EFFECT = Effect(
                                  "bias: the command's offset before the drive",
     bounds=lambda s: [(-0.5 * s.peak, 0.5 * s.peak)],
     start=Grid(lambda s, slow, coarse: s.peak * np.array([-0.1, 0.0, 0.1])),
-    nonlinear=True,
+    nonlinear=True, check=_runs_both_ways,
     evidence=Evidence("amplitude", "an output that never changes sign while the command does, and doubles the "
                                    "command's frequencies"),
     terms={"axis_model": lambda p, u: {"rectify": True, "bias": p[f"bias_{u}"]}},

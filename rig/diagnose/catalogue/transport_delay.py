@@ -28,6 +28,14 @@ def _grid(s, slow: bool, coarse: bool):
     return g[g <= _longest(s)]
 
 
+def _in_samples(prm: dict, fs: float) -> dict:
+    """The delay in samples, and the dead time as a sampled model counts it (an ARX model's nk): the samples from
+    a command to the first output sample that answers it. The recording holds each command until the next sample
+    (zero-order hold) and samples the output before it acts, so a plant without delay answers one sample later."""
+    d = prm["delay_s"] * fs
+    return {"delay_samples": d, "dead_time_samples": d + 1.0}
+
+
 EFFECT = Effect(
     name="transport_delay", short="delay", order=10,
     families=("eha", "mechanical_axis", "transfer_function"),
@@ -37,6 +45,7 @@ EFFECT = Effect(
     bounds=lambda s: [(0.0, _longest(s))],
     start=Grid(_grid),
     evidence=Evidence("frf", "phase lag growing with frequency, magnitude unchanged", _finding),
+    derived=_in_samples,
     terms={"eha_model": lambda p, u: {"delay_s": p["delay_s"]},
            "axis_model": lambda p, u: {"delay_s": p["delay_s"]},
            "stand": lambda p, u: {"delay_s": p["delay_s"]},
