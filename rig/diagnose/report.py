@@ -123,6 +123,14 @@ def _summary_effects(effects) -> str:
                         else "") + ")" for e in effects)
 
 
+def _clip_what(c, unit: str) -> str:
+    """A clip in words: the measured output's flat top at its sensor's range is an output clip, at its level."""
+    if c.channel != "position_m":
+        return f"{c.channel} clipped"
+    lvl = c.high if c.high is not None else c.low
+    return f"output clip at {units.amount(lvl, unit, '.4g')}"
+
+
 def _sensor_summary(s) -> str:
     u = s.unit
     parts = [f"offset {units.amount(s.offset_m, u)}", f"drift {units.per_second(s.drift_m_per_s, u)}"] \
@@ -135,7 +143,7 @@ def _sensor_summary(s) -> str:
     if s.quantisation_step_m:
         parts.append(f"quantisation step {units.amount(s.quantisation_step_m, u)}")
     for c in s.clipped:
-        parts.append(f"{c.channel} clipped ({c.samples} samples)")
+        parts.append(f"{_clip_what(c, u)} ({c.samples} samples)")
     return ", ".join(parts)
 
 
@@ -354,9 +362,7 @@ def sensor_lines(sensor) -> list[str]:
     if sensor.accel is not None and sensor.accel.note:
         out.append(sensor.accel.note)
     for c in sensor.clipped:
-        lvl = c.high if c.high is not None else c.low
-        out.append(f"{c.channel} clipped at {lvl:.4g} ({c.samples} samples from {c.first_s:.3f} s): left out of "
-                   "the fit")
+        out.append(f"{_clip_what(c, u)} ({c.samples} samples from {c.first_s:.4g} s): left out of the fit")
     if sensor.start_transient_s:
         out.append(f"mid-run start: the first {sensor.start_transient_s:g} s are left out (start transient)")
     return out

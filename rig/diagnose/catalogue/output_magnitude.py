@@ -4,6 +4,8 @@ offset before the drive, which moves the output's zero: under |.| an offset no l
 own offset (a linear model's output offset does), so the magnitude's shape depends on it."""
 import numpy as np
 
+from rig.diagnose import catalogue        # the registry (used at call time: it imports this module)
+
 from rig.diagnose.catalogue.effect import Effect, Evidence, Param
 from rig.diagnose.starts import Grid
 
@@ -17,16 +19,11 @@ def _runs_both_ways(pb, f, name: str) -> bool:
     each side. A V-shaped bend fitted to a plant nonlinear some other way (a tank's square-root outflow: an output
     on one side 95 % of the time) is no sensor's."""
     bias = f.fx[name][pb.spec_keys(name)[0]]
-    others = {k: v for k, v in catalogue_simulated(f.fx).items() if k != name}
+    others = {k: v for k, v in catalogue.simulated(f.fx).items() if k != name}
     y = pb.plant.simulate(f.lin, pb.cmd + bias, pb.fs, others)[pb.use]
     crossings = int(np.sum(np.sign(y[1:]) != np.sign(y[:-1])))
     up = float(np.mean(y > 0))
     return crossings >= MIN_CROSSINGS and min(up, 1.0 - up) >= MIN_SIDE
-
-
-def catalogue_simulated(fx: dict) -> dict:
-    from rig.diagnose.catalogue import simulated       # the registry imports this module
-    return simulated(fx)
 
 
 EFFECT = Effect(
