@@ -247,7 +247,8 @@ def pairs(pb: Problem, sel: Selection, say: Callable[[str], None]) -> tuple[Sele
     for _, a, b, f in sorted(fits, key=lambda x: x[0]):
         stats = {}
         for x, other in ((a, b), (b, a)):
-            if not _active(pb, f, x):
+            check = catalogue.get(x).check
+            if not _active(pb, f, x) or (check is not None and not check(pb, f, x)):
                 break
             slow = catalogue.get(other).slow
             alone = pb.fit(f.lin, {other: dict(f.fx[other])}, max_iter=6 if slow else 10,
