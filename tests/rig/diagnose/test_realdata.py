@@ -14,7 +14,7 @@ import pytest
 from tests.paths import REPO, SHARED
 
 REAL = SHARED / "realdata"
-pytestmark = [pytest.mark.slow,
+pytestmark = [pytest.mark.slow, pytest.mark.shared,
               pytest.mark.skipif(not REAL.is_dir(), reason="../shared/realdata (real recordings) is absent")]
 
 CASES = {"dryer": "dryer_delay/dryer.csv", "coupled_drives": "coupled_electric_drives/ced_prbs.csv",
