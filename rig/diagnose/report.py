@@ -119,7 +119,7 @@ def _with_interval(e, k: str, v: float) -> str:
 
 def _summary_effects(effects) -> str:
     return ", ".join(f"{e.name} ({', '.join(_with_interval(e, k, v) for k, v in e.parameters.items())}"
-                     + (f"; removes {100 * e.share:.0f} % of the refit's held-out residual" if e.share is not None
+                     + (f"; removes {100 * e.share:.2g} % of the refit's held-out residual" if e.share is not None
                         else "") + ")" for e in effects)
 
 
@@ -319,7 +319,7 @@ def summary_text(diag: Diagnosis, rec=None) -> str:
     for e in diag.effects:
         lines.append(f"  {e.name}: {format_parameters(e.parameters, e.interval)} [score {e.score:.4g}]")
         if e.share is not None:
-            lines.append(f"    removes {100 * e.share:.1f} % of the refit's held-out residual variance (the others "
+            lines.append(f"    removes {100 * e.share:.3g} % of the refit's held-out residual variance (the others "
                          f"kept); held-out log-likelihood ratio of taking it out {e.evidence:.0f}")
         lines.append(f"    evidence: {effect_evidence(e, mm)}")
     for g in diag.groups:
@@ -411,7 +411,7 @@ def _report_effects(diag: Diagnosis) -> list[str]:
                 "| effect | parameters (95 % interval) | share of the refit's held-out residual | score | evidence |",
                 "|---|---|---|---|---|"]
         for e in diag.effects:
-            share = f"{100 * e.share:.1f} %" if e.share is not None else "-"
+            share = f"{100 * e.share:.3g} %" if e.share is not None else "-"
             out.append(f"| {e.name} | {format_parameters(e.parameters, e.interval)} | {share} | "
                        f"{_figure(e.score, '.4g')} | {effect_evidence(e, diag.mismatch).replace('|', '/')} |")
     else:
