@@ -43,8 +43,11 @@ A reference the actuator cannot follow (outside the stroke limit or the static r
 leakage leaves at 90 % of the valve clamp, faster than the rate limit, more volts than the clamp allows) is
 refused with one line, never clamped. After the run: the tracking figures per segment (with --record), and
 --plot PNG draws reference, position and error.
-Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 130 after
-Ctrl-C during the start-up.
+Do no harm: while isolation is on the loop compares the table's vibration with isolation off (or the floor's);
+isolation that makes it worse by more than [supervisor] margin_db is said in one line, recorded as an event and
+switched off, bumpless, for the rest of the run (rig/runtime/supervisor.py).
+Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 3 when the
+do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up.
 """
 from __future__ import annotations
 
@@ -65,6 +68,7 @@ from rig.console.runner import run_with_console
 from rig.errors import RecordingError, RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.session import Session
+from rig.runtime.supervisor import EXIT_HARM
 
 DEVICEMAPS = Path(drivers.__file__).resolve().parent / "devicemaps"
 LAYOUTS = {"prototype": {"hil": DEVICEMAPS / "prototype_hil.toml", None: DEVICEMAPS / "prototype.toml"}}
@@ -321,6 +325,9 @@ class _RunPlan:
             _vc_summary(args.record)
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
+        if loop.harm:                         # logged when it happened; said again beside the stop line
+            log.error("%s", loop.harm)
+            return EXIT_HARM
         return 0
 
 

@@ -198,7 +198,8 @@ class Session:
     def final_attrs(self) -> dict:
         lp = self.loop
         return {"stop_reason": lp.stop_reason or "", "fault_reason": lp.lc.fault_reason or "",
-                "iterations": lp.iterations, "overruns": lp.overruns, "skipped_periods": lp.skipped}
+                "iterations": lp.iterations, "overruns": lp.overruns, "skipped_periods": lp.skipped,
+                "harm": lp.harm or ""}
 
     def _install_signals(self, stack) -> None:
         def on_stop(signum, frame):          # a safe stop while running, an interrupt during set-up
@@ -366,6 +367,7 @@ class Session:
         m = lp.last_meas
         return {"t_s": (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None else 0.0, "state": lp.state.name,
                 "isolation": lp.isolation, "isolation_mode": lp.isolation_mode, "fault_reason": lp.lc.fault_reason,
+                "harm": lp.harm,
                 "iterations": lp.iterations,
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,
