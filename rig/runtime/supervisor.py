@@ -70,8 +70,9 @@ class HarmSupervisor:
         self.over_s: float | None = None      # since when the comparison is over the margin
         self.look_s = LOOK_S
         self.harm: str | None = None
-        self.worst_db: float | None = None    # the last comparison: whole table, dB against the reference
+        self.worst_db: float | None = None    # the newest comparison: whole table, dB against the reference
         self.worst_mount_db: dict = {}
+        self.max_mount_db = -math.inf          # the worst mount's worst comparison of the run
         self.reference = "none"
         self.skipped = 0              # conversions lost to the ring (the watch held up longer than the ring)
         self.said_no_reference = False
@@ -157,6 +158,7 @@ class HarmSupervisor:
             return None
         worse = 10.0 * np.log10(np.maximum(ratio(on), 1e-300) / np.maximum(ref, 1e-300))   # dB (mean squares)
         self.worst_db = float(worse[n])
+        self.max_mount_db = max(self.max_mount_db, float(worse[:n].max()))
         self.worst_mount_db = {self.names[m]: round(float(worse[m]), 2) for m in range(n)}
         m = int(np.argmax(worse[:n]))
         if max(worse[n], worse[m]) <= self.cfg.margin_db:
@@ -189,6 +191,8 @@ class HarmSupervisor:
         """For the run's JSON and the recording's attributes."""
         return {"tripped": self.harm is not None, "harm": self.harm or "", "reference": self.reference,
                 "table_vs_reference_db": None if self.worst_db is None else round(self.worst_db, 2),
-                "per_mount_db": self.worst_mount_db, "margin_db": self.cfg.margin_db,
+                "per_mount_db": self.worst_mount_db,
+                "worst_mount_db_of_run": None if self.max_mount_db == -math.inf else round(self.max_mount_db, 2),
+                "quantity": self.cfg.quantity, "margin_db": self.cfg.margin_db,
                 "band_hz": [round(b, 3) for b in self.band_hz], "window_s": self.cfg.window_s,
                 "conversions_skipped": self.skipped}
