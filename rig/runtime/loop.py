@@ -258,12 +258,15 @@ class Loop:
                 (log.warning if s else log.info)(text)
                 self._event(text)
 
-    def isolating(self) -> bool:
-        """Isolation acting on the valves: ACTIVE with isolation on (operating modes: a mount isolating)."""
+    def isolating(self) -> bool | None:
+        """Isolation acting on the valves: ACTIVE with isolation on (operating modes: a mount isolating; None
+        while one tracks a reference: its motion is neither isolation nor a passive reference)."""
         if self.gate.lc.state is not _ACTIVE:
             return False
         modes = [c.current.mode for c in self.ctrls if hasattr(c, "switch")]
-        return "isolate" in modes if modes else bool(self.gate.isolation)
+        if not modes:
+            return bool(self.gate.isolation)
+        return True if "isolate" in modes else None if "track" in modes else False
 
     def _watch_harm(self) -> None:
         """The do-no-harm supervisor's look: isolation that made the table worse -> one line, an event, isolation

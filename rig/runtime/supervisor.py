@@ -103,8 +103,9 @@ class HarmSupervisor:
         return vals[:, :self.width] if self.nf >= self.n else vals[:, :self.n]
 
     # ---- one look ------------------------------------------------------------------------------------
-    def look(self, io, isolating: bool, t_s: float) -> str | None:
-        """Take the new conversions, mark them, compare. Returns the harm line the moment it trips."""
+    def look(self, io, isolating: bool | None, t_s: float) -> str | None:
+        """Take the new conversions, mark them (isolating None: neither, e.g. a stand tracking a reference),
+        compare. Returns the harm line the moment it trips."""
         x = self._take(io)
         if x.shape[0]:
             y, self.zi = signal.sosfilt(self.sos, x, axis=0, zi=self.zi)
@@ -117,7 +118,7 @@ class HarmSupervisor:
             if isolating:
                 self.looks[ISOLATING] = []               # a new isolated stretch: judged on its own
         settled = t_s - self.switched_s >= self.cfg.settle_s + self.look_s
-        kind = SETTLING if not settled else ISOLATING if isolating else PASSIVE
+        kind = SETTLING if not settled or isolating is None else ISOLATING if isolating else PASSIVE
         if kind != SETTLING:
             looks = self.looks[kind]
             looks.append((sq, x.shape[0]))
