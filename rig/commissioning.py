@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 from scipy import signal
+from scipy.optimize import linear_sum_assignment
 
 BAND_HZ = (3.0, 30.0)          # where x'' from the transducer and the accelerometers are both well above noise
 SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible table at a mount is not rigid on its
@@ -33,6 +34,18 @@ DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of
 def _band(x, fs):
     sos = signal.butter(2, BAND_HZ, btype="bandpass", fs=fs, output="sos")
     return signal.sosfiltfilt(sos, x, axis=0)
+
+
+def channel_map(R: np.ndarray) -> list[int]:
+    """Which channel answers which valve: each channel's responses over its own largest (a channel's scale,
+    wrong or not, cancels: a g range answers as clearly as a right one), the valves given channels one to one
+    by the best total (scipy's assignment). R[channel, valve]; returns the channel of each valve."""
+    rel = R / np.maximum(R.max(axis=1, keepdims=True), 1e-300)
+    rows, cols = linear_sum_assignment(-np.log(np.maximum(rel, 1e-12)))
+    out = [0] * R.shape[1]
+    for i, j in zip(rows, cols):
+        out[j] = int(i)
+    return out
 
 
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
@@ -63,8 +76,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         slots.append(sl)
         R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
         R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
-    stroke_of = [int(np.argmax(R_x[:, j])) for j in range(n)]     # transducer channel answering valve j
-    accel_of = [int(np.argmax(R_a[:, j])) for j in range(n)]      # accelerometer channel answering valve j
+    stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
     scale, gain = {}, {}
     for j, m in enumerate(names):
         sl, xs, ac = slots[j], stroke_of[j], accel_of[j]
@@ -83,13 +95,14 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
         h = pxy[low] / np.maximum(pxx[low], 1e-300)
         gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
-    med_a, med_x = np.median(np.diag(R_a[accel_of, :])), np.median(np.diag(R_x[stroke_of, :]))
+    med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
+    med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
     verdicts, findings = {}, []
     for j, m in enumerate(names):
         ac, xs = accel_of[j], stroke_of[j]
         # the accelerometer answering valve j
         v = "ok"
-        if R_a[ac, j] < DEAD_RMS_RATIO * med_a or not channels["accel"][names[ac]]["alive"]:
+        if R_a[ac, j] / max(abs(scale[m]), 1e-12) < DEAD_RMS_RATIO * med_a or not channels["accel"][names[ac]]["alive"]:
             v = "refused"
             findings.append(f"accelerometer of {m}: no answer to its valve (dead or unwired)")
         else:
@@ -143,8 +156,8 @@ def text(res: dict) -> str:
         ch = res["channels"]
         lines.append(f"{m}: accelerometer {a} (scale {res['accel_scale'][m]:+.3f} against x'', noise "
                      f"{ch['accel'][m]['noise_rms_mps2'] * 1e3:.2f} mm/s^2 rms, offset "
-                     f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (valve gain "
-                     f"{res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
+                     f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command at "
+                     f"{BAND_HZ[0]:g}-{2 * BAND_HZ[0]:g} Hz {res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
                      f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
     lines += [f"  {f}" for f in res["findings"]] or ["  every channel ok"]
     return "\n".join(lines)

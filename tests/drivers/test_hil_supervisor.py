@@ -17,7 +17,7 @@ from rig.runtime.supervisor import EXIT_HARM
 
 pytestmark = pytest.mark.hil
 
-SECONDS = 12.0                   # off, feedback, feedback + feedforward: 4 s each
+SECONDS = 10.5                   # off, feedback, feedback + feedforward: 3.5 s each
 
 
 def test_an_inverted_accelerometer_is_caught_and_isolation_switched_off(tmp_path):
