@@ -95,6 +95,23 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
         h = pxy[low] / np.maximum(pxx[low], 1e-300)
         gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
+    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
+    cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
+                                          "scale": 1.0 / abs(scale[m]) if scale[m] else 1.0,
+                                          "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
+                     for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: {"mount": m, "sign": 1.0 if gain[m] >= 0 else -1.0,
+                                            "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
+                      for j, m in enumerate(names)}}
+    return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
+            "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
+            "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
+            "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
+            "all_ok": all(v == "ok" for v in verdicts.values())}
+
+
+def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tuple[dict, list]:
+    """Per channel ok / corrected / refused, and the findings in words."""
     med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
     med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
     verdicts, findings = {}, []
@@ -134,18 +151,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             v = "corrected"
             findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
-    cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
-                                          "scale": 1.0 / abs(scale[m]) if scale[m] else 1.0,
-                                          "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
-                     for j, m in enumerate(names)},
-           "stroke": {names[stroke_of[j]]: {"mount": m, "sign": 1.0 if gain[m] >= 0 else -1.0,
-                                            "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
-                      for j, m in enumerate(names)}}
-    return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
-            "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
-            "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
-            "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
-            "all_ok": all(v == "ok" for v in verdicts.values())}
+    return verdicts, findings
 
 
 def text(res: dict) -> str:
