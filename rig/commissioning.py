@@ -113,7 +113,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
 def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tuple[dict, list]:
     """Per channel ok / corrected / refused, and the findings in words."""
     med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
-    med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
+    med_x = np.median([R_x[stroke_of[j], j] for j in range(len(names))])
     verdicts, findings = {}, []
     for j, m in enumerate(names):
         ac, xs = accel_of[j], stroke_of[j]
