@@ -35,6 +35,7 @@ from rig.runtime.loop import Loop
 from rig.runtime.recorder import WRITER_PRIORITY, Recorder
 from rig.runtime.rt import enter_realtime, leave_realtime
 from rig.runtime.signals import take_held
+from rig.runtime.supervisor import warm as warm_supervisor
 from rig.runtime.tap import Columns
 
 log = logging.getLogger("rig.session")
@@ -114,6 +115,7 @@ class Session:
             # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
             # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
             io_entry()
+            warm_supervisor()
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             kw = dict(self._loop_kw)

@@ -121,3 +121,17 @@ def test_without_floor_accelerometers_or_isolation_off_it_says_it_cannot_judge(t
     reason, lp, _ = _run(tmp_path, 1.0, cfg=cfg, seconds=3.0, isolation=True, script=())
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("do-no-harm: no reference")]
     assert len(said) == 1 and lp.harm is None and lp.supervisor.summary()["reference"] == "none"
+
+
+def test_the_compiled_filter_is_scipys_sosfilt():
+    """filter_squares against scipy.signal.sosfilt (the reference), carried across calls by its state."""
+    from rig.runtime.supervisor import band_filter, filter_squares
+    sos = band_filter((1.0, 100.0), RATE, 2)
+    x = np.random.default_rng(3).standard_normal((700, 8))
+    want = scipy.signal.sosfilt(sos, x, axis=0)
+    zi, got = np.zeros((sos.shape[0], 2, 8)), np.zeros(8)
+    total = np.zeros(8)
+    for part in (x[:250], x[250:251], x[251:]):
+        filter_squares(sos, zi, np.ascontiguousarray(part), got)
+        total += got
+    assert np.allclose(total, (want ** 2).sum(axis=0), rtol=1e-9, atol=0)
