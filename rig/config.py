@@ -175,6 +175,9 @@ class DriversConfig:
     # module does): every conversion then reaches the controllers once, in order (drivers/port.py)
     accel_sync_fifo: bool = _f(False, "")
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
+    # the calibration `rig commission` wrote (commissioning.toml: per channel its mount, sign, scale, offset),
+    # applied in the drivers' conversion (drivers/conversion.py calibrated); a relative path is beside the config
+    calibration: str = _f("", "")
     serial_baud: int = _f(921600, "bit/s", ge=300, le=12000000)
     stale_s: float = _f(0.02, "s", gt=0, le=10)          # a device silent for longer ends in FAULT
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the displacement amplifier (centring)

@@ -150,7 +150,9 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       attrs={"config_source": cfg.source, "backend": self.backend,
+                              **({"calibration": cfg.drivers.calibration} if cfg.drivers.calibration else {}),
+                              **self._record_attrs},
                        wait_when_full=not self.clock.is_real,
                        priority=WRITER_PRIORITY if self.realtime else 0)
         stack.enter_context(rec)
