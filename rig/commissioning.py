@@ -36,6 +36,22 @@ def _band(x, fs):
     return signal.sosfiltfilt(sos, x, axis=0)
 
 
+UNIT_FACTORS = (9.80665, 1.0 / 9.80665, 1e3, 1e-3, 1e6, 1e-6)    # g against m/s^2, mm/um/m against each other
+
+
+def correction(scale: float) -> float:
+    """The factor the calibration puts on a channel measured at `scale` against its stroke's x'': 1 within the
+    tolerance (the table's own flexibility, not the sensor), the unit slip it matches (g against m/s^2 ...),
+    else the measured 1/|scale|."""
+    a = abs(scale)
+    if a == 0 or abs(a - 1) <= SCALE_TOL:
+        return 1.0
+    for f in UNIT_FACTORS:
+        if abs(a * f - 1) <= SCALE_TOL:
+            return f
+    return 1.0 / a
+
+
 def channel_map(R: np.ndarray) -> list[int]:
     """Which channel answers which valve: each channel's responses over its own largest (a channel's scale,
     wrong or not, cancels: a g range answers as clearly as a right one), the valves given channels one to one
@@ -97,7 +113,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
     cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
-                                          "scale": 1.0 / abs(scale[m]) if scale[m] else 1.0,
+                                          "scale": correction(scale[m]),
                                           "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
                      for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: {"mount": m, "sign": 1.0 if gain[m] >= 0 else -1.0,
