@@ -1,7 +1,8 @@
 """`rig commission` as a user runs it: on the emulated rig (`--backend hil`, its default configuration) with
 three wiring faults from the configuration's [hil] section at once (front-left and front-right accelerometers
 swapped, rear-left inverted, rear-right's input range in g read as m/s^2), each named on its channel, the
-calibration file holding the channel map, signs and scales, a PNG per mount, exit 4; and on a rig wired right
+calibration file holding the channel map, signs and scales, a PNG per mount, exit 4; that file applied (`[drivers]
+calibration`) to the same miswired rig, `rig hil` isolates as its lockstep twin does; and on a rig wired right
 (the simulated backend, simulated time) every channel ok, exit 0. The stroke stays far inside +-50 % of the
 stroke limit."""
 from __future__ import annotations
@@ -16,6 +17,7 @@ import pytest
 from rig.commands.commission import EXIT_FINDINGS
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.config import MOUNTS
+from rig.runtime.recorder import read_recording
 
 
 def _commission(tmp_path, *extra):
@@ -49,6 +51,18 @@ def test_wiring_faults_on_the_emulated_rig_are_named_on_their_channels(tmp_path)
     assert cal["accel"]["rear_right"]["scale"] == pytest.approx(9.8, rel=0.35)
     assert all((out / f"{m}.png").stat().st_size > 1000 for m in MOUNTS)
     assert res["peak_stroke_m"] < 0.5 * res["stroke_limit_m"]
+    # the calibration applied ([drivers] calibration), the same faults: `rig hil` isolates as designed
+    fixed = tmp_path / "calibrated.toml"
+    fixed.write_text(cfg.read_text() + f'\n[drivers]\ncalibration = "{out / "commissioning.toml"}"\n')
+    rec = tmp_path / "hil.h5"
+    argv = [sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--record", str(rec),
+            "--json"]
+    hil = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    assert hil.returncode == 0, hil.stderr[-3000:]
+    figs = json.loads(hil.stdout)
+    assert figs["harm"] is None and figs["isolation_reduction_db"] > 3.0
+    assert abs(figs["isolation_reduction_db"] - figs["lockstep_reduction_db"]["feedback"]) < 1.5
+    assert read_recording(rec)["attrs"]["calibration"] == str(out / "commissioning.toml")
 
 
 def test_a_rig_wired_right_is_all_ok(tmp_path):
