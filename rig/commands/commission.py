@@ -40,7 +40,7 @@ EXIT_FINDINGS = 4
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--backend", choices=("hil", "sim"), default="hil")
+    p.add_argument("--backend", choices=("hil", "sim", "hardware"), default="hil")
     p.add_argument("--out", required=True, help="folder for the report, the calibration file and the plots")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
 
@@ -68,7 +68,7 @@ def run(args) -> int:
     clock = SimClock() if args.backend == "sim" else MonotonicClock()
     with Session(cfg, args.backend, controllers=ctrls, clock=clock, rate_hz=rate, isolation=True, names=names,
                  record=rec_path, record_attrs={"command": "rig commission"}, signals=True,
-                 realtime=args.backend == "hil" and cfg.loop.realtime) as s:
+                 realtime=args.backend != "sim" and cfg.loop.realtime) as s:
         if args.backend == "hil":
             time.sleep(0.2)          # the I/O processes refresh their samples after the set-up pause
         s.run(seconds=total, activate_after_s=QUIET_S)

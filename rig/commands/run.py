@@ -46,6 +46,8 @@ refused with one line, never clamped. After the run: the tracking figures per se
 Do no harm: while isolation is on the loop compares the table's vibration with isolation off (or the floor's);
 isolation that makes it worse by more than [supervisor] margin_db is said in one line, recorded as an event and
 switched off, bumpless, for the rest of the run (rig/runtime/supervisor.py).
+No uncommissioned hardware: --backend hardware needs [drivers] calibration, a commissioning.toml newer than the
+configuration (`rig commission`; --uncommissioned runs without it).
 Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 3 when the
 do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up.
 """
@@ -110,6 +112,9 @@ def add_arguments(p) -> None:
     p.add_argument("--force", action="store_true",
                    help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
                         "faults a limit cycle)")
+    p.add_argument("--uncommissioned", action="store_true",
+                   help="hardware backend: run without a calibration from `rig commission` newer than the "
+                        "configuration ([drivers] calibration)")
     p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
                    help="fault rehearsal: drive a fault knob at loop time T s, e.g. nan:front_left:accel@2 "
                         "(repeatable; kinds: sim nan, range, stuck, stale, drop, device; hil silence, exception, "
@@ -211,6 +216,20 @@ def _log_to_stderr() -> None:
         logging.getLogger("rig").setLevel(logging.INFO)
 
 
+def check_commissioned(cfg) -> None:
+    """No uncommissioned hardware: [drivers] calibration names a file `rig commission` wrote after the
+    configuration (its device maps) last changed; else one line (--uncommissioned runs anyway)."""
+    cal = drivers.calibration_path(cfg) if cfg.drivers.calibration else None
+    src = Path(cfg.source)
+    why = ("no calibration ([drivers] calibration is not set)" if cal is None else
+           f"its calibration {cal} does not exist" if not cal.is_file() else
+           f"its calibration {cal} is older than {src}" if src.is_file() and cal.stat().st_mtime < src.stat().st_mtime
+           else None)
+    if why:
+        raise RigError(f"{cfg.source}: the rig is not commissioned: {why}; run `rig commission --backend hardware "
+                       f"--out DIR` and set [drivers] calibration, or give --uncommissioned")
+
+
 def _run_config(args, cfg, backend: str, injections):
     """The options checked against each other and the backend (one line naming the option otherwise); the
     config the run uses (hil: its own rate, staleness limit and watchdog)."""
@@ -226,6 +245,8 @@ def _run_config(args, cfg, backend: str, injections):
         # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
         cfg = hil_run_config(cfg)
         cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
+    if backend == "hardware" and not args.uncommissioned:
+        check_commissioned(cfg)
     if (args.port is not None or args.read_only) and not args.console:
         raise RigError("--port/--read-only: only with --console")
     if injections and args.console:
