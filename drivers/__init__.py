@@ -9,6 +9,8 @@ the protocol maps the emulators share: drivers/protocol/.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 from drivers import conversion
 from drivers.port import ANALOG, DEVICES, TRANSDUCER, VALVES, DriverPort
 from rig.config import layout_mounts
@@ -16,6 +18,13 @@ from rig.errors import ConfigError
 
 MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 of the I/O module
 # AI ch0-3 = the mount accelerometers, layout order; ch4-7: the floor accelerometers, [sensors] floor_channels
+
+
+def calibration_path(cfg) -> Path:
+    """[drivers] calibration, a relative path taken beside the configuration file."""
+    p = Path(cfg.drivers.calibration)
+    src = Path(cfg.source)
+    return p if p.is_absolute() or not src.is_file() else src.parent / p
 
 
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
@@ -52,15 +61,21 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
               "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)), **common}
     accel = {"kind": "analog", "device": ANALOG, "name": f"modbus_tcp {modbus_host}:{modbus_port}",
              "host": modbus_host, "port": modbus_port, "unit": d.modbus_unit,
-             "channels": conversion.to_dict(conversion.channels(
-                 list(range(n)) + floor, [1.0 / d.accel_V_per_mps2] * n + [1.0 / s.floor_V_per_mps2] * len(floor))),
              "names": names + [f"floor {m}" for m in names][:len(floor)], "timeout_s": d.modbus_timeout_s,
              "watchdog_s": d.modbus_watchdog_s, "stale_s": stale_s, "silent_s": silent, "fifo": fifo,
              "fetch_every": d.accel_fetch_every, "fetch_delay_s": d.accel_fetch_delay_s, "sync_device": VALVES,
              **common}
+    a_chs = conversion.channels(list(range(n)) + floor,
+                                [1.0 / d.accel_V_per_mps2] * n + [1.0 / s.floor_V_per_mps2] * len(floor))
+    x_chs = conversion.channels(range(n), [1.0] * n)
+    if d.calibration:
+        cal = conversion.read_calibration(calibration_path(cfg))
+        a_chs = conversion.calibrated(a_chs[:n], cal, "accel", names, "mps2") + a_chs[n:]
+        x_chs = conversion.calibrated(x_chs, cal, "stroke", names, "m")
+    accel["channels"] = conversion.to_dict(a_chs)
     stroke = {"kind": "transducer", "device": TRANSDUCER, "name": f"serial DTA-4 {serial_port}",
               "port": serial_port, "baud": d.serial_baud, "names": names,
-              "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)),
+              "channels": conversion.to_dict(x_chs),
               "stale_s": x_stale, "silent_s": max(silent, x_stale), "rate_hz": min(d.serial_rate_hz, 1.0 / period_s),
               **common}
     return DriverPort(name, [valves, accel, stroke], n_mounts=n, floor_sensors=bool(floor), counted=fifo,

@@ -2,12 +2,17 @@
 its I/O process applies it to every sample (drivers/modbus_io.py, serial_dta.py) and command
 (canopen_valves.py) it handles. A channel's conversion is its source channel on the device, a gain (sign and
 scale) and an offset: value = gain * raw_in_device_units + offset (a valve: setpoint = gain * command + null).
-Today they come from the sensitivities and channel map of the configuration; a per-channel calibration (sign,
-scale, offset, channel map, valve nulls) is a different `Channel` list here, nothing else changes.
+They come from the sensitivities and channel map of the configuration, corrected by the calibration `rig commission`
+wrote (commissioning.toml, `[drivers] calibration`): `calibrated` gives the different `Channel` list, nothing
+else changes.
 """
 from __future__ import annotations
 
+import tomllib
 from dataclasses import dataclass
+from pathlib import Path
+
+from rig.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -34,3 +39,29 @@ def from_dict(rows) -> tuple[Channel, ...]:
 def apply(chs, raw) -> list[float]:
     """The loop's values of one sample: raw[source] through each channel's gain and offset."""
     return [c.gain * raw[c.source] + c.offset for c in chs]
+
+
+def read_calibration(path: str | Path) -> dict:
+    """commissioning.toml as written by `rig commission` (one line naming the file when it cannot be read)."""
+    try:
+        cal = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ConfigError(f"calibration {path}: cannot be read ({e})") from None
+    return cal
+
+
+def calibrated(chs, cal: dict, kind: str, names, offset_unit: str):
+    """The loop channels of `names` (mount order; chs: the configuration's, mount i on chs[i]) through the
+    calibration's `kind` table ([kind.<channel as mapped>]: the mount it carries, sign, scale, offset in the
+    loop's units as read before): mount m takes the source of the channel found to carry it, that channel's
+    gain times sign x scale, its offset taken off."""
+    rows = cal.get(kind, {})
+    out = list(chs)
+    for ch, row in rows.items():
+        if ch not in names or row.get("mount") not in names:
+            raise ConfigError(f"calibration [{kind}.{ch}]: expected a mount of {', '.join(names)} and its mount")
+        src, m = chs[names.index(ch)], names.index(row["mount"])
+        k = float(row.get("sign", 1.0)) * float(row.get("scale", 1.0))
+        off = float(row.get(f"offset_{offset_unit}", 0.0))
+        out[m] = Channel(src.source, src.gain * k, k * (src.offset - off))
+    return tuple(out)

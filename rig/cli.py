@@ -17,6 +17,8 @@ COMMANDS = {
     "run": ("rig.commands.run", "operate the rig on demand (sim, hil or hardware backend)"),
     "bench": ("rig.commands.bench", "benchmarks: simulation speed, loop timing"),
     "hil": ("rig.commands.hil", "hardware-in-the-loop run through the real drivers and emulated devices"),
+    "commission": ("rig.commands.commission", "check the wiring, polarity and scale of every channel before any "
+                   "loop closes"),
     "chirp": ("rig.commands.chirp", "run a valve chirp on the actuator and record it"),
     "identify": ("rig.commands.identify", "identify the six actuator parameters from a chirp recording"),
     "diagnose": ("rig.commands.diagnose", "find and model the physics a recording shows but the model lacks"),

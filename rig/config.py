@@ -175,6 +175,9 @@ class DriversConfig:
     # module does): every conversion then reaches the controllers once, in order (drivers/port.py)
     accel_sync_fifo: bool = _f(False, "")
     serial_port: str = _f("/dev/ttyUSB0", "")            # displacement-transducer amplifier
+    # the calibration `rig commission` wrote (commissioning.toml: per channel its mount, sign, scale, offset),
+    # applied in the drivers' conversion (drivers/conversion.py calibrated); a relative path is beside the config
+    calibration: str = _f("", "")
     serial_baud: int = _f(921600, "bit/s", ge=300, le=12000000)
     stale_s: float = _f(0.02, "s", gt=0, le=10)          # a device silent for longer ends in FAULT
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the displacement amplifier (centring)
@@ -213,6 +216,13 @@ class HilConfig:
     # SCHED_FIFO of the emulated devices (0 = normal): above the drivers' I/O processes ([drivers] thread_priority),
     # below the loop: real devices are never held up by the host's drivers
     device_priority: int = _f(60, "", ge=0, le=99)
+    # wiring faults to rehearse (drivers/devicemaps/hil_wiring_faults.md), per analog input channel ch0-7 of the
+    # emulated module: which signal it carries (0-3 the mounts' table accelerometers, 4-7 the floor's, MOUNTS
+    # order: a swap exchanges two), a factor (-1 its sign inverted, 0.10197 an input range in g read as m/s^2)
+    # and an offset
+    ai_source: tuple[int, ...] = _f((0, 1, 2, 3, 4, 5, 6, 7), "", ge=0, le=7, n=8)
+    ai_factor: tuple[float, ...] = _f((1.0,) * 8, "", ge=-100, le=100, n=8)
+    ai_offset_mps2: tuple[float, ...] = _f((0.0,) * 8, "m/s^2", ge=-100, le=100, n=8)
 
 
 @dataclass(frozen=True)
@@ -315,6 +325,28 @@ class PlantErrorConfig:
 
 
 @dataclass(frozen=True)
+class SupervisorConfig:
+    """The do-no-harm supervisor (rig/runtime/supervisor.py): while isolation is on it compares the table's
+    vibration (its accelerometers, band_low_hz-band_high_hz, rms over window_s) with its reference: the same
+    measured with isolation off (the table over the floor where floor accelerometers are fitted, so that a
+    change of the floor is not taken for harm), else the floor itself. Worse by more than margin_db for hold_s:
+    one line, an event, isolation off (bumpless) and held off for the rest of the run.
+    margin_db = 3 dB (twice the vibration power): on the emulated rig a right design measures 7-17 dB better than
+    isolation off and one mount with feedback of the wrong sign 7.5 dB worse on that mount (docs/COMMISSIONING.md,
+    measured by the commands there); the harm the rig must not do adds 4-10 dB or grows."""
+    enabled: bool = _f(True, "")
+    # displacement: what `rig hil` states isolation in; feedback that takes it down lifts the acceleration above
+    # its crossover, which a comparison of accelerations would call harm (docs/COMMISSIONING.md)
+    quantity: str = _f("displacement", "", choices=("acceleration", "velocity", "displacement"))
+    band_low_hz: float = _f(1.0, "Hz", gt=0, le=1e4, nyquist=False)
+    band_high_hz: float = _f(100.0, "Hz", gt=0, le=1e4, nyquist=False)   # clipped to 0.45 x the loop's rate
+    window_s: float = _f(2.0, "s", ge=0.5, le=60)          # moving window of the rms
+    margin_db: float = _f(3.0, "dB", gt=0, le=40)          # worse than the reference by more = harm
+    hold_s: float = _f(0.5, "s", ge=0, le=60)             # for this long (checked at 10 Hz)
+    settle_s: float = _f(0.5, "s", ge=0, le=60)           # after isolation switches: not compared
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -332,6 +364,7 @@ class Config:
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     plant_error: PlantErrorConfig = field(default_factory=PlantErrorConfig)
     layout: LayoutConfig = field(default_factory=LayoutConfig)
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
 
     def replace(self, **sections) -> "Config":

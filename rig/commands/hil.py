@@ -48,6 +48,7 @@ import numpy as np
 
 from rig import cliargs, operated
 from rig.runtime import inject
+from rig.runtime.supervisor import EXIT_HARM
 from rig.backends import default_config, make_port
 from rig.commands import hil_bench
 from rig.commands.hil_lockstep import BAND_HZ, lockstep, phase_rms, reductions
@@ -63,7 +64,7 @@ from rig.runtime.session import Session
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
 HIL_DEFAULT_CONFIG = default_config("hil")
-JSON_KEYS = ("transports", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
+JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
              "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording")
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
@@ -197,7 +198,24 @@ def run(args) -> int:
         if late:
             print("late periods (woke a period late or no new accelerometer conversion), metered: " + ", ".join(
                 f"{m.replace('_', ' + ')} {'n/a' if v is None else f'{100 * v:.1f} %'}" for m, v in late.items()))
-    return 1 if res["faults"] else 0
+    return _exit_code(res)
+
+
+def _exit_code(res) -> int:
+    """1 after a fault, 3 when the do-no-harm supervisor switched isolation off; a mode that made the table
+    worse than isolation off (below the supervisor's margin) is said in one line."""
+    worse = {m: -res[k] for k, m in (("isolation_reduction_db", "feedback"),
+                                     ("feedforward_reduction_db", "feedback_feedforward"))
+             if res.get(k) is not None and res[k] < 0}
+    for mode, d in worse.items():
+        print(f"rig hil: warning: {mode.replace('_', ' + ')} made the table {d:.1f} dB worse than isolation off",
+              file=sys.stderr)
+    if res["faults"]:
+        return 1
+    if res.get("harm"):
+        print(f"rig hil: {res['harm']}", file=sys.stderr)
+        return EXIT_HARM
+    return 0
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
@@ -255,7 +273,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
            "table_rms_m": band_rms, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
-           "stop_reason": reason, "pre_steps": pre_steps,
+           "stop_reason": reason, "pre_steps": pre_steps, "harm": loop.harm,
+           "supervisor": loop.supervisor.summary() if loop.supervisor is not None else None,
            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
     if compare and reason not in ("SIGINT", "SIGTERM") and not out["faults"]:
         if not quiet:
@@ -330,7 +349,7 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
                                                    "peak_command_V")},
             "isolation_reduction_db": None if math.isnan(red) else round(red, 2), "load_rms_hold_um": hold * 1e6,
             "load_rms_isolate_um": iso * 1e6, "recording": str(record), "fault_reason": loop.lc.fault_reason,
-            "round_trip_us": rtt, "segments": figs}
+            "round_trip_us": rtt, "segments": figs, "harm": loop.harm}
 
 
 def _prototype(cfg, seconds: float, args) -> int:
@@ -338,11 +357,14 @@ def _prototype(cfg, seconds: float, args) -> int:
                             quiet=args.json)
     if res["fault_reason"]:
         print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
-    out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded", "tracking",
-                               "isolation_reduction_db", "recording")}
+    out = {k: res[k] for k in ("transports", "harm", "faults", "overruns", "iterations", "samples_recorded",
+                               "tracking", "isolation_reduction_db", "recording")}
+    code = 1 if res["faults"] else EXIT_HARM if res["harm"] else 0
+    if res["harm"]:
+        print(f"rig hil: {res['harm']}", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
-        return 1 if res["faults"] else 0
+        return code
     print(operated.figures_text(res["segments"]))
     tr = res["tracking"]
     red = res["isolation_reduction_db"]
@@ -353,4 +375,4 @@ def _prototype(cfg, seconds: float, args) -> int:
               f"amplitude (max {tr['max_error_um']:.3f} um)")
     print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} um "
           f"isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
-    return 1 if res["faults"] else 0
+    return code

@@ -43,8 +43,13 @@ A reference the actuator cannot follow (outside the stroke limit or the static r
 leakage leaves at 90 % of the valve clamp, faster than the rate limit, more volts than the clamp allows) is
 refused with one line, never clamped. After the run: the tracking figures per segment (with --record), and
 --plot PNG draws reference, position and error.
-Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 130 after
-Ctrl-C during the start-up.
+Do no harm: while isolation is on the loop compares the table's vibration with isolation off (or the floor's);
+isolation that makes it worse by more than [supervisor] margin_db is said in one line, recorded as an event and
+switched off, bumpless, for the rest of the run (rig/runtime/supervisor.py).
+No uncommissioned hardware: --backend hardware needs [drivers] calibration, a commissioning.toml newer than the
+configuration (`rig commission`; --uncommissioned runs without it).
+Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 3 when the
+do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up.
 """
 from __future__ import annotations
 
@@ -108,6 +113,9 @@ def add_arguments(p) -> None:
     p.add_argument("--force", action="store_true",
                    help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
                         "faults a limit cycle)")
+    p.add_argument("--uncommissioned", action="store_true",
+                   help="hardware backend: run without a calibration from `rig commission` newer than the "
+                        "configuration ([drivers] calibration)")
     p.add_argument("--inject", metavar="KIND:MOUNT:SIGNAL@T", action="append", default=[],
                    help="fault rehearsal: drive a fault knob at loop time T s, e.g. nan:front_left:accel@2 "
                         "(repeatable; kinds: sim nan, range, stuck, stale, drop, device; hil silence, exception, "
@@ -211,6 +219,21 @@ def _log_to_stderr() -> None:
         logging.getLogger("rig").setLevel(logging.INFO)
 
 
+def check_commissioned(cfg) -> None:
+    """No uncommissioned hardware: [drivers] calibration names a file `rig commission` wrote after the
+    configuration (its device maps) last changed; else one line (--uncommissioned runs anyway)."""
+    import drivers                  # the hardware backend's own package: loaded when a hardware run is checked
+    cal = drivers.calibration_path(cfg) if cfg.drivers.calibration else None
+    src = Path(cfg.source)
+    why = ("no calibration ([drivers] calibration is not set)" if cal is None else
+           f"its calibration {cal} does not exist" if not cal.is_file() else
+           f"its calibration {cal} is older than {src}" if src.is_file() and cal.stat().st_mtime < src.stat().st_mtime
+           else None)
+    if why:
+        raise RigError(f"{cfg.source}: the rig is not commissioned: {why}; run `rig commission --backend hardware "
+                       f"--out DIR` and set [drivers] calibration, or give --uncommissioned")
+
+
 def _run_config(args, cfg, backend: str, injections):
     """The options checked against each other and the backend (one line naming the option otherwise); the
     config the run uses (hil: its own rate, staleness limit and watchdog)."""
@@ -226,6 +249,8 @@ def _run_config(args, cfg, backend: str, injections):
         # HIL runs at the [hil] rate with its staleness limit and watchdog (Modbus and the shared machine)
         cfg = hil_run_config(cfg)
         cliargs.check_rate(cfg, cfg.loop.rate_hz, "[hil] rate_hz", sections=("controller",))
+    if backend == "hardware" and not args.uncommissioned:
+        check_commissioned(cfg)
     if (args.port is not None or args.read_only) and not args.console:
         raise RigError("--port/--read-only: only with --console")
     if injections and args.console:
@@ -329,6 +354,10 @@ class _RunPlan:
         from rig.runtime.lifecycle import State
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
+        if loop.harm:                         # logged when it happened; said again beside the stop line
+            log.error("%s", loop.harm)
+            from rig.runtime.supervisor import EXIT_HARM
+            return EXIT_HARM
         return 0
 
 

@@ -409,7 +409,7 @@ class Console:
                "backend": self.backend, "read_only": self.read_only, "ended": self.ended}
         lp = s.loop if s is not None else (chirp.loop if chirp is not None else None)
         if lp is not None:
-            run.update(state=lp.state.name, isolation=lp.isolation, fault_reason=lp.lc.fault_reason,
+            run.update(state=lp.state.name, isolation=lp.isolation, fault_reason=lp.lc.fault_reason, harm=lp.harm,
                        stop_reason=lp.stop_reason, iterations=lp.iterations, overruns=lp.overruns,
                        skipped_periods=lp.skipped, rate_hz=lp.rate_hz,
                        missed_deadline_fraction=lp.missed_deadline_fraction)

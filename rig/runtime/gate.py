@@ -49,6 +49,7 @@ class LifecycleGate:
         self._mode_requests: dict = {}       # mount index -> its latest operating-mode request
         self._script: list = []              # (loop time s, action), time order
         self.loop_time_s = lambda: 0.0       # set by the loop: the loop time of the period being run
+        self.held_off: str | None = None     # why isolation is held off (the do-no-harm supervisor): on refused
 
     @property
     def state(self) -> State:
@@ -82,6 +83,13 @@ class LifecycleGate:
 
     def toggle_isolation(self) -> None:
         self._iso_request = not (self.isolation if self._iso_request is None else self._iso_request)
+        self.pending = True
+
+    def hold_isolation_off(self, reason: str) -> None:
+        """Isolation off at the next boundary (bumpless) and held off for the rest of the run: a later request
+        to switch it on is refused with one line (rig/runtime/supervisor.py)."""
+        self.held_off = reason
+        self._iso_request, self._ff_request = False, False
         self.pending = True
 
     def request_reset_fault(self) -> None:
@@ -139,6 +147,10 @@ class LifecycleGate:
         if self._iso_request is not None or self._ff_request is not None:
             before = self.isolation_mode
             on, self._iso_request = self._iso_request, None
+            if on and self.held_off is not None:
+                log.warning("isolation on refused: held off since %s", self.held_off)
+                self._event("isolation on refused: held off by the do-no-harm supervisor")
+                on, self._ff_request = None, None
             if on is not None and on != self.isolation:
                 self.isolation = on
                 if lc.state is State.ACTIVE:

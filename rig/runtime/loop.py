@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 
+from controllers.modes import ModeRequest
 from rig.runtime.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
@@ -34,6 +35,7 @@ from rig.runtime.measured import MalformedMeasurement, MeasuredPort
 from rig.runtime.lifecycle import State
 from rig.runtime.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
 from rig.runtime.scheduler import Scheduler
+from rig.runtime.supervisor import HarmSupervisor
 from rig.runtime.tap import RecordingTap
 
 log = logging.getLogger("rig.loop")
@@ -91,6 +93,13 @@ class Loop:
         self._watch_late = 0 if not self.clock.is_real else -self._susp_every
         self._susp = [False] * self.n
         self._port_idle = getattr(port, "idle", None)      # the port's slack housekeeping (optional), bound once
+        # the do-no-harm supervisor (rig/runtime/supervisor.py), at the 10 Hz watch
+        self.supervisor = (HarmSupervisor(cfg.supervisor, self.n, self.exchange.nf, self.rate_hz, self.names)
+                           if cfg.supervisor.enabled else None)
+        if self.supervisor is not None:     # the watch often enough for the ring of conversions it reads
+            self._susp_every = min(self._susp_every, self.supervisor.look_periods(self.exchange.io))
+            self._susp_count = self._susp_every
+            self._watch_late = 0 if not self.clock.is_real else -self._susp_every
 
     def _bind_port(self, port) -> None:
         """The port's exchange block (rig/runtime/exchange.py), or one of the loop's own for a port that only
@@ -178,6 +187,8 @@ class Loop:
         """The 10 Hz watch: the controllers' saturation recovery (events), the recorder's writer alive."""
         self._susp_count = self._susp_every
         self._watch_suspension()
+        if self.supervisor is not None:
+            self._watch_harm()
         if self.tap.recorder is not None:
             self._watch_recorder()
 
@@ -246,6 +257,40 @@ class Loop:
                         f"recovery, centring alone)" if s else f"{self.names[i]}: isolation resumed")
                 (log.warning if s else log.info)(text)
                 self._event(text)
+
+    def isolating(self) -> bool | None:
+        """Isolation acting on the valves: ACTIVE with isolation on (operating modes: a mount isolating; None
+        while one tracks a reference: its motion is neither isolation nor a passive reference)."""
+        if self.gate.lc.state is not _ACTIVE:
+            return False
+        modes = [c.current.mode for c in self.ctrls if hasattr(c, "switch")]
+        if not modes:
+            return bool(self.gate.isolation)
+        return True if "isolate" in modes else None if "track" in modes else False
+
+    def _watch_harm(self) -> None:
+        """The do-no-harm supervisor's look: isolation that made the table worse -> one line, an event, isolation
+        off (bumpless) and held off; stands: every mount to hold."""
+        sup = self.supervisor
+        t_s = self._t_s(self.gate.t_ns)
+        harm = sup.look(self.exchange.io, self.isolating(), t_s)
+        said = sup.no_reference_line()
+        if said:
+            log.warning("%s", said)
+            self._event(said)
+        if harm is None:
+            return
+        log.error("%s", harm)
+        self._event(harm)
+        self.gate.hold_isolation_off(harm)
+        for m, c in enumerate(self.ctrls):
+            if hasattr(c, "switch") and c.current.mode == "isolate":
+                self.gate.request_mode(m, ModeRequest("hold"))
+
+    @property
+    def harm(self) -> str | None:
+        """The do-no-harm supervisor's line when it switched isolation off, else None."""
+        return self.supervisor.harm if self.supervisor is not None else None
 
     @property
     def suspended_mounts(self) -> list[str]:

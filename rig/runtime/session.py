@@ -37,6 +37,7 @@ from rig.runtime.loop import Loop
 from rig.runtime.recorder import WRITER_PRIORITY, Recorder
 from rig.runtime.rt import enter_realtime, leave_realtime
 from rig.runtime.signals import take_held
+from rig.runtime.supervisor import warm as warm_supervisor
 from rig.runtime.tap import Columns
 
 log = logging.getLogger("rig.session")
@@ -120,6 +121,7 @@ class Session:
             # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
             # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
             io_entry()
+            warm_supervisor()
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             kw = dict(self._loop_kw)
@@ -154,7 +156,9 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
-                       attrs={"config_source": cfg.source, "backend": self.backend, **self._record_attrs},
+                       attrs={"config_source": cfg.source, "backend": self.backend,
+                              **({"calibration": cfg.drivers.calibration} if cfg.drivers.calibration else {}),
+                              **self._record_attrs},
                        wait_when_full=not self.clock.is_real,
                        priority=WRITER_PRIORITY if self.realtime else 0)
         stack.enter_context(rec)
@@ -204,7 +208,8 @@ class Session:
     def final_attrs(self) -> dict:
         lp = self.loop
         return {"stop_reason": lp.stop_reason or "", "fault_reason": lp.lc.fault_reason or "",
-                "iterations": lp.iterations, "overruns": lp.overruns, "skipped_periods": lp.skipped}
+                "iterations": lp.iterations, "overruns": lp.overruns, "skipped_periods": lp.skipped,
+                "harm": lp.harm or ""}
 
     def _install_signals(self, stack) -> None:
         def on_stop(signum, frame):          # a safe stop while running, an interrupt during set-up
@@ -382,6 +387,7 @@ class Session:
         m = lp.last_meas
         return {"t_s": (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None else 0.0, "state": lp.state.name,
                 "isolation": lp.isolation, "isolation_mode": lp.isolation_mode, "fault_reason": lp.lc.fault_reason,
+                "harm": lp.harm,
                 "iterations": lp.iterations,
                 "overruns": lp.overruns, "skipped_periods": lp.skipped, "valve_cmd_V": lp.cmd,
                 "stroke_m": list(m.stroke_m) if m is not None else None,

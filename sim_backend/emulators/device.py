@@ -1,8 +1,9 @@
 """Entry point of an emulated device process: `python -m sim_backend.emulators.device KIND STATE_FILE ...`.
 
-  modbus STATE_FILE V_PER_MPS2 PRIORITY [FLOOR_V_PER_MPS2 FLOOR_CHANNELS]
+  modbus STATE_FILE V_PER_MPS2 PRIORITY [FLOOR_V_PER_MPS2 FLOOR_CHANNELS [FAULTS]]
                                           prints `PORT <n>` once listening on 127.0.0.1:<n>
-                                          (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order)
+                                          (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order;
+                                          FAULTS: wiring faults, JSON [sources, factors, offsets])
   serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
   plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a socketcand gateway; prints
                                           `PORT <n>` once listening on 127.0.0.1:<n> (SPEC_FILE: pickled)
@@ -10,6 +11,7 @@ The device serves until its stdin closes (the parent closed the pipe or died) or
 """
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import threading
@@ -47,8 +49,9 @@ def main(argv: list[str]) -> int:
     if kind == "modbus":
         from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only
         floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))
+        faults = json.loads(argv[6]) if len(argv) > 6 else None
         modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]), floor_V_per_mps2=floor[0],
-                            floor_channels=floor[1])
+                            floor_channels=floor[1], faults=faults)
     elif kind == "serial":
         from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
         serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))

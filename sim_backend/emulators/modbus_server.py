@@ -40,13 +40,16 @@ class Module:
     accelerometers' sensitivity and channels: floor_V_per_mps2, floor_channels)."""
 
     def __init__(self, arr, sensitivity_V_per_mps2: float, floor_V_per_mps2: float = 2.0,
-                 floor_channels=(4, 5, 6, 7)):
+                 floor_channels=(4, 5, 6, 7), faults=None):
         self.arr = arr
         self.regs = [0] * N_REGS
         # per AI channel: (index into a conversion's 8 values: 4 mount then 4 floor accelerations, V per m/s^2)
         self.wiring = [(ch, sensitivity_V_per_mps2) if ch < sh.N_MOUNTS else (None, 0.0) for ch in range(N_AI)]
         for i, ch in enumerate(floor_channels):
             self.wiring[ch] = (sh.N_MOUNTS + i, floor_V_per_mps2)
+        self.offset_V = [0.0] * N_AI
+        if faults is not None:
+            self.miswire(*faults)
         self.last_request = time.monotonic()
         self.frozen: list[int] | None = None
 
@@ -60,9 +63,20 @@ class Module:
             regs[REG_STATUS] |= 1
         self.last_request = now
 
+    def miswire(self, source, factor, offset_mps2) -> None:
+        """Wiring faults (rig.config HilConfig ai_*): per AI channel the signal it carries (the channel that
+        carries it when right: 0-3 the table's, 4-7 the floor's), a factor on it and an offset, in that
+        channel's own sensitivity. The identity (0..7, 1, 0) is the rig as documented."""
+        right = list(self.wiring)
+        for ch in range(N_AI):
+            i, k = right[source[ch]]
+            self.wiring[ch] = (i, k * factor[ch]) if i is not None else (None, 0.0)
+            self.offset_V[ch] = offset_mps2[ch] * (right[ch][1] or k)
+
     def volts(self, values) -> list[int]:
         """AI ch0-7 (raw) of one conversion: values = 4 mount then 4 floor accelerations."""
-        return [volts_to_raw(values[i] * k) if i is not None else 32768 for i, k in self.wiring]
+        return [volts_to_raw(values[i] * k + o) if i is not None else 32768
+                for (i, k), o in zip(self.wiring, self.offset_V)]
 
     def read(self, address: int, count: int) -> list[int]:
         """The registers address..address+count-1 now (the FIFO entries asked for only)."""
@@ -139,10 +153,10 @@ def answer(module: Module, buf: bytearray, garbage: bool) -> bytes:
 
 
 def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host: str = "127.0.0.1",
-          floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7)) -> None:
+          floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7), faults=None) -> None:
     """Process entry: bind an ephemeral port on loopback, report it on port_conn, serve until the parent
     goes away or sends anything on port_conn."""
-    module = Module(arr, sensitivity_V_per_mps2, floor_V_per_mps2, floor_channels)
+    module = Module(arr, sensitivity_V_per_mps2, floor_V_per_mps2, floor_channels, faults)
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     srv.bind((host, 0))

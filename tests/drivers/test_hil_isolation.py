@@ -42,6 +42,9 @@ def test_json_schema_and_clean_run(hil_run):
     assert all(0.0 <= v <= 1.0 for v in res["late_periods"].values())
     assert res["transports"] == ["canopen", "modbus_tcp", "serial"]
     assert res["faults"] == 0
+    sup = res["supervisor"]                            # the do-no-harm supervisor judged the run and let it be
+    assert res["harm"] is None and not sup["tripped"] and sup["reference"] == "isolation off (table/floor)"
+    assert sup["table_vs_reference_db"] < -sup["margin_db"]
     cfg = hil_config(load_config(HIL_DEFAULT_CONFIG))
     assert res["iterations"] >= 0.9 * SECONDS * cfg.loop.rate_hz
     assert res["samples_recorded"] == res["iterations"]      # every period's sample recorded

@@ -140,12 +140,13 @@ def test_a_second_process_driving_the_same_rig_is_refused_naming_the_holder(tmp_
     try:
         assert holder.stdout.readline().strip() == "held"
         line = one_error_line(rig("run", "--backend", "hardware", "--config", str(cfg), "--seconds", "1",
-                                  "--quiet", "--no-realtime"))
+                                  "--quiet", "--no-realtime", "--uncommissioned"))
         assert "is in use by another process" in line and f"pid {holder.pid}" in line and "rig run (holder)" in line
     finally:
         holder.kill()
         holder.wait()
-    out = rig("run", "--backend", "hardware", "--config", str(cfg), "--seconds", "1", "--quiet", "--no-realtime")
+    out = rig("run", "--backend", "hardware", "--config", str(cfg), "--seconds", "1", "--quiet", "--no-realtime",
+              "--uncommissioned")
     assert "in use" not in out.stderr and "Traceback" not in out.stderr      # past the lock: the devices' own error
     assert out.returncode != 0
 
@@ -215,3 +216,23 @@ def test_hil_help_names_the_config_it_runs():
     out = rig("run", "--help")
     assert "with --backend hil the HIL design" in out.stdout.replace("\n", " ").replace("  ", " ") or \
         "hil.toml" in out.stdout
+
+
+def test_uncommissioned_hardware_is_refused_in_one_line(tmp_path):
+    """Issue 27: `rig run --backend hardware` without a calibration newer than the configuration is refused
+    before it touches a device (the config points at 127.0.0.1 only); a newer one passes this rule."""
+    cfg = tmp_path / "hw.toml"
+    body = ('[drivers]\ncan_interface = "virtual"\ncan_channel = "rig-cal-test"\nmodbus_host = "127.0.0.1"\n'
+            f'modbus_port = 1\nserial_port = "{tmp_path / "no-tty"}"\n')
+    cfg.write_text(body)
+    args = ("run", "--backend", "hardware", "--config", str(cfg), "--seconds", "1", "--quiet", "--no-realtime")
+    line = one_error_line(rig(*args))
+    assert "the rig is not commissioned: no calibration ([drivers] calibration is not set)" in line
+    cal = tmp_path / "commissioning.toml"
+    cal.write_text('[accel.front_left]\nmount = "front_left"\nsign = 1\n')
+    cfg.write_text(body + 'calibration = "commissioning.toml"\n')        # the configuration changed after it
+    os.utime(cal, (time.time() - 60, time.time() - 60))
+    assert f"its calibration {cal} is older than {cfg}" in one_error_line(rig(*args))
+    os.utime(cal, None)
+    out = rig(*args)                                                  # past the rule: the devices' own error
+    assert "not commissioned" not in out.stderr and "Traceback" not in out.stderr and out.returncode != 0

@@ -124,6 +124,8 @@
     const faulted = state === "FAULT";
     $("fault").hidden = !faulted;
     if (faulted) $("fault").textContent = "FAULT: " + (run.fault_reason || "(reason follows)");
+    $("harm").hidden = !run.harm;          // the do-no-harm supervisor switched isolation off
+    if (run.harm) $("harm").textContent = run.harm;
     $("clock").textContent = now.t_s !== undefined ? `t = ${now.t_s.toFixed(2)} s` : "t = -";
     if (msg.timing) {
       const tm = msg.timing;

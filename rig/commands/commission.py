@@ -1,0 +1,95 @@
+"""`rig commission [--backend hil|sim] [--config F] --out DIR`: check the rig's wiring before any loop closes.
+
+The valves stay under open-loop command (controllers/playback.py), one at a time: first QUIET_S with every valve at
+null (each channel's noise floor and offset), then per mount a bounded chirp (AMPLITUDE_V, F0-F1 Hz over CHIRP_S;
+the stroke a few um, far inside +-50 % of [safety] stroke_limit_m), the safety rules on. rig/commissioning.py then
+names, per channel: alive, noise, offset; which transducer and which accelerometer answer which valve (the response
+matrix, a swap named); each accelerometer's sign and scale against the second derivative of its own mount's
+stroke; each valve's gain against the model's DC gain. Out: DIR/report.txt, report.json, commissioning.toml (per
+channel mount, sign, scale, offset), one PNG per mount, and the recording. Exit 0 when every channel is ok, 4 when
+a channel needs the calibration file or is refused, 1 after a fault.
+Rehearse wiring faults on the emulated rig: drivers/devicemaps/hil_wiring_faults.md.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from controllers.playback import SignalPlayback
+from rig import commissioning
+from rig.backends import default_config
+from rig.chirp import chirp_samples
+from rig.config import hil_run_config, layout_mounts, load_config
+from rig.errors import RigError
+from rig.runtime.clock import MonotonicClock, SimClock
+from rig.runtime.recorder import read_recording
+from rig.runtime.session import Session
+from sim_backend.linear import ActuatorParams
+
+CONFIG_HELP = "TOML configuration (default: drivers/devicemaps/hil.toml)"
+QUIET_S = 1.5
+LEAD_S = 0.2                   # null before and after each mount's chirp
+CHIRP_S = 2.0
+F0_HZ, F1_HZ = 2.0, 40.0
+AMPLITUDE_V = 2.0
+EXIT_FINDINGS = 4
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--backend", choices=("hil", "sim", "hardware"), default="hil")
+    p.add_argument("--out", required=True, help="folder for the report, the calibration file and the plots")
+    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+
+
+def run(args) -> int:
+    cfg = load_config(args.config if args.config else default_config("hil"))
+    rate = cfg.hil.rate_hz
+    if args.backend == "hil":
+        cfg = hil_run_config(cfg, rate)
+    names = layout_mounts(cfg)
+    dt = 1.0 / rate
+    slot_s = CHIRP_S + 2 * LEAD_S
+    chirp = chirp_samples(AMPLITUDE_V, F0_HZ, F1_HZ, CHIRP_S, dt)
+    n_lead, n_slot = int(round(LEAD_S / dt)), int(round(slot_s / dt))
+    # the playback starts at activation (after QUIET_S): mount j's chirp in its own slot, the others at null
+    ctrls = [SignalPlayback([0.0] * (j * n_slot + n_lead) + chirp, dt, name=m) for j, m in enumerate(names)]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rec_path = out / "commissioning.h5"
+    total = QUIET_S + len(names) * slot_s
+    if not args.json:
+        print(f"rig commission: {args.backend}, {len(names)} mounts at {rate:g} Hz: {QUIET_S:g} s at null, then one "
+              f"valve at a time a {AMPLITUDE_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {CHIRP_S:g} s ({total:.1f} s)",
+              file=sys.stderr)
+    clock = SimClock() if args.backend == "sim" else MonotonicClock()
+    with Session(cfg, args.backend, controllers=ctrls, clock=clock, rate_hz=rate, isolation=True, names=names,
+                 record=rec_path, record_attrs={"command": "rig commission"}, signals=True,
+                 realtime=args.backend != "sim" and cfg.loop.realtime) as s:
+        if args.backend == "hil":
+            time.sleep(0.2)          # the I/O processes refresh their samples after the set-up pause
+        s.run(seconds=total, activate_after_s=QUIET_S)
+        fault = s.loop.lc.fault_reason
+    if fault:
+        raise RigError(f"commission: the run faulted ({fault}): nothing judged")
+    rec = read_recording(rec_path)
+    res = commissioning.analyse(rec, names, rate, QUIET_S, slot_s, LEAD_S,
+                                ActuatorParams.from_config(cfg).dc_gain_m_per_V)
+    peak = float(np.abs(np.asarray(rec["stroke_m"])).max())
+    res["peak_stroke_m"] = float(peak)
+    res["stroke_limit_m"] = cfg.safety.stroke_limit_m
+    (out / "report.txt").write_text(commissioning.text(res) + "\n")
+    (out / "report.json").write_text(json.dumps(res, indent=1))
+    (out / "commissioning.toml").write_text(commissioning.calibration_toml(res, str(rec_path)))
+    for m in names:
+        commissioning.plot(res, rec, m, out / f"{m}.png")
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(commissioning.text(res))
+        print(f"peak stroke {peak * 1e6:.1f} um ({100 * peak / cfg.safety.stroke_limit_m:.1f} % of the stroke limit); "
+              f"report, calibration and plots in {out}")
+    return 0 if res["all_ok"] else EXIT_FINDINGS

@@ -1,0 +1,215 @@
+"""Commissioning analysis: a recording of open-loop valve excitation, one valve at a time, checked channel by
+channel (`rig commission`, rig/commands/commission.py runs it).
+
+The recording: `quiet_s` with every valve at null (noise floor and offset of every channel), then per mount a slot
+of `slot_s`: its valve a bounded chirp, the others null. Per slot j and channel i (band-passed to `BAND_HZ`,
+where the transducer's second derivative and the accelerometers are both above their noise):
+
+  stroke response   rms of stroke channel i in slot j          -> which transducer answers which valve
+  accel response    rms of (table - floor) accel i in slot j   -> which accelerometer answers which valve
+  accel scale       S(x_j'', a_i) / S(x_j'', x_j'') in band  -> sign and scale against the second derivative of
+                    (a: table minus floor, x_j: the stroke       its own mount's stroke (table = floor + stroke:
+                    answering valve j)                           the floor accelerometers take the floor out)
+  valve gain        the stroke's chirp response over the command at the low end of the band against the model's
+                    DC gain (the actuator's lag corner lies far above it)
+
+Verdicts per channel: ok, corrected (the calibration file puts it right: a swap, a sign, a scale within
+SCALE_FIX), refused (dead, or a scale nobody should correct).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import signal
+from scipy.optimize import linear_sum_assignment
+
+BAND_HZ = (3.0, 30.0)          # where x'' from the transducer and the accelerometers are both well above noise
+SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible table at a mount is not rigid on its
+                               # stroke: 1.0-1.2 measured on a rig wired right; a g range is 0.10, inverted -1)
+SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
+DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
+
+
+def _band(x, fs):
+    sos = signal.butter(2, BAND_HZ, btype="bandpass", fs=fs, output="sos")
+    return signal.sosfiltfilt(sos, x, axis=0)
+
+
+UNIT_FACTORS = (9.80665, 1.0 / 9.80665, 1e3, 1e-3, 1e6, 1e-6)    # g against m/s^2, mm/um/m against each other
+
+
+def correction(scale: float) -> float:
+    """The factor the calibration puts on a channel measured at `scale` against its stroke's x'': 1 within the
+    tolerance (the table's own flexibility, not the sensor), the unit slip it matches (g against m/s^2 ...),
+    else the measured 1/|scale|."""
+    a = abs(scale)
+    if a == 0 or abs(a - 1) <= SCALE_TOL:
+        return 1.0
+    for f in UNIT_FACTORS:
+        if abs(a * f - 1) <= SCALE_TOL:
+            return f
+    return 1.0 / a
+
+
+def channel_map(R: np.ndarray) -> list[int]:
+    """Which channel answers which valve: each channel's responses over its own largest (a channel's scale,
+    wrong or not, cancels: a g range answers as clearly as a right one), the valves given channels one to one
+    by the best total (scipy's assignment). R[channel, valve]; returns the channel of each valve."""
+    rel = R / np.maximum(R.max(axis=1, keepdims=True), 1e-300)
+    rows, cols = linear_sum_assignment(-np.log(np.maximum(rel, 1e-12)))
+    out = [0] * R.shape[1]
+    for i, j in zip(rows, cols):
+        out[j] = int(i)
+    return out
+
+
+def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
+            dc_gain_m_per_V: float) -> dict:
+    """The checks of one commissioning recording (rig.runtime.recorder.read_recording's dict)."""
+    n = len(names)
+    t = np.asarray(rec["time_s"]).ravel()
+    acc = np.asarray(rec["accel_mps2"], dtype=float).reshape(len(t), -1)[:, :n]
+    x = np.asarray(rec["stroke_m"], dtype=float).reshape(len(t), -1)[:, :n]
+    cmd = np.asarray(rec["valve_cmd_V"], dtype=float).reshape(len(t), -1)[:, :n]
+    floor = rec.get("floor_accel_mps2")
+    rel = acc - np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else acc
+    quiet = (t > 0.2 * quiet_s) & (t < quiet_s)
+    channels = {"accel": {}, "stroke": {}}
+    for i, m in enumerate(names):
+        channels["accel"][m] = {"offset_mps2": float(acc[quiet, i].mean()), "noise_rms_mps2": float(acc[quiet, i].std()),
+                                "alive": bool(acc[quiet, i].std() > 0)}
+        channels["stroke"][m] = {"offset_m": float(x[quiet, i].mean()), "noise_rms_m": float(x[quiet, i].std()),
+                                 "alive": bool(x[quiet, i].std() > 0)}
+    rb, xb, cb = _band(rel, fs), _band(x, fs), _band(cmd, fs)
+    w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
+    xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
+    R_x, R_a = np.zeros((n, n)), np.zeros((n, n))      # [channel, valve]
+    slots = []
+    for j in range(n):
+        t0 = quiet_s + j * slot_s + lead_s
+        sl = (t > t0 + 0.1) & (t < t0 + slot_s - 2 * lead_s - 0.1)
+        slots.append(sl)
+        R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
+        R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
+    stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
+    scale, gain = {}, {}
+    for j, m in enumerate(names):
+        sl, xs, ac = slots[j], stroke_of[j], accel_of[j]
+        d2 = xdd[sl, xs]
+        # H1 = S(x'', a) / S(x'', x'') over the band: its size unbiased by the accelerometer's own noise and by
+        # the transducer's later sample (a delay turns its phase, not its size); its sign from the real part
+        nps = min(256, int(sl.sum()))
+        f, pxa = signal.csd(d2, rb[sl, ac], fs=fs, nperseg=nps)
+        _, pxx2 = signal.welch(d2, fs=fs, nperseg=nps)
+        band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1])
+        h1 = pxa[band].sum() / max(pxx2[band].sum(), 1e-300)
+        scale[m] = float(abs(h1) * (1.0 if h1.real >= 0 else -1.0))
+        # stroke over command at the low end of the band: the cross spectrum's ratio (the model's DC gain there)
+        f, pxy = signal.csd(cb[sl, j], xb[sl, xs], fs=fs, nperseg=min(256, int(sl.sum())))
+        _, pxx = signal.welch(cb[sl, j], fs=fs, nperseg=min(256, int(sl.sum())))
+        low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
+        h = pxy[low] / np.maximum(pxx[low], 1e-300)
+        gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
+    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
+    cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
+                                          "scale": correction(scale[m]),
+                                          "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
+                     for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: {"mount": m, "sign": 1.0 if gain[m] >= 0 else -1.0,
+                                            "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
+                      for j, m in enumerate(names)}}
+    return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
+            "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
+            "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
+            "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
+            "all_ok": all(v == "ok" for v in verdicts.values())}
+
+
+def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tuple[dict, list]:
+    """Per channel ok / corrected / refused, and the findings in words."""
+    med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
+    med_x = np.median([R_x[stroke_of[j], j] for j in range(len(names))])
+    verdicts, findings = {}, []
+    for j, m in enumerate(names):
+        ac, xs = accel_of[j], stroke_of[j]
+        # the accelerometer answering valve j
+        v = "ok"
+        if R_a[ac, j] / max(abs(scale[m]), 1e-12) < DEAD_RMS_RATIO * med_a or not channels["accel"][names[ac]]["alive"]:
+            v = "refused"
+            findings.append(f"accelerometer of {m}: no answer to its valve (dead or unwired)")
+        else:
+            if ac != j:
+                v = "corrected"
+                findings.append(f"accelerometers swapped: valve {m} is answered by the channel mapped to {names[ac]}")
+            s = scale[m]
+            if s < 0:
+                v = "corrected"
+                findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
+            a = abs(s)
+            if abs(a - 1) > SCALE_TOL:
+                if SCALE_FIX[0] <= a <= SCALE_FIX[1]:
+                    v = "corrected"
+                    hint = " (an input range in g read as m/s^2)" if abs(a * 9.80665 - 1) < SCALE_TOL else ""
+                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x''{hint}")
+                else:
+                    v = "refused"
+                    findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects")
+        verdicts[f"accel:{m}"] = v
+        v = "ok"
+        if R_x[xs, j] < DEAD_RMS_RATIO * med_x:
+            v = "refused"
+            findings.append(f"transducer of {m}: no answer to its valve")
+        elif xs != j:
+            v = "corrected"
+            findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
+        if gain[m] < 0:
+            v = "corrected"
+            findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
+        verdicts[f"stroke:{m}"] = v
+    return verdicts, findings
+
+
+def text(res: dict) -> str:
+    """The report in words: one line per channel, then the findings."""
+    lines = []
+    for m in res["mounts"]:
+        a, s = res["verdicts"][f"accel:{m}"], res["verdicts"][f"stroke:{m}"]
+        ch = res["channels"]
+        lines.append(f"{m}: accelerometer {a} (scale {res['accel_scale'][m]:+.3f} against x'', noise "
+                     f"{ch['accel'][m]['noise_rms_mps2'] * 1e3:.2f} mm/s^2 rms, offset "
+                     f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command at "
+                     f"{BAND_HZ[0]:g}-{2 * BAND_HZ[0]:g} Hz {res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
+                     f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
+    lines += [f"  {f}" for f in res["findings"]] or ["  every channel ok"]
+    return "\n".join(lines)
+
+
+def calibration_toml(res: dict, source: str) -> str:
+    """commissioning.toml: per channel its mount, sign, scale and offset (the channel map)."""
+    out = [f"# rig commission: calibration from {source}", ""]
+    for kind, rows in res["calibration"].items():
+        for ch, row in rows.items():
+            out.append(f"[{kind}.{ch}]")
+            out += [f"{k} = {v!r}" if isinstance(v, str) else f"{k} = {v:.6g}" for k, v in row.items()]
+            out.append("")
+    return "\n".join(out).replace("'", '"')
+
+
+def plot(res: dict, rec: dict, mount: str, path) -> None:
+    """One mount's PNG: its valve's response in every stroke and accelerometer channel (the channel map)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = res["mounts"]
+    j = names.index(mount)
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    ax[0].bar(names, [r[j] * 1e6 for r in res["stroke_response_m"]])
+    ax[0].set_title(f"valve {mount}: stroke response (um rms, {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)")
+    ax[1].bar(names, [r[j] for r in res["accel_response_mps2"]])
+    ax[1].set_title(f"accelerometer response (m/s^2 rms); scale {res['accel_scale'][mount]:+.3f}")
+    for a in ax:
+        a.tick_params(axis="x", labelrotation=30)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
