@@ -1,0 +1,184 @@
+"""The machine-level effects (issue 28): one definition each, with what the diagnosis fits, how it reports it,
+how the blind proof draws it and the simulator's term that hides it ([rig_error] of the config,
+sim_backend/rig_error.py). Written to become entries of the diagnosis's effect catalogue.
+
+Each effect has instances -- one per flexible mode, mount or sensor -- and an instance's `location` is what the
+proof grades as "the right mount or sensor". The replay's effects are fitted in the frequency domain
+(engine.py); the valve's null offset (a constant: only the start of a run from rest shows it) and the floor's
+rocking (the floor is the replay's input, not its model) have their own tests (offsets.py, floor.py).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rig.config import MOUNTS
+from rig.diagnose.machine.fitting import Slot
+
+SENSORS = ("accel", "stroke", "floor")
+SENSOR_KEY = {"accel": "gain_a", "stroke": "gain_s", "floor": "gain_g"}
+SENSOR_TEXT = {"accel": "accelerometer", "stroke": "stroke transducer", "floor": "floor accelerometer"}
+# flexible modes the four mounts see too little of (Table 2's heave: at most 0.022 at a mount) to tell
+MIN_MOUNT_SHAPE = 0.03          # modal model units (1/sqrt(t))
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    unit: str
+    lo: float
+    hi: float
+
+
+@dataclass(frozen=True)
+class Instance:
+    effect: "Effect"
+    index: int                  # the mode, mount or sensor channel
+    location: str               # "rear_left", "accelerometer at front_right", "1st torsion"
+    slots: tuple
+
+    @property
+    def key(self) -> str:
+        return f"{self.effect.name}[{self.location}]"
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    short: str
+    where: str                  # mode, machine, mount, sensor, valve, floor
+    params: tuple
+    evidence: str               # the signature the diagnosis looks for (one line, for the report)
+    needs: tuple = ()           # "valves": the valves must be driven (feedback); "floor": floor accelerometers
+    grid: tuple = ()            # start values of the first slot, screened before a fit
+    nonlinear: bool = False     # the model sees an effective command (time domain) rather than a response
+    extra: dict = field(default_factory=dict)
+
+
+def _mode_instances(eff: Effect, ctx) -> list[Instance]:
+    out = []
+    names = ctx.modal.flexible_names
+    shape = np.abs(ctx.modal.phi_mounts[ctx.modal.w_n > 0]) / ctx.modal.shape_unit_scale
+    for r, name in enumerate(names):
+        if shape[r].max() < MIN_MOUNT_SHAPE:
+            continue
+        key = "mode_f" if eff.name == "mode_frequency" else "mode_z"
+        lo, hi = (0.6, 1.6) if key == "mode_f" else (0.1, 10.0)
+        out.append(Instance(eff, r, name, (Slot(key, r, "log", lo, hi),)))
+    return out
+
+
+def _mount_instances(key: str, lo: float, hi: float):
+    def make(eff: Effect, ctx) -> list[Instance]:
+        return [Instance(eff, i, m, (Slot(key, i, "log", lo, hi),)) for i, m in enumerate(MOUNTS)]
+    return make
+
+
+def _sensor_instances(eff: Effect, ctx) -> list[Instance]:
+    out = []
+    for s in SENSORS:
+        if s == "floor" and not ctx.floor:
+            continue
+        for i, m in enumerate(MOUNTS):
+            out.append(Instance(eff, 4 * SENSORS.index(s) + i, f"{SENSOR_TEXT[s]} at {m}",
+                                (Slot(SENSOR_KEY[s], i, "signed", 0.05, 10.0),)))
+    return out
+
+
+def _valve_instances(key: str, lo: float, hi: float):
+    def make(eff: Effect, ctx) -> list[Instance]:
+        return [Instance(eff, i, m, (Slot(key, i, "lin", lo, hi),)) for i, m in enumerate(MOUNTS)]
+    return make
+
+
+def _extra_instances(eff: Effect, ctx) -> list[Instance]:
+    slots = (Slot("extra", 0, "log", 3.0, 300.0), Slot("extra", 1, "log", 0.005, 0.3)) + tuple(
+        Slot("extra", 2 + i, "lin", -1.5, 1.5) for i in range(4))
+    return [Instance(eff, 0, "machine", slots)]
+
+
+MODE_FREQUENCY = Effect(
+    "mode_frequency", "mode f", "mode", (Param("frequency_hz", "Hz", 1.0, 500.0),),
+    "the resonance of a machine mode in the mounts' responses stands at another frequency than Table 2's",
+    grid=tuple(np.round(np.arange(0.76, 1.26, 0.03), 3)), extra={"instances": _mode_instances})
+MODE_DAMPING = Effect(
+    "mode_damping", "mode zeta", "mode", (Param("damping_ratio", "", 0.001, 0.5),),
+    "a machine mode's resonance in the mounts' responses is sharper or broader than the model's",
+    grid=(0.3, 0.5, 0.7, 1.5, 2.2, 3.5), extra={"instances": _mode_instances})
+EXTRA_MODE = Effect(
+    "extra_mode", "extra mode", "machine",
+    (Param("frequency_hz", "Hz", 3.0, 300.0), Param("damping_ratio", "", 0.005, 0.3),
+     Param("shape", "1/sqrt(t)", -1.5, 1.5)),
+    "a resonance in the mounts' responses where the model has no mode", extra={"instances": _extra_instances})
+MOUNT_STIFFNESS = Effect(
+    "mount_stiffness", "K_L", "mount", (Param("factor", "", 0.2, 5.0),),
+    "one mount's stroke per valve volt (below the 7 Hz lag: 1 / K_L) and its share of the machine's weight "
+    "differ from the others'", grid=(0.5, 0.7, 1.4, 2.0), extra={"instances": _mount_instances("mount_K", 0.2, 5.0)})
+MOUNT_DAMPING = Effect(
+    "mount_damping", "C", "mount", (Param("factor", "", 0.05, 30.0),),
+    "one mount's viscous term: force on its stroke velocity", grid=(0.2, 5.0, 20.0),
+    extra={"instances": _mount_instances("mount_C", 0.05, 30.0)})
+SENSOR_GAIN = Effect(
+    "sensor_gain", "gain", "sensor", (Param("gain", "", -10.0, 10.0),),
+    "one channel reads the replay scaled (a sign reversed: opposite phase) in every band where it is seen",
+    grid=(-1.0, 0.8, 1.25), extra={"instances": _sensor_instances})
+TRANSPORT_DELAY = Effect(
+    "transport_delay", "delay", "valve", (Param("delay_s", "s", 0.0, 0.01),),
+    "one valve's response lags the others' by a phase growing with frequency (-w tau)", needs=("valves",),
+    grid=(0.0002, 0.0005, 0.001, 0.002, 0.004), extra={"instances": _valve_instances("delay_s", 0.0, 0.01)})
+VALVE_DEADBAND = Effect(
+    "valve_deadband", "deadband", "valve", (Param("width_ma", "mA", 0.0, 20.0),),
+    "one valve moves less than the replay for small commands (its spool's overlap), as much for large ones",
+    needs=("valves",), grid=(0.1, 0.3, 0.6, 1.0, 2.0), nonlinear=True,
+    extra={"instances": _valve_instances("deadband_ma", 0.0, 20.0)})
+VALVE_NULL_OFFSET = Effect(
+    "valve_null_offset", "null", "valve", (Param("offset_V", "V", -10.0, 10.0),),
+    "from rest, one actuator drifts with its valve at null, and holds a mean command to stay centred")
+FLOOR_ROCKING = Effect(
+    "floor_rocking", "rocking", "floor", (Param("rocking_over_heave", "", 0.0, 10.0),),
+    "the floor's front mounts move against its rear (pitch) or its left against its right (roll), coherently, "
+    "beyond the independent motion the model assumes")
+
+REPLAY_EFFECTS = (MODE_FREQUENCY, MODE_DAMPING, EXTRA_MODE, MOUNT_STIFFNESS, MOUNT_DAMPING, SENSOR_GAIN,
+                  TRANSPORT_DELAY, VALVE_DEADBAND)
+CATALOGUE = REPLAY_EFFECTS + (VALVE_NULL_OFFSET, FLOOR_ROCKING)
+BY_NAME = {e.name: e for e in CATALOGUE}
+
+
+def instances(ctx, *, valves_driven: bool) -> list[Instance]:
+    """Every instance of the replay's effects this recording can show (valve effects need driven valves,
+    floor-sensor gains need floor accelerometers)."""
+    out = []
+    for eff in REPLAY_EFFECTS:
+        if "valves" in eff.needs and not valves_driven:
+            continue
+        out += eff.extra["instances"](eff, ctx)
+    return out
+
+
+def parameters(inst: Instance, th: dict, ctx) -> dict:
+    """The instance's parameters as reported (physical units)."""
+    e, i = inst.effect.name, inst.index
+    if e == MODE_FREQUENCY.name:
+        f0 = ctx.modal.w_n[ctx.modal.w_n > 0][i] / (2 * math.pi)
+        return {"mode": inst.location, "frequency_hz": f0 * float(th["mode_f"][i]), "model_hz": f0}
+    if e == MODE_DAMPING.name:
+        z0 = ctx.modal.zeta[ctx.modal.w_n > 0][i]
+        return {"mode": inst.location, "damping_ratio": z0 * float(th["mode_z"][i] * th["modal_zeta"][0]),
+                "model_damping_ratio": z0}
+    if e == EXTRA_MODE.name:
+        x = th["extra"]
+        return {"frequency_hz": float(x[0]), "damping_ratio": float(x[1]),
+                "shape": dict(zip(MOUNTS, (float(v) for v in x[2:6])))}
+    if e in (MOUNT_STIFFNESS.name, MOUNT_DAMPING.name):
+        return {"mount": inst.location, "factor": float(inst.slots[0].get(th))}
+    if e == SENSOR_GAIN.name:
+        s = SENSORS[i // 4]
+        return {"sensor": s, "mount": MOUNTS[i % 4], "gain": float(th[SENSOR_KEY[s]][i % 4])}
+    if e == TRANSPORT_DELAY.name:
+        return {"mount": inst.location, "delay_s": float(th["delay_s"][i])}
+    if e == VALVE_DEADBAND.name:
+        return {"mount": inst.location, "width_ma": float(th["deadband_ma"][i])}
+    raise ValueError(e)

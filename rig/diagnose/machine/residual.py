@@ -1,0 +1,144 @@
+"""The replay's residual in the frequency domain: the recording minus the rig model driven by the recorded valve
+commands and floor motion (open-loop replay of the closed loop's inputs), after the nuisance terms.
+
+  measured = gain x (Hu U + Hg X_g) + nuisance + noise,   X_g = -(floor accel / floor gain) / w^2
+
+Nuisance terms, fitted by linear least squares inside every evaluation (variable projection), never effects:
+  - the end states: one column per mode (rigmodel.Responses.Tb): a record's DFT relates inputs and outputs
+    exactly only up to what the states at its two ends add, and every mode's share shows somewhere in the band;
+  - with floor accelerometers: the floor's velocity and position at the record's ends (its double integration
+    is exact only up to them), Hg / w^2 and Hg / (j w) per mount;
+  - a drift on each channel (a sensor's slow zero, or a jump between the record's ends), 1 / (1 - 1/z);
+  - without floor accelerometers: the floor itself, four unknowns per bin, projected out bin by bin. What the
+    floor can absorb is not seen; what it cannot is the evidence (floor.py says what can be told).
+Weights: weights.py. Under the right model the whitened residual has unit variance per bin and channel.
+A fit's Jacobian holds the nuisance terms of its base point (Kaufman's approximation of variable projection):
+`Replay.linear` projects a perturbed model's residual with the base point's projector, without a new solve.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from rig.diagnose.machine.rigmodel import Base, modal, predict, responses
+from rig.diagnose.machine.spectra import Spectra
+
+FIDELITY = 2e-3                 # relative: what two faithful models of the same rig differ by
+
+
+@dataclass
+class Evaluation:
+    """One model evaluated on a set of bins: the whitened residual r (Kset, 8) after every nuisance term, the
+    weights' standard deviations sd (r sd: the residual in the channels' units), the nuisance coefficients,
+    per bin and channel the share of the noise the floor's projection leaves (1 with floor accelerometers), and
+    the projector (to project other residuals on the same bins as this one was)."""
+    r: np.ndarray
+    sd: np.ndarray
+    coef: np.ndarray
+    keep: np.ndarray
+    mask: np.ndarray
+    Q: np.ndarray | None        # (Kset, 8, 4) per-bin floor basis (whitened), None with floor accelerometers
+    Nw: np.ndarray              # (Kset * 8, m) whitened nuisance columns after the floor's projection
+    NwH: np.ndarray             # its conjugate transpose (contiguous: projections reuse it)
+    chol: tuple                 # Cholesky factor of their normal equations (scaled)
+    scale: np.ndarray
+
+    @property
+    def rss(self) -> float:
+        return float(np.sum(np.abs(self.r) ** 2))
+
+    def project(self, e: np.ndarray) -> np.ndarray:
+        """A whitened residual (Kset, 8) with this evaluation's nuisance terms taken out."""
+        if self.Q is not None:
+            e = e - (self.Q @ (np.conj(np.transpose(self.Q, (0, 2, 1))) @ e[:, :, None]))[:, :, 0]
+        b = e.reshape(-1)
+        c = self.scale * scipy.linalg.cho_solve(self.chol, (self.NwH @ b) * self.scale)
+        return (b - self.Nw @ c).reshape(e.shape)
+
+
+class _Bins:
+    """What does not depend on theta, per set of bins."""
+
+    def __init__(self, sp: Spectra, mask: np.ndarray, s2: np.ndarray):
+        self.mask = mask
+        self.w = sp.w[mask]
+        self.Y = sp.Y[mask]
+        self.G = sp.G[mask] if sp.G is not None else None
+        self.U = sp.U[mask]
+        self.sd = np.sqrt(s2[mask])
+        z = np.exp(1j * self.w / sp.fs_hz)
+        col = 1.0 / (1.0 - 1.0 / z)
+        self.drift = np.zeros((len(self.w), 8, 8), dtype=complex)
+        for c in range(8):
+            self.drift[:, c, c] = col / self.sd[:, c]
+
+
+class Replay:
+    """The data, the configured model and the weights: evaluates theta on the fit, held-out or all bins."""
+
+    def __init__(self, sp: Spectra, base: Base, s2: np.ndarray):
+        self.sp = sp
+        self.base = base
+        self.floor = sp.G is not None
+        self.s2 = s2
+        self._bins: dict = {}
+
+    def with_noise(self, s2: np.ndarray) -> "Replay":
+        return Replay(self.sp, self.base, s2)
+
+    def bins(self, mask: np.ndarray | None) -> _Bins:
+        m = np.ones(len(self.sp.f_hz), bool) if mask is None else mask
+        key = m.tobytes()
+        if key not in self._bins:
+            self._bins[key] = _Bins(self.sp, m, self.s2)
+        return self._bins[key]
+
+    def _error(self, b: _Bins, md, U) -> np.ndarray:
+        """The whitened error before the nuisance terms: (Y - gain (Hu U + Hg X)) / sd."""
+        U = b.U if U is None else U[b.mask]
+        X = -(b.G / md.gain_floor[None, :]) / (b.w ** 2)[:, None] if self.floor else None
+        pred = predict(md, b.w, U, X) * md.gain_out[None, :]
+        return (b.Y - pred) / b.sd
+
+    def evaluate(self, th: dict, mask: np.ndarray | None = None, *, U: np.ndarray | None = None) -> Evaluation:
+        """The residual of theta on the bins of mask (default: all). U: other valve commands (the effective
+        command of a deadband valve) at every bin."""
+        b = self.bins(mask)
+        md = modal(self.base, th)
+        R = responses(self.base, th, b.w, md=md, valves=False)
+        K, n = len(b.w), len(md.lam)
+        m = n + (8 if self.floor else 0) + 8
+        g = md.gain_out[None, :, None] / b.sd[:, :, None]
+        N = np.empty((K, 8, m), dtype=complex)
+        N[:, :, :n] = R.Tb * g
+        if self.floor:
+            N[:, :, n:n + 4] = R.Hg * (g / (b.w ** 2)[:, None, None])
+            N[:, :, n + 4:n + 8] = R.Hg * (g / (1j * b.w)[:, None, None])
+        N[:, :, m - 8:] = b.drift
+        e = self._error(b, md, U)
+        Q = None
+        keep = np.ones(e.shape)
+        if not self.floor:
+            Q = np.linalg.qr(R.Hg * g)[0]                      # (K, 8, 4) the floor's span, bin by bin
+            QH = np.conj(np.transpose(Q, (0, 2, 1)))
+            e = e - (Q @ (QH @ e[:, :, None]))[:, :, 0]
+            N = N - Q @ (QH @ N)
+            keep = 1.0 - np.sum(np.abs(Q) ** 2, axis=2)
+        Nw = N.reshape(-1, m)
+        NwH = np.ascontiguousarray(Nw.conj().T)
+        M = NwH @ Nw
+        d = np.real(np.diag(M)).copy()
+        d[d <= 0] = 1.0
+        scale = 1.0 / np.sqrt(d)
+        chol = scipy.linalg.cho_factor(M * scale[:, None] * scale[None, :] + 1e-10 * np.eye(m))
+        eb = e.reshape(-1)
+        coef = scale * scipy.linalg.cho_solve(chol, (NwH @ eb) * scale)
+        r = (eb - Nw @ coef).reshape(e.shape)
+        return Evaluation(r, b.sd, coef, keep, b.mask, Q, Nw, NwH, chol, scale)
+
+    def linear(self, th: dict, at: Evaluation, *, U: np.ndarray | None = None) -> np.ndarray:
+        """theta's whitened residual on at's bins projected with at's nuisance terms (Kaufman): for Jacobians."""
+        b = self.bins(at.mask)
+        return at.project(self._error(b, modal(self.base, th), U))
