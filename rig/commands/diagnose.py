@@ -14,7 +14,8 @@ from rig.errors import RigError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
-                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)")
+                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2), "
+                        "or a run of the four-mount rig (rig run --record, rig hil: docs/RUN_RECORDING.md)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", required=True,
                        help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
@@ -26,6 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from rig.commands import diagnose_rig           # a run of the four-mount rig (issue 28)
+    if diagnose_rig.handles(args):
+        return diagnose_rig.run(args)
     from rig.config import load_config
     from rig.recording import check_plausible
     from rig.signalmap import load_recording_for

@@ -34,9 +34,16 @@ EXPLAINED = 1.05                # held-out whitened residual per real part: noth
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
 
 
-def refit_slots(dt: float) -> tuple[Slot, ...]:
-    acts = tuple(Slot("act", i, "log", 0.5, 2.0, prior=True) for i in range(len(ACT_KEYS)))
-    return acts + (Slot("modal_zeta", 0, "log", 0.3, 3.0, prior=True), Slot("latency_s", 0, "lin", 0.0, 4 * dt))
+PASSIVE_KEYS = ("K_L", "K_C")    # what the mounts show with the valves at null (their stiffness and its leak)
+
+
+def refit_slots(dt: float, valves_driven: bool = True) -> tuple[Slot, ...]:
+    """The refit's slots: the actuators' common parameters (with the valves not driven only the passive ones;
+    the valve's and the latency are then not seen), the modes' common damping, the commands' latency."""
+    acts = tuple(Slot("act", i, "log", 0.5, 2.0, prior=True) for i, k in enumerate(ACT_KEYS)
+                 if valves_driven or k in PASSIVE_KEYS)
+    out = acts + (Slot("modal_zeta", 0, "log", 0.3, 3.0, prior=True),)
+    return out + ((Slot("latency_s", 0, "lin", 0.0, 4 * dt),) if valves_driven else ())
 
 
 @dataclass
@@ -108,10 +115,10 @@ def u_of(ctx: Context):
 def refit(ctx: Context) -> tuple[dict, Replay]:
     """The refit, then the weights raised where its residual says (weights.inflation); (theta, replay)."""
     th0 = nominal_theta(ctx.base)
-    res = fit(ctx.rp, th0, refit_slots(ctx.base.dt), ctx.sp.fit)
+    res = fit(ctx.rp, th0, refit_slots(ctx.base.dt, ctx.valves_driven), ctx.sp.fit)
     ev = ctx.rp.evaluate(res.th)
     ctx.rp = ctx.rp.with_noise(inflated(ctx.rp.s2, inflation(ev, ctx.sp.f_hz), ctx.sp.f_hz))
-    res = fit(ctx.rp, res.th, refit_slots(ctx.base.dt), ctx.sp.fit)      # again, under the weights it set
+    res = fit(ctx.rp, res.th, refit_slots(ctx.base.dt, ctx.valves_driven), ctx.sp.fit)      # again, under the weights it set
     return res.th, ctx.rp
 
 
@@ -214,7 +221,7 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
     best FULL_FITS candidates (and the extra mode: its start is the screen's roughest) with the command's
     latency, and tests them against the round's base."""
     say = progress or (lambda s: None)
-    latency = tuple(s for s in refit_slots(ctx.base.dt) if s.key == "latency_s")
+    latency = tuple(s for s in refit_slots(ctx.base.dt, ctx.valves_driven) if s.key == "latency_s")
     th = th_refit
     chosen, tried, screened_all = [], [], []
     n_fit, n_hold = 2 * ctx.sp.fit.sum() * 8, 2 * ctx.sp.hold.sum() * 8      # real numbers
@@ -256,7 +263,7 @@ def polish(sel: Selection, progress=None) -> Selection:
         return sel
     say = progress or (lambda s: None)
     ctx = sel.ctx
-    base_slots = list(refit_slots(ctx.base.dt))
+    base_slots = list(refit_slots(ctx.base.dt, ctx.valves_driven))
     n_fit, n_hold = 2 * ctx.sp.fit.sum() * 8, 2 * ctx.sp.hold.sum() * 8
 
     def polished(chosen, th):

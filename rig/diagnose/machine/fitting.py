@@ -20,7 +20,8 @@ from rig.diagnose.machine.residual import Evaluation, Replay
 from rig.diagnose.machine.rigmodel import copy_theta
 
 MIN_GAIN = 0.01                 # an effect must cut the held-out residual by at least 1 %
-PRIOR_SD = 0.5                  # log-factor spread of the common refit factors' prior (x/÷ 1.65)
+PRIOR_SD = 0.25                 # log-factor spread of the common refit factors' prior (x/÷ 1.28: a valve's
+                                # and a membrane's tolerances)
 
 
 @dataclass(frozen=True)
