@@ -14,25 +14,32 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")     # (before numpy loads: see diagnose_rig.py)
 
 
+def record_case(case, path: Path) -> None:
+    """The case's closed-loop run of the simulated rig, recorded to path as rig run --sim-time --record does."""
+    from rig.config import config_from_dict
+    from rig.runtime.clock import SimClock
+    from rig.runtime.session import Session
+
+    truth = config_from_dict(case.sections(), source=f"<rig prove case {case.name}>")
+    attrs = {"command": "rig prove --rig", "layout": "machine", "isolation_at_start": case.mode}
+    with Session(truth, "sim", clock=SimClock(), record=str(path), record_attrs=attrs,
+                 isolation=case.mode != "off", feedforward=case.mode == "feedback_feedforward") as s:
+        s.run(seconds=case.duration_s, activate_after_s=0.05)
+
+
 def run_case(case_dict: dict, keep_dir: str | None = None) -> dict:
-    """One case: run, record, diagnose, grade (in a worker process)."""
+    """One case: run, record, diagnose with the model's config, grade (in a worker process)."""
     from rig.config import config_from_dict
     from rig.diagnose.machine.prove import RigCase, grade
     from rig.diagnose.machine.report import summary_text
     from rig.diagnose.machine.result import diagnose_rig
     from rig.diagnose.machine.runfile import read_run
-    from rig.runtime.clock import SimClock
-    from rig.runtime.session import Session
 
     case = RigCase(**case_dict)
-    truth = config_from_dict(case.sections(), source=f"<rig prove case {case.name}>")
     model = config_from_dict(case.model_sections(), source="<the model>")
     with tempfile.TemporaryDirectory(prefix="rig-prove-") as tmp:
         path = Path(keep_dir or tmp) / f"{case.name}.h5"
-        attrs = {"command": "rig prove --rig", "layout": "machine", "isolation_at_start": case.mode}
-        with Session(truth, "sim", clock=SimClock(), record=str(path), record_attrs=attrs,
-                     isolation=case.mode != "off", feedforward=case.mode == "feedback_feedforward") as s:
-            s.run(seconds=case.duration_s, activate_after_s=0.05)
+        record_case(case, path)
         rec = read_run(path)
         t0, c0 = time.perf_counter(), time.process_time()
         diag = diagnose_rig(rec, model)

@@ -102,7 +102,7 @@ def _extra_instances(eff: Effect, ctx) -> list[Instance]:
 MODE_FREQUENCY = Effect(
     "mode_frequency", "mode f", "mode", (Param("frequency_hz", "Hz", 1.0, 500.0),),
     "the resonance of a machine mode in the mounts' responses stands at another frequency than Table 2's",
-    grid=tuple(np.round(np.arange(0.76, 1.26, 0.03), 3)), extra={"instances": _mode_instances})
+    grid=tuple(np.round(np.arange(0.78, 1.25, 0.04), 3)), extra={"instances": _mode_instances})
 MODE_DAMPING = Effect(
     "mode_damping", "mode zeta", "mode", (Param("damping_ratio", "", 0.001, 0.5),),
     "a machine mode's resonance in the mounts' responses is sharper or broader than the model's",
@@ -232,8 +232,15 @@ def _mount_draw(key: str, size):
     return draw
 
 
+def _gain_kinds(cond) -> list[str]:
+    """The sensors a run can judge: strokes when the valves move them (with isolation off they rest at their
+    noise), accelerometers and floor accelerometers only with the floor measured (else the floor takes an
+    accelerometer's sensitivity up)."""
+    return (["stroke"] if cond.mode != "off" else []) + (["accel", "floor"] if cond.floor_sensors else [])
+
+
 def _gain_draw(rng, cond):
-    kinds = ["stroke"] + (["accel", "floor"] if cond.floor_sensors else [])
+    kinds = _gain_kinds(cond)
     s = str(rng.choice(kinds))
     i = int(rng.integers(4))
     g = round(_size(rng, 0.08, 0.25), 4)
@@ -263,14 +270,25 @@ def _rocking_draw(rng, cond):
     return axis, {"rocking_rms_over_floor_rms": r}, {}, {"rocking_axis": axis, "rocking_over_floor": r}
 
 
-DRAWS = {   # effect -> (draw, what the run must have)
-    MODE_FREQUENCY.name: (_mode_draw("mode_frequency_factor"), ()),
-    MODE_DAMPING.name: (_mode_draw("mode_damping_factor"), ()),
-    EXTRA_MODE.name: (_extra_draw, ()),
-    MOUNT_STIFFNESS.name: (_mount_draw("mount_stiffness_factor", lambda rng: _size(rng, 0.25, 0.6)), ()),
-    SENSOR_GAIN.name: (_gain_draw, ()),
-    TRANSPORT_DELAY.name: (_valve_draw("valve_delay_s", 1.5e-4, 4e-4), ("valves",)),
-    VALVE_DEADBAND.name: (_valve_draw("valve_deadband_ma", 0.2, 1.0), ("valves",)),
-    VALVE_NULL_OFFSET.name: (_valve_draw("valve_null_V", 0.1, 0.4, signed=True), ()),
-    FLOOR_ROCKING.name: (_rocking_draw, ()),
+def _valves(cond) -> bool:
+    return cond.mode != "off"
+
+
+def _machine_seen(cond) -> bool:
+    """A machine mode is seen in the mounts' responses to the valves (driven) or to the floor (measured); with
+    isolation off and the floor unmeasured the floor, projected out, takes the mounts' responses with it."""
+    return cond.mode != "off" or cond.floor_sensors
+
+
+DRAWS = {   # effect -> (draw, whether the run can tell it)
+    MODE_FREQUENCY.name: (_mode_draw("mode_frequency_factor"), _machine_seen),
+    MODE_DAMPING.name: (_mode_draw("mode_damping_factor"), _machine_seen),
+    EXTRA_MODE.name: (_extra_draw, _machine_seen),
+    MOUNT_STIFFNESS.name: (_mount_draw("mount_stiffness_factor", lambda rng: _size(rng, 0.25, 0.6)),
+                           lambda cond: True),
+    SENSOR_GAIN.name: (_gain_draw, lambda cond: bool(_gain_kinds(cond))),
+    TRANSPORT_DELAY.name: (_valve_draw("valve_delay_s", 1.5e-4, 4e-4), _valves),
+    VALVE_DEADBAND.name: (_valve_draw("valve_deadband_ma", 0.2, 1.0), _valves),
+    VALVE_NULL_OFFSET.name: (_valve_draw("valve_null_V", 0.1, 0.4, signed=True), lambda cond: True),
+    FLOOR_ROCKING.name: (_rocking_draw, lambda cond: True),
 }

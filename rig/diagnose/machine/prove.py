@@ -87,8 +87,7 @@ def _merge(dst: dict, src: dict) -> None:
 
 
 def _kinds(cond: _Conditions) -> list[str]:
-    valves = cond.mode != "off"
-    return [name for name, (draw, needs) in fx.DRAWS.items() if "valves" not in needs or valves]
+    return [name for name, (_, tells) in fx.DRAWS.items() if tells(cond)]
 
 
 def draw_cases(n: int, seed: int, *, duration_s: float = 60.0, cfg: Config | None = None) -> list[RigCase]:
@@ -107,7 +106,7 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 60.0, cfg: Config | Non
     order = [str(x) for x in rng.permutation(list(fx.DRAWS))]
     cases, used = [], 0
     for i, k in enumerate(counts):
-        mode = str(rng.choice(MODES))
+        mode = str(rng.choice(MODES, p=(0.3, 0.35, 0.35)))
         floor = True if mode == "feedback_feedforward" else bool(rng.random() < 0.5)
         cond = _Conditions(modal, mode, floor, coupled)
         kinds = _kinds(cond)

@@ -177,7 +177,7 @@ def diagnose_rig(run: RunRecording, cfg: Config, progress=None) -> RigDiagnosis:
     evh = {k: ctx.rp.evaluate(v, ctx.sp.hold, U=u_of(ctx)(v))
            for k, v in (("nominal", sel.th_nominal), ("refit", sel.th_refit), ("augmented", th))}
     mismatch = {k: _per_channel(ev, ctx.sp.f_hz) for k, ev in evh.items()}
-    over = math.sqrt(evh["augmented"].rss / evh["augmented"].r.size)
+    over = math.sqrt(evh["augmented"].rss / max(float(evh["augmented"].keep.sum()), 1.0))
     verdict = _verdict(over, named)
     diag = RigDiagnosis(run.source, run.fs_hz, run.duration_s, run.floor_measured, run.mode_seconds(),
                         ctx.valves_driven, named, _refit_dict(sel), mismatch, _located(mismatch["refit"]),

@@ -16,7 +16,7 @@ from rig.diagnose.machine.runfile import RunRecording
 
 BAND_HZ = (0.3, 150.0)          # the floor's band and the actuators' (valve 83 Hz); below 0.3 Hz the blend and
                                 # the centring hold the strokes, above 150 Hz the machine-on-actuator modes
-MAX_BINS = 2500                 # per set (fit, held out): the models are smooth over many bins of a long record
+MAX_BINS = 1200                 # per set (fit, held out): the models are smooth over many bins of a long record
 BANDS_HZ = ((0.3, 1.0), (1.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0), (60.0, 100.0),
             (100.0, 150.0))     # where the mismatch is reported (the paper's bands, the machine modes split)
 CHANNELS = ("accel", "stroke")

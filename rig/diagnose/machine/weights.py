@@ -3,7 +3,7 @@
   s2 = the sensor's own noise (its top band, spectra.Spectra.noise)
      + with floor accelerometers, their noise carried into the prediction by the floor's response
        (sum over mounts of |gain Hg|^2 sigma_g^2 / w^4: the floor is an input known only through them)
-     + FIDELITY^2 |measured|^2 (two faithful models of one rig differ by about that much)
+     + FIDELITY^2 |measured|^2 (two faithful models of one rig differ by about that much; residual.py)
 then raised band by band where the refit's whitened residual is larger (the robust median: noise that is not
 white, a sensor filter, what no catalogue effect explains) -- never lowered.
 """
@@ -25,7 +25,7 @@ def expected(sp: Spectra, R: Responses) -> np.ndarray:
         g = R.gain_out[None, :, None]
         sg = sp.noise[8:12][None, None, :] / np.abs(R.gain_floor[None, None, :]) ** 2
         s2 += np.sum(np.abs(g * R.Hg) ** 2 * sg, axis=2) / (sp.w ** 4)[:, None]
-    return s2 + (FIDELITY * np.abs(sp.Y)) ** 2
+    return s2 + (FIDELITY[None, :] * np.abs(sp.Y)) ** 2
 
 
 def inflation(ev: Evaluation, f_hz: np.ndarray) -> np.ndarray:
