@@ -36,6 +36,7 @@ VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it
 
 
 PASSIVE_KEYS = ("K_L", "K_C")    # what the mounts show with the valves at null (their stiffness and its leak)
+MODAL_ZETA = Slot("modal_zeta", 0, "log", 0.5, 2.0, prior=True)   # the modes' common damping: 0.015-0.06
 
 
 def refit_slots(dt: float, valves_driven: bool = True) -> tuple[Slot, ...]:
@@ -43,7 +44,7 @@ def refit_slots(dt: float, valves_driven: bool = True) -> tuple[Slot, ...]:
     the valve's and the latency are then not seen), the modes' common damping, the commands' latency."""
     acts = tuple(Slot("act", i, "log", 0.5, 2.0, prior=True) for i, k in enumerate(ACT_KEYS)
                  if valves_driven or k in PASSIVE_KEYS)
-    out = acts + (Slot("modal_zeta", 0, "log", 0.3, 3.0, prior=True),)
+    out = acts + (MODAL_ZETA,)
     return out + ((Slot("latency_s", 0, "lin", 0.0, 4 * dt),) if valves_driven else ())
 
 
@@ -119,7 +120,7 @@ def refit(ctx: Context) -> tuple[dict, Replay]:
     res = fit(ctx.rp, th0, refit_slots(ctx.base.dt, ctx.valves_driven), ctx.sp.fit)
     ev = ctx.rp.evaluate(res.th)
     ctx.rp = ctx.rp.with_noise(inflated(ctx.rp.s2, inflation(ev, ctx.sp.f_hz), ctx.sp.f_hz))
-    res = fit(ctx.rp, res.th, refit_slots(ctx.base.dt, ctx.valves_driven), ctx.sp.fit)      # again, under the weights it set
+    res = fit(ctx.rp, res.th, refit_slots(ctx.base.dt, ctx.valves_driven), ctx.sp.fit, max_nfev=12)   # the weights set
     return res.th, ctx.rp
 
 
@@ -266,7 +267,8 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
         slots = list(latency) + [s for t in chosen for s in t.instance.slots]
         best = None
         for inst, value, _ in todo:
-            res = fit_candidate(ctx, th, inst, value, slots)
+            mode_like = inst.effect.where in ("mode", "machine")     # the modes' common damping trades with it
+            res = fit_candidate(ctx, th, inst, value, slots + ([MODAL_ZETA] if mode_like else []))
             rf, rh = res.ev.rss, _rss(ctx, res.th, ctx.sp.hold)
             t = Tried(inst, res.th, rf, rh, compare(base_fit, base_hold, rf, rh, n_fit, n_hold, len(inst.slots)), step)
             tried.append(t)

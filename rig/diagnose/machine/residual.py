@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.linalg
 
@@ -42,12 +43,12 @@ class Evaluation:
     coef: np.ndarray
     keep: np.ndarray
     mask: np.ndarray
-    Q: np.ndarray | None        # (Kset, 8, 4) per-bin floor basis (whitened), None with floor accelerometers
+    Q: np.ndarray | None        # (Kset, 8, 4) the floor's whitened responses bin by bin (None: floor measured)
     Nw: np.ndarray              # (Kset * 8, m) whitened nuisance columns after the floor's projection
     NwH: np.ndarray             # its conjugate transpose (contiguous: projections reuse it)
     chol: tuple                 # Cholesky factor of their normal equations (scaled)
     scale: np.ndarray
-    terms: np.ndarray           # (Kset, 8) the nuisance terms fitted, whitened, before the floor's projection
+    terms: np.ndarray           # (Kset, 8) the nuisance terms fitted, whitened, after the floor's projection
 
     @property
     def rss(self) -> float:
@@ -56,7 +57,9 @@ class Evaluation:
     def project(self, e: np.ndarray) -> np.ndarray:
         """A whitened residual (Kset, 8) with this evaluation's nuisance terms taken out."""
         if self.Q is not None:
-            e = e - (self.Q @ (np.conj(np.transpose(self.Q, (0, 2, 1))) @ e[:, :, None]))[:, :, 0]
+            e = np.ascontiguousarray(e[:, :, None])
+            _floor_project(self.Q, e, False)
+            e = e[:, :, 0]
         b = e.reshape(-1)
         c = self.scale * scipy.linalg.cho_solve(self.chol, (self.NwH @ b) * self.scale)
         return (b - self.Nw @ c).reshape(e.shape)
@@ -121,16 +124,14 @@ class Replay:
             N[:, :, n:n + 4] = R.Hg * (g / (b.w ** 2)[:, None, None])
             N[:, :, n + 4:n + 8] = R.Hg * (g / (1j * b.w)[:, None, None])
         N[:, :, m - 8:] = b.drift
-        N0 = N
         e = self._error(b, md, U)
         Q = None
         keep = np.ones(e.shape)
         if not self.floor:
-            Q = np.linalg.qr(R.Hg * g)[0]                      # (K, 8, 4) the floor's span, bin by bin
-            QH = np.conj(np.transpose(Q, (0, 2, 1)))
-            e = e - (Q @ (QH @ e[:, :, None]))[:, :, 0]
-            N = N - Q @ (QH @ N)
-            keep = 1.0 - np.sum(np.abs(Q) ** 2, axis=2)
+            Q = np.ascontiguousarray(R.Hg * g)                 # (K, 8, 4) the floor's span, bin by bin
+            both = np.concatenate([e[:, :, None], N], axis=2)
+            keep = _floor_project(Q, both)                     # in place
+            e, N = both[:, :, 0], both[:, :, 1:]
         Nw = N.reshape(-1, m)
         NwH = np.ascontiguousarray(Nw.conj().T)
         M = NwH @ Nw
@@ -141,19 +142,73 @@ class Replay:
         eb = e.reshape(-1)
         coef = scale * scipy.linalg.cho_solve(chol, (NwH @ eb) * scale)
         r = (eb - Nw @ coef).reshape(e.shape)
-        return Evaluation(r, b.sd, coef, keep, b.mask, Q, Nw, NwH, chol, scale, N0 @ coef)
+        return Evaluation(r, b.sd, coef, keep, b.mask, Q, Nw, NwH, chol, scale, (Nw @ coef).reshape(e.shape))
 
     def linear(self, th: dict, at: Evaluation, *, U: np.ndarray | None = None) -> np.ndarray:
         """theta's whitened residual on at's bins with at's nuisance terms (Kaufman): for Jacobians and screens.
-        With floor accelerometers projected off at's nuisance span; without them less at's fitted nuisance
-        terms and projected off theta's own floor span (the floor's responses move with theta far more than
-        the slow end terms do)."""
+        With floor accelerometers projected off at's nuisance span; without them projected off theta's own
+        floor span, less at's fitted nuisance terms (the floor's responses move with theta far more than the
+        end terms do)."""
         b = self.bins(at.mask)
         md = modal(self.base, th)
         e = self._error(b, md, U)
         if at.Q is None:
             return at.project(e)
-        R = responses(self.base, th, b.w, md=md, valves=False)
-        Q = np.linalg.qr(R.Hg * (md.gain_out[None, :, None] / b.sd[:, :, None]))[0]
-        e = e - at.terms
-        return e - (Q @ (np.conj(np.transpose(Q, (0, 2, 1))) @ e[:, :, None]))[:, :, 0]
+        R = responses(self.base, th, b.w, md=md, valves=False, ends=False)
+        H = np.ascontiguousarray(R.Hg * (md.gain_out[None, :, None] / b.sd[:, :, None]))
+        e = np.ascontiguousarray(e[:, :, None])
+        _floor_project(H, e, False)
+        return e[:, :, 0] - at.terms
+
+
+@numba.njit(cache=True)
+def _floor_project(H, E, keep_too=True):
+    """Per bin k: E[k] -= H[k] (H[k]^H H[k])^-1 H[k]^H E[k] (each column of E[k] off the floor's span, in place);
+    returns the diagonal of I - H (H^H H)^-1 H^H per bin and channel (the share of a channel's noise left;
+    keep_too False: not computed, ones). The 4 x 4 Gram matrix by Cholesky, bin by bin."""
+    K, no, nf = H.shape
+    m = E.shape[2]
+    keep = np.ones((K, no))
+    L = np.zeros((nf, nf), dtype=np.complex128)
+    first = -no if keep_too else 0
+    v = np.empty(nf, dtype=np.complex128)
+    for k in range(K):
+        for i in range(nf):                                   # Cholesky of G = H^H H
+            for j in range(i + 1):
+                acc = 0.0j
+                for c in range(no):
+                    acc += np.conj(H[k, c, i]) * H[k, c, j]
+                for q in range(j):
+                    acc -= L[i, q] * np.conj(L[j, q])
+                if i == j:
+                    L[i, i] = np.sqrt(max(acc.real, 1e-300))
+                else:
+                    L[i, j] = acc / L[j, j].real
+        for col in range(first, m):                           # the channels' unit vectors (keep), then E's columns
+            for i in range(nf):
+                acc = 0.0j
+                if col < 0:
+                    acc = np.conj(H[k, col + no, i])
+                else:
+                    for c in range(no):
+                        acc += np.conj(H[k, c, i]) * E[k, c, col]
+                for q in range(i):
+                    acc -= L[i, q] * v[q]
+                v[i] = acc / L[i, i].real
+            if col < 0:                                       # h_c G^-1 h_c^H = |L^-1 h_c^H|^2
+                s = 0.0
+                for i in range(nf):
+                    s += v[i].real ** 2 + v[i].imag ** 2
+                keep[k, col + no] = 1.0 - s
+                continue
+            for i in range(nf - 1, -1, -1):                   # back-substitution: G x = H^H e
+                acc = v[i]
+                for q in range(i + 1, nf):
+                    acc -= np.conj(L[q, i]) * v[q]
+                v[i] = acc / L[i, i].real
+            for c in range(no):
+                acc = 0.0j
+                for i in range(nf):
+                    acc += H[k, c, i] * v[i]
+                E[k, c, col] -= acc
+    return keep

@@ -141,10 +141,10 @@ class Responses:
     lam: np.ndarray             # the continuous eigenvalues (1/s), one per column of Tb
 
 
-def responses(base: Base, th: dict, w: np.ndarray, *, floor: bool = True, valves: bool = True,
+def responses(base: Base, th: dict, w: np.ndarray, *, floor: bool = True, valves: bool = True, ends: bool = True,
               md: Modal | None = None) -> Responses:
     """The model at theta, at the bins w (rad/s); floor=False skips the floor responses, valves=False the
-    valves' (zero)."""
+    valves', ends=False the end-state columns (zero)."""
     md = md or modal(base, th)
     w = np.asarray(w, dtype=float)
     K = len(w)
@@ -163,7 +163,7 @@ def responses(base: Base, th: dict, w: np.ndarray, *, floor: bool = True, valves
         for i in range(4):
             Hg[:, :, i] = (Pc * (md.VBx[:, i][None, :] + jw[:, None] * md.VBv[:, i][None, :])) @ CVT \
                 + md.Dx[None, :, i] + jw[:, None] * md.Dv[None, :, i]
-    Tb = md.CV[None, :, :] * (1.0 / (1.0 - md.mu[None, :] / z[:, None]))[:, None, :]
+    Tb = md.CV[None, :, :] * (1.0 / (1.0 - md.mu[None, :] / z[:, None]))[:, None, :] if ends else None
     a = base.config(th)
     return Responses(Hu, Hg, Tb, md.gain_out, md.gain_floor, a.valve.w_nv * np.ones(4), a.valve.zeta * np.ones(4),
                      a.valve.K_v, md.lam)
