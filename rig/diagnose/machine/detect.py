@@ -18,13 +18,6 @@ from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.fitting import MIN_GAIN
 from rig.diagnose.machine.residual import Replay
 
-# a typical size of each effect (the slot's value relative to the model), and how the smallest size is said
-TYPICAL = {"mode_frequency": (1.03, "frequency", "%"), "mode_damping": (2.0, "damping", "x"),
-           "mount_stiffness": (1.3, "K_L", "%"), "mount_damping": (3.0, "C", "x"),
-           "sensor_gain": (1.1, "sensitivity", "%"), "transport_delay": (3e-4, "delay", "ms"),
-           "valve_deadband": (0.5, "width", "mA")}
-
-
 @dataclass(frozen=True)
 class Detectability:
     key: str
@@ -42,6 +35,8 @@ class Detectability:
                 return f"+-{v:.1f} %"
             if self.unit == "x":
                 return f"x{v:.2f}" if v < 100 else "beyond x100"
+            if self.unit == "s":
+                return f"{v * 1e3:.3g} ms"
             return f"{v:.3g} {self.unit}"
         s = f"{self.effect} at {self.location}: from {fmt(self.smallest)}"
         if self.smallest_with_floor is not None:
@@ -50,11 +45,11 @@ class Detectability:
 
 
 def _typical(th: dict, inst: fx.Instance):
-    size, _, unit = TYPICAL[inst.effect.name]
+    size, unit = inst.effect.typical
     slot = inst.slots[0]
     out = {k: np.array(v, copy=True) for k, v in th.items()}
     v0 = out[slot.key][slot.index]
-    out[slot.key][slot.index] = v0 + size if unit in ("ms", "mA") else v0 * size
+    out[slot.key][slot.index] = v0 * size if unit in ("%", "x") else v0 + size
     return out, size, unit
 
 
@@ -67,7 +62,7 @@ def _smallest(lam: float, needed: float, size: float, unit: str) -> float:
         return 100 * (size - 1.0) * k
     if unit == "x":
         return math.exp(math.log(size) * k)
-    return (size * 1e3 if unit == "ms" else size) * k
+    return size * k
 
 
 def detectability(rp: Replay, th: dict, mask: np.ndarray, U_of, ctx, *, rp_floor: Replay | None = None) -> list:
@@ -78,7 +73,7 @@ def detectability(rp: Replay, th: dict, mask: np.ndarray, U_of, ctx, *, rp_floor
     needed = max(MIN_GAIN * at.rss, 0.5 * math.log(2 * n) + 2.0)
     out = []
     for inst in fx.instances(ctx, valves_driven=True):
-        if inst.effect.name not in TYPICAL:
+        if not inst.effect.typical:
             continue
         th1, size, unit = _typical(th, inst)
         lam = float(np.sum(np.abs(rp.linear(th1, at, U=U_of(th1)) - at.r) ** 2))

@@ -10,7 +10,8 @@ rocking (the floor is the replay's input, not its model) have their own tests (o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -46,51 +47,45 @@ class Instance:
 
 @dataclass(frozen=True)
 class Effect:
+    """One effect: what the diagnosis fits (its instances' slots of the model's parameters, the start grid of the
+    first), how it reports and says it, what evidence it stands on, how the blind proof draws it (DRAWS below)
+    and the simulator's term (docs/MODEL.md, [rig_error])."""
     name: str
     short: str
     where: str                  # mode, machine, mount, sensor, valve, floor
     params: tuple
     evidence: str               # the signature the diagnosis looks for (one line, for the report)
-    needs: tuple = ()           # "valves": the valves must be driven (feedback); "floor": floor accelerometers
+    make_instances: Callable | None = None    # (effect, ctx) -> [Instance]; None: tested apart (offsets, floor)
+    report: Callable | None = None            # (instance, theta, ctx) -> parameters as reported
+    say: Callable = str                       # parameters -> one line
+    needs_valves: bool = False  # its instances are candidates only when the valves were driven
     grid: tuple = ()            # start values of the first slot, screened before a fit
     nonlinear: bool = False     # the model sees an effective command (time domain) rather than a response
-    extra: dict = field(default_factory=dict)
+    margins_note: str = ""      # for an effect outside the loop: what it does to the margins
+    typical: tuple = ()         # (size, unit): a typical size ("%": a factor 1 + size, "x": a factor, else
+                                # added), for what a recording can tell (detect.py)
+    started: bool = False       # its start is the engine's own search (the extra mode), not a grid
+    shared_place: bool = False  # a second one of it in a case may sit where the first does (proof)
 
 
-def _mode_instances(eff: Effect, ctx) -> list[Instance]:
-    out = []
-    names = ctx.modal.flexible_names
-    shape = np.abs(ctx.modal.phi_mounts[ctx.modal.w_n > 0]) / ctx.modal.shape_unit_scale
-    for r, name in enumerate(names):
-        if shape[r].max() < MIN_MOUNT_SHAPE:
-            continue
-        key = "mode_f" if eff.name == "mode_frequency" else "mode_z"
-        lo, hi = (0.6, 1.6) if key == "mode_f" else (0.1, 10.0)
-        out.append(Instance(eff, r, name, (Slot(key, r, "log", lo, hi),)))
-    return out
-
-
-def _mount_instances(key: str, lo: float, hi: float):
+def _mode_instances(key: str, lo: float, hi: float):
     def make(eff: Effect, ctx) -> list[Instance]:
-        return [Instance(eff, i, m, (Slot(key, i, "log", lo, hi),)) for i, m in enumerate(MOUNTS)]
+        shape = np.abs(ctx.modal.phi_mounts[ctx.modal.w_n > 0]) / ctx.modal.shape_unit_scale
+        return [Instance(eff, r, name, (Slot(key, r, "log", lo, hi),))
+                for r, name in enumerate(ctx.modal.flexible_names) if shape[r].max() >= MIN_MOUNT_SHAPE]
+    return make
+
+
+def _mount_instances(key: str, lo: float, hi: float, scale: str = "log"):
+    def make(eff: Effect, ctx) -> list[Instance]:
+        return [Instance(eff, i, m, (Slot(key, i, scale, lo, hi),)) for i, m in enumerate(MOUNTS)]
     return make
 
 
 def _sensor_instances(eff: Effect, ctx) -> list[Instance]:
-    out = []
-    for s in SENSORS:
-        if s == "floor" and not ctx.floor:
-            continue
-        for i, m in enumerate(MOUNTS):
-            out.append(Instance(eff, 4 * SENSORS.index(s) + i, f"{SENSOR_TEXT[s]} at {m}",
-                                (Slot(SENSOR_KEY[s], i, "signed", 0.05, 10.0),)))
-    return out
-
-
-def _valve_instances(key: str, lo: float, hi: float):
-    def make(eff: Effect, ctx) -> list[Instance]:
-        return [Instance(eff, i, m, (Slot(key, i, "lin", lo, hi),)) for i, m in enumerate(MOUNTS)]
-    return make
+    return [Instance(eff, 4 * SENSORS.index(s) + i, f"{SENSOR_TEXT[s]} at {m}",
+                     (Slot(SENSOR_KEY[s], i, "signed", 0.05, 10.0),))
+            for s in SENSORS if s != "floor" or ctx.floor for i, m in enumerate(MOUNTS)]
 
 
 def _extra_instances(eff: Effect, ctx) -> list[Instance]:
@@ -99,47 +94,108 @@ def _extra_instances(eff: Effect, ctx) -> list[Instance]:
     return [Instance(eff, 0, "machine", slots)]
 
 
+def _flex(ctx, key: str, i: int) -> float:
+    return float(getattr(ctx.modal, key)[ctx.modal.w_n > 0][i])
+
+
+def _report_frequency(inst, th, ctx) -> dict:
+    f0 = _flex(ctx, "w_n", inst.index) / (2 * math.pi)
+    return {"mode": inst.location, "frequency_hz": f0 * float(th["mode_f"][inst.index]), "model_hz": f0}
+
+
+def _report_damping(inst, th, ctx) -> dict:
+    z0 = _flex(ctx, "zeta", inst.index)
+    return {"mode": inst.location, "damping_ratio": z0 * float(th["mode_z"][inst.index] * th["modal_zeta"][0]),
+            "model_damping_ratio": z0}
+
+
+def _report_extra(inst, th, ctx) -> dict:
+    x = np.asarray(th["extra"], dtype=float)
+    v = x[2:6]
+    sign = 1.0 if v[int(np.argmax(np.abs(v)))] >= 0 else -1.0      # a mode's shape has no sign of its own
+    return {"frequency_hz": float(x[0]), "damping_ratio": float(x[1]),
+            "shape": dict(zip(MOUNTS, (float(sign * a) for a in v)))}
+
+
+def _report_factor(inst, th, ctx) -> dict:
+    return {"mount": inst.location, "factor": float(inst.slots[0].get(th))}
+
+
+def _report_gain(inst, th, ctx) -> dict:
+    s = SENSORS[inst.index // 4]
+    return {"sensor": s, "mount": MOUNTS[inst.index % 4], "gain": float(th[SENSOR_KEY[s]][inst.index % 4])}
+
+
+def _report_value(name: str):
+    def report(inst, th, ctx) -> dict:
+        return {"mount": inst.location, name: float(inst.slots[0].get(th))}
+    return report
+
+
+def _say_gain(p) -> str:
+    sign = " (sign reversed)" if p["gain"] < 0 else ""
+    return f"{p['mount']}: {SENSOR_TEXT[p['sensor']]} reads x{p['gain']:.3f}{sign}"
+
+
 MODE_FREQUENCY = Effect(
     "mode_frequency", "mode f", "mode", (Param("frequency_hz", "Hz", 1.0, 500.0),),
     "the resonance of a machine mode in the mounts' responses stands at another frequency than Table 2's",
-    grid=tuple(np.round(np.arange(0.78, 1.25, 0.04), 3)), extra={"instances": _mode_instances})
+    _mode_instances("mode_f", 0.6, 1.6), _report_frequency,
+    lambda p: f"mode '{p['mode']}' at {p['frequency_hz']:.2f} Hz (Table 2: {p['model_hz']:.2f} Hz)",
+    grid=tuple(np.round(np.arange(0.78, 1.25, 0.04), 3)), typical=(1.03, "%"))
 MODE_DAMPING = Effect(
     "mode_damping", "mode zeta", "mode", (Param("damping_ratio", "", 0.001, 0.5),),
     "a machine mode's resonance in the mounts' responses is sharper or broader than the model's",
-    grid=(0.3, 0.5, 0.7, 1.5, 2.2, 3.5), extra={"instances": _mode_instances})
+    _mode_instances("mode_z", 0.1, 10.0), _report_damping,
+    lambda p: f"mode '{p['mode']}' damped {p['damping_ratio']:.4f} (model {p['model_damping_ratio']:.4f})",
+    grid=(0.3, 0.5, 0.7, 1.5, 2.2, 3.5), typical=(2.0, "x"))
 EXTRA_MODE = Effect(
     "extra_mode", "extra mode", "machine",
     (Param("frequency_hz", "Hz", 3.0, 300.0), Param("damping_ratio", "", 0.005, 0.3),
      Param("shape", "1/sqrt(t)", -1.5, 1.5)),
-    "a resonance in the mounts' responses where the model has no mode", extra={"instances": _extra_instances})
+    "a resonance in the mounts' responses where the model has no mode", _extra_instances, _report_extra,
+    lambda p: (f"a mode the model lacks at {p['frequency_hz']:.2f} Hz, damping {p['damping_ratio']:.4f}, shape at "
+               "the mounts " + ", ".join(f"{m} {v:+.3f}" for m, v in p["shape"].items()) + " (1/sqrt(t))"),
+    started=True, shared_place=True)
 MOUNT_STIFFNESS = Effect(
     "mount_stiffness", "K_L", "mount", (Param("factor", "", 0.2, 5.0),),
     "one mount's stroke per valve volt (below the 7 Hz lag: 1 / K_L) and its share of the machine's weight "
-    "differ from the others'", grid=(0.5, 0.7, 1.4, 2.0), extra={"instances": _mount_instances("mount_K", 0.2, 5.0)})
+    "differ from the others'", _mount_instances("mount_K", 0.2, 5.0), _report_factor,
+    lambda p: f"{p['mount']}: membrane stiffness K_L x{p['factor']:.3f}", grid=(0.5, 0.7, 1.4, 2.0),
+    typical=(1.3, "%"))
 MOUNT_DAMPING = Effect(
     "mount_damping", "C", "mount", (Param("factor", "", 0.05, 30.0),),
-    "one mount's viscous term: force on its stroke velocity", grid=(0.2, 5.0, 20.0),
-    extra={"instances": _mount_instances("mount_C", 0.05, 30.0)})
+    "one mount's viscous term: force on its stroke velocity", _mount_instances("mount_C", 0.05, 30.0),
+    _report_factor, lambda p: f"{p['mount']}: viscous coefficient C x{p['factor']:.3f}", grid=(0.2, 5.0, 20.0),
+    typical=(3.0, "x"))
 SENSOR_GAIN = Effect(
     "sensor_gain", "gain", "sensor", (Param("gain", "", -10.0, 10.0),),
     "one channel reads the replay scaled (a sign reversed: opposite phase) in every band where it is seen",
-    grid=(-1.0, 0.8, 1.25), extra={"instances": _sensor_instances})
+    _sensor_instances, _report_gain, _say_gain, grid=(-1.0, 0.8, 1.25), typical=(1.1, "%"))
 TRANSPORT_DELAY = Effect(
     "transport_delay", "delay", "valve", (Param("delay_s", "s", 0.0, 0.01),),
-    "one valve's response lags the others' by a phase growing with frequency (-w tau)", needs=("valves",),
-    grid=(0.0002, 0.0005, 0.001, 0.002, 0.004), extra={"instances": _valve_instances("delay_s", 0.0, 0.01)})
+    "one valve's response lags the others' by a phase growing with frequency (-w tau)",
+    _mount_instances("delay_s", 0.0, 0.01, "lin"), _report_value("delay_s"),
+    lambda p: f"{p['mount']}: valve delay {p['delay_s'] * 1e3:.3f} ms", needs_valves=True,
+    grid=(0.0002, 0.0005, 0.001, 0.002, 0.004), typical=(3e-4, "s"))
 VALVE_DEADBAND = Effect(
     "valve_deadband", "deadband", "valve", (Param("width_ma", "mA", 0.0, 20.0),),
     "one valve moves less than the replay for small commands (its spool's overlap), as much for large ones",
-    needs=("valves",), grid=(0.1, 0.3, 0.6, 1.0, 2.0), nonlinear=True,
-    extra={"instances": _valve_instances("deadband_ma", 0.0, 20.0)})
+    _mount_instances("deadband_ma", 0.0, 20.0, "lin"), _report_value("width_ma"),
+    lambda p: f"{p['mount']}: spool deadband {p['width_ma']:.3f} mA", needs_valves=True,
+    grid=(0.1, 0.3, 0.6, 1.0, 2.0), nonlinear=True, typical=(0.5, "mA"))
 VALVE_NULL_OFFSET = Effect(
     "valve_null_offset", "null", "valve", (Param("offset_V", "V", -10.0, 10.0),),
-    "from rest, one actuator drifts with its valve at null, and holds a mean command to stay centred")
+    "from rest, one actuator drifts with its valve at null, and holds a mean command to stay centred",
+    say=lambda p: f"{p['mount']}: valve null offset {p['offset_V']:+.3f} V (+-{p['se_V']:.3f})",
+    margins_note="a constant at the valve")
 FLOOR_ROCKING = Effect(
     "floor_rocking", "rocking", "floor", (Param("rocking_over_heave", "", 0.0, 10.0),),
     "the floor's front mounts move against its rear (pitch) or its left against its right (roll), coherently, "
-    "beyond the independent motion the model assumes")
+    "beyond the independent motion the model assumes",
+    say=lambda p: (f"the floor rocks ({p['axis']}): its rocking {p['rocking_over_heave']:.2f} of its heave, "
+                   f"{p['ratio']:.1f}x the twist's power"),
+    margins_note="the floor is the loop's input, not part of it", shared_place=True)
 
 REPLAY_EFFECTS = (MODE_FREQUENCY, MODE_DAMPING, EXTRA_MODE, MOUNT_STIFFNESS, MOUNT_DAMPING, SENSOR_GAIN,
                   TRANSPORT_DELAY, VALVE_DEADBAND)
@@ -150,38 +206,17 @@ BY_NAME = {e.name: e for e in CATALOGUE}
 def instances(ctx, *, valves_driven: bool) -> list[Instance]:
     """Every instance of the replay's effects this recording can show (valve effects need driven valves,
     floor-sensor gains need floor accelerometers)."""
-    out = []
-    for eff in REPLAY_EFFECTS:
-        if "valves" in eff.needs and not valves_driven:
-            continue
-        out += eff.extra["instances"](eff, ctx)
-    return out
+    return [i for eff in REPLAY_EFFECTS if valves_driven or not eff.needs_valves for i in eff.make_instances(eff, ctx)]
 
 
 def parameters(inst: Instance, th: dict, ctx) -> dict:
     """The instance's parameters as reported (physical units)."""
-    e, i = inst.effect.name, inst.index
-    if e == MODE_FREQUENCY.name:
-        f0 = ctx.modal.w_n[ctx.modal.w_n > 0][i] / (2 * math.pi)
-        return {"mode": inst.location, "frequency_hz": f0 * float(th["mode_f"][i]), "model_hz": f0}
-    if e == MODE_DAMPING.name:
-        z0 = ctx.modal.zeta[ctx.modal.w_n > 0][i]
-        return {"mode": inst.location, "damping_ratio": z0 * float(th["mode_z"][i] * th["modal_zeta"][0]),
-                "model_damping_ratio": z0}
-    if e == EXTRA_MODE.name:
-        x = th["extra"]
-        return {"frequency_hz": float(x[0]), "damping_ratio": float(x[1]),
-                "shape": dict(zip(MOUNTS, (float(v) for v in x[2:6])))}
-    if e in (MOUNT_STIFFNESS.name, MOUNT_DAMPING.name):
-        return {"mount": inst.location, "factor": float(inst.slots[0].get(th))}
-    if e == SENSOR_GAIN.name:
-        s = SENSORS[i // 4]
-        return {"sensor": s, "mount": MOUNTS[i % 4], "gain": float(th[SENSOR_KEY[s]][i % 4])}
-    if e == TRANSPORT_DELAY.name:
-        return {"mount": inst.location, "delay_s": float(th["delay_s"][i])}
-    if e == VALVE_DEADBAND.name:
-        return {"mount": inst.location, "width_ma": float(th["deadband_ma"][i])}
-    raise ValueError(e)
+    return inst.effect.report(inst, th, ctx)
+
+
+def describe(name: str, params: dict) -> str:
+    """One line saying a named effect and its parameters."""
+    return BY_NAME[name].say(params)
 
 
 # ---- how the blind proof draws each effect (rig prove --rig): (location, truth, [rig_error] keys, [vibration]
@@ -196,7 +231,7 @@ def _size(rng, lo: float, hi: float) -> float:
 
 def _mode_draw(key: str):
     def draw(rng, cond):
-        names = [i.location for i in _mode_instances(MODE_FREQUENCY, cond)]
+        names = [i.location for i in MODE_FREQUENCY.make_instances(MODE_FREQUENCY, cond)]
         r = cond.modal.flexible_names.index(str(rng.choice(names)))
         nflex = len(cond.modal.flexible_names)
         f = [1.0] * nflex

@@ -167,7 +167,7 @@ def screen(ctx: Context, th: dict, exclude=()) -> list[tuple[fx.Instance, float,
     for inst in fx.instances(ctx, valves_driven=ctx.valves_driven):
         if inst.key in exclude:
             continue
-        if inst.effect is fx.EXTRA_MODE:
+        if inst.effect.started:
             start, rss = extra_mode_start(ctx, th, at)
             out.append((inst, start, rss))
             continue
@@ -227,14 +227,11 @@ def extra_mode_start(ctx: Context, th: dict, ev) -> tuple[tuple, float]:
 
 
 def _start(th: dict, inst: fx.Instance, value) -> dict:
-    """theta with the instance's first slot at value (a gain: the signed gain itself; an extra mode: its whole
-    vector)."""
+    """theta with the instance's first slot at value (a gain: the signed gain itself), or all its slots at a
+    tuple of values (an extra mode's start)."""
     out = copy_theta(th)
-    if inst.effect is fx.EXTRA_MODE:
-        out["extra"] = np.array(value)
-        return out
-    slot = inst.slots[0]
-    out[slot.key][slot.index] = value
+    for slot, v in zip(inst.slots, value if isinstance(value, tuple) else (value,)):
+        out[slot.key][slot.index] = v
     return out
 
 
@@ -263,7 +260,7 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
         ranked = screen(ctx, th, exclude)
         screened_all += [(i.key, v, r, step) for i, v, r in ranked]
         say(f"round {step + 1}: screened {len(ranked)} candidates; best {ranked[0][0].key if ranked else '-'}")
-        todo = ranked[:FULL_FITS] + [x for x in ranked[FULL_FITS:] if x[0].effect is fx.EXTRA_MODE]
+        todo = ranked[:FULL_FITS] + [x for x in ranked[FULL_FITS:] if x[0].effect.started]
         slots = list(latency) + [s for t in chosen for s in t.instance.slots]
         best = None
         for inst, value, _ in todo:

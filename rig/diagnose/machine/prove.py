@@ -120,7 +120,7 @@ def draw_cases(n: int, seed: int, *, duration_s: float = 60.0, cfg: Config | Non
         for name in names:
             for _ in range(50):
                 loc, truth, keys, vib = fx.DRAWS[name][0](rng, cond)
-                if loc not in locations or name in (fx.EXTRA_MODE.name, fx.FLOOR_ROCKING.name):
+                if loc not in locations or fx.BY_NAME[name].shared_place:
                     break
             locations.add(loc)
             effects[str(name)] = {"location": loc, **{k: (float(v) if isinstance(v, np.floating) else v)

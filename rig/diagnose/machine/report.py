@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.config import MOUNTS
+from rig.diagnose.machine.effects import describe
 from rig.diagnose.machine.result import CHANNELS, RigDiagnosis
 from rig.diagnose.machine.spectra import BANDS_HZ
 
@@ -23,34 +24,7 @@ MODELS = ("nominal", "refit", "augmented")
 
 
 def _fmt_effect(e) -> str:
-    p = e.parameters
-    if e.name == "mode_frequency":
-        return f"mode '{p['mode']}' at {p['frequency_hz']:.2f} Hz (Table 2: {p['model_hz']:.2f} Hz)"
-    if e.name == "mode_damping":
-        return f"mode '{p['mode']}' damped {p['damping_ratio']:.4f} (model {p['model_damping_ratio']:.4f})"
-    if e.name == "extra_mode":
-        shape = ", ".join(f"{m} {v:+.3f}" for m, v in p["shape"].items())
-        return (f"a mode the model lacks at {p['frequency_hz']:.2f} Hz, damping {p['damping_ratio']:.4f}, shape at "
-                f"the mounts {shape} (1/sqrt(t))")
-    if e.name == "mount_stiffness":
-        return f"{p['mount']}: membrane stiffness K_L x{p['factor']:.3f}"
-    if e.name == "mount_damping":
-        return f"{p['mount']}: viscous coefficient C x{p['factor']:.3f}"
-    if e.name == "sensor_gain":
-        g = p["gain"]
-        what = {"accel": "accelerometer", "stroke": "stroke transducer", "floor": "floor accelerometer"}[p["sensor"]]
-        sign = " (sign reversed)" if g < 0 else ""
-        return f"{p['mount']}: {what} reads x{g:.3f}{sign}"
-    if e.name == "transport_delay":
-        return f"{p['mount']}: valve delay {p['delay_s'] * 1e3:.3f} ms"
-    if e.name == "valve_deadband":
-        return f"{p['mount']}: spool deadband {p['width_ma']:.3f} mA"
-    if e.name == "valve_null_offset":
-        return f"{p['mount']}: valve null offset {p['offset_V']:+.3f} V (+-{p['se_V']:.3f})"
-    if e.name == "floor_rocking":
-        return (f"the floor rocks ({p['axis']}): its rocking {p['rocking_over_heave']:.2f} of its heave, "
-                f"{p['ratio']:.1f}x the twist's power")
-    return f"{e.name} at {e.location}: {p}"
+    return describe(e.name, e.parameters)
 
 
 def summary_text(d: RigDiagnosis) -> str:

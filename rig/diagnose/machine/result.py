@@ -94,16 +94,8 @@ def _located(table: list, limit: float = 3.0) -> list:
 
 
 def _named(sel: Selection, ctx) -> list:
-    out = []
-    for t in sel.chosen:
-        prm = fx.parameters(t.instance, sel.th_final, ctx)
-        if "shape" in prm:                       # a mode's shape has no sign of its own: its largest positive
-            v = np.array(list(prm["shape"].values()))
-            s = 1.0 if v[int(np.argmax(np.abs(v)))] > 0 else -1.0
-            prm["shape"] = {k: s * x for k, x in prm["shape"].items()}
-        out.append(NamedEffect(t.instance.effect.name, t.instance.location, prm, dict(t.tests),
-                               t.instance.effect.evidence))
-    return out
+    return [NamedEffect(t.instance.effect.name, t.instance.location, fx.parameters(t.instance, sel.th_final, ctx),
+                        dict(t.tests), t.instance.effect.evidence) for t in sel.chosen]
 
 
 def _offset_effects(offs: list, rest: bool, dc) -> tuple[list, list]:
@@ -192,13 +184,12 @@ def _with_margins(e: NamedEffect, sel: Selection, ctx) -> NamedEffect:
     """The effect's margins line: the refitted model with this effect alone."""
     th = copy_theta(sel.th_refit)
     for t in sel.chosen:
-        if t.instance.effect.name == e.name and t.instance.location == e.location:
+        if t.instance.key == f"{e.name}[{e.location}]":
             for s in t.instance.slots:
                 th[s.key][s.index] = sel.th_final[s.key][s.index]
-    if e.name == fx.VALVE_NULL_OFFSET.name or e.name == fx.FLOOR_ROCKING.name:
-        lines = ("margins unchanged: " + ("a constant at the valve" if e.name == fx.VALVE_NULL_OFFSET.name
-                                          else "the floor is the loop's input, not part of it")
-                 + " (the loop's gain and phase are as on the refitted model)",)
+    note = fx.BY_NAME[e.name].margins_note
+    if note:
+        lines = (f"margins unchanged: {note} (the loop's gain and phase are as on the refitted model)",)
         return NamedEffect(e.name, e.location, e.parameters, e.tests, e.evidence, lines)
     lines = tuple(line.text() for line in margins_mod.mount_lines(ctx.base, sel.th_refit, th))
     return NamedEffect(e.name, e.location, e.parameters, e.tests, e.evidence, lines)
