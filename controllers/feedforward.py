@@ -44,6 +44,7 @@ import numba
 import numpy as np
 
 from controllers.discrete import sections_step, sos_frf, tustin_section
+from controllers.timebase import check_step
 from rig.config import MOUNTS
 
 # state after the sections: output gain (fades between 0 and 1 when switched), switch request
@@ -161,8 +162,7 @@ class FeedforwardFilter:
         return state[self._o + _ON] > 0.5
 
     def step(self, state: np.ndarray, accel_floor_mps2: float, dt: float):
-        if abs(dt - self.dt) > 1e-6 * self.dt:
-            raise ValueError(f"feedforward built for dt={self.dt} s, stepped with dt={dt} s")
+        check_step(self.dt, dt, "feedforward")
         return feedforward_step(self.coef, self.fade, state, accel_floor_mps2), state
 
     def frf(self, w: np.ndarray) -> np.ndarray:

@@ -83,6 +83,8 @@ def _nyquist_figure(save, plt, data, result) -> None:
         ax.set_xlim(-3, 3)
         ax.set_ylim(-3, 3)
         ax.set_aspect("equal")
+        ax.set_xlabel("Re L")
+        ax.set_ylabel("Im L")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
         ax.set_title(f"{m}: GM {r['gain_margin_db']:.1f} dB, PM {r['phase_margin_deg']:.1f} deg, "
@@ -124,8 +126,11 @@ def _cross_figure(save, plt, f, band, data) -> None:
         ax.semilogx(f[band], _db(r["tr_passive"][band, o]), "k-", lw=1, label="passive")
         ax.semilogx(f[band], _db(r["tr_controlled"][band, o]), "b-", lw=1.2, label="controlled")
         ax.set_title(f"ground (front_left) -> {lab}: min {np.min(att[sel]):.1f} dB (1-100 Hz)", fontsize=9)
+        ax.set_ylabel(f"|{lab} / ground Y| [dB]")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
+    for ax in axs[1]:
+        ax.set_xlabel("frequency [Hz]")
     fig.suptitle("Cross transmissibilities, front-left mount (cf. paper Fig. 14)")
     save(fig, "fig14_cross_front_left.png")
 
@@ -188,6 +193,8 @@ def _mimo_figure(save, plt, f, band, data, result) -> None:
     axs[2].set_xlim(-4, 4)
     axs[2].set_ylim(-4, 4)
     axs[2].set_aspect("equal")
+    axs[2].set_xlabel("Re (det(I+L) - 1)")
+    axs[2].set_ylabel("Im (det(I+L) - 1)")
     axs[2].grid(alpha=0.3)
     axs[2].set_title(f"generalised Nyquist det(I+L)-1; stable={mm['stable']}", fontsize=9)
     save(fig, "mimo_transmissibility.png")

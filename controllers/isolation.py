@@ -62,6 +62,7 @@ from controllers.discrete import sos_frf, sos_ss, sos_tf
 from controllers.discrete import tustin_section as _tustin
 from controllers.limits import clamp, slew
 from controllers.state import step_law
+from controllers.timebase import check_step
 from rig.config import ControllerConfig, SafetyConfig, layout_mounts
 from sim_backend.linear import ActuatorParams
 
@@ -253,8 +254,7 @@ class IsolationController:
     def step(self, state, meas, dt: float):
         """One period through the compiled law (design tools and tests; the runtime's period calls the law
         itself). state: a float64 array or a list, updated in place and returned."""
-        if abs(dt - self.dt) > 1e-6 * self.dt:
-            raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
+        check_step(self.dt, dt)
         return step_law(isolation_step, state, self._coef, float(meas[0]), float(meas[1])), state
 
     def suspended(self, state: list) -> bool:

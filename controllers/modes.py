@@ -32,6 +32,7 @@ from controllers.reference import Reference, parse_reference
 from controllers.tracking import _E as _T_ERR
 from controllers.tracking import _R as _T_REF
 from controllers.tracking import TrackingPID, track_step, tracking_from_config
+from controllers.timebase import same_period
 from rig.config import layout_mounts
 from rig.errors import RigError
 from sim_backend.linear import ActuatorParams
@@ -100,7 +101,7 @@ class OperatingModes:
 
     def __init__(self, track: TrackingPID, isolate: IsolationController, start: ModeRequest | None = None,
                  name: str = "", warm_isolation: bool = True) -> None:
-        if abs(track.dt - isolate.dt) > 1e-9 * track.dt:
+        if not same_period(isolate.dt, track.dt):
             raise ValueError(f"modes: tracking built for dt={track.dt}, isolation for dt={isolate.dt}")
         self.track, self.iso, self.name = track, isolate, name
         self.dt = track.dt

@@ -142,7 +142,7 @@ def _run(c: TrackingPID, loops: StandLoops, ref_text: str, seconds: float):
 
 
 def _step_run(c: TrackingPID, loops: StandLoops, amp_m: float) -> dict:
-    t, r, x, u = _run(c, loops, f"step:amp={amp_m!r}", 0.08)
+    t, r, x, u = _run(c, loops, f"step:amp={amp_m!r}m", 0.08)
     return step_figures(t, x, u, amp_m, c.p.limit_V)
 
 
@@ -158,7 +158,7 @@ def step_figures(t, x, u, amp_m: float, limit_V: float) -> dict:
 
 
 def _sine_run(c: TrackingPID, loops: StandLoops, amp_m: float, f_hz: float) -> dict:
-    t, r, x, u = _run(c, loops, f"sine:amp={amp_m!r},freq={f_hz!r}", 2.0)
+    t, r, x, u = _run(c, loops, f"sine:amp={amp_m!r}m,freq={f_hz!r}", 2.0)
     sel = t >= 1.0                       # after the fade-in, whole cycles
     e = r[sel] - x[sel]
     return {"amplitude_um": amp_m * 1e6, "frequency_hz": f_hz, "rms_error_um": float(np.sqrt(np.mean(e ** 2))) * 1e6,
@@ -388,7 +388,7 @@ def write_figures(rep: dict, out, cfg: Config, dt: float, delay: int = 1) -> lis
     plt.close(fig)
     loops = StandLoops(cfg, dt, delay)
     c = tracking_from_config(cfg, dt, act=loops.act)
-    t, r, x, u = _run(c, loops, "step:amp=2e-6", 0.05)
+    t, r, x, u = _run(c, loops, "step:amp=2um", 0.05)
     st = tr["step_2um"]
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.5, 5), sharex=True)
     a1.plot(t * 1e3, r * 1e6, color="tab:orange", ls="--", label="reference")

@@ -7,7 +7,8 @@
   chirp:amp=A,f0=F0,f1=F1,duration=T[,offset=POS]      linear sweep F0 -> F1 over T seconds
   csv:FILE                           a profile `time_s, position_m` (absolute positions), resampled to the loop
 
-Lengths take a unit suffix (m, mm, um, nm; plain numbers are metres), times s or ms, frequencies Hz. A
+Lengths need a unit suffix (m, mm, um or µm, nm; a bare number is refused unless it is 0: `hold 5` read as
+5 m was a trap), times take s or ms (bare: s), frequencies Hz (bare: Hz). A
 waveform starts once the hold position has reached its offset (the ramp comes first), and when it ends the
 piston holds where it ended. Whether the actuator can follow a reference is the tracking controller's check
 (controllers/tracking.py TrackingPID.check); this module only reads and writes the request.
@@ -24,7 +25,7 @@ import numpy as np
 from rig.errors import RigError
 
 KINDS = ("hold", "setpoint", "step", "sine", "chirp", "csv")
-_LENGTH = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "nm": 1e-9}
+_LENGTH = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6, "nm": 1e-9}
 _TIME = {"s": 1.0, "ms": 1e-3}
 _KEYS = {"hold": {"x": "length"}, "setpoint": {"x": "length"}, "step": {"amp": "length"},
          "sine": {"amp": "length", "freq": "hz", "offset": "length", "seconds": "time"},
@@ -49,26 +50,34 @@ class Reference:
         return self.text or self.kind
 
 
-def _number(text: str, what: str, units: dict[str, float], where: str) -> float:
+def _number(text: str, what: str, units: dict[str, float], where: str, unit_required: bool = False) -> float:
     t = text.strip().lower().replace(" ", "")
-    scale = 1.0
+    scale = None
     for suffix in sorted(units, key=len, reverse=True):
         if t.endswith(suffix) and t[:-len(suffix)] and (t[-len(suffix) - 1].isdigit() or t[-len(suffix) - 1] == "."):
             t, scale = t[:-len(suffix)], units[suffix]
             break
     try:
-        v = float(t) * scale
+        v = float(t) * (scale or 1.0)
     except ValueError:
         raise RigError(f"{where}: {what} {text!r} is not a number") from None
     if not math.isfinite(v):
         raise RigError(f"{where}: {what} {text!r} is not a finite number")
+    if unit_required and scale is None and v != 0:
+        raise RigError(f"{where}: {what} {text.strip()!r} has no unit: give one, e.g. {t}um or {t}mm (a bare "
+                       f"number would be metres)")
     return v
+
+
+def parse_length(text: str, what: str = "length", where: str = "reference") -> float:
+    """A length with its unit (m, mm, um, µm, nm) in metres; a bare number only when it is 0 (RigError)."""
+    return _number(text, what, _LENGTH, where, unit_required=True)
 
 
 def _value(key: str, text: str, kind: str, where: str) -> float:
     how = _KEYS[kind][key]
     if how == "length":
-        return _number(text, key, _LENGTH, where)
+        return parse_length(text, key, where)
     if how == "time":
         v = _number(text, key, _TIME, where)
     else:

@@ -38,6 +38,7 @@ import numpy as np
 from controllers.limits import clamp, slew
 from controllers.reference import Reference
 from controllers.state import step_law
+from controllers.timebase import check_step
 from rig.config import ControllerConfig, SafetyConfig
 from rig.errors import RigError
 from sim_backend.linear import ActuatorParams, g_eha
@@ -252,8 +253,7 @@ class TrackingPID:
 
     # ---- design tools and tests -----------------------------------------------------------------------
     def step(self, state, meas, dt: float):
-        if abs(dt - self.dt) > 1e-6 * self.dt:
-            raise ValueError(f"controller built for dt={self.dt} s, stepped with dt={dt} s")
+        check_step(self.dt, dt)
         state[_TGT] = float(meas[0])
         return step_law(track_step, state, self._coef, float(meas[1])), state
 

@@ -62,7 +62,7 @@ def band_velocity_rms(x, fs_hz: float, *, kind: str = "displacement", f_lo_hz: f
 
     kind: "displacement" (m), "velocity" (m/s) or "acceleration" (m/s^2, e.g. an accelerometer's record).
     segment_s: Welch segment length (default: the whole record, which resolves the 1 Hz band best; it needs
-    at least ~5 s for 1 Hz)."""
+    at least ~5 s for 1 Hz: a shorter one gives its window's smoothed spectrum there, never an empty band)."""
     import scipy.signal
     if kind not in ("displacement", "velocity", "acceleration"):
         raise ValueError(f"kind {kind!r}: expected displacement, velocity or acceleration")
@@ -70,13 +70,18 @@ def band_velocity_rms(x, fs_hz: float, *, kind: str = "displacement", f_lo_hz: f
     if x.ndim != 1 or len(x) < 16:
         raise ValueError(f"expected a 1-D record of at least 16 samples, got shape {x.shape}")
     nper = len(x) if segment_s is None else min(len(x), int(round(segment_s * fs_hz)))
-    f, S = scipy.signal.welch(x, fs=fs_hz, window="hann", nperseg=nper, detrend="linear", scaling="density")
+    # a segment shorter than ~9 s / f_lo leaves the lowest band (0.23 f_lo wide) one bin or none, read as a
+    # measured zero: the FFT is zero-padded then until it holds four (the same spectrum, sampled finer)
+    nominal, _, lo, hi = third_octave_bands(f_lo_hz, f_hi_hz)
+    width = float(hi[0] - lo[0])
+    nfft = nper if fs_hz / nper <= width / 2 else int(math.ceil(4 * fs_hz / width))
+    f, S = scipy.signal.welch(x, fs=fs_hz, window="hann", nperseg=nper, nfft=nfft, detrend="linear",
+                              scaling="density")
     if kind == "displacement":
         S = S * (2 * np.pi * f) ** 2
     elif kind == "acceleration":
         S = np.divide(S, (2 * np.pi * f) ** 2, out=np.zeros_like(S), where=f > 0)
     df = f[1] - f[0]
-    nominal, _, lo, hi = third_octave_bands(f_lo_hz, f_hi_hz)
     rms = np.array([math.sqrt(float(np.sum(S[(f >= a) & (f < b)])) * df) for a, b in zip(lo, hi)])
     return nominal, rms
 
@@ -112,8 +117,8 @@ def plot_vc(ax, report: dict, title: str = "", criteria=None):
     fc = np.asarray(report["band_hz"], dtype=float)
     ff = np.geomspace(fc[0], fc[-1], 200)
     curves = report["velocity_um_s"]
-    lo = min(min(v) for v in curves.values())
-    hi = max(max(v) for v in curves.values())
+    shown = [x for v in curves.values() for x in v if x is not None and x > 0 and math.isfinite(x)]
+    lo, hi = (min(shown), max(shown)) if shown else (1.0, 1.0)
     names = criteria or [n for n, lvl, _ in CRITERIA if lo / 3 <= lvl <= hi * 30]
     for name in names:
         y = criterion_um_s(name, ff)

@@ -22,6 +22,8 @@ COMMANDS = {
     "diagnose": ("rig.commands.diagnose", "find and model the physics a recording shows but the model lacks"),
     "prove": ("rig.commands.prove", "blind proof of diagnosis on simulated or given recordings"),
     "report": ("rig.commands.report", "vibration-criterion (VC) report of a run recording, per isolation mode"),
+    "export": ("rig.commands.export", "a recording for MATLAB (.mat) or a spreadsheet (.csv), with its units and "
+                                      "metadata"),
     "drill": ("rig.commands.drill", "fault drill: each fault rehearsed, what the rig does, time to FAULT"),
 }
 
@@ -32,7 +34,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
-        mod = importlib.import_module(module) if only is None or only == name else None
+        mod = importlib.import_module(module) if only == name else None      # `rig --help` imports none
         p.add_argument("--config", metavar="FILE", default=None,
                        help=getattr(mod, "CONFIG_HELP", "TOML configuration (default: the paper's Table 1 values)"))
         if mod is not None:

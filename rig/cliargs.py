@@ -3,6 +3,9 @@
 A bad value ends in one line naming the option and what was expected, exit status 2, before anything is
 opened, started or written: numbers are finite and inside a stated range with their unit, and output files
 and folders are never overwritten without `--overwrite` (`check_outputs`, the one place of that rule).
+Units: a number may carry its option's unit (`--f1 100Hz`, `--duration 100s`, `--amplitude 2V`); a bare
+number is in that unit, which the help names. A length needs its unit (`--position 5um`, `0.5mm`): a bare
+5 would be 5 m, so it is refused (`length`, with controllers/reference.py's rule).
 Checks that need the loaded configuration (a rate against the configured frequencies, --settle against
 --seconds) are functions here, called in one line by the commands.
 """
@@ -12,6 +15,7 @@ import argparse
 import math
 from pathlib import Path
 
+from controllers.reference import parse_length
 from rig.config import check_nyquist
 from rig.errors import RigError
 
@@ -51,8 +55,11 @@ class Number:
         return " and ".join(parts) if parts else f"a finite number{unit}"
 
     def __call__(self, text: str):
+        t = text.strip() if isinstance(text, str) else text
+        if self.unit and isinstance(t, str) and t.lower().endswith(self.unit.lower()) and len(t) > len(self.unit):
+            t = t[:-len(self.unit)].rstrip()                      # `100Hz`, `2 V`: the option's own unit
         try:
-            v = int(text, 10) if self.integer else float(text)
+            v = int(t, 10) if self.integer else float(t)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"expected {self.expected()}, got {text!r}") from None
         ok = math.isfinite(v) and (self.gt is None or v > self.gt) and (self.ge is None or v >= self.ge) and \
@@ -63,6 +70,18 @@ class Number:
 
     def __repr__(self) -> str:              # argparse names the type in some messages
         return self.expected()
+
+
+def length(text: str) -> str:
+    """A length with its unit (argparse type): `5um`, `0.5mm`, `-250nm`, `0`; the text as given (the mode request
+    reads it), refused when the unit is missing or it is not a number."""
+    try:
+        parse_length(text, "length", "length")
+    except RigError as e:
+        why = " (a bare number would be metres)" if "no unit" in str(e) else ""
+        raise argparse.ArgumentTypeError(f"expected a length with its unit, e.g. 5um or 0.5mm{why}, "
+                                         f"got {text!r}") from None
+    return text.strip()
 
 
 def seconds(*, gt=0.0, ge=None, le=MAX_RUN_S) -> Number:

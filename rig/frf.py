@@ -9,7 +9,7 @@ import numpy as np
 import scipy.signal as ss
 
 from rig.errors import RecordingError
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 
 SEGMENT_S = 4.0          # Welch segment length: 0.25 Hz resolution, >= 12 averages in 100 s at 75 % overlap
 MIN_COHERENCE = 0.9      # bins below this are not used for fitting

@@ -28,15 +28,16 @@ import numba
 import numpy as np
 import scipy.optimize
 
-from rig import closedloop
+from rig.recordings import closedloop
 from rig.errors import RecordingError
 from rig.frf import FRF, frf_estimate
-from rig.recording import Recording, check_plausible
+from rig.recordings.recording import Recording, check_plausible
 from sim_backend.linear import IDENTIFIED, ActuatorParams, discretize_zoh, g_eha_frf, zoh_delay
 
 # Bounds as ratios to the design value (p0). K_L +-50 % (issue 6); the valve's by realistic ranges for a
 # proportional servo valve of this size: natural frequency 20-300 Hz, apparent damping 0.2-2 (proportional valves
 # are often overdamped), flow gain and flow-pressure coefficient within a factor 4 and 10 of the catalogue.
+UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s/mA", "K_C": "m^3/s/Pa"}
 BOUNDS_REL = {
     "K_L": (0.5, 1.5),
     "C": (0.1, 10.0),

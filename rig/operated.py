@@ -41,6 +41,7 @@ class OperatedRun:
     limited: np.ndarray
     active: np.ndarray
     events: list = field(default_factory=list)      # (t_s, text)
+    floor_accel_mps2: np.ndarray | None = None      # the floor accelerometer, when fitted
 
 
 def load_operated(path, mount: int | str = 0) -> OperatedRun:
@@ -69,7 +70,8 @@ def load_operated(path, mount: int | str = 0) -> OperatedRun:
                       for t, x in zip(f["events/time_s"][()], f["events/text"][()])]
             run = OperatedRun(str(p), labels[m], col("time_s")[:n], col("mode")[:n], col("reference_m")[:n],
                               col("tracking_error_m")[:n], col("stroke_m")[:n], col("accel_mps2")[:n],
-                              col("valve_cmd_V")[:n], col("cmd_limited")[:n], col("lifecycle_state")[:n] == 2, ev)
+                              col("valve_cmd_V")[:n], col("cmd_limited")[:n], col("lifecycle_state")[:n] == 2, ev,
+                              col("floor_accel_mps2")[:n] if "floor_accel_mps2" in f else None)
     except RecordingError:
         raise
     except (OSError, KeyError, ValueError) as e:
@@ -134,6 +136,36 @@ def load_motion_m(accel_mps2, fs_hz: float, band_hz=LOAD_BAND_HZ) -> float:
     return math.sqrt(float(np.trapezoid(p[sel] / (2 * np.pi * f[sel]) ** 4, f[sel]))) if sel.sum() > 1 else math.nan
 
 
+def _in_band(x, fs_hz: float, gain) -> np.ndarray:
+    """x through a zero-phase filter given by gain(f) (complex), LOAD_BAND_HZ only: the record's ends tapered
+    (10 % Tukey) and the FFT zero-padded to four times its length, so that neither end wraps onto the other."""
+    x = np.asarray(x, dtype=float)
+    x = np.where(np.isfinite(x), x, 0.0)
+    n = 4 * len(x)
+    X = np.fft.rfft((x - x.mean()) * scipy.signal.windows.tukey(len(x), 0.1), n)
+    f = np.fft.rfftfreq(n, 1.0 / fs_hz)
+    sel = (f >= LOAD_BAND_HZ[0]) & (f <= LOAD_BAND_HZ[1])
+    Y = np.zeros_like(X)
+    Y[sel] = X[sel] * gain(f[sel])
+    return np.fft.irfft(Y, n)[:len(x)]
+
+
+def band_displacement_m(accel_mps2, fs_hz: float) -> np.ndarray:
+    """The displacement in LOAD_BAND_HZ from an absolute acceleration, in time: x = -a / (2 pi f)^2."""
+    return _in_band(accel_mps2, fs_hz, lambda f: -1.0 / (2 * np.pi * f) ** 2)
+
+
+def load_and_floor_m(run: OperatedRun) -> tuple[np.ndarray, np.ndarray, str]:
+    """(load, floor, how the floor was had) displacements in LOAD_BAND_HZ: the load from its accelerometer;
+    the floor from the floor accelerometer when fitted, else the load less the transducer (the piston's
+    stroke relative to the housing, which stands on the floor)."""
+    fs = 1.0 / float(np.median(np.diff(run.t_s)))
+    load = band_displacement_m(run.accel_mps2, fs)
+    if run.floor_accel_mps2 is not None:
+        return load, band_displacement_m(run.floor_accel_mps2, fs), "floor accelerometer"
+    return load, load - _in_band(run.position_m, fs, lambda f: 1.0), "load - transducer"
+
+
 def figures_text(figs: list[dict]) -> str:
     """One line per segment."""
     lines = []
@@ -154,25 +186,48 @@ def figures_text(figs: list[dict]) -> str:
 
 
 def plot(run: OperatedRun, png, figs: list[dict] | None = None) -> Path:
-    """Reference and position, the tracking error and the valve command over the run, the segments marked,
-    the error figures in the title lines."""
+    """The run's figure (`figure`) as a PNG."""
+    import matplotlib.pyplot as plt
+    fig = figure(run, figs)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return Path(png)
+
+
+def figure(run: OperatedRun, figs: list[dict] | None = None):
+    """Reference and position; the tracking error (when a segment held or tracked); the load's and the floor's
+    motion in 1-100 Hz (what isolating is judged by); the valve command. The segments marked, the error
+    figures in the title lines. A matplotlib Figure (the caller closes it)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     figs = figures(run) if figs is None else figs
     t = run.t_s
-    fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(10, 8), sharex=True, gridspec_kw={"height_ratios": [3, 2, 1.5]})
+    tracked = bool(np.isfinite(run.error_m).any())
+    ratios = [3, 2, 2, 1.5] if tracked else [3, 2, 1.5]
+    fig, axes = plt.subplots(len(ratios), 1, figsize=(10, 2.2 * len(ratios) + 1), sharex=True,
+                             gridspec_kw={"height_ratios": ratios})
+    a1, a3 = axes[0], axes[-1]
     a1.plot(t, run.position_m * 1e6, color="tab:blue", lw=0.8, label="position (transducer)")
-    a1.plot(t, run.reference_m * 1e6, color="tab:orange", lw=1.0, ls="--", label="reference")
+    if np.isfinite(run.reference_m).any():
+        a1.plot(t, run.reference_m * 1e6, color="tab:orange", lw=1.0, ls="--", label="reference")
     a1.set_ylabel("position [um]")
     a1.legend(loc="upper right", fontsize=8)
-    a2.plot(t, run.error_m * 1e6, color="tab:red", lw=0.8)
-    a2.set_ylabel("tracking error [um]")
+    if tracked:
+        axes[1].plot(t, run.error_m * 1e6, color="tab:red", lw=0.8)
+        axes[1].set_ylabel("tracking error [um]")
+    am = axes[-2]
+    load, floor, how = load_and_floor_m(run)
+    rms = lambda x: float(np.sqrt(np.mean(x[run.active] ** 2))) * 1e6 if run.active.any() else math.nan  # noqa: E731
+    am.plot(t, floor * 1e6, color="0.55", lw=0.7, label=f"floor ({how}): {rms(floor):.3g} um rms while ACTIVE")
+    am.plot(t, load * 1e6, color="tab:green", lw=0.8, label=f"load (accelerometer): {rms(load):.3g} um rms")
+    am.set_ylabel(f"motion {LOAD_BAND_HZ[0]:g}-{LOAD_BAND_HZ[1]:g} Hz [um]")
+    am.legend(loc="upper right", fontsize=8)
     a3.plot(t, run.valve_cmd_V, color="0.3", lw=0.6)
     a3.set_ylabel("valve [V]")
     a3.set_xlabel("time [s]")
     for i, d in enumerate(figs):
-        for a in (a1, a2, a3):
+        for a in axes:
             a.axvline(d["from_s"], color="0.6", lw=0.6, ls=":")
         # two rows of labels: a short segment's label does not run into the next one's
         a1.text(d["from_s"], 1.0 + 0.05 * (i % 2), f" {d['request']}", transform=a1.get_xaxis_transform(),
@@ -180,9 +235,7 @@ def plot(run: OperatedRun, png, figs: list[dict] | None = None) -> Path:
     lines = [f"{d['request']}: rms error {d['rms_error_um']:.3f} um = {d['rms_error_pct']:.2f} %"
              for d in figs if d.get("rms_error_pct") is not None]
     fig.suptitle("\n".join([f"{Path(run.source).name} ({run.mount})"] + lines[:3]), fontsize=9)
-    for a in (a1, a2, a3):
+    for a in axes:
         a.grid(True, alpha=0.3)
     fig.tight_layout()
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return Path(png)
+    return fig

@@ -9,7 +9,9 @@ simulated plant knows them: `rig demo` reports those).
 The recording is split into its modes by the recorded flags: off (INACTIVE, or ACTIVE with isolation off),
 feedback, feedback_feedforward (the feedforward_on column of a loop with floor accelerometers); FAULT rows are
 left out. Each mode's longest stretch is used, less settle_s at its start (the switching fade and the
-filters' transient). The modes of one run see different stretches of the floor: with floor accelerometers the
+filters' transient). A mode the run never switched to is said to be absent (`absent_modes`), not too short:
+a run that never switched isolation off has no baseline (only the INACTIVE settle before activation), and
+its classes are of isolation on alone. The modes of one run see different stretches of the floor: with floor accelerometers the
 report also gives the transmissibility mount / floor per band, which takes the floor's own level out.
 """
 from __future__ import annotations
@@ -72,20 +74,25 @@ def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     names = _labels(path, acc.shape[1]) or [f"mount{i}" for i in range(acc.shape[1])]
     out = {"recording": str(path), "rate_hz": fs, "measured": "mount accelerometers (machine at its mounts)"
            + (" and floor accelerometers" if floor is not None else ""), "segments": {}, "skipped_modes": {},
-           "mounts": {}, "vc_class": {}}
+           "absent_modes": {}, "mounts": {}, "vc_class": {}}
     if floor is not None:
         out.update(floor={}, vc_class_floor={}, transmissibility_db={})
     t = np.asarray(r["time_s"], dtype=float)
     if len(t) < 2 or not t[-1] > t[0]:           # a loop stepped by hand (no scheduler): its row count
         t = np.arange(len(t)) / fs
+    active = np.asarray(r["lifecycle_state"]) == float(State.ACTIVE)
     for k, mode in enumerate(MODES):
         a, b = _longest(code == k)
         a += skip
         if (b - a) / fs < MIN_SECONDS:
-            if b > 0:
+            why = _absent(mode, code == k, active, fs)
+            if why:
+                out["absent_modes"][mode] = why
+            elif b > 0:
                 out["skipped_modes"][mode] = f"{max(b - a, 0) / fs:.1f} s after settling (at least {MIN_SECONDS:g} s)"
             continue
-        out["segments"][mode] = {"t0_s": float(t[a]), "t1_s": float(t[b - 1]), "seconds": (b - a) / fs}
+        out["segments"][mode] = {"t0_s": float(t[a]), "t1_s": float(t[b - 1]), "seconds": (b - a) / fs,
+                                 "resolution_hz": fs / (b - a)}
         bands = [band_velocity_rms(acc[a:b, i], fs, kind="acceleration") for i in range(acc.shape[1])]
         fc = bands[0][0]
         v = np.array([x[1] for x in bands]) * 1e6                      # (mounts, bands) um/s
@@ -108,6 +115,22 @@ def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     return out
 
 
+def _absent(mode: str, rows: np.ndarray, active: np.ndarray, fs: float) -> str:
+    """Why `mode` is absent from the run, "" when it was there, however briefly (called when too short).
+    Isolation off: never switched off while ACTIVE; the INACTIVE rows (valves at null, counted as off) are
+    then only the settle before activation."""
+    if mode == "off":
+        if (rows & active).any():
+            return ""
+        settle = f" (only the {rows.sum() / fs:.2g} s INACTIVE before activation)" if rows.any() else ""
+        return (f"no isolation-off stretch: the run never switched isolation off{settle}, so there is no baseline "
+                f"and the classes here are of isolation on alone, not a comparison (record a stretch with "
+                f"isolation off: rig run --isolation off, SIGUSR1 or --control)")
+    if rows.any():
+        return ""
+    return f"the run never used {mode.replace('_', ' + ')}"
+
+
 def _labels(path, n: int) -> list[str] | None:
     """The accel_mps2 dataset's column labels (mount names), if recorded."""
     import h5py
@@ -125,6 +148,8 @@ def summary(rep: dict) -> str:
     """One line: the class met per mode (machine at its mounts; the floor's with floor accelerometers)."""
     parts = [f"{m.replace('_', ' + ')} {rep['vc_class'][m]}" for m in MODES if m in rep["vc_class"]]
     text = "VC class, machine at its mounts (worst mount, 1-100 Hz): " + ", ".join(parts)
+    if "off" in rep.get("absent_modes", {}):
+        text += " (no isolation-off stretch to compare with)"
     if rep.get("vc_class_floor"):
         text += "; floor: " + ", ".join(f"{m.replace('_', ' + ')} {c}" for m, c in rep["vc_class_floor"].items())
     return text
@@ -144,6 +169,9 @@ def plot(path: Path, rep: dict) -> None:
     fig, ax = plt.subplots(figsize=(9, 6))
     plot_vc(ax, {"band_hz": rep["band_hz"], "velocity_um_s": curves, "vc_class": classes},
             title=f"{Path(rep['recording']).name}: one-third-octave rms velocity (worst mount) by isolation mode")
+    if "off" in rep.get("absent_modes", {}):
+        ax.text(0.01, 0.01, "no isolation-off stretch in this run: isolation on alone, no baseline to compare with",
+                transform=ax.transAxes, fontsize=8, color="0.3", va="bottom")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -5,7 +5,7 @@ and (when the base mode is on) the stand's position x_b and velocity v_b. The co
 at the sample rate and integrated with fixed-step RK4 at an inner step well below 1/w_h.
 
 Measured outputs at each sample instant t_k (before the command u_k takes effect, as a DAC/ADC pair does):
-  position_m  = x_p         (absolute piston position: fits p03_base to the noise floor with m_b = 280 kg;
+  position_m  = x_p         (absolute piston position: fits p03_base to the noise floor with m_b = 5 M;
                              the relative x_p - x_b left a 3e-7 m residual at any stand mass)
   accel_mps2  = d2x_p/dt2   (accelerometer on the moving part, absolute)
 
@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, asdict
 import numpy as np
 import numba
 
+from rig.config import STAND_BASE_MASS_KG
 from sim_backend.linear import ActuatorParams, discretize_zoh_foh
 
 FRICTION_V_SCALE = 2e-5     # m/s, the tanh smoothing of sign(v) used by the recordings' simulator
@@ -58,7 +59,7 @@ class Effects:
     friction_force_n: float = 0.0             # 0 = off
     base_frequency_hz: float = 0.0            # 0 = off
     base_damping_ratio: float = 0.03
-    base_mass_kg: float = 280.0               # fitted on p03_base (5 M); mass ratio M/m_b = 0.2
+    base_mass_kg: float = STAND_BASE_MASS_KG  # rig/config.py: 5 M, fitted on p03_base
     disturbance_frequency_hz: float = 0.0     # 0 = off
     disturbance_force_n: float = 0.0
     disturbance_phase_rad: float = 0.0
@@ -66,32 +67,6 @@ class Effects:
     accel_noise_mps2: float = 0.0
     seed: int = 0
     base_motion_rms_m: float = 0.0            # the floor under the stand (StandBank), 0 = still
-
-    @classmethod
-    def from_catalogue(cls, effects: dict, **extra) -> "Effects":
-        """Build from the recordings' answers.json style: {"transport_delay": {"delay_s": ...}, ...}."""
-        kw = dict(extra)
-        for name, prm in effects.items():
-            if name == "transport_delay":
-                kw["delay_s"] = prm["delay_s"]
-            elif name == "valve_saturation":
-                kw["saturation_limit_ma"] = prm["limit_ma"]
-            elif name == "valve_deadband":
-                kw["deadband_width_ma"] = prm["width_ma"]
-            elif name == "coulomb_friction":
-                kw["friction_force_n"] = prm["force_n"]
-            elif name == "base_resonance":
-                kw["base_frequency_hz"] = prm["frequency_hz"]
-                kw["base_damping_ratio"] = prm.get("damping_ratio", 0.03)
-                if "mass_kg" in prm:
-                    kw["base_mass_kg"] = prm["mass_kg"]
-            elif name == "periodic_disturbance":
-                kw["disturbance_frequency_hz"] = prm["frequency_hz"]
-                kw["disturbance_force_n"] = prm.get("force_n", 200.0)
-                kw["disturbance_phase_rad"] = prm.get("phase_rad", 0.0)
-            else:
-                raise ValueError(f"unknown effect {name!r}")
-        return cls(**kw)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -111,6 +86,16 @@ def inner_step_s(p: ActuatorParams, fx: Effects) -> float:
     if fx.base_frequency_hz > 0:
         h = min(h, 0.05 / (2 * math.pi * fx.base_frequency_hz))
     return h
+
+
+def stand_prm(p: ActuatorParams, fx: Effects) -> np.ndarray:
+    """The compiled plant's parameter vector (the layout _deriv reads): the actuator, then the effects' terms."""
+    m_b = fx.base_mass_kg
+    w_b = 2 * math.pi * fx.base_frequency_hz
+    return np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
+                     fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
+                     1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
+                     2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -171,12 +156,7 @@ def simulate_stand(p: ActuatorParams, cmd_V: np.ndarray, fs: float, fx: Effects 
     cmd = np.ascontiguousarray(cmd_V, dtype=float)
     h = inner_step or inner_step_s(p, fx)
     n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
-    m_b = fx.base_mass_kg
-    w_b = 2 * math.pi * fx.base_frequency_hz
-    prm = np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
-                    fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
-                    1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
-                    2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+    prm = stand_prm(p, fx)
     n = cmd.shape[0]
     pos = np.empty(n); acc = np.empty(n); spool = np.empty(n)
     _simulate(cmd, float(fs), n_sub, fx.delay_s, p.K_v, fx.saturation_limit_ma, prm,
@@ -288,12 +268,7 @@ class StandPlant:
             self._ca, self._da = np.ascontiguousarray(C[1]), np.ascontiguousarray(D[1, 1:])
         h = inner_step or inner_step_s(p, fx)
         self.n_sub = max(1, int(math.ceil(1.0 / (fs * h))))
-        m_b = fx.base_mass_kg
-        w_b = 2 * math.pi * fx.base_frequency_hz
-        self.prm = np.array([p.M, p.A_p, p.C, p.V_t, p.K_L, p.K_Q, p.K_C, p.w_nv, p.zeta, p.beta,
-                             fx.saturation_limit_ma, fx.deadband_width_ma, fx.friction_force_n,
-                             1.0 if fx.base_frequency_hz > 0 else 0.0, m_b, m_b * w_b ** 2,
-                             2 * fx.base_damping_ratio * m_b * w_b], dtype=float)
+        self.prm = stand_prm(p, fx)
         self.hist = np.zeros(int(math.ceil(fx.delay_s * fs)) + 4)
         self.y = np.zeros(7)
         self.k = 0

@@ -158,7 +158,8 @@ def run(args) -> int:
     if tuned:
         rep["tuned"] = tuned
     result = _clean(rep)
-    _log_summary(log, result)
+    if not args.json:                        # the figures on stdout, the progress above on stderr
+        print("\n".join(summary_lines(result)), flush=True)
     if args.out is not None:
         cliargs.make_out_dir(args.out)
         from controllers import figures
@@ -215,26 +216,47 @@ def _meets(rep) -> dict:
     return {"bands": bands, "margins": marg, "robust": bool(rep["robust"]["all_stable"])}
 
 
-def _log_summary(log, result) -> None:
+def _yes(v: bool) -> str:
+    return "yes" if v else "NO"
+
+
+def verdict(result) -> str:
+    """Whether the design meets the paper, in words: what holds and what does not."""
+    m, rb = result["meets_paper"], result["robust"]
+    parts = [("every mount at or above the paper's attenuation in every band" if m["bands"] else
+              "a mount below the paper's attenuation in a band (see the lines above)"),
+             ("GM >= 6 dB and PM >= 35 deg on every mount" if m["margins"] else
+              "a mount's margins below GM 6 dB or PM 35 deg"),
+             (f"all {rb['corners'] + rb['random']} plants of the robustness check stable" if m["robust"] else
+              f"unstable on some of the {rb['corners'] + rb['random']} plants of the robustness check")]
+    ok = all(m.values())
+    return f"meets the paper: {'yes' if ok else 'NO'}: " + "; ".join(parts)
+
+
+def summary_lines(result) -> list[str]:
+    """The design's figures, one line each, ending with the verdict in words."""
+    lines = []
     for m, r in result["mounts"].items():
         t = result["attenuation_db"]["ground_to_table"][m]
-        log(f"{m:11s} stable={r['stable']} GM {r['gain_margin_db']:.1f} dB PM {r['phase_margin_deg']:.1f} deg "
-            f"disk {r['disk_margin']:.2f} gc {r['gain_crossover_hz']:.0f} Hz | table 1 Hz {t['1hz']:.1f}, "
-            f"5-10 Hz {t['5_10hz']:.1f}, 20-60 Hz {t['20_60hz']:.1f}, 60-100 Hz {t['60_100hz']:.1f} dB")
+        lines.append(f"{m:11s} stable: {_yes(r['stable'])}, GM {r['gain_margin_db']:.1f} dB, PM "
+                     f"{r['phase_margin_deg']:.1f} deg, disk {r['disk_margin']:.2f}, gc {r['gain_crossover_hz']:.0f} "
+                     f"Hz | table 1 Hz {t['1hz']:.1f}, 5-10 Hz {t['5_10hz']:.1f}, 20-60 Hz {t['20_60hz']:.1f}, "
+                     f"60-100 Hz {t['60_100hz']:.1f} dB")
     for tag in ("feedback", "feedforward", "feedback_feedforward"):
         v = result["mimo"].get(tag)
         if v:
-            log(f"all four loops, {tag.replace('_', ' + ')}: table min 1-100 Hz uniform floor "
-                f"{v['uniform']['ground_to_table']['min_1_100hz']:.1f} dB, independent "
-                f"{v['independent']['ground_to_table']['min_1_100hz']:.1f} dB")
+            lines.append(f"all four loops, {tag.replace('_', ' + ')}: table min 1-100 Hz uniform floor "
+                         f"{v['uniform']['ground_to_table']['min_1_100hz']:.1f} dB, independent "
+                         f"{v['independent']['ground_to_table']['min_1_100hz']:.1f} dB")
     rb = result["robust"]
-    log(f"robust: {rb['corners'] + rb['random']} plants, all stable={rb['all_stable']}, worst multiloop disk "
-        f"margin {rb['worst_disk_margin_mimo']:.2f}, worst SISO GM {rb['worst_siso_gm_db']:.1f} dB "
-        f"PM {rb['worst_siso_pm_deg']:.1f} deg")
+    lines.append(f"robust: {rb['corners'] + rb['random']} plants, all stable: {_yes(rb['all_stable'])}, worst "
+                 f"multiloop disk margin {rb['worst_disk_margin_mimo']:.2f}, worst SISO GM {rb['worst_siso_gm_db']:.1f} "
+                 f"dB PM {rb['worst_siso_pm_deg']:.1f} deg")
     w = result["feedforward"]["model_error"]["worst_attenuation_db"]["feedback_feedforward"]["uniform"]
-    log(f"feedback + feedforward, actuator +-10 % off the model: worst min 1-100 Hz {w['min_1_100hz']:.1f} dB")
+    lines.append(f"feedback + feedforward, actuator +-10 % off the model: worst min 1-100 Hz {w['min_1_100hz']:.1f} dB")
     pd = result["predicted_demo"]
-    log(f"predicted demo (table rms 1-100 Hz, same floor): feedback {pd['feedback']['reduction_db']:.1f} dB, "
-        f"with feedforward {pd['feedback_feedforward']['reduction_db']:.1f} dB (nominal model), "
-        f"{pd['feedback_feedforward_model_error']['reduction_db']:.1f} dB (actuator +-10 % off, worst corner)")
-    log(f"meets the paper: {result['meets_paper']}")
+    lines.append(f"predicted demo (table rms 1-100 Hz, same floor): feedback {pd['feedback']['reduction_db']:.1f} dB, "
+                 f"with feedforward {pd['feedback_feedforward']['reduction_db']:.1f} dB (nominal model), "
+                 f"{pd['feedback_feedforward_model_error']['reduction_db']:.1f} dB (actuator +-10 % off, worst corner)")
+    lines.append(verdict(result))
+    return lines

@@ -30,23 +30,12 @@ def run(args) -> int:
     from rig.commands import diagnose_rig           # a run of the four-mount rig (issue 28)
     if diagnose_rig.handles(args):
         return diagnose_rig.run(args)
-    from rig.config import load_config
-    from rig.recording import check_plausible
-    from rig.signalmap import load_recording_for
-    from sim_backend.linear import ActuatorParams
+    from rig.plant.file import load_subject
 
-    cfg = load_config(args.config) if args.config else None
-    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
-    plant = None
-    if args.plant is not None:
-        from rig.plant.file import check_command_unit, load_plant
-        plant = load_plant(args.plant, p0)                    # ConfigError: one line naming file and key
-    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2
+    rec = subject.rec
     if rec.gaps:
         print(f"note: {rec.gaps}", file=sys.stderr)
-    if plant is not None:
-        check_command_unit(args.plant, plant, rec)
-    check_plausible(rec)
     if args.out.exists() and not args.out.is_dir():
         raise RigError(f"--out {args.out}: exists and is not a folder")
 
@@ -58,12 +47,11 @@ def run(args) -> int:
     def progress(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against "
-             f"{plant.describe() if plant is not None else ('Table 1' if cfg is None else cfg.source)}")
+    progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against {subject.against}")
     if rec.closed_loop:
-        from rig.recording import CLOSED_LOOP_NOTE
+        from rig.recordings.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
-    diag = diagnose(rec, plant if plant is not None else p0, progress=progress, seed=args.seed)
+    diag = diagnose(rec, subject.plant, progress=progress, seed=args.seed)
     progress("writing outputs")
     try:
         paths = report.write_outputs(args.out, diag, rec)

@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 
 from rig import cliargs
+from rig.identify import UNITS
 from rig.errors import RigError
 
-UNITS = {"K_L": "N/m", "C": "N s/m", "w_nv": "rad/s", "zeta": "-", "K_Q": "m^3/s/mA", "K_C": "m^3/s/Pa"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -172,31 +172,19 @@ def _run_plant(args, rec, plant, t0: float) -> int:
 
 
 def run(args) -> int:
-    from rig.config import load_config
     from rig.identify import identify
-    from rig.recording import check_plausible
-    from rig.signalmap import load_recording_for
-    from sim_backend.linear import ActuatorParams
+    from rig.plant.file import load_subject
 
     if args.starts < 1:
         raise RigError(f"--starts: expected >= 1, got {args.starts}")
-    cfg = load_config(args.config) if args.config else None
-    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
     t0 = time.perf_counter()
-    plant = None
-    if args.plant is not None:
-        from rig.plant.file import check_command_unit, load_plant
-        plant = load_plant(args.plant, p0)               # ConfigError: one line naming file and key
-    rec = load_recording_for(args.recording, args.plant)      # RecordingError/ConfigError: one line, exit 2
+    subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2
+    rec, plant = subject.rec, subject.plant
     if rec.gaps:
         print(f"note: {rec.gaps}", file=sys.stderr)
-    check_plausible(rec)
-    if plant is not None:
-        check_command_unit(args.plant, plant, rec)
-        if plant.family == "eha":
-            p0, plant = plant.actuator, None
-    if plant is not None:
+    if plant.family != "eha":
         return _run_plant(args, rec, plant, t0)
+    p0 = plant.actuator
     if rec.closed_loop and rec.reference_m is None:
         # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
         # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.
@@ -209,7 +197,7 @@ def run(args) -> int:
 
     progress(f"loaded {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz", 0.0)
     if rec.closed_loop:
-        from rig.recording import CLOSED_LOOP_NOTE
+        from rig.recordings.recording import CLOSED_LOOP_NOTE
         print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)

@@ -77,7 +77,7 @@ def frf(cfg, workdir, ff: float, freqs=FREQS_HZ) -> list[dict]:
         amp = min(2e-6, 0.8 * cfg.controller.track_rate_m_per_s / (2 * math.pi * f))
         cycles = max(6, int(round(0.25 * f)))
         path = _run(cfg, Path(workdir) / f"frf{f:g}.h5", seconds=0.15 + (2 + cycles) / f,
-                    mode=f"track sine:amp={amp!r},freq={f!r}")
+                    mode=f"track sine:amp={amp!r}m,freq={f!r}")
         (t, x, r), _ = _read(path, "time_s", "stroke_m", "reference_m")
         r0 = r[np.isfinite(r)][0]
         t0 = t[np.argmax(np.isfinite(r) & (np.abs(r - r0) > 1e-12))]        # the reference starts moving

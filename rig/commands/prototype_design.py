@@ -20,7 +20,7 @@ def _finite(v):
 
 
 def run(args, cfg, model: dict) -> int:
-    """Print the report (stderr lines, --json on stdout), --out DIR: the figures and prototype_design.json.
+    """Print the report (its figures on stdout, or --json), --out DIR: the figures and prototype_design.json.
     model: where the actuator came from (`rig design --identified`). --tune: both loops retuned first for
     this rate and delay (controllers/prototype.py tune), printed as a [controller] table (--out:
     controller.toml)."""
@@ -49,12 +49,12 @@ def run(args, cfg, model: dict) -> int:
              f" command peak {st['peak_command_V']:.2f} V{' (AT THE CLAMP)' if st['at_clamp'] else ''}",
              f"  10 um 5 Hz sine: rms error {sn['rms_error_um']:.4f} um = {sn['rms_error_pct']:.2f} % of the amplitude",
              f"  holds at most +-{tr['hold_range_um']:.1f} um (leakage, controller.track_headroom of the clamp)",
-             f"isolation on the stand: stable={iso['stable']} GM {iso['gain_margin_db']:.1f} dB, PM "
+             f"isolation on the stand: stable: {'yes' if iso['stable'] else 'NO'}, GM {iso['gain_margin_db']:.1f} dB, PM "
              f"{iso['phase_margin_deg']:.1f} deg; attenuation " + ", ".join(f"{k} {v:.1f} dB" for k, v in
                                                                      iso["attenuation_db"].items())
              + f"; load rms {iso['load_rms_off_um']:.3f} -> {iso['load_rms_on_um']:.3f} um ({iso['isolation_db']:.1f} dB)"]
-    for ln in lines:
-        print(f"rig design: {ln}", file=sys.stderr)
+    if not args.json:                        # the figures on stdout, progress on stderr
+        print("\n".join(lines), flush=True)
     if args.out is not None:
         cliargs.make_out_dir(args.out)
         files = prototype.write_figures(rep, args.out, cfg, dt, delay)

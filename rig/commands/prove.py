@@ -40,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from rig.config import load_config
-    from rig.diagnose import prove
+    from rig.diagnose import grading, prove
     from sim_backend.linear import ActuatorParams
 
     if args.rig:
@@ -96,25 +96,25 @@ def run(args) -> int:
         cases, rows = prove.prove_generated(args.n, args.seed, p0, duration_s=args.duration,
                                             workers=args.workers, progress=progress, habits=args.habits)
 
-    result = prove.report_json(rows, title, cases)
+    result = grading.report_json(rows, title, cases)
     if args.out is not None:
         try:
             args.out.mkdir(parents=True, exist_ok=True)
-            (args.out / "proof.md").write_text(prove.report_markdown(rows, title))
+            (args.out / "proof.md").write_text(grading.report_markdown(rows, title))
             (args.out / "proof.json").write_text(json.dumps(result, indent=1))
         except OSError as e:
             raise RigError(f"--out {args.out}: cannot write ({e.strerror})") from None
     if args.json:
         print(json.dumps(result, indent=1))
     else:
-        print(prove.table_markdown(rows))
+        print(grading.table_markdown(rows))
         print("confusion matrix (rows: truth, columns: named)\n")
-        print(prove.confusion_markdown(result["confusion"]))
-        hab = prove.habits_markdown(result["score"])
+        print(grading.confusion_markdown(result["confusion"]))
+        hab = grading.habits_markdown(result["score"])
         if hab:
             print("by habit\n")
             print(hab)
-        print(prove.score_text(result["score"]))
+        print(grading.score_text(result["score"]))
         if args.out is not None:
             print(f"\nwritten: {args.out / 'proof.md'}, {args.out / 'proof.json'}")
     return 0

@@ -45,5 +45,7 @@ def run(args) -> int:
             tr = [x for x in rep["transmissibility_db"][mode] if x is not None]
             line += f"{rep['vc_class_floor'][mode]:24s} {sum(tr) / len(tr):+.1f} dB"
         print(line)
+    if "off" in rep["absent_modes"]:
+        print(f"  off: {rep['absent_modes']['off']}")
     print(report.summary(rep))
     return 0

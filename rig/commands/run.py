@@ -33,7 +33,7 @@ The prototype (`--layout prototype`: drivers/devicemaps/prototype.toml, or proto
 backend; any config with [layout] plant = "stand"): the actuator alone on its stand, operated in modes
 (controllers/modes.py), switchable while live and bumpless:
   --mode off|hold|track|isolate    the mode at activation (default hold: the piston held where it is)
-  --position POS                   hold there (e.g. 5um)
+  --position POS                   hold there, with its unit (e.g. 5um; a bare 5 would be metres: refused)
   --reference REF                  track it: setpoint:x=5um, step:amp=2um, sine:amp=10um,freq=5,
                                    chirp:amp=1um,f0=1,f1=100,duration=20, csv:profile.csv (time_s,position_m)
   --control FILE                   write `hold 5um`, `track sine:amp=10um,freq=5`, `isolate`, `off`, `stop`
@@ -121,7 +121,8 @@ def add_arguments(p) -> None:
                         "(drivers/devicemaps/prototype.toml, prototype_hil.toml on hil) unless --config names one")
     p.add_argument("--mode", choices=("off", "hold", "track", "isolate"), default=None,
                    help="stand layout: the mode at activation (default hold)")
-    p.add_argument("--position", default=None, metavar="POS", help="hold mode: the position, e.g. 5um")
+    p.add_argument("--position", type=cliargs.length, default=None, metavar="POS",
+                   help="hold mode: the position with its unit, e.g. 5um or 0.005mm (a bare number is refused)")
     p.add_argument("--reference", default=None, metavar="REF",
                    help="track mode: setpoint:x=POS, step:amp=DX, sine:amp=A,freq=F[,offset=POS][,seconds=S], "
                         "chirp:amp=A,f0=F0,f1=F1,duration=T, csv:FILE")
@@ -273,8 +274,8 @@ class _RunPlan:
         """Log the start; the settle time before activation."""
         args, backend, cfg, loop = self.args, self.backend, self.cfg, session.loop
         if self.stand:
-            log.info("backend %s, %s on the stand at %g Hz, mode %s, config %s, pid %d (SIGUSR1 isolate <-> hold, "
-                     "SIGUSR2 off <-> hold%s)", backend, ", ".join(loop.names), loop.rate_hz, self.start or "hold",
+            log.info("backend %s, %s at %g Hz, mode %s, config %s, pid %d (SIGUSR1 isolate <-> hold, "
+                     "SIGUSR2 off <-> hold%s)", backend, _on_stands(loop.names), loop.rate_hz, self.start or "hold",
                      cfg.source, os.getpid(), f", control file {args.control}" if args.control else "")
         else:
             log.info("backend %s, %d mounts at %g Hz, isolation %s, config %s, pid %d (SIGUSR1 toggles "
@@ -300,11 +301,16 @@ class _RunPlan:
     def finish(self, loop, reason: str) -> int:
         """The stop line, the stand's tracking figures or the machine's VC summary; the exit code."""
         args, record = self.args, self.record
-        tm = loop.timing_us()
-        log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
-                 "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
-                 100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
-                 f", recorded to {args.record}" if args.record else "")
+        recorded = f", recorded to {args.record}" if args.record else ""
+        if not loop.clock.is_real:           # no deadlines to meet: nothing to time
+            log.info("stopped (%s) after %d periods in simulated time (loop timing is not measured in simulated "
+                     "time: run on the real clock for it)%s", reason, loop.iterations, recorded)
+        else:
+            tm = loop.timing_us()
+            log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
+                     "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
+                     100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
+                     recorded)
         if self.stand and record is not None:
             try:
                 _report(record, args.plot, loop.names, title=None if self.tmp is None else "rig run")
@@ -316,6 +322,14 @@ class _RunPlan:
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
         return 0
+
+
+def _on_stands(names) -> str:
+    """What runs on the stand layout, in words: `the actuator on its stand`, `2 actuators on their stands (a, b)`
+    (a mount named after the stand is not named twice)."""
+    if len(names) == 1:
+        return "the actuator on its stand" + ("" if names[0] == "stand" else f" ({names[0]})")
+    return f"{len(names)} actuators on their stands ({', '.join(names)})"
 
 
 def _vc_summary(path) -> None:

@@ -3,8 +3,9 @@
 - Traces: per mount acceleration, stroke and valve command, kept for the last TRACE_S seconds as a min/max
   envelope in buckets of 1 / BUCKETS_PER_S seconds (two points a bucket, in the order they occurred), so a
   spike or a command at the clamp stays visible however the rate compares with the screen's pixels.
-- Lifecycle state, isolation, fault, counters: the newest row's flag columns; isolation switches become
-  events with their loop time.
+- Lifecycle state, isolation, fault, counters: the newest row's flag columns. (An isolation switch is an
+  event through the loop's own log record, `isolation on`, logged where the gate applies it: the page's
+  event log has each event once, on one clock.)
 - Loop timing: p50/p99/max of the rows' wake latency and compute time over the last TIMING_S seconds.
 - Table motion spectrum: the table's heave acceleration (the mean of the mounts' accelerometers) sorted by
   what the isolation was doing (on: ACTIVE with isolation on; off: INACTIVE, or ACTIVE with isolation off),
@@ -12,6 +13,8 @@
   spectral density of each (Welch) every SPECTRUM_EVERY_S, from the last SPECTRUM_S seconds of each.
 - VC curves: one-third-octave rms velocity against the vibration criteria (controllers/vibration_criteria.py)
   from the same spectra, and the class each meets.
+A chirp identification's run (layout kind "chirp") has traces and flags, but no spectra: it plays a chirp,
+not isolation.
 """
 from __future__ import annotations
 
@@ -78,9 +81,8 @@ class Feed:
         self.timing: dict | None = None
         self.spectrum: dict | None = None
         self.vc: dict | None = None
-        self._new_events: list[dict] = []
-        self._iso = None
         self.rows_seen = 0
+        self.spectra = layout.get("kind", "run") != "chirp"
         self.changed = set()               # parts recomputed since the last delta
 
     # ---- rows in ------------------------------------------------------------------------------------------
@@ -91,7 +93,8 @@ class Feed:
         self.rows_seen += len(rows)
         self._flags(rows)
         self._timing_rows(rows)
-        self._spectrum_rows(rows)
+        if self.spectra:
+            self._spectrum_rows(rows)
         rows = np.concatenate([self._pending, rows]) if len(self._pending) else rows
         nb = len(rows) // self.bucket
         if nb:
@@ -125,15 +128,6 @@ class Feed:
                     "isolation": bool(last[c["isolation_on"]] > 0.5), "fault": bool(last[c["fault"]] > 0.5),
                     "overruns": int(last[c["overruns"]]), "skipped_periods": int(last[c["skipped_periods"]]),
                     "cmd_limited": bool(last[c["cmd_limited"]] > 0.5)}
-        iso = rows[:, c["isolation_on"]] > 0.5
-        prev = self._iso if self._iso is not None else bool(iso[0])
-        switches = np.flatnonzero(np.diff(np.concatenate(([prev], iso))))
-        for i in switches:
-            self._event(float(rows[i, c["time_s"]]), f"isolation {'on' if iso[i] else 'off'}", "flag")
-        self._iso = bool(iso[-1])
-
-    def _event(self, t_s: float, text: str, source: str) -> None:
-        self._new_events.append({"t_s": t_s, "wall": time.time(), "text": text, "source": source, "level": "INFO"})
 
     def _timing_rows(self, rows: np.ndarray) -> None:
         self._wake.put(rows[:, [self.col["wake_latency_us"]]])
@@ -198,8 +192,7 @@ class Feed:
 
     # ---- out to the page --------------------------------------------------------------------------------
     def take_delta(self) -> dict:
-        """What changed since the last call (trace points, flags, figures recomputed, events: the isolation
-        switches seen in the rows)."""
+        """What changed since the last call (trace points, flags, figures recomputed)."""
         msg = {"now": self.now, "rows_seen": self.rows_seen}
         if self._new_t:
             t = np.concatenate(self._new_t)
@@ -209,9 +202,6 @@ class Feed:
         for part in self.changed:
             msg[part] = getattr(self, part)
         self.changed = set()
-        if self._new_events:
-            msg["events"] = self._new_events
-            self._new_events = []
         return msg
 
     def full(self) -> dict:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.commands.identify import UNITS
+from rig.identify import UNITS
 from rig.config import MOUNTS
 from rig.console.live import LiveRing
 from rig.console.protocol import check_command, receive, send
@@ -78,6 +78,28 @@ class Job:
     started_wall: float = field(default_factory=time.time)
 
 
+class _Tee:
+    """The chirp's recorder (a few columns) and, beside it, the live ring with the whole row: the loop pushes
+    each row to both (the recorder's drops and its writer's health are the recorder's)."""
+
+    def __init__(self, recorder, live: LiveRing) -> None:
+        self.recorder, self.live = recorder, live
+
+    def push_row(self, row) -> bool:
+        self.live.push_row(row)
+        return self.recorder.push_row(row)
+
+    def event(self, t_s: float, text: str) -> None:
+        self.recorder.event(t_s, text)
+
+    def writer_died(self) -> str | None:
+        return self.recorder.writer_died()
+
+    @property
+    def dropped_rows(self) -> int:
+        return self.recorder.dropped_rows
+
+
 class _LogTap(logging.Handler):
     """The rig's log records (lifecycle, faults, console commands) for the page; formatted off the emitting
     thread."""
@@ -113,6 +135,7 @@ class Console:
         self.job: Job | None = None
         self.stop_requested = False
         self.chirp_session = None
+        self._chirp_live: LiveRing | None = None
         self.ended: str | None = None
         self.last_recording: dict | None = None
         self._lock = threading.Lock()
@@ -213,6 +236,7 @@ class Console:
             self._thread.join(timeout=5.0)
         if self.session is not None:
             self.detach()
+        self.attach_chirp(None)
         if self._identify is not None and self._identify.poll() is None:
             self._identify.kill()
             self._identify.wait()
@@ -248,10 +272,16 @@ class Console:
             if loop.recorder is None:
                 self._bind(session, live)
             self._copy_from = None
-        cfg = session.cfg
+        self._send_attach(session, live, "run")
+
+    def _send_attach(self, session, live: LiveRing, kind: str) -> None:
+        """The server's new feed: the session's row layout, its mounts and limits, and the live ring.
+        kind: "run" (an isolation or operated run) or "chirp" (an identification run: no spectra)."""
+        loop, cfg = session.loop, session.cfg
         layout = {"channels": [{"name": c.name, "width": c.width, "unit": c.unit, "labels": list(c.labels)}
                                for c in loop.channels],
                   "rate_hz": loop.rate_hz, "mounts": list(loop.names), "backend": session.backend,
+                  "kind": kind, "modes": bool(session.operated),      # the mode field only where modes exist
                   "limits": {"valve_limit_V": cfg.safety.valve_limit_V, "stroke_limit_m": cfg.safety.stroke_limit_m,
                              "accel_range_mps2": cfg.safety.accel_range_mps2}}
         send(self._sock, {"type": "attach", "layout": layout}, fds=(live.fd,))
@@ -290,8 +320,22 @@ class Console:
             loop.recorder = rec
 
     def attach_chirp(self, session) -> None:
-        """The chirp's own session (its recording keeps a few columns: no live traces, a safe stop reaches it)."""
-        self.chirp_session = session
+        """The chirp's own session, shown live as a run is (its recording keeps a few columns, so every row
+        also goes to a live ring of its own), and reached by a safe stop. None: the chirp is over."""
+        if session is None:
+            live, self.chirp_session, self._chirp_live = self._chirp_live, None, None
+            if live is not None:
+                try:
+                    send(self._sock, {"type": "detach"})
+                except OSError:
+                    pass
+                live.close()
+            return
+        loop = session.loop
+        live = LiveRing(len(loop.kernel.row), max(64, int(LIVE_RING_S * loop.rate_hz)))
+        self._bind(session, _Tee(loop.recorder, live))      # before the chirp starts (at once)
+        self.chirp_session, self._chirp_live = session, live
+        self._send_attach(session, live, "chirp")
 
     # ---- the link thread -------------------------------------------------------------------------------------
     def _run(self) -> None:

@@ -6,7 +6,7 @@ sensors read and shown) until the operator resets it or stops the run.
 
 A chirp identification needs other controllers on the valves (a chirp played open loop), so it is a run of
 its own, as `rig chirp` makes it: the page's request stops the isolation run safely (the gate's stop, valves
-to null), the chirp runs through `rig.commands.chirp.run_chirp` with its progress on the page, then the
+to null), the chirp runs through `rig.chirp.run_chirp` with its progress on the page, then the
 isolation run resumes as it was (ACTIVE again after its settle time, unless the chirp faulted) while
 `rig identify` works on the recording in a process of its own; its result appears on the page beside Table 1.
 """
@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from rig.commands.chirp import run_chirp
+from rig.chirp import run_chirp
 from rig.console.link import Console
 from rig.errors import RigError
 

@@ -72,10 +72,15 @@ class ConsoleState:
         self.soon = asyncio.Event()       # an extra update now: a command has just been applied
         self.attached = 0                 # attach count (a page resets its plots on a new one)
         self.tick_ms = collections.deque(maxlen=400)      # the server's own work per update (CPU time)
-        self.events: list[dict] = []      # the loop's log records and the isolation switches, oldest first
+        self.events: list[dict] = []      # the loop's log records (commands, lifecycle, switches), oldest first
         self._new_events: list[dict] = []
+        self._event_seq = 0
 
     def add_events(self, events) -> None:
+        """Events in, each numbered: a page that got an event in a full state skips it in the next delta."""
+        for e in events:
+            self._event_seq += 1
+            e["seq"] = self._event_seq
         self.events.extend(events)
         self._new_events.extend(events)
         del self.events[:-200]
@@ -129,7 +134,6 @@ class ConsoleState:
             rows = self.reader.read()               # the last rows of the run
             if self.feed is not None and len(rows):
                 self.feed.add(rows)
-                self.add_events(self.feed.take_delta().get("events", ()))
             self.reader.close()
         self.reader = None
 
@@ -182,9 +186,7 @@ class ConsoleState:
         msg = {"type": "delta", "seq": self.seq, "server_ms": time.time() * 1e3, "attached": self.attached,
                "status": self.status}
         if self.feed is not None:
-            d = self.feed.take_delta()
-            self.add_events(d.pop("events", ()))
-            msg.update(d)
+            msg.update(self.feed.take_delta())
             msg["console_skipped_rows"] = self.reader.skipped_rows if self.reader is not None else 0
         if self._new_events:
             msg["events"], self._new_events = self._new_events, []

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.diagnose import prove
+from rig.diagnose import catalogue, prove
 from rig.diagnose.engine import diagnose
-from rig.recording import Recording, load_recording
-from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+from rig.recordings.recording import Recording
+from rig.recordings.rigformat import load_recording
+from sim_backend.actuator import linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 
 
@@ -36,7 +37,7 @@ def _folder_cases(folder: Path):
         a = ans[name]
         p = ActuatorParams().with_(**a["true_linear_parameters"])
         t, cmd = linear_chirp(2000.0, 100.0, 0.1, 100.0, a["amplitude_V"])
-        fx = Effects.from_catalogue(a["effects"], position_noise_m=2e-8, accel_noise_mps2=2e-4, seed=1)
+        fx = catalogue.stand_effects(a["effects"], position_noise_m=2e-8, accel_noise_mps2=2e-4, seed=1)
         y = simulate_stand(p, cmd, 2000.0, fx)
         yield name.split(".")[0] + "@2kHz", Recording.from_signals(cmd, y["position_m"], y["accel_mps2"],
                                                                    fs_hz=2000.0, source=name)

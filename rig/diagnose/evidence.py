@@ -19,7 +19,7 @@ import math
 import numpy as np
 from scipy.signal import csd, welch
 
-from rig.diagnose import locate
+from rig.diagnose import catalogue, locate
 
 
 def _decimate_for_plot(t: np.ndarray, x: np.ndarray, fs: float, win_s: float = 0.5, max_pts: int = 2000):
@@ -184,7 +184,25 @@ def line_spectra(pb, r_pos: np.ndarray, acc_res: np.ndarray | None, f_hz: float,
     return out
 
 
-def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np.ndarray, acc_use: np.ndarray,
+def signature_line(e, mismatch) -> str:
+    """What a named effect's data show (its definition's signature), with the distortion the command's structure
+    measured for a nonlinear one and the two-sensor finding for a line."""
+    effect = catalogue.get(e.name)
+    sig = effect.evidence.signature
+    h = mismatch.harmonics or {}
+    ms = mismatch.multisine_lines or {}
+    if effect.nonlinear and h:
+        sig += f"; odd harmonics {h.get('odd_over_noise', 0):.0f}x noise, even {h.get('even_over_noise', 0):.0f}x"
+    if effect.nonlinear and ms and ms.get("odd_over_noise") is not None:
+        sig += (f"; unexcited odd lines of the multisine {ms['odd_over_noise']:.2f}x noise rms ({ms['odd_z']:.0f} "
+                f"standard errors above noise alone), even lines {ms.get('even_over_noise') or 0:.2f}x: odd "
+                f"distortion" if (ms.get("odd_z") or 0) > 5 else "")
+    if e.line_evidence:
+        sig += f"; {e.line_evidence}"
+    return sig
+
+
+def collect(pb, cmd_info, refit, augmented, effects, mismatch, sensor, acc: np.ndarray, acc_use: np.ndarray,
             check, acc_model: np.ndarray | None, noise_floor) -> dict:
     """Plot data and a one-line finding for each named effect and each sensor term."""
     ev: dict = {"effects": {}, "sensor": {}}
@@ -199,38 +217,32 @@ def collect(pb, cmd_info, refit, augmented, effects: list[dict], sensor, acc: np
     if lv:
         ev["levels"] = lv
     for e in effects:
-        name = e["name"]
-        if name in ("valve_saturation", "valve_deadband", "input_saturation", "input_deadband"):
+        name = e.name
+        effect = catalogue.get(name)
+        kind = effect.evidence.kind
+        if kind == "amplitude":
             # several levels: gain by level; one level: the distortion the sweep or multisine shows; else the
             # residual by command magnitude
             ev["effects"][name] = ({"kind": "levels", **lv} if lv else
                                    distortion(pb, cmd_info, r_ref, r_aug, noise_floor)
                                    or {"kind": "command", **residual_by_command(pb, r_ref, r_aug)})
-        elif name in ("coulomb_friction", "constant_force"):
+        elif kind == "velocity":
             ev["effects"][name] = {"kind": "velocity", **residual_by_velocity(pb, y_lin, r_ref, r_aug)}
-        elif name in ("transport_delay", "base_resonance"):
-            fx = {k: v for k, v in augmented.fx.items() if k not in (name, "periodic_disturbance")}
+        elif kind == "frf":
+            fx = {k: v for k, v in catalogue.simulated(augmented.fx).items() if k != name}
             y_wo = pb.model(augmented.lin, fx)
             fr = frf_ratio(pb, y_clean - (y_aug - pb.model(augmented.lin, augmented.fx)), y_wo,
                            pb.model(augmented.lin, augmented.fx), band)
             if fr:
-                if name == "transport_delay":
-                    tau = e["parameters"].get("delay_s", 0.0)
-                    fr["finding"] = (f"the measured phase falls behind the model without the delay linearly with "
-                                     f"frequency, by {360 * tau * band[1]:.0f} deg at {band[1]:.0f} Hz "
-                                     f"(a {tau * 1e3:.2f} ms dead time), with the magnitude unchanged")
-                else:
-                    fb = e["parameters"].get("frequency_hz", 0.0)
-                    fr["finding"] = (f"the measured response over the model without the stand mode shows a "
-                                     f"resonance/antiresonance pair at {fb:.1f} Hz")
+                fr["finding"] = effect.evidence.finding(e.parameters, band)
             ev["effects"][name] = {"kind": "frf", "effect": name, **fr}
-        elif name == "periodic_disturbance":
-            f = e["parameters"].get("frequency_hz", 0.0)
+        elif kind == "line":
+            f = e.parameters.get("frequency_hz", 0.0)
             a_res = acc - check.gain.real * acc_model - np.mean(acc) if (check is not None and check.usable
                                                                         and acc_model is not None) else None
             r_pos = pb.y - pb.series(augmented) + (y_aug - pb.model(augmented.lin, augmented.fx))
             ls = line_spectra(pb, r_pos, a_res, f, check.gain if check is not None else 1.0, acc_use)
-            ls["finding"] = e.get("evidence", "").split("; fit-block")[0]
+            ls["finding"] = signature_line(e, mismatch)
             ev["effects"][name] = {"kind": "line", **ls}
     ev["sensor"] = sensor_evidence(pb, augmented, sensor, acc, acc_use, check, acc_model, y_aug, r_aug, band)
     return ev

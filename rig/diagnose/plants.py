@@ -1,8 +1,9 @@
-"""The diagnosis's view of a plant (rig.plant): which catalogue effects apply, their parameters and bounds, and
-the fast exact model of the plant with any set of them. The engine (rig.diagnose.engine) asks only this.
+"""The diagnosis's view of a plant (rig.plant): which catalogue effects apply (rig.diagnose.catalogue, by family),
+what their bounds and starts are relative to (`scale`), and the fast exact model of the plant with any set of them
+(each effect's term in it from the catalogue). The engine (rig.diagnose.engine) asks only this.
 
-  EhaModel   the paper's actuator on its stand: today's catalogue and models (rig.diagnose.effects / models),
-             the five identified parameters refit within 0.7-1.4 x nominal
+  EhaModel   the paper's actuator on its stand (rig.diagnose.models), the five identified parameters refit
+             within 0.7-1.4 x nominal
   AxisModel  mechanical_axis and transfer_function: the plant file's free parameters within their bounds; the
              input nonlinearities (static, before the drive), the transport delay (exact ZOH), a constant force
              and Coulomb friction F_c tanh(v / v_s) on the load (sub-stepped, friction solved implicitly), the
@@ -12,12 +13,10 @@ the fast exact model of the plant with any set of them. The engine (rig.diagnose
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
-from rig.diagnose import effects as eha_effects
-from rig.diagnose.models import force_response as eha_force_response, sim_linear
+from rig.diagnose import catalogue
+from rig.diagnose.models import force_response as eha_force_response, sim_linear, sim_reduced
 from rig.plant.model import Plant, eha_plant
 from rig.plant.zoh import discretise, free_response, phi, run_segments, substeps
 from sim_backend.linear import ActuatorParams
@@ -43,32 +42,21 @@ def at_bounds(bounds_lin: dict, lin: dict, keys) -> dict[str, float]:
     return out
 
 
-@dataclass(frozen=True)
-class Spec:
-    name: str
-    keys: tuple[str, ...]          # fitted keys (the disturbance's frequency is found by a line search)
-    meaning: str
-
-
 class EhaModel:
     """The paper's actuator (the default plant): exactly the engine's behaviour before plant files."""
     family = "eha"
-    catalogue = ("transport_delay", "base_resonance", "periodic_disturbance", "valve_saturation",
-                 "valve_deadband", "coulomb_friction")
-    nonlinear = eha_effects.NONLINEAR
-    slow = ("valve_deadband", "coulomb_friction")
-    linear_sim = ("transport_delay", "base_resonance", "valve_saturation")
-    saturation, deadband = "valve_saturation", "valve_deadband"
     lin_keys = ("K_L", "K_C", "K_Q", "w_nv", "zeta")
     LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
     segmented = False
     input_unit = "V"
+    has_load = True
     axis_search = False                # its search stays as its proof measured it (docs/DIAGNOSIS.md)
+    slow_second_lin = ("K_Q", "K_C")   # on a slow model a second effect is fitted with the gain and lag free
 
     def __init__(self, plant: Plant):
         self.plant = plant
         self.p0: ActuatorParams = plant.actuator
-        self.specs = {n: Spec(n, s.keys, s.meaning) for n, s in eha_effects.SPECS.items()}
+        self.effects = catalogue.for_plant(self.family, self.has_load)
         self.nominal = {k: getattr(self.p0, k) for k in self.lin_keys}
         self.bounds_lin = {k: (v * self.LIN_BOUNDS[0], v * self.LIN_BOUNDS[1]) for k, v in self.nominal.items()}
         self.log_scale = {k: True for k in self.lin_keys}
@@ -76,22 +64,25 @@ class EhaModel:
     def params(self, lin: dict) -> ActuatorParams:
         return self.p0.with_(**lin)
 
-    def peak_effect_scale(self, cmd: np.ndarray) -> float:
-        return float(np.max(np.abs(cmd))) * self.p0.K_v          # peak driver current, mA
+    def scale(self, cmd: np.ndarray, fs: float) -> catalogue.Scale:
+        """What the effects' bounds and starts are relative to: the peak driver current (mA), the stand's
+        moving mass."""
+        return catalogue.Scale(self.family, fs, float(np.max(np.abs(cmd))) * self.p0.K_v, math.nan, self.p0.M)
 
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict) -> np.ndarray:
-        return eha_effects.simulate(self.params(lin), cmd, fs, fx)
+        """Position [m] at the sample instants for the nominal model plus the effects in fx (no projected line):
+        the fastest exact model that holds them (sim_linear unless a slow effect needs sim_reduced)."""
+        kw = catalogue.terms("eha_model", fx)
+        if catalogue.slow_in(fx):
+            return sim_reduced(self.params(lin), cmd, fs, **kw)
+        return sim_linear(self.params(lin), cmd, fs, **kw)
 
     def force_response(self, lin: dict, fx: dict, fs: float, f_hz: float, n: int) -> np.ndarray:
-        b = fx.get("base_resonance")
-        base = (b["frequency_hz"], b["damping_ratio"], b.get("mass_kg", 280.0)) if b else None
+        base = catalogue.terms("eha_model", fx).get("base")
         return eha_force_response(self.params(lin), fs, f_hz, n, base)
 
     def accel(self, lin: dict, cmd: np.ndarray, fs: float) -> np.ndarray:
         return sim_linear(self.params(lin), cmd, fs, output="accel")
-
-    def effect_bounds(self, name: str, fs: float, peak: float) -> list[tuple[float, float]]:
-        return eha_effects.bounds(name, fs=fs, peak_ma=peak, p=self.p0)
 
     def moving_mass_kg(self, lin: dict) -> float:
         return self.p0.M
@@ -102,35 +93,14 @@ class EhaModel:
 
 class AxisModel:
     """mechanical_axis and transfer_function plants from a plant file."""
+    slow_second_lin = None             # on a slow model a second effect is fitted with every linear key free
 
     def __init__(self, plant: Plant):
         self.plant = plant
         self.family = plant.family
-        u = plant.input_unit
-        self.input_unit = u
-        self.saturation, self.deadband = "input_saturation", "input_deadband"
-        force = plant.has_force
-        specs = [Spec("transport_delay", ("delay_s",), "dead time between the command and the drive's force"),
-                 Spec("input_saturation", (f"limit_{u}",), f"the command clipped at +-limit before the drive"),
-                 Spec("input_deadband", (f"width_{u}",), f"no drive output within +-width of the command"),
-                 Spec("periodic_disturbance", ("frequency_hz",),
-                      "periodic force not caused by the command" if force else
-                      "periodic motion not caused by the command")]
-        if force:
-            specs += [Spec("coulomb_friction", ("force_n",),
-                           f"friction force_n tanh(v / {FRICTION_SMOOTHING_M_PER_S:g} m/s) against the motion"),
-                      Spec("constant_force", ("force_n",), "a constant force on the load (a cable, a weight "
-                                                           "component, the drive's offset)"),
-                      Spec("base_resonance", ("frequency_hz", "damping_ratio", "mass_kg"),
-                           "the axis's frame on a compliant base (resonance/antiresonance pair)")]
-        self.specs = {s.name: s for s in specs}
-        order = ("transport_delay", "base_resonance", "periodic_disturbance", "input_saturation", "input_deadband",
-                 "constant_force", "coulomb_friction")
-        self.catalogue = tuple(n for n in order if n in self.specs)
-        self.nonlinear = tuple(n for n in ("input_saturation", "input_deadband", "coulomb_friction")
-                               if n in self.specs)
-        self.slow = ("coulomb_friction",) if force else ()
-        self.linear_sim = tuple(n for n in self.catalogue if n not in self.slow and n != "periodic_disturbance")
+        self.input_unit = plant.input_unit
+        self.has_load = plant.has_force
+        self.effects = catalogue.for_plant(self.family, self.has_load)
         self.lin_keys = plant.free
         vals = plant.values()
         self.fixed = {k: v for k, v in vals.items() if k not in self.lin_keys}
@@ -145,12 +115,12 @@ class AxisModel:
     def values(self, lin: dict) -> dict:
         return {**self.fixed, **lin}
 
-    def peak_effect_scale(self, cmd: np.ndarray) -> float:
-        return float(np.max(np.abs(cmd)))                         # peak command, in its unit
-
-    def peak_force_n(self, cmd: np.ndarray, lin: dict | None = None) -> float:
-        v = self.values(lin or self.nominal)
-        return float(np.max(np.abs(cmd))) * v.get("gain_n_per_unit", 1.0)
+    def scale(self, cmd: np.ndarray, fs: float) -> catalogue.Scale:
+        """What the effects' bounds and starts are relative to: the peak command (its unit), the peak drive force
+        and the moving mass at the nominal parameters."""
+        peak = float(np.max(np.abs(cmd)))
+        return catalogue.Scale(self.family, fs, peak, peak * self.values(self.nominal).get("gain_n_per_unit", 1.0),
+                               self.moving_mass_kg(self.nominal))
 
     def moving_mass_kg(self, lin: dict) -> float:
         return self.plant.moving_mass_kg(self.values(lin))
@@ -159,32 +129,31 @@ class AxisModel:
         return {k: float(v) for k, v in self.values(lin).items()}
 
     # ---- models
-    @staticmethod
-    def _base(fx: dict):
-        b = fx.get("base_resonance")
-        return (b["frequency_hz"], b["damping_ratio"], b.get("mass_kg", 100.0)) if b else None
+    def _terms(self, fx: dict) -> dict:
+        return catalogue.terms("axis_model", fx, self.input_unit)
 
-    def shaped_command(self, cmd: np.ndarray, fx: dict) -> np.ndarray:
-        """The static input nonlinearities: saturation at +-limit, then the deadband of +-width."""
-        u = self.plant.input_unit
+    @staticmethod
+    def shaped_command(cmd: np.ndarray, saturation: float = 0.0, deadband: float = 0.0) -> np.ndarray:
+        """The static input nonlinearities: saturation at +-limit, then the deadband of +-width (0: none)."""
         out = np.asarray(cmd, dtype=float)
-        lim = fx.get("input_saturation", {}).get(f"limit_{u}", 0.0)
-        if lim > 0:
-            out = np.clip(out, -lim, lim)
-        w = fx.get("input_deadband", {}).get(f"width_{u}", 0.0)
-        if w > 0:
-            out = np.sign(out) * np.maximum(np.abs(out) - w, 0.0)
+        if saturation > 0:
+            out = np.clip(out, -saturation, saturation)
+        if deadband > 0:
+            out = np.sign(out) * np.maximum(np.abs(out) - deadband, 0.0)
         return out
 
+    def matrices_key(self, fx: dict):
+        """What of fx the state-space matrices depend on (a compliant base)."""
+        return self._terms(fx).get("base")
+
     def matrices(self, lin: dict, fx: dict):
-        return self.plant.state_space(self.values(lin), self._base(fx))
+        return self.plant.state_space(self.values(lin), self.matrices_key(fx))
 
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None, X0=None) -> np.ndarray:
         """Position [m] at the samples; with starts/X0 the state is set to X0[s] at sample starts[s]."""
-        A, B, Bf, C, Cv = self.matrices(lin, fx)
-        delay = fx.get("transport_delay", {}).get("delay_s", 0.0)
-        fric = fx.get("coulomb_friction", {}).get("force_n", 0.0)
-        f0 = fx.get("constant_force", {}).get("force_n", 0.0)
+        kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
+        A, B, Bf, C, Cv = self.plant.state_space(self.values(lin), kw.pop("base", None))
+        delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
         n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if fric > 0 else 1
         Ah, Bnew, Bold, m = substeps(A, B, 1.0 / fs, n_sub, delay)
         Gf = phi(A, Bf, 1.0 / (fs * n_sub))[1] if (fric > 0 or f0 != 0) else np.zeros(len(B))
@@ -192,9 +161,10 @@ class AxisModel:
         if fric > 0:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        return run_segments(Ah, Bnew, Bold, Gf, Cv, C, self.shaped_command(cmd, fx), m, friction_n=fric,
+        cmd = self.shaped_command(cmd, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
+        return run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
                             smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
-                            fine=fine)
+                            fine=fine, **kw)   # a new effect's term: run_segments' own keyword
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""
@@ -208,7 +178,7 @@ class AxisModel:
         base at rest); other families start at zero (their segment states are found exactly by the projection).
         Centred, because a one-sided fit's end velocity is poor, and a friction model's response is not linear
         in its start (the engine refines these states by Gauss-Newton steps)."""
-        n_state = 4 if (self.family == "mechanical_axis" and "base_resonance" in fx) else \
+        n_state = 4 if (self.family == "mechanical_axis" and "base" in self._terms(fx)) else \
             self.matrices(self.nominal, fx)[0].shape[0]
         X0 = np.zeros((len(starts), n_state))
         if self.family != "mechanical_axis":
@@ -240,25 +210,6 @@ class AxisModel:
     def accel(self, lin: dict, cmd: np.ndarray, fs: float) -> np.ndarray:
         y = self.simulate(lin, cmd, fs, {})
         return np.gradient(np.gradient(y, 1.0 / fs), 1.0 / fs)
-
-    def effect_bounds(self, name: str, fs: float, peak: float) -> list[tuple[float, float]]:
-        F = self.peak_force_n(np.array([peak]))
-        if name == "transport_delay":
-            return [(0.0, 8e-3)]
-        if name == "input_saturation":
-            return [(0.03 * peak, 1.02 * peak)]
-        if name == "input_deadband":
-            return [(0.0, 0.6 * peak)]
-        if name == "coulomb_friction":
-            return [(0.0, 2.0 * F)]
-        if name == "constant_force":
-            return [(-F, F)]
-        if name == "base_resonance":
-            M = self.moving_mass_kg(self.nominal)
-            return [(5.0, 0.45 * fs), (0.003, 0.4), (M / 3.0, 100.0 * M)]
-        if name == "periodic_disturbance":
-            return [(0.5, 0.49 * fs)]
-        raise KeyError(name)
 
 
 def model_for(plant) -> EhaModel | AxisModel:

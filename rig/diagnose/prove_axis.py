@@ -2,9 +2,8 @@
 plant, recorded by sim_backend.axis (real stick-slip friction, the drive's cascade in closed loop, an encoder),
 diagnosed without the truth, graded as rig.diagnose.prove grades the actuator's cases.
 
-Each case: the plant's free parameters moved +-15 % within their bounds; none, one or two of the axis catalogue's
-effects (transport_delay, input_saturation, input_deadband, coulomb_friction, constant_force) with plausible sizes
-relative to the drive's force; open loop (band-limited noise command) or closed loop (back-and-forth moves under
+Each case: the plant's free parameters moved +-15 % within their bounds; none, one or two of the effects with an
+"axis" draw in the catalogue (rig/diagnose/catalogue/) with plausible sizes relative to the drive's force; open loop (band-limited noise command) or closed loop (back-and-forth moves under
 a P-PI cascade tuned on the nominal plant, its reference starting at the encoder's reading); the encoder's step,
 white noise and an offset; 20-30 s at 1 kHz.
 In closed loop a saturation is drawn as 40-90 % of the peak command the same run asks for without it, and the
@@ -14,20 +13,22 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from rig import excitation as ex
+from rig.diagnose import catalogue
 from rig.diagnose.engine import diagnose
-from rig.diagnose.prove import Case, grade, run_jobs
+from rig.diagnose.grading import grade
+from rig.diagnose.prove import Case, run_jobs
 from rig.errors import RigError
 from rig.plant.file import parse_plant
 from rig.plant.model import Plant
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.axis import Axis, Loop, Sensor, simulate_axis, trapezoid_program
 
-AXIS_CATALOGUE = ("transport_delay", "input_saturation", "input_deadband", "coulomb_friction", "constant_force")
+AXIS_CATALOGUE = catalogue.for_proof("axis")      # the effects drawn, in the draws' order
 FS_HZ = 1000.0
 ACCEL_TYP_MPS2 = 1.0           # the open-loop command's size: a force that accelerates the mass by ~1 m/s^2 ...
 SPEED_TYP_MPS = 0.1            # ... or holds ~0.1 m/s against the damping, whichever is larger
@@ -40,19 +41,22 @@ def _scale(plant: Plant, v: dict) -> tuple[float, float]:
     return F / g, g
 
 
-def _draw_effect(name: str, rng, plant: Plant, u_peak: float, F_peak: float) -> dict:
-    u = plant.input_unit
-    if name == "transport_delay":
-        return {"delay_s": round(float(rng.uniform(2e-3, 6e-3)), 5)}
-    if name == "input_saturation":
-        return {f"limit_{u}": float(rng.uniform(0.45, 0.75) * u_peak)}
-    if name == "input_deadband":
-        return {f"width_{u}": float(rng.uniform(0.04, 0.12) * u_peak)}
-    if name == "coulomb_friction":
-        return {"force_n": float(rng.uniform(0.05, 0.2) * F_peak)}
-    if name == "constant_force":
-        return {"force_n": float(rng.choice([-1, 1]) * rng.uniform(0.02, 0.08) * F_peak)}
-    raise ValueError(name)
+@dataclass(frozen=True)
+class DrawContext:
+    """What an effect's draw for this proof knows (rig/diagnose/catalogue: Draw): the plant's input unit, the
+    open-loop command's peak and the drive's peak force."""
+    u: str
+    u_peak: float
+    F_peak: float
+
+
+def _names(names: list[str]) -> list[str]:
+    """Effects drawn together with one they are not drawn with give way to their `instead`."""
+    for n in list(names):
+        d = catalogue.get(n).draws["axis"]
+        if n in names and any(o in names for o in d.not_with):
+            names = [x for x in names if x != n] + [d.instead] * (d.instead not in names)
+    return names
 
 
 def draw_axis_cases(n: int, seed: int, plant: Plant) -> list[Case]:
@@ -72,8 +76,7 @@ def draw_axis_cases(n: int, seed: int, plant: Plant) -> list[Case]:
     for i, k in enumerate(counts):
         names = [str(singles[i % len(singles)])] if k == 1 else \
             [str(x) for x in rng.choice(AXIS_CATALOGUE, size=k, replace=False)] if k else []
-        if "input_saturation" in names and "input_deadband" in names:
-            names = [x for x in names if x != "input_deadband"] + ["coulomb_friction"] * ("coulomb_friction" not in names)
+        names = _names(names)
         lin = {}
         for key, p in plant.params.items():
             if p.free:
@@ -81,7 +84,8 @@ def draw_axis_cases(n: int, seed: int, plant: Plant) -> list[Case]:
         v = plant.values(**lin)
         u_peak, g = _scale(plant, v)
         closed = bool(rng.random() < 0.5)
-        effects = {nm: _draw_effect(nm, rng, plant, u_peak, u_peak * g) for nm in sorted(names)}
+        ctx = DrawContext(plant.input_unit, u_peak, u_peak * g)
+        effects = {nm: catalogue.get(nm).draws["axis"].draw(rng, ctx)[0] for nm in sorted(names)}
         sensor = {"step_m": float(rng.choice([0.0, 1e-7, 5e-7])), "noise_m": float(rng.uniform(0.0, 5e-7)),
                   "offset_m": float(rng.uniform(-1e-3, 1e-3))}
         dur = round(float(rng.uniform(20.0, 30.0)), 1)
@@ -90,9 +94,10 @@ def draw_axis_cases(n: int, seed: int, plant: Plant) -> list[Case]:
         case = Case(name=f"a{i + 1:02d}_{'+'.join(effects) or 'nominal'}", effects=effects, linear=lin,
                     fs_hz=FS_HZ, duration_s=dur, amplitude_V=u_peak, seed=int(rng.integers(2 ** 31)),
                     excitation=exc, sensor=sensor, habits=tags)
-        if closed and "input_saturation" in effects:
+        scaled = [nm for nm in effects if catalogue.get(nm).draws["axis"].loop_scaled]
+        if closed and scaled:
             frac = np.random.default_rng([case.seed, 1]).uniform(*SATURATION_CLOSED_LOOP)  # the draws after it stay
-            _closed_loop_saturation(case, plant, float(frac))
+            _closed_loop_saturation(case, plant, float(frac), scaled[0])
         cases.append(case)
     return cases
 
@@ -101,15 +106,14 @@ SATURATION_CLOSED_LOOP = (0.4, 0.9)     # the drive's limit as a fraction of the
 DAC_RANGE = 1.5                         # the controller's output range over that peak
 
 
-def _closed_loop_saturation(case: Case, plant: Plant, fraction: float) -> None:
+def _closed_loop_saturation(case: Case, plant: Plant, fraction: float, name: str) -> None:
     """A saturation the loop survives, as on a real axis: the limit is a fraction of the peak command the same
     run asks for without it (the open-loop draw's scale says nothing of what the controller commands), and the
     controller's output is clipped at its converter's range (1.5 x that peak) instead of growing without bound
     while the drive is saturated."""
-    u = plant.input_unit
-    free = replace(case, effects={k: v for k, v in case.effects.items() if k != "input_saturation"})
+    free = replace(case, effects={k: v for k, v in case.effects.items() if k != name})
     peak = float(np.max(np.abs(simulate_axis_case(free, plant).valve_cmd_V)))
-    case.effects["input_saturation"] = {f"limit_{u}": fraction * peak}
+    case.effects[name] = {catalogue.get(name).keys(plant.input_unit)[0]: fraction * peak}
     case.excitation["u_max"] = DAC_RANGE * peak
 
 
@@ -131,15 +135,9 @@ def _moves(rng, duration_s: float) -> list[tuple[float, float]]:
 
 def simulate_axis_case(case: Case, plant: Plant) -> Recording:
     v = plant.values(**case.linear)
-    fx = case.effects
-    u = plant.input_unit
     ax = Axis(mass_kg=v["mass_kg"], damping_n_s_per_m=v["damping_n_s_per_m"],
               stiffness_n_per_m=v.get("stiffness_n_per_m", 0.0), gain_n_per_unit=v["gain_n_per_unit"],
-              coulomb_n=fx.get("coulomb_friction", {}).get("force_n", 0.0),
-              constant_force_n=fx.get("constant_force", {}).get("force_n", 0.0),
-              delay_s=fx.get("transport_delay", {}).get("delay_s", 0.0),
-              saturation=fx.get("input_saturation", {}).get(f"limit_{u}", 0.0),
-              deadband=fx.get("input_deadband", {}).get(f"width_{u}", 0.0))
+              **catalogue.terms("axis", case.effects, plant.input_unit))
     sensor = Sensor(step_m=case.sensor["step_m"], noise_m=case.sensor["noise_m"], offset_m=case.sensor["offset_m"],
                     seed=case.seed)
     rng = np.random.default_rng(case.excitation["seed"])

@@ -1,5 +1,5 @@
 """`rig identify REC --plant FILE` for the families other than eha: the plant file's free parameters by output
-error against the recorded position, the diagnosis's refit stage alone (rig.diagnose.engine.Problem: the sensor's
+error against the recorded position, the diagnosis's refit stage alone (rig.diagnose.problem.Problem: the sensor's
 zero, or for an integrating plant the segment-wise initial states, projected out; fit and held-out blocks).
 
 Uncertainty: 1 sigma from the Jacobian at the optimum with the residual's variance (white-residual assumption:
@@ -12,12 +12,12 @@ import time
 
 import numpy as np
 
-from rig import closedloop
-from rig.diagnose.engine import Problem
+from rig.recordings import closedloop
+from rig.diagnose.problem import Problem
 from rig.diagnose.plants import at_bounds
 from rig.errors import RecordingError
 from rig.plant.model import Plant
-from rig.recording import check_plausible
+from rig.recordings.recording import check_plausible
 
 
 def identify_plant(rec, plant: Plant, progress=None) -> dict:
@@ -35,7 +35,7 @@ def identify_plant(rec, plant: Plant, progress=None) -> dict:
     pb = Problem(rec.command, rec.position_m, rec.fs_hz, plant, use)
     tick("nominal model", 0.0)
     nom = pb.evaluate(dict(pb.nominal), {}, k=0)
-    pb.noise = float(np.sqrt(nom.rss_fit / max(pb.mfit.sum(), 1))) or 1.0
+    pb = pb.with_(noise=float(np.sqrt(nom.rss_fit / max(pb.mfit.sum(), 1))) or 1.0)
     tick("output-error fit", 0.1)
     f = pb.fit(dict(pb.nominal), {}, max_iter=30)
     keys = list(pb.lin_keys)

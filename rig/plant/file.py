@@ -13,16 +13,21 @@
     num = [2e-3]                        # position / command = num(s) / den(s), highest power first
     den = [1, { value = 30, min = 3, max = 300 }, 0]
 
-Only [plant] is read here; the signal map ([signals]) is read by the recording's loader.
+Only [plant] is read here; the signal map ([signals]) is read by the recording's loader. `load_subject` is what
+`rig identify` and `rig diagnose` read: the recording and the plant it is held against.
 """
 from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
+from rig.config import load_config
 from rig.errors import ConfigError
 from rig.plant.model import FAMILIES, INPUT_UNITS, Param, Plant, eha_plant
+from rig.recordings.recording import Recording, check_plausible
+from rig.recordings.signalmap import load_recording_for
 from sim_backend.linear import ActuatorParams
 
 AXIS_KEYS = {"mass_kg": True, "damping_n_s_per_m": True, "stiffness_n_per_m": False, "gain_n_per_unit": False}
@@ -147,9 +152,26 @@ def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
     return parse_plant(data["plant"], str(path), p0)
 
 
-def check_command_unit(path, plant: Plant, rec) -> None:
-    """One line when the recording's command (in the unit its signal map gave) is not the plant's input."""
-    if plant.input_unit != rec.command_unit:
+@dataclass(frozen=True)
+class Subject:
+    """A recording and the plant a command holds it against: the plant file's, else the eha actuator of the
+    configuration (Table 1 without one); `against` names it for people."""
+    rec: Recording
+    plant: Plant
+    against: str
+
+
+def load_subject(recording, plant_path=None, config_path=None) -> Subject:
+    """Read the recording (through the plant file's signal map when it has one) and the plant, and check them
+    together: the command's unit is the plant's input, the values plausible. One line for any problem
+    (ConfigError, RecordingError)."""
+    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
+    plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(
+        p0, str(Path(config_path)) if config_path else "Table 1")
+    rec = load_recording_for(recording, plant_path)
+    if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
-        raise ConfigError(f"{path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's input "
-                          f"is {what}")
+        raise ConfigError(f"{plant_path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's "
+                          f"input is {what}")
+    check_plausible(rec)
+    return Subject(rec, plant, plant.describe() if plant_path is not None else plant.source)

@@ -34,6 +34,7 @@ from controllers.feedforward import feedforward_step
 from controllers.isolation import isolation_step
 from controllers.modes import modes_step
 from controllers.playback import playback_step
+from controllers.timebase import same_period
 from controllers.tracking import track_step
 from rig.config import MAX_MOUNTS, Config
 from rig.errors import ConfigError
@@ -520,7 +521,7 @@ def _check_feedforward(names, ffs: list, dt: float) -> None:
         if not all(hasattr(f, a) for a in ("coef", "fade", "initial_state", "set_enabled", "enabled")):
             raise ConfigError(f"loop: {name}: {type(f).__name__} is not a feedforward filter "
                               f"(controllers/feedforward.py FeedforwardFilter)")
-        if abs(f.dt - dt) > 1e-6 * dt:
+        if not same_period(f.dt, dt):
             raise ConfigError(f"loop: {name}: feedforward built for dt = {f.dt:g} s, loop period {dt:g} s")
 
 
@@ -534,6 +535,6 @@ def _check_controller(name: str, c, dt: float) -> None:
         if not hasattr(c, attr):
             raise ConfigError(f"loop: {name}: {type(c).__name__} has no {attr}")
     cdt = getattr(c, "dt", dt)
-    if abs(cdt - dt) > 1e-6 * dt:
+    if not same_period(cdt, dt):
         raise ConfigError(f"loop: {name}: controller built for dt = {cdt:g} s, loop period {dt:g} s "
                           f"(build the controllers at the loop rate)")

@@ -1,7 +1,7 @@
 """The recording row of a loop run: its channels, and the column offsets derived from them in one place.
 
 The period kernel (rig/runtime/kernel.py) writes the row with offsets from `RowLayout`, the recorder stores one
-dataset per channel, and adapters that keep a few columns (rig/commands/chirp.py) look them up here too.
+dataset per channel, and adapters that keep a few columns (rig/chirp.py) look them up here too.
 """
 from __future__ import annotations
 

@@ -199,27 +199,37 @@ class SensorCheck:
         """The one-line fault text of a check code (state: the check's state after the check)."""
         i = code % 100
         if code - i == CHECK_STUCK_ACCEL:
-            return f"{self.names[i]}: accelerometer stuck at {acc[i]!r} m/s^2 for {int(state[_C_SA, i])} samples"
+            return f"{self.names[i]}: accelerometer stuck at {accel_text(acc[i])} for {int(state[_C_SA, i])} samples"
         if code - i == CHECK_STUCK_STROKE:
-            return (f"{self.names[i]}: displacement transducer stuck at {xs[i]!r} m "
+            return (f"{self.names[i]}: displacement transducer stuck at {length_text(xs[i])} "
                     f"for {int(state[_C_SX, i])} samples")
         a, x = acc[i], xs[i]
         ar, xr, xl = self.accel_range, self.stroke_range, self.stroke_limit
         if not (-ar <= a <= ar):
-            return f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 (NaN or outside +-{ar:g} m/s^2)"
+            return f"{self.names[i]}: accelerometer implausible: {accel_text(a)} (NaN or outside +-{ar:g} m/s^2)"
         if not (-xr <= x <= xr):
-            return (f"{self.names[i]}: displacement transducer implausible: {x!r} m "
-                    f"(NaN or outside +-{xr:g} m)")
+            return (f"{self.names[i]}: displacement transducer implausible: {length_text(x)} "
+                    f"(NaN or outside +-{xr * 1e3:g} mm)")
         if not (-xl <= x <= xl):
             return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
         age = t_ns - ts[i]
         return f"{self.names[i]}: stale sample: {age / 1e6:.3f} ms old (limit {self.stale_ns / 1e6:g} ms)"
 
 
+def accel_text(a: float) -> str:
+    """An acceleration in a fault text: four significant digits and the unit."""
+    return f"{a:.4g} m/s^2"
+
+
+def length_text(x: float) -> str:
+    """A transducer reading in a fault text: four significant digits in mm (the stroke limit's unit)."""
+    return f"{x * 1e3:.4g} mm"
+
+
 def floor_reason(code: int, names, floor, range_mps2: float) -> str:
     """The one-line fault text of a check_floor code."""
     i = code - CHECK_FLOOR
-    return (f"{names[i]}: floor accelerometer implausible: {floor[i]!r} m/s^2 (NaN or outside "
+    return (f"{names[i]}: floor accelerometer implausible: {accel_text(floor[i])} (NaN or outside "
             f"+-{range_mps2:g} m/s^2, [sensors] floor_range_mps2)")
 
 

@@ -436,9 +436,9 @@ class _StatusLine(_Helper):
         else:
             susp = lp.suspended_mounts if lp.isolation else []
             what = "iso=" + (("on " if not susp else f"SUSPENDED({','.join(susp)})") if lp.isolation else "off")
-        return (f"t={t:7.2f}s {lp.state.name:8s} {what} "
-                f"wake p99={tm['wake_latency_us']['p99']:6.1f}us compute p99={tm['compute_us']['p99']:5.1f}us "
-                f"overruns={lp.overruns} stroke_um=[{xs}] cmd_V=[{us}]")
+        timing = (f"wake p99={tm['wake_latency_us']['p99']:6.1f}us compute p99={tm['compute_us']['p99']:5.1f}us "
+                  f"overruns={lp.overruns}" if lp.clock.is_real else "simulated time (not timed)")
+        return f"t={t:7.2f}s {lp.state.name:8s} {what} {timing} stroke_um=[{xs}] cmd_V=[{us}]"
 
     def run(self) -> None:
         period = 0.25 if self.tty else 1.0

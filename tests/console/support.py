@@ -131,6 +131,18 @@ def rig_run_console(*extra: str, cwd=None, realtime: bool = False):
         os.unlink(f.name)
 
 
+def open_page(chromium, console, **kw):
+    """A page on `console` once it has had a few updates; its script errors collect in page.errors."""
+    from rig.console.browser import wait_for
+    page = chromium.new_page(viewport={"width": 1400, "height": 1300}, **kw)
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(console.url)
+    wait_for(page, "window.rigStats && rigStats.deltas > 5 && rigStats.renders > 3")
+    page.errors = errors
+    return page
+
+
 def open_when_active(chromium, url: str, width: int = 1400, height: int = 1300):
     """A page on the console at `url`, once it shows the run ACTIVE."""
     from rig.console.browser import wait_for

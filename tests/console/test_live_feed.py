@@ -2,6 +2,7 @@
 feed that turns rows into what the page draws, and the command check."""
 from __future__ import annotations
 
+import json
 import math
 import os
 
@@ -15,6 +16,7 @@ from rig.console import feed as feed_mod
 from rig.console.feed import Feed
 from rig.console.live import LiveReader, LiveRing
 from rig.console.protocol import COMMANDS, check_command
+from rig.console.server import ConsoleState
 from rig.runtime.layout import loop_channels
 from rig.runtime.lifecycle import State
 
@@ -126,14 +128,16 @@ def test_a_partial_bucket_waits_for_its_rows():
     assert t == [0.01, 0.015]
 
 
-def test_isolation_switches_are_events_and_the_newest_row_is_the_state():
+def test_the_newest_row_is_the_state_and_a_switch_is_no_second_event():
+    """The rows give the state; an isolation switch is the loop's own log record (the gate logs it where it
+    applies it), so the feed adds no event of its own: the page shows each switch once."""
     f = Feed(_layout())
     iso = np.r_[np.ones(50), np.zeros(50), np.ones(20)]
     rows = _rows(f, np.arange(120) / 1000)
     rows[:, f.col["isolation_on"]] = iso
     f.add(rows)
     d = f.take_delta()
-    assert [(e["text"], e["t_s"]) for e in d["events"]] == [("isolation off", 0.05), ("isolation on", 0.1)]
+    assert "events" not in d
     assert d["now"]["state"] == "ACTIVE" and d["now"]["isolation"] is True
     assert d["timing"]["compute_us"]["max"] == 20.0 and d["timing"]["wake_latency_us"]["p99"] == 5.0
 
@@ -189,3 +193,22 @@ def test_every_command_has_a_handler_and_well_formed_ones_pass():
 def test_anything_else_is_one_line_never_an_exception(msg):
     r = check_command(msg)
     assert isinstance(r, str) and "\n" not in r or isinstance(r, tuple)
+
+
+def test_event_numbers_let_a_page_skip_what_a_full_state_already_gave():
+    """The server numbers its events: the delta after a snapshot repeats the pending ones with the same
+    numbers (the page skips numbers it has shown)."""
+    st = ConsoleState(control=None)
+    sent = []
+    st.clients.add(type("Page", (), {"put": lambda self, text: sent.append(text)})())
+    st.add_events([{"t_s": None, "wall": 1.0, "text": "lifecycle: configure -> INACTIVE", "level": "INFO"}])
+    snap = st.snapshot()
+    st.tick()
+    st.add_events([{"t_s": None, "wall": 2.0, "text": "lifecycle: activate -> ACTIVE", "level": "INFO"}])
+    st.tick()
+    deltas = [json.loads(x) for x in sent]
+    shown = [e["seq"] for e in snap["events"]]
+    later = [e["seq"] for d in deltas for e in d.get("events", ())]
+    assert shown == [1] and later == [1, 2]
+    new = [n for n in later if n > max(shown)]
+    assert new == [2]

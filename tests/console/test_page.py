@@ -9,19 +9,9 @@ import pytest
 from rig.console.browser import wait_for
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import read_recording
-from tests.console.support import base, live_run
+from tests.console.support import base, live_run, open_page
 
 pytestmark = pytest.mark.browser
-
-
-def open_page(chromium, console, **kw):
-    page = chromium.new_page(viewport={"width": 1400, "height": 1300}, **kw)
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(console.url)
-    wait_for(page, "window.rigStats && rigStats.deltas > 5 && rigStats.renders > 3")
-    page.errors = errors
-    return page
 
 
 def test_live_traces_move(chromium):

@@ -188,3 +188,54 @@ def test_rig_demo_bad_model_error_is_one_line(capsys):
     assert main(["demo", "--model-error", "80"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["rig demo: error: --model-error: expected >= 0 % and <= 50 %, got '80'"]
+
+
+def test_rig_design_prints_its_figures_on_stdout_and_the_verdict_in_words():
+    """`rig design` as a user runs it (issue 29): the figures on stdout (they were all on stderr), the progress on
+    stderr, and a verdict in words where a Python dict was."""
+    import subprocess
+    import sys
+    from tests.paths import REPO
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "design", "--robust", "0"], cwd=REPO, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = r.stdout.strip().splitlines()
+    assert [ln.split()[0] for ln in out[:4]] == list(MOUNTS) and all("stable: yes, GM" in ln for ln in out[:4])
+    assert out[-1] == ("meets the paper: yes: every mount at or above the paper's attenuation in every band; "
+                       "GM >= 6 dB and PM >= 35 deg on every mount; all 48 plants of the robustness check stable")
+    assert not any("{" in ln or "rig design:" in ln for ln in out)
+    err = r.stderr.strip().splitlines()
+    assert err and all(ln.startswith("rig design: ") for ln in err)
+    assert not any("meets the paper" in ln or "GM" in ln for ln in err)
+
+
+def test_the_verdict_names_what_fails():
+    from rig.commands.design import verdict
+    res = {"meets_paper": {"bands": False, "margins": True, "robust": False},
+           "robust": {"corners": 48, "random": 100}}
+    assert verdict(res) == ("meets the paper: NO: a mount below the paper's attenuation in a band (see the lines "
+                            "above); GM >= 6 dB and PM >= 35 deg on every mount; unstable on some of the 148 plants "
+                            "of the robustness check")
+
+
+def test_every_design_figure_has_labelled_axes(tmp_path, monkeypatch):
+    """`rig design --out DIR` (issue 29: fig14_cross_*.png had no axis labels): every panel of every figure
+    names its y quantity, and its x quantity unless it shares its x axis with a panel that does."""
+    from controllers import figures
+    from rig.cli import main
+    seen = {}
+    save = figures._Saver.__call__
+
+    def spy(self, fig, name):
+        seen[name] = [(ax, ax.get_xlabel(), ax.get_ylabel()) for ax in fig.axes]
+        missing = []
+        for ax, xl, yl in seen[name]:
+            shared = [a for a in ax.get_shared_x_axes().get_siblings(ax) if a.get_xlabel()]
+            if not yl or not (xl or shared):
+                missing.append(ax.get_title() or "(untitled)")
+        seen[name] = missing
+        return save(self, fig, name)
+    monkeypatch.setattr(figures._Saver, "__call__", spy)
+    assert main(["design", "--robust", "0", "--out", str(tmp_path)]) == 0
+    assert "fig14_cross_front_left.png" in seen and len(seen) >= 8
+    assert {k: v for k, v in seen.items() if v} == {}

@@ -23,7 +23,7 @@ PROTO = load_config(LAYOUTS["prototype"][None])
     ("off", "off", None, None), ("isolate", "isolate", None, None), ("hold", "hold", None, None),
     ("hold 5um", "hold", "setpoint", 5e-6), ("setpoint -3um", "hold", "setpoint", -3e-6),
     ("mode hold x=2um", "hold", "setpoint", 2e-6), ("track sine:amp=10um,freq=5", "track", "sine", None),
-    ("mode track step:amp=2um", "track", "step", 2e-6), ("HOLD 1e-6", "hold", "setpoint", 1e-6)])
+    ("mode track step:amp=2um", "track", "step", 2e-6), ("HOLD 1e-6m", "hold", "setpoint", 1e-6)])
 def test_request_grammar(text, mode, kind, target):
     r = parse_request(text, DT)
     assert r.mode == mode
@@ -33,7 +33,8 @@ def test_request_grammar(text, mode, kind, target):
 
 
 @pytest.mark.parametrize("text,match", [("", "empty"), ("fly", "expected off, hold"), ("off now", "takes no"),
-                                        ("track", "needs a reference"), ("hold sine:amp=1um,freq=2", "hold takes")])
+                                        ("track", "needs a reference"), ("hold sine:amp=1um,freq=2", "hold takes"),
+                                        ("hold 5", "has no unit"), ("track step:amp=2", "has no unit")])
 def test_request_errors(text, match):
     with pytest.raises(RigError, match=match):
         parse_request(text, DT)

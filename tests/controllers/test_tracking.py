@@ -94,7 +94,7 @@ def test_compiled_law_equals_the_reference_through_every_kind_of_reference(tmp_p
        at=st.integers(1, 400), delay=st.integers(0, 3))
 def test_compiled_law_equals_the_reference_property(amp, freq, x0, at, delay):
     c = _ctrl(track_delay_periods=delay)
-    ref = parse_reference(f"sine:amp={amp!r},freq={freq!r},offset={x0!r}", DT)
+    ref = parse_reference(f"sine:amp={amp!r}m,freq={freq!r},offset={x0!r}m", DT)
     uc, up, _, _ = _run(c, {at: ref}, 600, lambda k, u: 1e-7 * math.sin(0.01 * k))
     assert np.array_equal(uc, up)
 
@@ -160,7 +160,7 @@ def test_reference_units():
     assert parse_reference("setpoint:x=5um", DT).target_m == pytest.approx(5e-6)
     assert parse_reference("setpoint:0.005mm", DT).target_m == pytest.approx(5e-6)
     assert parse_reference("setpoint:x=-250nm", DT).target_m == pytest.approx(-2.5e-7)
-    r = parse_reference("sine:amp=2e-6,freq=5Hz,seconds=0.3", DT)
+    r = parse_reference("sine:amp=2um,freq=5Hz,seconds=0.3", DT)
     assert (r.amp_m, r.f0_hz, r.span_s) == (2e-6, 5.0, pytest.approx(0.4))        # whole cycles
 
 

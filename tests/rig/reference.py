@@ -3,7 +3,7 @@ limit_commands): the first versions, kept so property tests can hold the compile
 from __future__ import annotations
 
 from rig.config import Config
-from rig.runtime.safety import SensorCheck
+from rig.runtime.safety import SensorCheck, accel_text, length_text
 
 
 class RefSensorCheck(SensorCheck):
@@ -46,7 +46,7 @@ class RefSensorCheck(SensorCheck):
                 if a == self._last_a[i]:
                     self._same_a[i] += 1
                     if self._same_a[i] >= self.stuck_n:
-                        return (f"{self.names[i]}: accelerometer stuck at {a!r} m/s^2 "
+                        return (f"{self.names[i]}: accelerometer stuck at {accel_text(a)} "
                                 f"for {self._same_a[i]} samples")
                 else:
                     self._same_a[i] = 0
@@ -54,7 +54,7 @@ class RefSensorCheck(SensorCheck):
                 if x == self._last_x[i]:
                     self._same_x[i] += 1
                     if self._same_x[i] >= self.stuck_n:
-                        return (f"{self.names[i]}: displacement transducer stuck at {x!r} m "
+                        return (f"{self.names[i]}: displacement transducer stuck at {length_text(x)} "
                                 f"for {self._same_x[i]} samples")
                 else:
                     self._same_x[i] = 0
@@ -65,11 +65,11 @@ class RefSensorCheck(SensorCheck):
         """The fault text of mount i, in the order of the checks (off the hot path)."""
         ar, xr, xl = self.accel_range, self.stroke_range, self.stroke_limit
         if not (-ar <= a <= ar):
-            return (f"{self.names[i]}: accelerometer implausible: {a!r} m/s^2 "
+            return (f"{self.names[i]}: accelerometer implausible: {accel_text(a)} "
                     f"(NaN or outside +-{ar:g} m/s^2)")
         if not (-xr <= x <= xr):
-            return (f"{self.names[i]}: displacement transducer implausible: {x!r} m "
-                    f"(NaN or outside +-{xr:g} m)")
+            return (f"{self.names[i]}: displacement transducer implausible: {length_text(x)} "
+                    f"(NaN or outside +-{xr * 1e3:g} mm)")
         if not (-xl <= x <= xl):
             return f"{self.names[i]}: stroke limit: {x * 1e3:.4f} mm beyond +-{xl * 1e3:g} mm"
         age = t_ns - tsi

@@ -186,3 +186,27 @@ def test_benchmark_shorter_than_ten_periods_is_refused(capsys, argv):
     empty array's percentiles."""
     assert main(argv) == 2
     _one_line_error(capsys, "--seconds", "at least 10 periods")
+
+
+@pytest.mark.parametrize("value", ["5", "-3", "0.000005", "5xx"])
+def test_a_position_without_its_unit_is_refused(capsys, value):
+    """`--position 5` was 5 m (issue 29): a length needs its unit."""
+    assert main(["run", "--layout", "prototype", "--sim-time", "--seconds", "1", "--position", value]) == 2
+    _one_line_error(capsys, "--position: expected a length with its unit, e.g. 5um or 0.5mm", repr(value))
+
+
+def test_lengths_take_their_units_and_numbers_their_options_unit():
+    from controllers.reference import parse_length, parse_reference
+    from rig import cliargs
+    from rig.errors import RigError
+    assert [parse_length(x) for x in ("5um", "5 um", "5µm", "0.005mm", "-250nm", "0", "1e-6m")] == \
+        pytest.approx([5e-6, 5e-6, 5e-6, 5e-6, -2.5e-7, 0.0, 1e-6])
+    with pytest.raises(RigError, match=r"amp '10' has no unit: give one, e.g. 10um or 10mm"):
+        parse_reference("sine:amp=10,freq=5", 2e-4)
+    with pytest.raises(RigError, match="has no unit"):
+        parse_reference("hold:5", 2e-4)
+    assert cliargs.length(" 5um ") == "5um"
+    hz = cliargs.Number(gt=0, unit="Hz")
+    assert [hz(x) for x in ("100", "100Hz", "100 hz", " 2.5Hz ")] == [100.0, 100.0, 100.0, 2.5]
+    with pytest.raises(Exception, match="expected > 0 Hz"):
+        hz("100V")

@@ -12,7 +12,7 @@ import pytest
 from rig import excitation as ex
 from rig.diagnose.command import analyse
 from rig.errors import RigError
-from rig.recording import load_recording
+from rig.recordings.rigformat import load_recording
 
 FS = 2000.0
 RIG = [sys.executable, "-m", "rig.cli"]

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from controllers.playback import SignalPlayback
-from rig.commands.chirp import chirp_samples, run_chirp
+from rig.chirp import chirp_samples, run_chirp
 from rig.config import Config
 from rig.identify import identify, simulate_linear
-from rig.recording import load_recording
+from rig.recordings.rigformat import load_recording
 from sim_backend.actuator import linear_chirp
 from sim_backend.linear import ActuatorParams
 

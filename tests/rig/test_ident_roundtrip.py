@@ -12,7 +12,8 @@ import pytest
 from rig.frf import frf_estimate
 from tests.paths import RECORDINGS
 from rig.identify import identify, model_frf, simulate_linear
-from rig.recording import Recording, save_recording_h5
+from rig.recordings.recording import Recording
+from rig.recordings.rigformat import save_recording_h5
 from sim_backend.actuator import Effects, linear_chirp, simulate_stand
 from sim_backend.linear import ActuatorParams
 
@@ -105,7 +106,7 @@ def test_frf_only_fit_is_close_and_time_domain_improves_it(rec_1k):
 
 @pytest.mark.shared
 def test_p01_nominal_within_targets_of_answers():
-    from rig.recording import load_recording
+    from rig.recordings.rigformat import load_recording
     ans = json.loads((SHARED / "answers.json").read_text())["p01_nominal.csv.gz"]["true_linear_parameters"]
     true = DESIGN.with_(**ans)
     res = identify(load_recording(SHARED / "p01_nominal.csv.gz"), DESIGN)

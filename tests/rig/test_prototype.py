@@ -15,7 +15,7 @@ from rig.commands.run import LAYOUTS
 from rig.config import config_from_dict, load_config
 from rig.errors import RigError
 from rig.runtime.kernel import _ENTRIES
-from rig.recording import load_recording
+from rig.recordings.rigformat import load_recording
 from rig.runtime.session import Session
 
 PROTO = load_config(LAYOUTS["prototype"][None])

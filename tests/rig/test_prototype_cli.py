@@ -202,3 +202,53 @@ def test_run_plot_is_never_overwritten_without_overwrite(tmp_path):
     out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "0.2", "--quiet", "--plot", png)
     assert out.returncode == 2 and "--plot" in out.stderr and "--overwrite" in out.stderr
     assert png.read_bytes() == b"old"
+
+
+def test_an_isolate_run_plots_load_and_floor_and_says_what_runs_in_words(tmp_path):
+    """`rig run --layout prototype --mode isolate` (issue 29): the start line says "the actuator on its stand" (not
+    "stand on the stand"), the stop line says simulated time is not timed (no `compute p99 0.0 us`), and the
+    plot has no empty tracking panel but the load's and the floor's motion."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from rig import operated
+    rec = tmp_path / "iso.h5"
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "3", "--mode", "isolate", "--record", rec)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "backend sim, the actuator on its stand at 5000 Hz, mode isolate" in out.stderr
+    assert "stand on the stand" not in out.stderr
+    assert "compute p99" not in out.stderr and "p99=" not in out.stderr       # stop line and status line
+    assert "in simulated time (loop timing is not measured in simulated time" in out.stderr
+    run = operated.load_operated(rec)
+    figs = operated.figures(run)
+    fig = operated.figure(run, figs)
+    try:
+        labels = [a.get_ylabel() for a in fig.axes]
+        motion = fig.axes[1]
+        lines = {ln.get_label().split(" ")[0]: np.asarray(ln.get_ydata()) for ln in motion.get_lines()}
+    finally:
+        plt.close(fig)
+    assert labels == ["position [um]", "motion 1-100 Hz [um]", "valve [V]"]     # no tracking panel
+    load, floor = lines["load"], lines["floor"]
+    act = run.active
+    load_um, floor_um = np.sqrt(np.mean(load[act] ** 2)), np.sqrt(np.mean(floor[act] ** 2))
+    iso = next(d for d in figs if d["mode"] == "isolate")
+    assert abs(load_um / iso["load_motion_um"] - 1) < 0.3, (load_um, iso)     # the figures' load, in time
+    assert 1.0 < floor_um < 4.0 and load_um < floor_um / 3                     # the floor moves, the load less
+
+
+def test_a_track_run_keeps_its_tracking_panel(tmp_path):
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from rig import operated
+    rec = tmp_path / "track.h5"
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "2", "--quiet", "--reference",
+              "sine:amp=5um,freq=5", "--record", rec)
+    assert out.returncode == 0, out.stderr[-2000:]
+    fig = operated.figure(operated.load_operated(rec))
+    try:
+        labels = [a.get_ylabel() for a in fig.axes]
+        err = np.asarray(fig.axes[1].get_lines()[0].get_ydata())
+    finally:
+        plt.close(fig)
+    assert labels == ["position [um]", "tracking error [um]", "motion 1-100 Hz [um]", "valve [V]"]
+    assert np.isfinite(err).sum() > 1000

@@ -77,3 +77,46 @@ def test_not_a_loop_recording_is_one_line(tmp_path, capsys):
     with pytest.raises(RecordingError, match="cannot open recording") as e:
         report.vc_of_recording(tmp_path / "text.h5")
     assert "\n" not in str(e.value)
+
+
+def test_a_run_that_never_switched_isolation_off_says_so_and_plots_every_band(tmp_path):
+    """`rig run --record` with its defaults (isolation on), then `rig report`: the run has no isolation-off
+    stretch, said plainly (not "too short"), and the short stretch's 1 Hz band is on the plot."""
+    import subprocess
+    import sys
+    from tests.paths import REPO
+    rec, out = tmp_path / "on.h5", tmp_path / "rep"
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--record", str(rec), "--sim-time", "--seconds", "3.6",
+                        "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "(no isolation-off stretch to compare with)" in r.stderr          # the run's own VC line
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "report", str(rec), "--out", str(out)], cwd=REPO,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "too short" not in r.stdout + r.stderr
+    assert "off: no isolation-off stretch: the run never switched isolation off (only the 0.05 s INACTIVE" \
+        in r.stdout and "isolation on alone, not a comparison" in r.stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert set(rep["segments"]) == {"feedback"} and rep["skipped_modes"] == {}
+    assert "no isolation-off stretch" in rep["absent_modes"]["off"]
+    v = rep["mounts"]["feedback"]["velocity_um_s_worst_mount"]
+    assert rep["band_hz"][0] == 1.0 and all(x > 0 for x in v), v          # 0 would fall off the log axis
+
+
+def test_a_short_record_resolves_the_1_hz_band():
+    """2.5 s of white acceleration: every one-third-octave band holds spectrum (none a zero that falls off a
+    log axis), and over eight records its mean square is the exact band power of the noise's density."""
+    import math
+    import numpy as np
+    from controllers.vibration_criteria import band_velocity_rms, third_octave_bands
+    fs, sigma = 5000.0, 1e-3
+    _, _, lo, hi = third_octave_bands()
+    exact = 2 * sigma ** 2 / fs * (1 / lo - 1 / hi) / (2 * math.pi) ** 2         # S_a / w^2 over the band
+    power = []
+    for seed in range(8):
+        x = np.random.default_rng(seed).normal(0.0, sigma, int(2.5 * fs))
+        _, v = band_velocity_rms(x, fs, kind="acceleration")
+        assert np.all(v > 0), v
+        power.append(v ** 2 / exact)
+    mean = np.mean(power, axis=0)
+    assert np.all(mean > 0.4) and np.all(mean < 2.5), mean.round(2)

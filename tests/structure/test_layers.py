@@ -6,8 +6,9 @@ Layers, lowest first; a module may import its own layer and those below, never o
   2 controllers   controllers.*  (laws, builders, design tools; may use the physics models)
   3 runtime       rig.runtime (kernel, safety, loop and its parts, recorder), recordings and their analysis;
                   ports beside it: drivers.*, sim_backend.backend, sim_backend.emulators.*
-  4 registry      rig.backends, rig.runtime.session (builds runs from the registry)
-  5 commands      rig.commands.*, rig.cli, rig.console.* (the operator console: drives sessions as a command does)
+  4 registry      rig.backends, rig.runtime.session (builds runs from the registry), rig.chirp (the chirp run)
+  5 commands      rig.commands.*, rig.cli, rig.console.* (the operator console: drives sessions as a command does;
+                  it imports no command: commands use the console, never the other way)
 Within layer 3 the runtime knows no backend, the drivers know no simulator or emulator, and the simulated
 ports know no driver (only the shared protocol maps of layer 1).
 Function-local imports of the project's own modules are kept for the registry and the command line (they load
@@ -26,7 +27,7 @@ from tests.paths import REPO
 PACKAGES = ("rig", "controllers", "drivers", "sim_backend")
 LAYER_PREFIXES = [                      # most specific first
     ("rig.commands", 5), ("rig.cli", 5), ("rig.console", 5),
-    ("rig.backends", 4), ("rig.runtime.session", 4),
+    ("rig.backends", 4), ("rig.runtime.session", 4), ("rig.chirp", 4),
     ("rig.errors", 0), ("rig.config", 0), ("rig.port", 0),
     ("rig.runtime.clock", 0), ("rig.runtime.rt", 0), ("rig.runtime.lifecycle", 0),
     ("drivers.protocol", 1), ("sim_backend.backend", 3), ("sim_backend.emulators", 3), ("sim_backend", 1),
@@ -107,6 +108,14 @@ def test_no_sideways_import_in_the_runtime_layer():
     bad = [f"{path.relative_to(REPO)}:{line}: {mod} imports {name}" for mod, path, name, line, _ in EDGES
            for a, b in SIDEWAYS if under(mod, a) and under(name, b) and not under(mod, "rig.commands")
            and _layer(mod) == 3]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_console_imports_no_command():
+    """Commands and the console are one layer; they import in one direction: a command uses the console
+    (`rig run --console`, `rig bench --console`), the console never a command (what both need lives below)."""
+    bad = [f"{path.relative_to(REPO)}:{line}: {mod} imports {name}" for mod, path, name, line, _ in EDGES
+           if mod.startswith("rig.console") and (name == "rig.commands" or name.startswith("rig.commands."))]
     assert not bad, "\n".join(bad)
 
 

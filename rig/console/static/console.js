@@ -1,17 +1,19 @@
 // The rig console page: live state and traces from the websocket, commands back over it.
-// Figures for tests and benchmarks are kept in window.rigStats (updates, renders, click-to-shown latencies).
+// Figures for tests and benchmarks are kept in window.rigStats (updates, renders, click-to-shown latencies, and
+// each plot's axis labels and tick texts as last drawn).
 "use strict";
 (() => {
   const $ = (id) => document.getElementById(id);
   const TRACE_S = 10;
   const stats = window.rigStats = {deltas: 0, renders: 0, renderTimes: [], renderMs: [], isoLatencyMs: [],
-                                   replies: [], attached: 0, seq: 0, lastNow: null};
+                                   replies: [], attached: 0, seq: 0, lastNow: null, axes: {}};
   const QUANT = [  // per mount: what, unit shown, scale from SI, the limit's key in layout.limits
     {name: "acceleration", unit: "m/s²", k: 1, lim: "accel_range_mps2"},
     {name: "stroke", unit: "µm", k: 1e6, lim: "stroke_limit_m"},
     {name: "valve command", unit: "V", k: 1, lim: "valve_limit_V"},
   ];
   let layout = null, readOnly = true, ended = null, hello = {};
+  let lastEvent = 0;     // the newest event shown (events are numbered by the server; a full state repeats some)
   let tr = {t: [], v: []};
   let charts = [];
   let specChart = null, vcChart = null;
@@ -70,6 +72,7 @@
       scaleTraces(tr.v);
     }
     $("events").innerHTML = "";
+    lastEvent = 0;
     (msg.events || []).forEach(addEvent);
     if (msg.ended) handle({type: "ended", reason: msg.ended});
     apply(msg);
@@ -170,14 +173,25 @@
       $("rec-stop").disabled = !(rec && rec.running);
     }
     $("chirp-mount-label").hidden = hello.backend === "sim";
+    $("mode-group").hidden = !(layout && layout.modes);      // operating modes: the stand layout only
+  }
+
+  // one clock for every event: the wall-clock time of day (a run's loop time restarts with each session)
+  function clock(wall) {
+    const d = new Date(wall * 1000), z = (x, n) => String(x).padStart(n || 2, "0");
+    return `${z(d.getHours())}:${z(d.getMinutes())}:${z(d.getSeconds())}.${z(d.getMilliseconds(), 3)}`;
   }
 
   function addEvent(e) {
+    if (e.seq !== undefined) {
+      if (e.seq <= lastEvent) return;          // shown already (it came in a full state, then in a delta)
+      lastEvent = e.seq;
+    }
     const li = document.createElement("li");
     li.className = e.level || "INFO";
     const t = document.createElement("time");
-    t.textContent = e.t_s !== null && e.t_s !== undefined ? `t=${e.t_s.toFixed(3)} s` :
-      new Date(e.wall * 1000).toLocaleTimeString();
+    t.textContent = clock(e.wall);
+    t.dateTime = new Date(e.wall * 1000).toISOString();
     li.appendChild(t);
     li.appendChild(document.createTextNode(e.text));
     const list = $("events");
@@ -203,6 +217,54 @@
     }]}};
   }
 
+  // ---- axes: ticks at round steps, at least three on any range, each plot's axes named with their units -------
+  const AXIS_FONT = "10px system-ui";
+
+  function linearSplits(u, i, lo, hi) {
+    if (!isFinite(lo) || !isFinite(hi) || !(hi > lo)) return [];
+    for (let e = Math.floor(Math.log10(hi - lo)); e > -300; e--) {
+      for (const m of [5, 2.5, 2, 1]) {                      // the largest round step giving three ticks
+        const step = m * Math.pow(10, e), a = Math.ceil(lo / step - 1e-9), b = Math.floor(hi / step + 1e-9);
+        if (b - a >= 2) {
+          const out = [];
+          for (let k = a; k <= b; k++) out.push(+(k * step).toPrecision(12));
+          return out;
+        }
+      }
+    }
+    return [lo, hi];
+  }
+
+  function decimals(step) {           // the decimals a round step needs (0.025 -> 3, 0.5 -> 1, 20 -> 0)
+    for (let d = 0; d < 12; d++) if (Math.abs(step * Math.pow(10, d) - Math.round(step * Math.pow(10, d))) < 1e-6) return d;
+    return 12;
+  }
+
+  function linearTicks(vals) {
+    const step = vals.length > 1 ? Math.abs(vals[1] - vals[0]) : 0;
+    const big = Math.max(...vals.map((v) => Math.abs(v || 0)));
+    if (big >= 1e5 || (step > 0 && step < 1e-4)) return vals.map((v) => (v === 0 ? "0" : v.toExponential(decimals(step / Math.pow(10, Math.floor(Math.log10(step)))))));
+    const d = step > 0 ? decimals(step) : 3;
+    return vals.map((v) => (v === null ? "" : v.toFixed(d)));
+  }
+
+  // the tick texts of axis `which` of plot `id`, kept in rigStats.axes for the tests
+  function recorded(id, which, label, fmt) {
+    const rec = (stats.axes[id] = stats.axes[id] || {});
+    rec[which] = {label, ticks: []};
+    return (u, vals) => { const out = fmt(vals); rec[which].ticks = out.filter((x) => x !== ""); return out; };
+  }
+
+  function linearAxes(id, xLabel, yLabel) {
+    return [
+      {size: 24, font: AXIS_FONT, label: xLabel, labelSize: 12, labelFont: AXIS_FONT, ticks: {size: 4},
+       splits: linearSplits, values: recorded(id, "x", xLabel, linearTicks)},
+      {size: 44, font: AXIS_FONT, label: yLabel, labelSize: 14, labelFont: AXIS_FONT, ticks: {size: 4},
+       splits: linearSplits,
+       values: recorded(id, "y", yLabel, linearTicks)},
+    ];
+  }
+
   function buildMounts(n) {
     const box = $("mounts");
     charts.forEach((c) => c.u.destroy());
@@ -224,9 +286,9 @@
         box.appendChild(el);
         const lim = layout.limits[q.lim] * q.k;
         const u = new uPlot({
-          width: w, height: 110, legend: {show: false}, cursor: {show: false},
+          width: w, height: 136, legend: {show: false}, cursor: {show: false},
           scales: {x: {time: false}, y: {range: (u, lo, hi) => yRange(lo, hi, lim)}},
-          axes: [{size: 24, font: "10px system-ui"}, {size: 46, font: "10px system-ui", values: ticks}],
+          axes: linearAxes(el.id, "loop time [s]", `${q.name} [${q.unit}]`),
           series: [{}, {stroke: ["#1565c0", "#2e7d32", "#6a1b9a"][qi], width: 1}],
           plugins: [limitLines(lim)],
         }, [[], []], el);
@@ -248,13 +310,16 @@
     const a = Math.abs(v);
     return a >= 1e4 || a < 1e-2 ? v.toExponential(0) : String(+v.toPrecision(3));
   }
-  const ticks = (u, vals) => vals.map(num);
 
-  function logChart(el, series, x, ys, w, h, plugins) {
+  function logChart(el, series, x, ys, w, h, plugins, yLabel) {
+    const logTicks = (vals) => vals.map(num);
     return new uPlot({
       width: w, height: h, legend: {show: true, live: false}, cursor: {show: false}, plugins: plugins || [],
       scales: {x: {time: false, distr: 3, log: 10, range: (u, lo, hi) => [lo, hi]}, y: {distr: 3, log: 10}},
-      axes: [{size: 28, font: "10px system-ui", values: ticks}, {size: 56, font: "10px system-ui", values: ticks}],
+      axes: [{size: 26, font: AXIS_FONT, label: "frequency [Hz]", labelSize: 12, labelFont: AXIS_FONT, ticks: {size: 4},
+              values: recorded(el.id, "x", "frequency [Hz]", logTicks)},
+             {size: 56, font: AXIS_FONT, label: yLabel, labelSize: 14, labelFont: AXIS_FONT, ticks: {size: 4},
+              values: recorded(el.id, "y", yLabel, logTicks)}],
       series: [{label: "Hz"}, ...series],
     }, [x, ...ys], el);
   }
@@ -273,7 +338,7 @@
       el.innerHTML = "";
       specChart = logChart(el, [{label: "isolation off", stroke: "#7b8794", width: 1.2},
                                 {label: "isolation on", stroke: "#1565c0", width: 1.2}], f, ys,
-                           Math.max(300, el.clientWidth), 240);
+                           Math.max(300, el.clientWidth), 240, [], "ASD [m/s²/√Hz]");
     } else {
       specChart.setData([f, ...ys]);
     }
@@ -318,7 +383,7 @@
       el.innerHTML = "";
       vcChart = logChart(el, [{label: "isolation off", stroke: "#7b8794", width: 1.5, points: {show: true}},
                               {label: "isolation on", stroke: "#1565c0", width: 1.5, points: {show: true}}],
-                         f, ys, Math.max(300, el.clientWidth), 240, [criterionLines]);
+                         f, ys, Math.max(300, el.clientWidth), 240, [criterionLines], "rms velocity [µm/s]");
     } else {
       vcChart.setData([f, ...ys]);
     }

@@ -4,7 +4,7 @@ The layout is what `rig run --record` and `rig hil` write: HDF5, root attribute 
 channel with its unit as the attribute `unit`, four-wide per-mount channels in MOUNTS order (their `labels`
 attribute may name the mounts). Read: time_s, accel_mps2, stroke_m, valve_cmd_V; optional floor_accel_mps2,
 lifecycle_state, isolation_on, feedforward_on. Rows missing from time_s are mended as every reader of rig does
-(rig.recording.mend_gaps: short gaps bridged, else the longest stretch). Every problem is one line naming the
+(rig.recordings.recording.mend_gaps: short gaps bridged, else the longest stretch). Every problem is one line naming the
 file and the dataset or attribute (RecordingError).
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from rig.config import MOUNTS
 from rig.errors import RecordingError
-from rig.recording import mend_gaps
+from rig.recordings.recording import mend_gaps
 
 REQUIRED = ("time_s", "accel_mps2", "stroke_m", "valve_cmd_V")
 OPTIONAL = ("floor_accel_mps2", "lifecycle_state", "isolation_on", "feedforward_on")

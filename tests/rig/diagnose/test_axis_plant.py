@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from rig.diagnose.engine import diagnose
-from rig.diagnose.report import diagnosis_dict, summary_text
+from rig.diagnose.report import diagnosis_dict, summary, summary_text
 from rig.errors import RecordingError
 from rig.plant.file import load_plant, parse_plant
-from rig.recording import Recording
+from rig.recordings.recording import Recording
 from sim_backend.axis import EMPS, Axis, Sensor, emps_like, simulate_axis
 from tests.paths import REPO
 
@@ -25,12 +25,12 @@ def test_emps_like_closed_loop_names_friction_and_halves_the_residual():
     cmd, pos = emps_like()
     plant = load_plant(REPO / "docs" / "examples" / "emps_like.toml")
     d = diagnose(_rec(cmd, pos), plant)
-    named = {e["name"]: e["parameters"] for e in d.effects}
-    assert "coulomb_friction" in named, d.summary
+    named = {e.name: e.parameters for e in d.effects}
+    assert "coulomb_friction" in named, summary(d)
     assert abs(named["coulomb_friction"]["force_n"] / EMPS.coulomb_n - 1) < 0.25
-    assert set(named) <= {"coulomb_friction", "constant_force"}, d.summary     # nothing invented
-    assert d.fit["augmented"]["residual_rms_m"] < 0.5 * d.fit["refit"]["residual_rms_m"]
-    assert "Closed-loop data" in d.summary and "pole at the origin" in " ".join(d.mismatch["notes"])
+    assert set(named) <= {"coulomb_friction", "constant_force"}, summary(d)     # nothing invented
+    assert d.fit.augmented.residual_rms_m < 0.5 * d.fit.refit.residual_rms_m
+    assert "Closed-loop data" in summary(d) and "pole at the origin" in " ".join(d.mismatch.notes)
     doc = diagnosis_dict(d)
     assert doc["plant"]["family"] == "mechanical_axis" and doc["plant"]["shooting"]["segments"] >= 20
     assert abs(doc["plant"]["augmented_linear"]["mass_kg"] / EMPS.mass_kg - 1) < 0.1
@@ -45,11 +45,11 @@ def test_clean_open_loop_axis_names_nothing():
     plant = parse_plant({"family": "mechanical_axis", "input_unit": "N", "mass_kg": {"value": 25.0, "min": 5.0,
                          "max": 100.0}, "damping_n_s_per_m": {"value": 50.0, "min": 5.0, "max": 500.0}}, "clean.toml")
     d = diagnose(_rec(cmd, pos, "N"), plant)
-    assert d.effects == [], d.summary
+    assert d.effects == (), summary(d)
     text = summary_text(d)           # the report speaks of this plant: its unit and its free parameters
     assert "its free parameters mass_kg, damping_n_s_per_m" in text and " N" in d.command.describe()
     assert "six parameters" not in text and " V" not in d.command.describe()
-    assert d.fit["refit"]["residual_over_noise_holdout"] < 1.3
+    assert d.fit.refit.residual_over_noise_holdout < 1.3
     assert abs(d.params_refit["mass_kg"] / 20.0 - 1) < 0.05 and rng is not None
 
 
@@ -73,8 +73,8 @@ def test_closed_loop_friction_with_a_deadband_is_named_by_the_pair_step():
     cmd, pos = simulate_axis(ax, 1000.0, reference=ref, loop=_loop_for(plant.values()),
                              sensor=Sensor(step_m=1e-7, noise_m=1.5e-7, offset_m=-3.7e-4, seed=3))
     d = diagnose(_rec(cmd, pos), plant)
-    named = {e["name"]: e["parameters"] for e in d.effects}
-    assert set(named) == {"coulomb_friction", "input_deadband"}, d.summary
+    named = {e.name: e.parameters for e in d.effects}
+    assert set(named) == {"coulomb_friction", "input_deadband"}, summary(d)
     assert abs(named["coulomb_friction"]["force_n"] / 6.3 - 1) < 0.1
     assert abs(named["input_deadband"]["width_V"] / 0.14 - 1) < 0.1
     pairs = [c for c in d.candidates if c.get("step") == "pair"]
@@ -85,16 +85,16 @@ def test_closed_loop_friction_with_a_deadband_is_named_by_the_pair_step():
 def test_a_stand_mode_at_the_edge_of_its_range_is_not_a_finding():
     """base_resonance with its damping ratio or base mass at a bound, or its frequency at the excited band's edge,
     fails the edge test on a plant file's axis; a mode inside its range passes; the eha plant does not run it."""
-    from rig.diagnose.engine import Fit, Problem, _at_edge
+    from rig.diagnose.problem import ModelFit, Problem
+    from rig.diagnose.search import _at_edge
     from sim_backend.linear import ActuatorParams
     plant = load_plant(REPO / "docs" / "examples" / "logger_axis.toml")
     n = 2000
-    pb = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, plant, np.ones(n, bool))
-    pb.base_band = (5.0, 400.0)
-    lo_m, hi_m = pb.plant.effect_bounds("base_resonance", 1000.0, 1.0)[2]
+    pb = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, plant, np.ones(n, bool), base_band=(5.0, 400.0))
+    lo_m, hi_m = pb.effect_bounds("base_resonance")[2]
 
     def fit(f_hz, zeta, mass):
-        return Fit(lin={}, fx={"base_resonance": {"frequency_hz": f_hz, "damping_ratio": zeta, "mass_kg": mass}},
+        return ModelFit(lin={}, fx={"base_resonance": {"frequency_hz": f_hz, "damping_ratio": zeta, "mass_kg": mass}},
                    rss_fit=1.0, rss_hold=1.0, k=3)
     inside = fit(60.0, 0.05, 20.0 * lo_m)
     assert not _at_edge(pb, inside, "base_resonance")

@@ -1,7 +1,7 @@
 """What the diagnosis says of a plant file's free parameter the refit left at a bound of its range."""
 from types import SimpleNamespace
 
-from rig.diagnose.engine import _file_bound_hints
+from rig.diagnose.verdict import file_bound_hints as _file_bound_hints
 from rig.diagnose.plants import at_bounds
 
 BOUNDS = {"den1": (0.0, 50.0), "mass_kg": (5.0, 100.0), "damping_n_s_per_m": (5.0, 500.0)}

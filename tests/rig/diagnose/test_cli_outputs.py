@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rig.diagnose.prove import Case, simulate_case
-from rig.recording import load_recording, save_recording_csv
+from rig.recordings.rigformat import load_recording, save_recording_csv
 from sim_backend.linear import ActuatorParams
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,8 @@ import pytest
 from scipy.signal import lfilter
 
 from rig.diagnose import locate, prove
-from rig.recording import Recording, save_recording_csv
+from rig.recordings.recording import Recording
+from rig.recordings.rigformat import save_recording_csv
 from sim_backend.actuator import Effects, StandPlant
 from sim_backend.linear import ActuatorParams
 

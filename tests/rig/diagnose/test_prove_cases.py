@@ -4,7 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.diagnose import prove
+from rig.diagnose import grading, prove
+from rig.diagnose.catalogue.periodic_disturbance import force_for_line
+from tests.rig.diagnose import typed
 from sim_backend.actuator import Effects, simulate_stand
 from sim_backend.linear import IDENTIFIED, ActuatorParams
 
@@ -21,7 +23,7 @@ def test_draw_cases_deterministic_and_mixed():
     assert counts.count(0) >= 0.2 * len(a)                  # a decent share of clean cases
     assert counts.count(2) >= 5 and max(counts) == 2         # pairs must be found too
     used = {name for x in a for name in x.effects}
-    assert used == set(prove.CATALOGUE)                       # every effect of the catalogue is tried
+    assert used == set(grading.CATALOGUE)                       # every effect of the catalogue is tried
     assert len({x.name for x in a}) == len(a)
 
 
@@ -54,7 +56,7 @@ def test_disturbance_force_gives_requested_line(f_hz):
     """The drawn force puts a line of the requested amplitude on the position (checked by a longer run)."""
     p = P0.with_(K_L=7.2e8)
     want_m = 1e-7
-    force = prove._disturbance_force_n(p, f_hz, want_m)
+    force = force_for_line(p, f_hz, want_m)
     fs, n = 2000.0, 8000
     y = simulate_stand(p, np.zeros(n), fs, Effects(disturbance_frequency_hz=f_hz, disturbance_force_n=force))
     t = np.arange(n)[n // 2:] / fs
@@ -88,7 +90,7 @@ def test_confusion_and_score_by_hand():
         _row(["base_resonance", "periodic_disturbance"], ["base_resonance"],
              {"base_resonance.frequency_hz": 0.08}, aug=2.0),             # missed one of a pair
     ]
-    m = prove.confusion(rows)
+    m = grading.confusion(rows)
     assert m["none"]["none"] == 1
     assert m["none"]["coulomb_friction"] == 1
     assert m["transport_delay"]["transport_delay"] == 1
@@ -96,25 +98,22 @@ def test_confusion_and_score_by_hand():
     assert m["base_resonance"]["base_resonance"] == 1
     assert m["periodic_disturbance"]["none"] == 1
     assert sum(sum(r.values()) for r in m.values()) == 6
-    s = prove.score(rows)
+    s = grading.score(rows)
     assert (s["cases"], s["right"], s["clean_cases"], s["invented_on_clean"]) == (5, 2, 2, 1)
     assert s["delays"] == {"n": 1, "within": 1, "tolerance": 0.2, "worst": 0.05}
     assert s["frequencies"]["n"] == 1 and s["frequencies"]["within"] == 0
     assert s["residual_within_1.3_noise"]["within"] == 4
-    text = prove.score_text(s)
+    text = grading.score_text(s)
     assert "2/5 named right" in text and "invented on clean cases: 1/2" in text
-    md = prove.confusion_markdown(m)
-    assert md.count("\n") == 2 + len(prove.CATALOGUE) + 1
+    md = grading.confusion_markdown(m)
+    assert md.count("\n") == 2 + len(grading.CATALOGUE) + 1
 
 
 def test_grade_parameter_errors():
-    class D:
-        effects = [{"name": "transport_delay", "parameters": {"delay_s": 2.2e-3}, "evidence": "", "score": 1.0},
-                   {"name": "valve_saturation", "parameters": {"limit_ma": 3.0}, "evidence": "", "score": 1.0}]
-        group, params_refit, summary = [], {"K_L": 7.7e8}, ""
-        fit = {"nominal": {"nrmse": 0.3}, "refit": {"nrmse": 0.1}, "augmented": {"nrmse": 0.02,
-                                                                               "residual_over_noise": 1.0}}
-    r = prove.grade("x", {"transport_delay": {"delay_s": 2e-3}}, D(), true_linear={"K_L": 7e8})
+    D = typed.diagnosis({"transport_delay": {"delay_s": 2.2e-3}, "valve_saturation": {"limit_ma": 3.0}},
+                        fit=(typed.figures(0.3), typed.figures(0.1), typed.figures(0.02, 1.0)),
+                        params_refit={"K_L": 7.7e8})
+    r = grading.grade("x", {"transport_delay": {"delay_s": 2e-3}}, D, true_linear={"K_L": 7e8})
     assert r["right"] is False and r["named"] == ["transport_delay", "valve_saturation"]
     assert r["parameter_errors"] == {"transport_delay.delay_s": pytest.approx(0.1)}
     assert r["linear_max_error"] == pytest.approx(0.1)

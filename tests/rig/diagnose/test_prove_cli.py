@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from rig.diagnose import prove
-from rig.recording import save_recording_csv
+from rig.diagnose import grading, prove
+from rig.recordings.rigformat import save_recording_csv
 
 RIG = [sys.executable, "-m", "rig.cli"]
 
@@ -65,7 +65,7 @@ def test_prove_grades_folder(folder, tmp_path):
     assert "confusion matrix" in text and "score: 2/2 named right" in text
     doc = json.loads((tmp_path / "o" / "proof.json").read_text())
     err = doc["rows"][1]["parameter_errors"]["transport_delay.delay_s"]
-    assert err < prove.TARGETS["delay_s"]
+    assert err < grading.TARGETS["delay_s"]
     assert doc["score"]["delays"]["within"] == 1 and doc["score"]["invented_on_clean"] == 0
 
 

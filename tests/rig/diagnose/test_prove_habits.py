@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.diagnose import prove
+from rig.diagnose import grading, prove
+from tests.rig.diagnose import typed
 
 
 def test_habit_draws_are_deterministic_and_cover_the_habits():
@@ -47,28 +48,19 @@ def test_habit_case_is_simulated_as_drawn():
 
 
 def test_grade_and_score_the_sensor_side():
-    class Line:
-        def __init__(self, f):
-            self.frequency_hz, self.channel = f, "position_m"
-
-    class Sensor:
-        lines = [Line(50.02), Line(150.2)]
-
-    class D:
-        effects = [{"name": "periodic_disturbance", "parameters": {"frequency_hz": 100.0}}]
-        group, params_refit, summary, sensor, verdict = [], {}, "", Sensor(), None
-        fit = {"augmented": {"residual_rms_m": 2.4e-8, "residual_over_noise": 1.0}}
-    r = prove.grade("x", {}, D(), noise_m=2e-8, pickup_hz=[50.0, 100.0, 150.0], habits=["steps", "pickup:50Hzx3"],
+    D = typed.diagnosis({"periodic_disturbance": {"frequency_hz": 100.0}}, lines_hz=(50.02, 150.2),
+                        fit=(typed.figures(), typed.figures(), typed.figures(over=1.0, rms_m=2.4e-8)))
+    r = grading.grade("x", {}, D, noise_m=2e-8, pickup_hz=[50.0, 100.0, 150.0], habits=["steps", "pickup:50Hzx3"],
                     duration_s=100.0, fs_hz=2000.0, elapsed_s=7.0)
     assert r["pickup_lines"]["within"] == 2 and r["pickup_lines"]["n"] == 3          # 100 Hz not reported
     assert r["residual_over_true_noise"] == pytest.approx(1.2)
-    s = prove.score([r])
+    s = grading.score([r])
     # the 100 Hz line is missed (graded apart), the worst frequency error is over the lines found (150.2 Hz)
     assert s["sensor_named_as_physics"] == 1 and s["mains_lines"] == {
         "n": 3, "found": 2, "within_1pct": 2, "worst": pytest.approx(0.2 / 150.0, rel=1e-6),
         "missed": [{"case": "x", "frequency_hz": 100.0, "amplitude_m": None}]}
     assert s["by_habit"]["pickup"] == {"cases": 1, "right": 0, "invented": 1, "residual_ok": 1}
     assert s["seconds_per_100s_at_2khz"]["median"] == pytest.approx(7.0)       # a 100 s case at 2 kHz
-    md = prove.habits_markdown(s)
+    md = grading.habits_markdown(s)
     assert "| pickup | 1 | 0 | 1 | 1 |" in md and "| steps | 1 | 0 | 1 | 1 |" in md
-    assert "| x | steps, pickup:50Hzx3 | none | periodic_disturbance | NO |" in prove.table_markdown([r])
+    assert "| x | steps, pickup:50Hzx3 | none | periodic_disturbance | NO |" in grading.table_markdown([r])

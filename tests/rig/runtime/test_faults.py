@@ -160,3 +160,15 @@ def test_watchdog_thread_nulls_valve_when_the_loop_hangs():
     reason = loop.run(seconds=1.0)
     assert seen["safe_calls_during_hang"] == 1          # the valve went to null while the loop hung
     assert reason == "fault" and "(limit watchdog_s = 50 ms)" in loop.lc.fault_reason
+
+
+@pytest.mark.parametrize("sensor, unit", [("accel", "m/s^2"), ("stroke", "mm")])
+def test_a_stuck_sensors_value_is_given_with_four_significant_digits_and_its_unit(sensor, unit):
+    """`stuck at -0.009416967953903963 m/s^2` was a float's repr: the text says -0.009417 m/s^2."""
+    import re
+    loop, _, _ = run_with({"kind": "stuck", "mount": 2, "sensor": sensor}, config_from_dict({}))
+    m = re.search(r"stuck at (\S+) (\S+) for \d+ samples$", loop.lc.fault_reason)
+    assert m and m.group(2) == unit, loop.lc.fault_reason
+    mantissa = m.group(1).lstrip("-").split("e")[0].replace(".", "").lstrip("0")
+    assert 1 <= len(mantissa) <= 4, loop.lc.fault_reason
+    float(m.group(1))                                   # a number, not a repr of something else

@@ -62,7 +62,7 @@ def test_without_recovery_the_gap_latches_the_clamp_and_faults():
 
 
 def test_recovery_returns_to_isolation_without_fault(caplog):
-    with caplog.at_level(logging.INFO, logger="rig.runtime.loop"):
+    with caplog.at_level(logging.INFO, logger="rig.loop"):
         loop, cmd, table, floor, suspended = run_stall({}, 15.0)
     assert loop.skipped == round(STALL_S / DT)
     assert loop.lc.fault_reason is None and loop.stop_reason == "time"

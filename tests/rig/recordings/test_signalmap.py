@@ -1,4 +1,4 @@
-"""The plant file's signal map (rig/signalmap.py): other labs' CSV, whitespace text, MATLAB v5 / v7.3 and HDF5
+"""The plant file's signal map (rig/recordings/signalmap.py): other labs' CSV, whitespace text, MATLAB v5 / v7.3 and HDF5
 files written here for real, read as they are into SI units; every bad map or file is one line naming the file
 and the key; the shipped examples load."""
 from __future__ import annotations
@@ -16,8 +16,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rig.cli import main
 from rig.errors import ConfigError, RecordingError
-from rig.recording import load_recording
-from rig.signalmap import (KEYS, UNITS, SignalMap, load_mapped, load_plant_signals, load_recording_for)
+from rig.recordings.rigformat import load_recording
+from rig.recordings.signalmap import (KEYS, UNITS, SignalMap, load_mapped, load_plant_signals, load_recording_for)
 from tests.paths import RECORDINGS, REPO
 
 PLANT_FILES = sorted((REPO / "docs" / "examples").glob("*.toml"))

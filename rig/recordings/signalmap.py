@@ -4,14 +4,14 @@ A plant file (TOML, docs/PLANT.md) has a `[signals]` table saying which column (
 dataset path) holds time, the command, the position and, optionally, the acceleration and the closed loop's
 reference, with a scale factor and a unit each. `SignalMap.from_table` checks the table (ConfigError: one line
 naming the plant file and the key); `load_mapped` reads the data file through it into a `Recording` in SI units
-(RecordingError: one line naming the data file and the key). The recording rules themselves (finite, uniform,
-long enough) are rig/recording.py's `_validated`, with the messages naming the file's own variables.
+(RecordingError: one line naming the data file and the key). The file is read by the one reader
+(rig/recordings/files.py); the recording rules themselves (finite, uniform, long enough) are
+rig/recordings/recording.py's `validated`, with the messages naming the file's own variables.
 
 Column numbers are 0-based, as in Python: MATLAB's `data(:, 3)` is `data[:, 2]`.
 """
 from __future__ import annotations
 
-import io
 import math
 import re
 import tomllib
@@ -21,14 +21,14 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import ConfigError, RecordingError
-from rig.recording import (_GZIP_MAGIC, _HDF5_MAGIC, _MAT_MAGIC, UNIFORM_TOL, Recording, _read_gzip, _validated,
-                           csv_text, load_recording, read_bytes)
+from rig.recordings.files import (FORMATS, csv_text, file_format, open_hdf5, read_bytes, read_mat, read_table)
+from rig.recordings.recording import UNIFORM_TOL, Recording, validated
+from rig.recordings.rigformat import load_recording
 
 SIGNALS = ("time", "command", "position", "acceleration", "reference")
 KEYS = SIGNALS + ("format", "sample_rate_hz", "closed_loop", "start_s", "stop_s", "csv")
 SIGNAL_KEYS = ("name", "column", "scale", "unit")
 CSV_KEYS = ("delimiter", "skip_rows", "header", "comment")
-FORMATS = ("csv", "mat", "hdf5")
 SCALE_RANGE = (1e-12, 1e12)          # |scale|: beyond it a unit is wrong, not a sensor
 RATE_RANGE_HZ = (1e-3, 1e7)
 
@@ -265,50 +265,11 @@ def _missing(sig: Signal, source: str, plant: str, have: list[str], what: str = 
                           f"{few or 'none'}"[:400])
 
 
-FOUND = {None: "neither HDF5 nor MATLAB", "mat": "a MATLAB v5 file", "mat73": "a MATLAB v7.3 file",
-         "hdf5": "an HDF5 file"}
-
-
-def _format(raw: bytes, path: Path, smap: SignalMap) -> str:
-    """csv, mat, mat73 (HDF5 behind MATLAB's 512-byte header) or hdf5: the content's magic, checked against
-    [signals] format when given, else the name's suffix."""
-    mat73 = raw.startswith(_MAT_MAGIC) and raw[512:520] == _HDF5_MAGIC
-    found = ("mat73" if mat73 else "hdf5" if raw.startswith(_HDF5_MAGIC) else
-             "mat" if raw.startswith(_MAT_MAGIC) else None)
-    if smap.format is not None:
-        fits = {"csv": (None,), "mat": (None, "mat", "mat73"), "hdf5": ("hdf5", "mat73")}[smap.format]
-        if found not in fits:
-            raise RecordingError(f"{path}: not a {smap.format} file ([signals] format = {smap.format!r} of "
-                                 f"{smap.source}): it is {FOUND[found]}")
-        return found or smap.format
-    if found:
-        return found
-    suffix = path.suffix.lower()
-    return "mat" if suffix == ".mat" else "hdf5" if suffix in (".h5", ".hdf5") else "csv"
-
-
-def _read_csv(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]:
+def _read_csv(text: str, source: str, smap: SignalMap) -> dict[str, np.ndarray]:
     opts, plant = smap.csv, smap.source
-    if raw.startswith(_GZIP_MAGIC):
-        raw = _read_gzip(raw, source)
-    lines = [(i + 1, ln) for i, ln in enumerate(csv_text(raw, source).splitlines()) if i >= opts.skip_rows]
-    lines = [(i, ln) for i, ln in lines if ln.strip() and not ln.lstrip().startswith(opts.comment)]
-    if not lines:
-        raise RecordingError(f"{source}: no data rows (after {opts.skip_rows} skipped lines and comments)")
-    delim = (None if opts.delimiter == "whitespace" else      # None: any run of spaces and tabs
-             opts.delimiter or next((d for d in ("\t", ";", ",") if d in lines[0][1]), None))
-
-    def split(ln: str) -> list[str]:
-        return [c.strip().strip('"').strip() for c in ln.split(delim)]
-
-    first = split(lines[0][1])
-    # empty cells (a delimiter ending every line, as MATLAB's `save -ascii -tabs` and the DaISy files write)
-    # say nothing: only a cell that is text makes the first line a header
-    header = opts.header if opts.header is not None else not all(_is_number(c) for c in first if c)
-    names = first if header else None
-    body = lines[1:] if header else lines
-    if not body:
-        raise RecordingError(f"{source}: no data rows after the header")
+    table = read_table(text, source, delimiter=opts.delimiter, skip_rows=opts.skip_rows, comment=opts.comment,
+                       header=opts.header)
+    names = table.names
     cols = {}
     for sig in smap.signals:
         if sig.name is not None and sig.column is not None:
@@ -325,45 +286,17 @@ def _read_csv(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
                                      f"{names.count(sig.name)} times in the header")
             cols[sig.key] = names.index(sig.name)
         else:
-            if sig.column >= len(first):
-                raise RecordingError(f"{source}: {sig.label()} of {plant}: the file has {len(first)} columns "
+            if sig.column >= len(table.first):
+                raise RecordingError(f"{source}: {sig.label()} of {plant}: the file has {len(table.first)} columns "
                                      f"(0-based)")
             cols[sig.key] = sig.column
     use = sorted(set(cols.values()))
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=delim, usecols=use, ndmin=2,
-                          dtype=float, comments=None, quotechar='"')
-    except (ValueError, OverflowError):
-        raise _bad_row(body, delim, use, source) from None
+    data = table.columns(use)
     return {key: data[:, use.index(c)] for key, c in cols.items()}
 
 
-def _is_number(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
-
-
-def _bad_row(body, delim, use, source) -> RecordingError:
-    for lineno, ln in body:
-        cells = [c.strip().strip('"') for c in ln.split(delim)]
-        if len(cells) <= max(use):
-            return RecordingError(f"{source}: line {lineno} has {len(cells)} fields, expected at least "
-                                  f"{max(use) + 1}: {ln[:80]!r}")
-        for c in use:
-            if not _is_number(cells[c]):
-                return RecordingError(f"{source}: line {lineno}, column {c}: {cells[c][:30]!r} is not a number")
-    return RecordingError(f"{source}: could not parse the numeric rows")
-
-
 def _read_mat(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]:
-    import scipy.io
-    try:
-        m = scipy.io.loadmat(io.BytesIO(raw), squeeze_me=False)
-    except Exception as e:   # scipy raises MatReadError/ValueError/TypeError/... on damaged files
-        raise RecordingError(f"{source}: not a readable MATLAB file ({type(e).__name__}: {e})"[:300]) from None
+    m = read_mat(raw, source)
     have = [k for k in m if not k.startswith("__")]
     out = {}
     for sig in smap.signals:
@@ -381,26 +314,21 @@ def _read_mat(raw: bytes, source: str, smap: SignalMap) -> dict[str, np.ndarray]
 
 
 def _read_hdf5(path: Path, source: str, smap: SignalMap, matlab: bool) -> dict[str, np.ndarray]:
-    import h5py
+    import h5py          # lazy: h5py is loaded only for HDF5 files
     out = {}
-    try:
-        with h5py.File(path, "r") as f:
-            for sig in smap.signals:
-                if sig.name is None:
-                    raise RecordingError(f"{source}: an HDF5 file, but {sig.label()} of {smap.source} has no name "
-                                         f"(give the dataset path)")
-                ds = f.get(sig.name) if sig.name in f else f.get(sig.name.replace(".", "/"))
-                if not isinstance(ds, h5py.Dataset):
-                    have = []
-                    f.visititems(lambda n, o: have.append(n) if isinstance(o, h5py.Dataset) else None)
-                    raise _missing(sig, source, smap.source, have, "dataset")
-                a = np.asarray(ds[()])
-                # MATLAB v7.3 stores column-major: an n x k matrix is a (k, n) dataset
-                out[sig.key] = _vector(a.T if matlab and a.ndim == 2 else a, sig, source, smap.source)
-    except RecordingError:
-        raise
-    except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
-        raise RecordingError(f"{source}: not a readable HDF5 file ({type(e).__name__}: {e})"[:300]) from None
+    with open_hdf5(path, source) as f:
+        for sig in smap.signals:
+            if sig.name is None:
+                raise RecordingError(f"{source}: an HDF5 file, but {sig.label()} of {smap.source} has no name "
+                                     f"(give the dataset path)")
+            ds = f.get(sig.name) if sig.name in f else f.get(sig.name.replace(".", "/"))
+            if not isinstance(ds, h5py.Dataset):
+                have = []
+                f.visititems(lambda n, o: have.append(n) if isinstance(o, h5py.Dataset) else None)
+                raise _missing(sig, source, smap.source, have, "dataset")
+            a = np.asarray(ds[()])
+            # MATLAB v7.3 stores column-major: an n x k matrix is a (k, n) dataset
+            out[sig.key] = _vector(a.T if matlab and a.ndim == 2 else a, sig, source, smap.source)
     return out
 
 
@@ -426,9 +354,9 @@ def load_mapped(path, smap: SignalMap) -> Recording:
     path = Path(path)
     source = str(path)
     raw = read_bytes(path)
-    fmt = _format(raw, path, smap)
+    fmt = file_format(raw, path, smap.format, f"[signals] format = {smap.format!r} of {smap.source}")
     if fmt == "csv":
-        got = _read_csv(raw, source, smap)
+        got = _read_csv(csv_text(raw, source, path), source, smap)
     elif fmt == "mat":
         got = _read_mat(raw, source, smap)
     else:
@@ -450,9 +378,9 @@ def load_mapped(path, smap: SignalMap) -> Recording:
     labels = {"time_s": time_label, "valve_cmd_V": smap.command.label(), "position_m": smap.position.label(),
               "accel_mps2": smap.acceleration.label() if smap.acceleration else "acceleration (zeros)"}
     ref = cols.pop("reference", None)
-    rec = _validated(cols, source, labels)
+    rec = validated(cols, source, labels)
     if ref is not None:        # checked as a signal, and mended as the signals were
-        ref = _validated({**cols, "accel_mps2": ref}, source,
+        ref = validated({**cols, "accel_mps2": ref}, source,
                          {**labels, "accel_mps2": smap.reference.label()}).accel_mps2
     if smap.time and smap.sample_rate_hz and abs(rec.fs_hz / smap.sample_rate_hz - 1) > UNIFORM_TOL:
         raise RecordingError(f"{source}: {smap.time.label()} gives {rec.fs_hz:.6g} Hz but [signals] sample_rate_hz "
@@ -496,6 +424,8 @@ def load_plant_signals(plant_path) -> SignalMap | None:
 
 def load_recording_for(path, plant_path=None) -> Recording:
     """The recording REC as a command reads it: through the plant file's signal map when it has one, else
-    rig's own formats (rig.recording.load_recording)."""
+    rig's own formats (rig.recordings.rigformat.load_recording)."""
     smap = load_plant_signals(plant_path) if plant_path is not None else None
-    return load_recording(path) if smap is None else load_mapped(path, smap)
+    if smap is not None:
+        return load_mapped(path, smap)
+    return load_recording(path)

@@ -1,8 +1,8 @@
-"""rig.closedloop: feedback from the measured position to the command, from the file's attributes or the data."""
+"""rig.recordings.closedloop: feedback from the measured position to the command, from the file's attributes or the data."""
 import numpy as np
 from scipy.signal import lfilter
 
-from rig import closedloop
+from rig.recordings import closedloop
 
 FS = 2000.0
 
@@ -60,7 +60,7 @@ def test_identify_through_a_plant_file_names_a_closed_loop_the_file_states(tmp_p
     """rig identify --plant on a short closed-loop log at 100 Hz: the map's reference makes the report say so."""
     from rig.diagnose.refit import identify_plant
     from rig.plant.file import load_plant
-    from rig.signalmap import load_recording_for
+    from rig.recordings.signalmap import load_recording_for
     rng = np.random.default_rng(3)
     n, fs, m, c = 1000, 100.0, 5.0, 20.0
     ref = np.where((np.arange(n) // 200) % 2, 0.01, -0.01)

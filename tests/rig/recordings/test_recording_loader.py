@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rig.errors import RecordingError
 from tests.paths import RECORDINGS
-from rig.recording import (COLUMNS, MIN_SAMPLES, Recording, load_recording, save_recording_csv, save_recording_h5,
-                           save_recording_mat)
+from rig.recordings.recording import COLUMNS, MIN_SAMPLES, Recording
+from rig.recordings.rigformat import load_recording, save_recording_csv, save_recording_h5, save_recording_mat
 
 SHARED = RECORDINGS / "p01_nominal.csv.gz"
 HEADER = ",".join(COLUMNS)

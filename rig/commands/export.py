@@ -1,0 +1,74 @@
+"""`rig export REC --to mat|csv [--out FILE]`: a recording for MATLAB or a spreadsheet, with its metadata and
+units (rig/export.py says what goes where).
+
+  rig export run.h5 --to mat                 -> run.mat (a variable per dataset, the struct meta)
+  rig export run.h5 --to csv --out run.csv   -> run.csv, run.meta.json, run.events.csv
+The default output is REC's name with .mat or .csv; nothing is overwritten without --overwrite. What was
+written goes to stdout (--json: only JSON), progress to stderr.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from rig import cliargs, export
+from rig.errors import RigError
+
+SUFFIX = {"mat": (".mat",), "csv": (".csv", ".csv.gz")}
+
+
+def add_arguments(p) -> None:
+    p.add_argument("recording", metavar="REC", help="HDF5 recording of rig run --record, rig chirp or rig hil")
+    p.add_argument("--to", choices=export.FORMATS, required=True,
+                   help="mat: MATLAB (scipy.io.savemat, v5); csv: one header line naming each column, with "
+                        "FILE.meta.json (units, labels, attributes, events) and FILE.events.csv beside it")
+    cliargs.output_arg(p, "--out", metavar="FILE", default=None,
+                       help="file to write (default: REC's name with .mat or .csv; a CSV ending in .gz is gzipped)")
+    p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
+
+
+def output_path(rec: Path, fmt: str, out: Path | None) -> Path:
+    """The file to write: --out (its suffix added if it has none, refused if it names another format), or REC's
+    name with the format's suffix."""
+    if out is None:
+        return rec.with_suffix(SUFFIX[fmt][0])
+    name = out.name.lower()
+    if any(name.endswith(s) for s in SUFFIX[fmt]):
+        return out
+    other = [s for f, ss in SUFFIX.items() if f != fmt for s in ss]
+    if any(name.endswith(s) for s in other) or out.suffix:
+        raise RigError(f"--out {out}: expected a file name ending in {' or '.join(SUFFIX[fmt])} for --to {fmt}")
+    return out.with_name(out.name + SUFFIX[fmt][0])
+
+
+def run(args) -> int:
+    rec = Path(args.recording)
+    out = output_path(rec, args.to, args.out)
+    files = [out] + (list(export.sidecars(out)) if args.to == "csv" else [])
+    if not args.overwrite:                  # the default name is not an option check_outputs saw
+        for f in files:
+            if f.exists():
+                raise RigError(f"{f}: file exists (add --overwrite to replace it)")
+    if out.resolve() == rec.resolve():
+        raise RigError(f"--out {out}: is the recording itself")
+    if not out.parent.is_dir():
+        raise RigError(f"--out {out}: folder {out.parent} does not exist")
+    exp = export.load(rec)
+    if args.to == "mat":
+        export.write_mat(exp, out)
+    else:
+        def progress(done: int, total: int) -> None:
+            if total >= 10 * export.CSV_CHUNK_ROWS:
+                print(f"rig export: {done} / {total} rows", file=sys.stderr, flush=True)
+        export.write_csv(exp, out, progress)
+    cols = exp.columns()
+    result = {"recording": str(rec), "format": args.to, "files": [str(f) for f in files], "rows": exp.rows,
+              "datasets": len(exp.data), "columns": len(cols), "events": len(exp.events)}
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{rec}: {exp.rows} rows, {len(exp.data)} datasets ({len(cols)} columns), {len(exp.events)} events")
+    for f in files:
+        print(f"  wrote {f}")
+    return 0

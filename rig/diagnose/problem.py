@@ -1,0 +1,371 @@
+"""The fitting problem of one recording: the recorded command and position, the samples every fit uses, the
+interleaved fit and held-out blocks, the sensor terms projected out of every residual (variable projection), the
+noise the residuals are weighed by, and for a plant that integrates the segment-wise initial states (multiple
+shooting, docs/PLANT.md). A Problem is built whole by its constructor; a changed noise estimate, sensor basis or
+superposition proxy is a new Problem (`with_`), never an attribute set from outside.
+
+`ModelFit` is one model fitted to it (linear parameters, effects, residual sums of squares); `compare` is the test
+every effect passes: BIC on the fit blocks and a likelihood ratio on the held-out blocks.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from rig.diagnose import catalogue, sensor as sensor_mod
+from rig.diagnose.lm import lm_fit
+from rig.diagnose.plants import model_for
+
+LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
+N_BLOCKS = 51                      # interleaved blocks (2 s blocks of a 100 s chirp); odd: the first and the last
+                                   # are fit blocks, so the slow sensor terms never extrapolate into a held-out end
+MIN_GAIN = 0.003                   # an effect must cut the held-out residual variance by at least 0.3 %
+_KEEP = object()
+
+
+@dataclass
+class ModelFit:
+    """One model fitted to the problem."""
+    lin: dict                     # linear parameter values
+    fx: dict                      # effects {name: {key: value}} (disturbance: frequency_hz only)
+    rss_fit: float
+    rss_hold: float
+    k: int                        # number of fitted physics parameters
+    dist: tuple | None = None     # (freq, coef_sin, coef_cos)
+    coef: np.ndarray | None = None   # sensor-basis coefficients
+    state: np.ndarray | None = None  # segment-wise initial states' response (multiple shooting), metres
+
+
+@dataclass
+class Shooting:
+    """Segment-wise initial states of a plant with a pole at the origin (docs/PLANT.md): each segment is a fit
+    block and the held-out block after it; its initial state is estimated on the fit block (a linear nuisance
+    parameter, projected out with the sensor terms) and the held-out block is the model's prediction from it."""
+    starts: np.ndarray            # first sample of each segment
+    ends: np.ndarray
+    X0: dict = field(default_factory=dict)     # state dimension -> (segments, n) states from the data
+
+    @property
+    def count(self) -> int:
+        return len(self.starts)
+
+    def as_dict(self, fs: float) -> dict:
+        lens = (self.ends - self.starts) / fs
+        return {"segments": int(self.count), "segment_s": [float(np.min(lens)), float(np.max(lens))],
+                "method": "multiple shooting: each segment's initial state estimated on its fit block, its "
+                          "held-out block predicted from it"}
+
+
+SHOOT_BLOCK_S = 0.5                # block length of a segmented plant (a segment: a fit and a held-out block)
+SHOOT_GN_STEPS = 2                 # Gauss-Newton steps on the segment states of a model with friction
+
+
+def _n_blocks(plant, n: int, fs: float) -> int:
+    if not plant.segmented:
+        return N_BLOCKS
+    k = int(round(n / fs / SHOOT_BLOCK_S))
+    return int(min(201, max(21, k | 1)))            # odd: the first and the last are fit blocks
+
+
+class Problem:
+    """cmd, y: the recorded command and position; plant: rig.diagnose.plants model_for's argument; use: the
+    samples every fit uses; base_band: where a mode can be told apart (the excited band); broadband: a noise or
+    steps command; loop: rig.recordings.closedloop's evidence of feedback; noise: what the residuals are weighed by."""
+
+    def __init__(self, cmd: np.ndarray, y: np.ndarray, fs: float, p0, use: np.ndarray, *,
+                 base_band: tuple[float, float] | None = None, broadband: bool = False, loop=None,
+                 noise: float = 1.0):
+        self.cmd = np.asarray(cmd, dtype=float)
+        self.y = np.asarray(y, dtype=float)
+        self.fs = float(fs)
+        self.n = len(self.y)
+        self.plant = model_for(p0)
+        self.p0 = self.plant.p0                     # ActuatorParams of the eha plant, else None
+        self.lin_keys = self.plant.lin_keys
+        self.nominal = dict(self.plant.nominal)
+        self.t = np.arange(self.n) / self.fs
+        self.use = np.asarray(use, bool)
+        n_blocks = _n_blocks(self.plant, self.n, self.fs)
+        blk = np.arange(self.n) * n_blocks // self.n
+        self.mfit = ((blk % 2) == 0) & self.use
+        self.mhold = ((blk % 2) == 1) & self.use
+        self.scale = self.plant.scale(self.cmd, self.fs)   # what effects' bounds and starts are relative to
+        self.noise = noise
+        self.base_band = base_band or (5.0, 0.45 * self.fs)
+        self.broadband = broadband
+        self.loop = loop
+        self.proxy = None
+        self.shoot = None
+        if self.plant.segmented:
+            pair = blk // 2
+            starts = np.flatnonzero(np.r_[True, np.diff(pair) != 0])
+            ends = np.r_[starts[1:], self.n]
+            # the first segment starts at the first sample the fits use: the instants left out are the start-up
+            # (in closed loop the loop's own transient, the carriage kicked and stuck), where a start state read
+            # from the data is poor, and with friction no linear correction undoes it
+            first = int(np.argmax(self.use)) if self.use.any() else 0
+            starts[0] = min(max(starts[0], first), ends[0] - 1)
+            self.shoot = Shooting(starts, ends)
+        self._free = (None, None)
+        self._set_basis(sensor_mod.SensorBasis(self.n, self.fs, zero_terms=self.shoot is None))
+
+    def with_(self, *, noise: float | None = None, basis: sensor_mod.SensorBasis | None = None,
+              proxy=_KEEP) -> "Problem":
+        """The same problem with another noise estimate, sensor basis or superposition proxy (the data and the
+        blocks shared)."""
+        new = copy.copy(self)
+        if noise is not None:
+            new.noise = noise
+        if basis is not None:
+            new._set_basis(basis)
+        if proxy is not _KEEP:
+            new.proxy = proxy
+        return new
+
+    # -- sensor terms
+    def _set_basis(self, basis: sensor_mod.SensorBasis) -> None:
+        self.basis = basis
+        self._Bf = np.ascontiguousarray(basis.B[self.mfit])
+        self._G = self._Bf.T @ self._Bf
+        self._cho = cho_factor(self._G) if basis.m else None
+
+    def _coef(self, rf: np.ndarray, Ff: np.ndarray | None = None):
+        """Least-squares coefficients of the sensor basis (and of F, the disturbance regressors) on the fit
+        blocks: normal equations, the basis Gram matrix factored once per basis."""
+        Btr = self._Bf.T @ rf
+        if Ff is None:
+            return cho_solve(self._cho, Btr), None
+        BtF = self._Bf.T @ Ff
+        M = np.block([[self._G, BtF], [BtF.T, Ff.T @ Ff]])
+        v = np.r_[Btr, Ff.T @ rf]
+        try:
+            sol = np.linalg.solve(M, v)
+        except np.linalg.LinAlgError:
+            sol = np.linalg.lstsq(M, v, rcond=None)[0]
+        m = self.basis.m
+        return sol[:m], sol[m:]
+
+    def _project(self, r: np.ndarray, F: np.ndarray | None = None):
+        """The full-length residual with the sensor terms (and F) fitted on the fit blocks removed, the sensor
+        coefficients and F's coefficients."""
+        c, d = self._coef(r[self.mfit], None if F is None else F[self.mfit])
+        out = r - self.basis.B @ c
+        if F is not None:
+            out = out - F @ d
+        return out, c, d
+
+    def free_response(self, lin: dict, fx: dict) -> np.ndarray:
+        """The segment-state regressors' shape (response to each unit initial state), cached per model."""
+        key = (tuple(sorted(lin.items())), repr(self.plant.matrices_key(fx)))
+        if self._free[0] != key:
+            L = int(np.max(self.shoot.ends - self.shoot.starts))
+            self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
+        return self._free[1]
+
+    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray, states: bool = False):
+        """_project with the segment-wise initial states: block-sparse normal equations (each segment's state
+        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response) and,
+        with states=True, the (segments, n) initial-state corrections too."""
+        w = self.mfit
+        E = self.basis.B if F is None else np.column_stack([self.basis.B, F])
+        q = E.shape[1]
+        nx = O.shape[1]
+        sh = self.shoot
+        N = q + nx * sh.count
+        G = np.zeros((N, N)); b = np.zeros(N)
+        Ef = E[w]
+        G[:q, :q] = Ef.T @ Ef
+        b[:q] = Ef.T @ r[w]
+        for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
+            ws = w[a:e]
+            Ow = O[:e - a][ws]
+            i = q + s * nx
+            G[i:i + nx, i:i + nx] = Ow.T @ Ow
+            if q:
+                X = E[a:e][ws].T @ Ow
+                G[:q, i:i + nx] = X
+                G[i:i + nx, :q] = X.T
+            b[i:i + nx] = Ow.T @ r[a:e][ws]
+        d = np.sqrt(np.maximum(np.diag(G), 1e-300))
+        Gn = G / np.outer(d, d) + 1e-12 * np.eye(N)
+        try:
+            sol = np.linalg.solve(Gn, b / d) / d
+        except np.linalg.LinAlgError:
+            sol = np.linalg.lstsq(Gn, b / d, rcond=None)[0] / d
+        state = np.zeros(self.n)          # before the first segment (samples no fit uses): no state
+        for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
+            state[a:e] = O[:e - a] @ sol[q + s * nx:q + (s + 1) * nx]
+        out = r - E @ sol[:q] - state
+        m = self.basis.m
+        if states:
+            return out, sol[:m], (sol[m:q] if F is not None else None), state, sol[q:].reshape(sh.count, nx)
+        return out, sol[:m], (sol[m:q] if F is not None else None), state
+
+    def model(self, lin: dict, fx: dict) -> np.ndarray:
+        sfx = catalogue.simulated(fx)
+        if self.proxy is not None:
+            # superposition proxy: the exact slow model at its fit plus the change that the fast linear-sim
+            # effects (delay, base, clip) and linear parameters make
+            y_cur, base_c = self.proxy
+            fl = catalogue.fast(sfx)
+            return y_cur + self.simulate(lin, fl) - base_c
+        return self.simulate(lin, sfx)
+
+    def simulate(self, lin: dict, fx: dict) -> np.ndarray:
+        """The plant with the effects fx (no disturbance) from the recorded command; a segmented plant from the
+        data's state at each segment start."""
+        if self.shoot is None:
+            return self.plant.simulate(lin, self.cmd, self.fs, fx)
+        slow = catalogue.slow_in(fx)
+        nx = self.plant.matrices(lin, fx)[0].shape[0]
+        if nx not in self.shoot.X0:
+            self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
+        X0 = self.shoot.X0[nx]
+        y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
+        if not slow:
+            return y            # linear in the initial state: the projection's correction is exact
+        # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
+        # and the sticking): Gauss-Newton steps on the segment states, the correction the projection finds from
+        # the data's start applied to the simulation itself; the projection then corrects what is left
+        for _ in range(SHOOT_GN_STEPS):
+            _, _, _, _, dX = self._project_shooting(self.y - y, None, self.free_response(lin, fx), states=True)
+            X0 = X0 + dX
+            y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
+        return y
+
+    def _residual_full(self, lin: dict, fx: dict):
+        r = self.y - self.model(lin, fx)
+        f_line = catalogue.line_frequency(fx)
+        F = self.force_basis(lin, fx) if f_line is not None else None
+        state = None
+        if self.shoot is not None:
+            r, c, d, state = self._project_shooting(r, F, self.free_response(lin, fx))
+        else:
+            r, c, d = self._project(r, F)
+        dist = None
+        if F is not None:
+            dist = (f_line, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
+        return r, dist, c, state
+
+    def residual(self, lin: dict, fx: dict):
+        """Full-length residual with the sensor terms (and the disturbance) projected out on the fit blocks,
+        the disturbance coefficients and the sensor coefficients."""
+        r, dist, c, _ = self._residual_full(lin, fx)
+        return r, dist, c
+
+    def residual_fit(self, lin: dict, fx: dict) -> np.ndarray:
+        """The residual on the fit blocks only (what the least squares see)."""
+        if self.shoot is not None:
+            return self._residual_full(lin, fx)[0][self.mfit]
+        rf = self.y[self.mfit] - self.model(lin, fx)[self.mfit]
+        Ff = self.force_basis(lin, fx)[self.mfit] if catalogue.projected(fx) else None
+        c, d = self._coef(rf, Ff)
+        rf = rf - self._Bf @ c
+        if Ff is not None:
+            rf = rf - Ff @ d
+        return rf
+
+    def force_basis(self, lin: dict, fx: dict) -> np.ndarray:
+        """Position responses to a unit sin/cos load force at the disturbance frequency (linear model with
+        the base mode if named; the nonlinear effects are not applied to this small line)."""
+        return self.plant.force_response(lin, fx, self.fs, catalogue.line_frequency(fx), self.n)
+
+    def spec_keys(self, name: str) -> tuple[str, ...]:
+        return self.plant.effects[name].keys(self.plant.input_unit)
+
+    def n_params(self, fx: dict) -> int:
+        """Fitted physics parameters: the linear ones, each effect's keys, the disturbance's frequency + 2."""
+        return len(self.lin_keys) + sum(catalogue.get(n).n_free for n in fx)
+
+    def fit(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None, max_iter=20,
+            rtol: float = 1e-5) -> ModelFit:
+        """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
+        keys."""
+        free_lin = self.lin_keys if free_lin is None else tuple(k for k in free_lin if k in self.lin_keys)
+        free_fx = {n: self.spec_keys(n) for n in catalogue.simulated(fx0)} if free_fx is None else free_fx
+        eha = self.plant.family == "eha"
+        names, lo, hi, x0, scale = [], [], [], [], []
+        for k in free_lin:
+            names.append(("lin", k)); nom = self.nominal[k]
+            blo, bhi = self.plant.bounds_lin[k]
+            if eha:
+                lo.append(math.log(LIN_BOUNDS[0])); hi.append(math.log(LIN_BOUNDS[1]))
+                x0.append(math.log(lin0.get(k, nom) / nom)); scale.append(0.05)
+            elif self.plant.log_scale[k]:
+                lo.append(math.log(blo / nom)); hi.append(math.log(bhi / nom))
+                x0.append(math.log(lin0.get(k, nom) / nom)); scale.append(0.05)
+            else:
+                lo.append(blo); hi.append(bhi)
+                x0.append(lin0.get(k, nom)); scale.append(0.02 * (bhi - blo))
+        for n, keys in free_fx.items():
+            bnd = self.effect_bounds(n)
+            for key, (a, b) in zip(self.spec_keys(n), bnd):
+                if key not in keys:
+                    continue
+                names.append((n, key)); lo.append(a); hi.append(b)
+                x0.append(fx0[n][key]); scale.append(0.02 * (b - a))
+        x0 = np.clip(np.array(x0), np.array(lo) + 1e-12, np.array(hi) - 1e-12)
+
+        def unpack(x):
+            lin = dict(lin0); fx = {n: dict(v) for n, v in fx0.items()}
+            for (grp, key), val in zip(names, x):
+                if grp == "lin":
+                    lin[key] = (self.nominal[key] * math.exp(val) if (eha or self.plant.log_scale[key])
+                                else float(val))
+                else:
+                    fx[grp][key] = float(val)
+            return lin, fx
+
+        def fun(x):
+            lin, fx = unpack(x)
+            return self.residual_fit(lin, fx) / self.noise
+
+        if names:
+            x, _ = lm_fit(fun, x0, lo, hi, np.array(scale) * 1e-3, max_iter=max_iter, rtol=rtol)
+            lin, fx = unpack(x)
+        else:
+            lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
+        return self.evaluate(lin, fx, k=self.n_params(fx))
+
+    def effect_bounds(self, name: str) -> list[tuple[float, float]]:
+        """The bounds of an effect's fitted keys on this recording (a mode seen as a pair only inside the excited
+        band: its frequency within it)."""
+        effect = catalogue.get(name)
+        bnd = effect.bounds(self.scale)
+        return [self.base_band] + list(bnd[1:]) if effect.in_band else bnd
+
+    def evaluate(self, lin: dict, fx: dict, k: int) -> ModelFit:
+        r, dist, c, state = self._residual_full(lin, fx)
+        return ModelFit(lin=lin, fx=fx, rss_fit=float(np.sum(r[self.mfit] ** 2)), rss_hold=float(np.sum(r[self.mhold] ** 2)),
+                   k=k, dist=dist, coef=c, state=state)
+
+    def physics(self, f: ModelFit) -> np.ndarray:
+        """The physics part of a fitted model (with the disturbance's response and the segment states), metres."""
+        yhat = self.model(f.lin, f.fx)
+        if f.dist is not None:
+            yhat = yhat + self.force_basis(f.lin, f.fx) @ np.array(f.dist[1:])
+        if f.state is not None:
+            yhat = yhat + f.state
+        return yhat
+
+    def series(self, f: ModelFit) -> np.ndarray:
+        """The measurement as the model has it: physics plus the fitted sensor terms."""
+        return self.physics(f) + self.basis.B @ f.coef
+
+
+# ---- tests -------------------------------------------------------------------------------------------------
+
+def compare(pb: Problem, base: ModelFit, cand: ModelFit) -> dict:
+    """BIC on the fit blocks and a likelihood ratio on the held-out blocks (parameters frozen)."""
+    nf = int(pb.mfit.sum()); nh = int(pb.mhold.sum())
+    dk = max(1, cand.k - base.k)
+    dbic = nf * math.log(base.rss_fit / cand.rss_fit) - dk * math.log(nf)
+    lr_h = nh * math.log(base.rss_hold / cand.rss_hold)
+    gain_h = 1.0 - cand.rss_hold / base.rss_hold
+    passed = dbic > 0 and lr_h > dk * math.log(nh) and gain_h > MIN_GAIN
+    return {"delta_bic_fit": dbic, "lr_holdout": lr_h, "lr_needed": dk * math.log(nh), "holdout_gain": gain_h,
+            "dk": dk, "passed": bool(passed)}

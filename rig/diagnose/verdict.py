@@ -1,0 +1,84 @@
+"""The verdict (docs/DIAGNOSIS.md, "Odd recordings and their answers"): does the augmented model describe the
+recording (explained, partly, not described), or does the recording allow no claim at all; and what the evidence
+suggests when the model does not describe it (a different plant or units, closed-loop data, a rate too low). The
+sentences of the verdict itself are the report's (rig.diagnose.report.verdict_text)."""
+from __future__ import annotations
+
+import math
+
+from rig.diagnose import command as command_mod
+from rig.diagnose.plants import at_bounds
+from rig.diagnose.problem import LIN_BOUNDS, ModelFit, Problem
+from rig.diagnose.results import Fit, Verdict
+
+MIN_CLAIM_S = 5.0                  # shorter recordings get no claim
+VERDICT_AT_NOISE = 1.15            # augmented residual / noise: "explains the recording"
+VERDICT_NOT_DESCRIBED = 3.0        # above: the model does not describe the recording, nothing is named
+
+
+def no_claim_reason(rec, cmd_info: command_mod.Command) -> str:
+    if rec.duration_s < MIN_CLAIM_S:
+        return (f"the recording is {rec.duration_s:.3g} s long, too short for a claim (at least {MIN_CLAIM_S:g} s "
+                f"of excitation are needed)")
+    if cmd_info.kind in ("flat", "sine"):
+        return (f"the command is a {'constant' if cmd_info.kind == 'flat' else 'single sine'}: too poorly excited "
+                f"for a claim (a sweep, multisine, noise or steps are needed)")
+    lo, hi = cmd_info.band_hz
+    if hi <= 0 or hi < 2.0 * max(lo, 1e-3):
+        return f"the command excites only {lo:.3g}-{hi:.3g} Hz: too poorly excited for a claim"
+    return ""
+
+
+def file_bound_hints(pb, refit) -> list[str]:
+    """A plant file's free parameters the refit left at a bound of their range. A bound of zero reached is the data
+    asking for no such term (a pure integrator has no den[-1]), not a different plant: said so."""
+    hints = []
+    for k, edge in at_bounds(pb.plant.bounds_lin, refit.lin, pb.lin_keys).items():
+        lo, hi = pb.plant.bounds_lin[k]
+        v = refit.lin[k]
+        if edge == 0.0:
+            hints.append(f"The refit took {k} to 0, the bound of its range in the plant file ({lo:g}..{hi:g}): the "
+                         f"data ask for no such term; fix {k} = 0 in the plant file if that is the physics.")
+        else:
+            hints.append(f"The refit pushed {k} to {v:.4g}, the {'lower' if edge == lo else 'upper'} bound of its "
+                         f"range in the plant file ({lo:g}..{hi:g}): widen the range if that value is plausible, "
+                         f"else the plant (or its units) differs from the file's.")
+    return hints
+
+
+def verdict(pb: Problem, no_claim: str, named: bool, fit: Fit, refit: ModelFit, check) -> Verdict:
+    """Say whether the models describe the recording, and if not, what the evidence suggests. Closed-loop data
+    is named whatever the verdict: the fits assume the command is independent of the noise."""
+    sugg = []
+    loop = pb.loop
+    if loop.closed and pb.plant.family == "eha":
+        sugg.append(f"Closed-loop data: {loop.reason}; a fit of the open-loop plant from command to position does "
+                    "not apply (identify the plant from an open-loop run, e.g. `rig chirp`).")
+    elif loop.closed:
+        sugg.append(f"Closed-loop data: {loop.reason}. The plant is simulated from the recorded command (what the "
+                    "drive received), so the claims stand, but the command carries the position's noise back in: "
+                    "the linear parameters can lean toward the controller's inverse, and only effects that predict "
+                    "the held-out blocks are named.")
+    if no_claim:
+        return Verdict("no_claim", no_claim=no_claim, suggestions=tuple(sugg))
+    over = fit.augmented.residual_over_noise_holdout
+    over_ref = fit.refit.residual_over_noise_holdout
+    if over <= VERDICT_AT_NOISE:
+        return Verdict("explained", over, over_ref, named, suggestions=tuple(sugg))
+    if pb.plant.family == "eha":
+        at_edge = [k for k in pb.lin_keys
+                   if min(abs(math.log(refit.lin[k] / pb.nominal[k]) - math.log(b)) for b in LIN_BOUNDS) < 0.02]
+        if at_edge:
+            sugg.append("The refit pushed " + ", ".join(at_edge) + " to the edge of the physical range: a "
+                        "different plant (or different units) than the configured model.")
+    else:
+        sugg += file_bound_hints(pb, refit)
+    if fit.refit.nrmse > 0.5:
+        sugg.append(f"Even the refit leaves {100 * fit.refit.nrmse:.0f} % of the motion unexplained: the "
+                    "position does not follow the command as this plant would.")
+    if check is not None and not check.usable:
+        sugg.append(check.note[0].upper() + check.note[1:] + ".")
+    if pb.fs < 500.0 and pb.plant.family == "eha":
+        sugg.append(f"The recording is sampled at {pb.fs:g} Hz, too slowly for the valve's dynamics.")
+    status = "not_described" if over > VERDICT_NOT_DESCRIBED else "partly"
+    return Verdict(status, over, over_ref, named, suggestions=tuple(sugg))
