@@ -64,9 +64,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(report.diagnosis_dict(diag), indent=1))
     else:
-        print(report.summary_text(diag))
-        for line in diag.margins:
-            print("  " + line.text())
+        print(report.console_text(diag))
         print("written: " + ", ".join(str(p) for p in paths.values()))
     return 0
 

@@ -9,8 +9,8 @@ the mounts into its four patterns (MOUNTS order front_left, front_right, rear_le
   twist (+ - - +) / 2
 
 Independent motion at the mounts puts the same power into pitch, roll and twist; a rocking floor puts more into
-pitch or roll. The test: that pattern's power over twist's in the floor's band, each a sum over many bins
-(log ratio ~ N(0, 4 / n_bins) under equal spectra). With floor accelerometers the floor is measured; without
+pitch or roll. The test: that pattern's mean share of the non-common motion over twist's, bin by bin in the
+floor's band (log ratio in standard errors taken from the bins' scatter). With floor accelerometers the floor is measured; without
 them it is estimated bin by bin from the mounts through the model (least squares, the same weights as the
 replay): what the four mounts cannot tell apart stays unknown, and the report says so.
 """
@@ -37,7 +37,7 @@ class FloorMotion:
     rms_m: dict                 # pattern -> rms displacement in BAND_HZ (m)
     n_bins: int
     axis: str                   # the rocking axis with the larger excess ("pitch" or "roll")
-    ratio: float                # its power over twist's
+    ratio: float                # its mean share per bin over twist's
     z: float                    # log ratio in standard errors
     rocking_over_heave: float   # the rocking's rms over the common heave's (independent part taken out)
 
@@ -67,13 +67,23 @@ def floor_motion(rp: Replay, th: dict, U=None) -> FloorMotion:
     sel = (sp.f_hz >= BAND_HZ[0]) & (sp.f_hz <= BAND_HZ[1])
     Xb = X[sel]
     step = max(1, int(round(np.median(np.diff(sp.bin_index)))))
-    power = {k: float(np.sum(np.abs(Xb @ p) ** 2)) for k, p in PATTERNS.items()}
+    per_bin = {k: np.abs(Xb @ p) ** 2 for k, p in PATTERNS.items()}
+    power = {k: float(np.sum(v)) for k, v in per_bin.items()}
     rms = {k: math.sqrt(2 * step * v) / sp.n for k, v in power.items()}
     n = int(sel.sum())
-    tw = max(power["twist"], 1e-300)
-    axis = max(("pitch", "roll"), key=lambda a: power[a])
-    ratio = power[axis] / tw
-    z = math.log(max(ratio, 1e-300)) / math.sqrt(4.0 / max(n, 1))
+    # the test on each bin's shares of the non-common motion: the floor's spectrum falls steeply (1/f in
+    # displacement), so sums of raw power rest on the lowest few bins and their ratio scatters far more than
+    # 4 / n_bins says; shares weigh every bin alike, and their scatter is taken from the data
+    rest = np.maximum(per_bin["pitch"] + per_bin["roll"] + per_bin["twist"], 1e-300)
+    share = {k: per_bin[k] / rest for k in ("pitch", "roll", "twist")}
+    axis = max(("pitch", "roll"), key=lambda a: float(np.mean(share[a])))
+    a, b = share[axis], share["twist"]
+    ma, mb = max(float(np.mean(a)), 1e-300), max(float(np.mean(b)), 1e-300)
+    ratio = ma / mb
+    cov = np.cov(np.vstack([a, b])) if n > 2 else np.full((2, 2), np.inf)
+    se = math.sqrt(max(cov[0, 0] / ma ** 2 + cov[1, 1] / mb ** 2 - 2 * cov[0, 1] / (ma * mb), 1e-300) / max(n, 1))
+    z = math.log(ratio) / se
+    tw = power["twist"]
     excess = max(power[axis] - tw, 0.0)
     heave = max(power["heave"] - tw, 1e-300)
     return FloorMotion(sp.G is not None, rms, n, axis, ratio, z, math.sqrt(excess / heave))

@@ -41,6 +41,44 @@ def summary_text(d: RigDiagnosis) -> str:
     return txt
 
 
+def console_text(d: RigDiagnosis) -> str:
+    """What `rig diagnose` prints: the summary, each named effect with its margins line, the fit per mount, the
+    margins per mount on the diagnosed rig and, without floor accelerometers, what the run can and cannot tell."""
+    s = [summary_text(d)]
+    for e in d.effects:
+        s.append(f"named: {_fmt_effect(e)}")
+        s += [f"  margins with it: {line}" for line in e.margins]
+    s.append("fit per mount (held-out residual over expected, 1 = within the noise; model -> refit -> diagnosed):")
+    f = d.fit
+    s += [f"  {m}: accelerometer {f['nominal'][m]['accel']:.2f} -> {f['refit'][m]['accel']:.2f} -> "
+          f"{f['augmented'][m]['accel']:.2f}, stroke {f['nominal'][m]['stroke']:.2f} -> {f['refit'][m]['stroke']:.2f} "
+          f"-> {f['augmented'][m]['stroke']:.2f}" for m in MOUNTS]
+    s.append("margins per mount on the diagnosed rig (rig design's loop on the refitted model):")
+    s += [f"  {line.text()}" for line in d.margins]
+    if not d.floor_measured:
+        s.append("without floor accelerometers (the floor estimated from the mounts):")
+        s += [f"  {x}" for x in _cannot_tell(d)]
+        by = {}
+        for x in d.detectability:
+            by.setdefault(x.effect, []).append(x)
+        for name, xs in by.items():
+            best = min(xs, key=lambda x: x.smallest)
+            s.append(f"  smallest named: {best.text()}" + (f" (at the other {len(xs) - 1} places: report.md)"
+                                                          if len(xs) > 1 else ""))
+    return "\n".join(s)
+
+
+def _cannot_tell(d: RigDiagnosis) -> list:
+    out = ["cannot be judged: a floor accelerometer's sensitivity, the floor feedforward's input; an "
+           "accelerometer's sensitivity only where the floor's estimate cannot take it up"]
+    if not d.valves_driven:
+        out.append("cannot be told: the valves' delays and deadbands (the valves were not driven: isolation off)")
+    never = [f"{x.effect} at {x.location}" for x in d.detectability if not math.isfinite(x.smallest)]
+    if never:
+        out.append("cannot be told at any size: " + ", ".join(never))
+    return out
+
+
 def _jsonable(v):
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
@@ -163,14 +201,12 @@ def _detect_md(d: RigDiagnosis) -> str:
          + (" (and with floor accelerometers fitted, the floor taken as estimated)" if not d.floor_measured else "")
          + ":\n\n"]
     can = [x for x in d.detectability if math.isfinite(x.smallest)]
-    cannot = [x for x in d.detectability if not math.isfinite(x.smallest)]
+    never = [x for x in d.detectability if not math.isfinite(x.smallest)]
     s += [f"- {x.text()}\n" for x in can]
-    if cannot:
-        s.append("- cannot be told at any size: " + ", ".join(f"{x.effect} at {x.location}" for x in cannot) + "\n")
+    if never:
+        s.append("- cannot be told at any size: " + ", ".join(f"{x.effect} at {x.location}" for x in never) + "\n")
     if not d.floor_measured:
-        s.append("- without floor accelerometers the floor's own motion is estimated from the mounts: a floor "
-                 "accelerometer's sensitivity and the floor feedforward cannot be judged, and an accelerometer's "
-                 "sensitivity only through what the floor cannot take up\n")
+        s += [f"- without floor accelerometers, {x}\n" for x in _cannot_tell(d)[:1]]
     if not d.valves_driven:
         s.append("- the valves were not driven (isolation off): the valves' delays and deadbands cannot be told\n")
     return "".join(s) + "\n"
