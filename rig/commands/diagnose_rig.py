@@ -23,7 +23,7 @@ from rig.errors import RigError  # noqa: E402
 
 def handles(args) -> bool:
     """Whether REC is a run of the four-mount rig (and no plant file asks for another family)."""
-    from rig.diagnose.machine.runfile import is_run_recording
+    from rig.recordings.runfile import is_run_recording
     return args.plant is None and args.recording.is_file() and is_run_recording(args.recording)
 
 
@@ -33,7 +33,7 @@ def run(args) -> int:
     from rig.config import load_config
     from rig.diagnose.machine import report
     from rig.diagnose.machine.result import diagnose_rig
-    from rig.diagnose.machine.runfile import read_run
+    from rig.recordings.runfile import read_run
     from rig.diagnose.machine.series import replay_series
 
     cfg = load_config(args.config) if args.config else load_config(None)

@@ -33,7 +33,7 @@ def run_case(case_dict: dict, keep_dir: str | None = None) -> dict:
     from rig.diagnose.machine.prove import RigCase, grade
     from rig.diagnose.machine.report import summary_text
     from rig.diagnose.machine.result import diagnose_rig
-    from rig.diagnose.machine.runfile import read_run
+    from rig.recordings.runfile import read_run
 
     case = RigCase(**case_dict)
     model = config_from_dict(case.model_sections(), source="<the model>")

@@ -23,7 +23,7 @@ from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.fitting import FitResult, Slot, compare, fit, grid_search, put
 from rig.diagnose.machine.residual import Evaluation, Replay
 from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, copy_theta, neutral, responses
-from rig.diagnose.machine.runfile import RunRecording
+from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra, spectra_of
 from rig.diagnose.machine.spool import Spools
 from rig.diagnose.machine.weights import expected, inflated, inflation

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig.config import MOUNTS
-from rig.diagnose.machine.runfile import RunRecording
+from rig.recordings.runfile import RunRecording
 
 MIN_OFFSET_V = 0.03             # smaller offsets are within a valve's null tolerance
 MIN_T = 6.0                     # offset / its standard error to stand out

@@ -17,7 +17,7 @@ from rig.diagnose.machine import detect, floor as floor_mod, margins as margins_
 from rig.diagnose.machine.engine import Selection, diagnose_run, u_of
 from rig.diagnose.machine.residual import Replay
 from rig.diagnose.machine.rigmodel import ACT_KEYS, copy_theta, responses
-from rig.diagnose.machine.runfile import RunRecording
+from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra
 from rig.diagnose.machine.transmissibility import transmissibility
 

@@ -13,7 +13,7 @@ import numpy as np
 from rig.config import MOUNTS
 from rig.diagnose.machine.residual import Replay
 from rig.diagnose.machine.rigmodel import Base, responses
-from rig.diagnose.machine.runfile import RunRecording
+from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import spectra_of
 from rig.diagnose.machine.spool import Spools
 from rig.diagnose.machine.weights import expected

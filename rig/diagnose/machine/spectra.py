@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rig.diagnose.machine.runfile import RunRecording
+from rig.recordings.runfile import RunRecording
 
 BAND_HZ = (0.3, 150.0)          # the floor's band and the actuators' (valve 83 Hz); below 0.3 Hz the blend and
                                 # the centring hold the strokes, above 150 Hz the machine-on-actuator modes

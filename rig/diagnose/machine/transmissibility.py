@@ -20,7 +20,7 @@ from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from rig.config import MOUNTS
 from rig.diagnose.machine.rigmodel import Base, responses
-from rig.diagnose.machine.runfile import MODES, RunRecording
+from rig.recordings.runfile import MODES, RunRecording
 
 BANDS_HZ = ((1.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0), (60.0, 100.0))
 SETTLE_S = 3.0                  # the blend's and the PI's start (the feedback's slow filters) left out

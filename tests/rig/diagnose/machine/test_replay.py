@@ -12,7 +12,7 @@ import pytest
 from rig.diagnose.machine.engine import nominal_theta
 from rig.diagnose.machine.residual import FIDELITY, Replay
 from rig.diagnose.machine.rigmodel import Base, copy_theta
-from rig.diagnose.machine.runfile import read_run
+from rig.recordings.runfile import read_run
 from rig.diagnose.machine.spectra import spectra_of
 from tests.rig.diagnose.machine.support import DT, open_loop_run, rig_cfg, write_run
 

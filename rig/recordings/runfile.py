@@ -17,6 +17,7 @@ import numpy as np
 
 from rig.config import MOUNTS
 from rig.errors import RecordingError
+from rig.recordings.files import open_hdf5
 from rig.recordings.recording import mend_gaps
 
 REQUIRED = ("time_s", "accel_mps2", "stroke_m", "valve_cmd_V")
@@ -121,16 +122,11 @@ def _modes(cols: dict) -> np.ndarray | None:
 
 def read_run(path) -> RunRecording:
     """The run recording at `path` (RecordingError naming the file and what is wrong)."""
-    import h5py
     p = Path(path)
     where = str(p)
     if not p.is_file():
         raise RecordingError(f"{where}: no such recording")
-    try:
-        f = h5py.File(p, "r")
-    except OSError as e:
-        raise RecordingError(f"{where}: not an HDF5 file ({str(e).splitlines()[0]})") from None
-    with f:
+    with open_hdf5(p, where, "run recording (docs/RUN_RECORDING.md)") as f:
         missing = [k for k in REQUIRED if k not in f]
         if missing:
             raise RecordingError(f"{where}: no dataset {', '.join(missing)} (a run recording of the four-mount rig "

@@ -10,7 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
-from rig.diagnose.machine.runfile import is_run_recording, read_run
+from rig.recordings.runfile import is_run_recording, read_run
 from rig.errors import RecordingError
 from tests.rig.diagnose.machine.support import DT, open_loop_run, rig_cfg, write_run
 
