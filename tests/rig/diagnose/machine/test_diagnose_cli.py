@@ -36,8 +36,8 @@ def runs(tmp_path_factory):
                    "--quiet") for n in ("clean", "delay")]
     for p, n in zip(runs, ("clean", "delay")):
         _done(p, f"rig run {n}")
-    diags = [_start("diagnose", d / "clean.h5", "--out", d / "out_clean", "--config", d / "clean.toml"),
-             _start("diagnose", d / "delay.h5", "--out", d / "out_delay", "--config", d / "model.toml", "--json")]
+    diags = [_start("diagnose", d / "clean.h5", "--out", d / "out_clean", "--config", d / "clean.toml", "--json"),
+             _start("diagnose", d / "delay.h5", "--out", d / "out_delay", "--config", d / "model.toml")]
     (clean_out, clean_err), (delay_out, delay_err) = (_done(p, "rig diagnose") for p in diags)
     return {"dir": d, "clean": (clean_out, clean_err), "delay": (delay_out, delay_err)}
 
@@ -48,6 +48,7 @@ def test_a_clean_run_names_nothing_and_writes_every_output(runs):
     for name in ("diagnosis.json", "report.md", "replay.csv", "mismatch.png", "transmissibility.png"):
         assert (d / name).is_file() and (d / name).stat().st_size > 0, name
     doc = json.loads((d / "diagnosis.json").read_text())
+    assert json.loads(out) == doc                                  # --json: only JSON on stdout, the file's
     assert doc["effects"] == [] and doc["verdict"] == "explained" and doc["floor_measured"]
     assert [m["mount"] for m in doc["margins"]] == ["front_left", "front_right", "rear_left", "rear_right"]
     assert all(m["diagnosed"]["stable"] for m in doc["margins"])
@@ -56,7 +57,8 @@ def test_a_clean_run_names_nothing_and_writes_every_output(runs):
                     "## The floor", "## The valves' null offsets", "## What this recording can and cannot tell",
                     "## Transmissibility per mount and band", "## rig design on the diagnosed rig"):
         assert section in report, section
-    assert "Named: nothing" in out and out.count("margins hold on the diagnosed rig") == 4
+    assert "Named: nothing" in doc["summary"]
+    assert sum("margins hold on the diagnosed rig" in m["text"] for m in doc["margins"]) == 4
     assert "replay of" in err and "done in" in err                  # progress on stderr
     # the transmissibilities measured and predicted agree where the floor moves the machine (5-60 Hz)
     fb = doc["transmissibility"]["mounts"]["front_left"]["feedback"]
@@ -69,7 +71,7 @@ def test_a_clean_run_names_nothing_and_writes_every_output(runs):
 
 def test_a_valve_delay_is_named_at_its_mount_with_its_margins_line(runs):
     out, err = runs["delay"]
-    doc = json.loads(out)                                          # --json: only JSON on stdout
+    doc = json.loads((runs["dir"] / "out_delay" / "diagnosis.json").read_text())
     named = [(e["name"], e["location"]) for e in doc["effects"]]
     assert named == [("transport_delay", "front_left")]
     e = doc["effects"][0]
@@ -81,3 +83,15 @@ def test_a_valve_delay_is_named_at_its_mount_with_its_margins_line(runs):
     assert any(line.startswith("front_left: margins do NOT hold") for line in e["margins"])
     fit = doc["fit"]
     assert fit["augmented"]["front_left"]["stroke"] < 0.5 * fit["nominal"]["front_left"]["stroke"]
+    # what the user reads: the effect, its margins line, the fit per mount, what a run without floor
+    # accelerometers cannot tell
+    lines = out.splitlines()
+    i = next(k for k, x in enumerate(lines) if x.startswith("named: front_left: valve delay"))
+    assert lines[i + 1].startswith("  margins with it: front_left: margins do NOT hold")
+    per_mount = [x for x in lines if x.startswith("  front_left: accelerometer")]
+    assert len(per_mount) == 1 and "stroke" in per_mount[0]
+    before, after = (float(v) for v in per_mount[0].split("stroke ")[1].split(" -> ")[::2])
+    assert after < 0.5 * before
+    assert "without floor accelerometers (the floor estimated from the mounts):" in lines
+    assert any(x.startswith("  cannot be judged: a floor accelerometer's sensitivity") for x in lines)
+    assert any(x.startswith("  smallest named: transport_delay at") for x in lines)
