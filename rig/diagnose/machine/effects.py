@@ -44,6 +44,15 @@ class Instance:
     def key(self) -> str:
         return f"{self.effect.name}[{self.location}]"
 
+    @property
+    def mounts(self) -> tuple[int, ...]:
+        """The mounts whose loops it sits in (a mode or the machine: all four)."""
+        if self.effect.where in ("mount", "valve"):
+            return (self.index,)
+        if self.effect.where == "sensor":
+            return (self.index % len(MOUNTS),)
+        return tuple(range(len(MOUNTS)))
+
 
 @dataclass(frozen=True)
 class Effect:

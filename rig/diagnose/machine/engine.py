@@ -300,7 +300,7 @@ def polish(sel: Selection, progress=None) -> Selection:
         full_fit, full_hold = _rss(ctx, th, ctx.sp.fit), _rss(ctx, th, ctx.sp.hold)
         for t in list(sel.chosen):
             rest = [c for c in sel.chosen if c is not t]
-            th_wo = polished(rest, _neutral_slots(th, t.instance, ctx.base))
+            th_wo = polished(rest, without_effect(th, t.instance, ctx.base))
             tests = compare(_rss(ctx, th_wo, ctx.sp.fit), _rss(ctx, th_wo, ctx.sp.hold), full_fit, full_hold,
                             n_fit, n_hold, len(t.instance.slots))
             if not tests["passed"]:
@@ -314,7 +314,8 @@ def polish(sel: Selection, progress=None) -> Selection:
     return sel
 
 
-def _neutral_slots(th: dict, inst: fx.Instance, base: Base) -> dict:
+def without_effect(th: dict, inst: fx.Instance, base: Base) -> dict:
+    """theta with the instance's slots back at the model's values."""
     out = copy_theta(th)
     ref = nominal_theta(base)
     for s in inst.slots:

@@ -78,12 +78,13 @@ class MountLine:
     meets: bool                 # whether that trim meets the rule
     retuned: MountMargins | None
 
-    def text(self) -> str:
+    def text(self, against: str = "model") -> str:
+        """The line; `against` names what the nominal margins are of (the model, or the rig without an effect)."""
         d, n = self.diagnosed, self.nominal
         head = (f"{self.mount}: margins {'hold' if d.holds else 'do NOT hold'} on the diagnosed rig: "
                 + (f"GM {d.gain_margin_db:.1f} dB, PM {d.phase_margin_deg:.1f} deg, disk {d.disk_margin:.2f}"
                    if d.stable else "the loop is UNSTABLE")
-                + f" (model: GM {n.gain_margin_db:.1f} dB, PM {n.phase_margin_deg:.1f} deg)")
+                + f" ({against}: GM {n.gain_margin_db:.1f} dB, PM {n.phase_margin_deg:.1f} deg)")
         r, t = self.retuned, self.trim
         if r is None:
             return head + "; no gain trim keeps the loop stable: the compensator needs retuning (rig design --tune)"
@@ -147,8 +148,8 @@ def _best_trim(rig, ctrl: SensedController, i: int, delay: int) -> tuple[float, 
     return math.nan, False
 
 
-def mount_lines(base: Base, th_nominal: dict, th_diag: dict, *, n_f: int = 900) -> list[MountLine]:
-    """One line per mount (see the module docstring)."""
+def mount_lines(base: Base, th_nominal: dict, th_diag: dict, *, n_f: int = 900, mounts=None) -> list[MountLine]:
+    """One line per mount (see the module docstring); `mounts`: only those (indices)."""
     cfg, dt = base.cfg, base.dt
     f = np.unique(np.concatenate([np.geomspace(0.05, 0.49 / dt, n_f), [1.0, 5.0, 10.0, 20.0, 60.0, 100.0]]))
     ctrls = make_isolation_controllers(cfg, dt)
@@ -156,6 +157,8 @@ def mount_lines(base: Base, th_nominal: dict, th_diag: dict, *, n_f: int = 900) 
     rig1, dev1 = _rig(base, th_diag, f)
     out = []
     for i, c in enumerate(ctrls):
+        if mounts is not None and i not in mounts:
+            continue
         nom = _margins_of(rig0, SensedController(c, dev0.accel_gain[i], dev0.stroke_gain[i]), i,
                           _delay(th_nominal, dev0, i, dt))
         sensed = SensedController(c, dev1.accel_gain[i], dev1.stroke_gain[i])

@@ -14,9 +14,9 @@ import numpy as np
 from rig.config import MOUNTS, Config
 from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine import detect, floor as floor_mod, margins as margins_mod, offsets as offsets_mod
-from rig.diagnose.machine.engine import Selection, diagnose_run, u_of
+from rig.diagnose.machine.engine import Selection, diagnose_run, u_of, without_effect
 from rig.diagnose.machine.residual import Replay
-from rig.diagnose.machine.rigmodel import ACT_KEYS, copy_theta, responses
+from rig.diagnose.machine.rigmodel import ACT_KEYS, responses
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra
 from rig.diagnose.machine.transmissibility import transmissibility
@@ -33,7 +33,7 @@ class NamedEffect:
     parameters: dict
     tests: dict
     evidence: str
-    margins: tuple = ()         # per mount, the margins with this effect alone on the refitted model
+    margins: tuple = ()         # at the mounts whose loops it sits in: the diagnosed rig with it against without it
 
 
 @dataclass
@@ -181,17 +181,16 @@ def diagnose_rig(run: RunRecording, cfg: Config, progress=None) -> RigDiagnosis:
 
 
 def _with_margins(e: NamedEffect, sel: Selection, ctx) -> NamedEffect:
-    """The effect's margins line: the refitted model with this effect alone."""
-    th = copy_theta(sel.th_refit)
-    for t in sel.chosen:
-        if t.instance.key == f"{e.name}[{e.location}]":
-            for s in t.instance.slots:
-                th[s.key][s.index] = sel.th_final[s.key][s.index]
+    """The effect's margins line at each mount whose loop it sits in: the diagnosed rig against the same rig
+    without it (rig design's loop on both)."""
     note = fx.BY_NAME[e.name].margins_note
     if note:
-        lines = (f"margins unchanged: {note} (the loop's gain and phase are as on the refitted model)",)
+        lines = (f"margins unchanged: {note} (the loop's gain and phase are as on the diagnosed rig without it)",)
         return NamedEffect(e.name, e.location, e.parameters, e.tests, e.evidence, lines)
-    lines = tuple(line.text() for line in margins_mod.mount_lines(ctx.base, sel.th_refit, th))
+    inst = next(t.instance for t in sel.chosen if t.instance.key == f"{e.name}[{e.location}]")
+    without = without_effect(sel.th_final, inst, ctx.base)
+    lines = tuple(line.text("without it") for line in margins_mod.mount_lines(ctx.base, without, sel.th_final,
+                                                                              mounts=inst.mounts))
     return NamedEffect(e.name, e.location, e.parameters, e.tests, e.evidence, lines)
 
 
