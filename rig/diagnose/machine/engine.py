@@ -277,6 +277,13 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
             break
         chosen.append(best)
         th = best.th
+        if step + 1 < MAX_EFFECTS:
+            # the refit again beside what is chosen: a strong effect at one mount drives the common parameters
+            # to their bounds before it is named (a valve's delay took K_L to x0.5), and the next round's
+            # candidates would be judged on what they make up for there rather than on their own evidence
+            slots = list(refit_slots(ctx.base.dt, ctx.valves_driven)) + [s for t in chosen for s in t.instance.slots]
+            th = fit(ctx.rp, th, tuple(slots), ctx.sp.fit, U_of=u_of(ctx), max_nfev=20).th
+            say("  refit beside it: " + ", ".join(f"{k} x{v:.3f}" for k, v in zip(ACT_KEYS, th["act"])))
     return Selection(ctx, nominal_theta(ctx.base), th_refit, th, chosen, tried, screened_all)
 
 
