@@ -152,33 +152,56 @@ def margins(f: np.ndarray, L: np.ndarray, stable: bool) -> Margins:
     return Margins(bool(stable), gm, pm, gc, pc)
 
 
-def closed_loop_poles(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay: int = 1) -> np.ndarray:
+def channel_delays(delay) -> tuple[int, int]:
+    """(accelerometer, stroke) delays in periods from a delay that is one for both (an int) or per channel (a
+    pair: rig.config.channel_delays, the drivers' timing: the transducer's sample comes later than the
+    accelerometers' conversion). The command's own delay is the accelerometers'."""
+    if isinstance(delay, (tuple, list)):
+        return int(delay[0]), max(int(delay[1]), int(delay[0]))
+    return int(delay), int(delay)
+
+
+def closed_loop_poles(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay=1) -> np.ndarray:
     """Eigenvalues of the discrete interconnection: plant (ZOH) + controllers of `loops` (the others' valves
-    nulled) + `delay` periods of computation delay per loop. Stable iff all |z| < 1."""
+    nulled) + `delay` periods of computation delay per loop (a pair: the stroke's measurement comes the
+    difference later still, a delay line before the controller). Stable iff all |z| < 1."""
+    delay, ds = channel_delays(delay)
+    extra = ds - delay                          # the stroke's delay line, before the controller
     Ad, Bu = rig.Ad, rig.Bd[:, 0:4]
     n = Ad.shape[0]
     blocks = [ctrls[i].ss() for i in loops]
-    nk = sum(b[0].shape[0] for b in blocks) + delay * len(loops)
+    nk = sum(b[0].shape[0] for b in blocks) + (delay + extra) * len(loops)
     A = np.zeros((n + nk, n + nk))
     A[:n, :n] = Ad
     off = n
+    N = n + nk
     for (Ak, Bk, Ck, Dk), i in zip(blocks, loops):
         m = Ak.shape[0]
-        Cy = np.vstack([rig.C[I_ACCEL + i], rig.C[I_STROKE + i]])       # (2, n): u has no feedthrough
         ik = slice(off, off + m)
+        s0 = off + m + delay                                         # the stroke's delay line s1..s_extra
+        # the controller's inputs as rows over the whole state: the accelerometer now, the stroke `extra` late
+        Y = np.zeros((2, N))
+        Y[0, :n] = rig.C[I_ACCEL + i]
+        if extra:
+            Y[1, s0 + extra - 1] = 1.0
+            A[s0, :n] = rig.C[I_STROKE + i]
+            for j in range(1, extra):
+                A[s0 + j, s0 + j - 1] = 1.0
+        else:
+            Y[1, :n] = rig.C[I_STROKE + i]                           # (2, n): u has no feedthrough
         A[ik, ik] = Ak
-        A[ik, :n] = Bk @ Cy
+        A[ik, :] += Bk @ Y
         if delay:
             d0 = off + m                                             # delay line d1..d_delay
             A[d0, ik] = Ck[0]
-            A[d0, :n] = (Dk @ Cy)[0]
+            A[d0, :] += (Dk @ Y)[0]
             for j in range(1, delay):
                 A[d0 + j, d0 + j - 1] = 1.0
             A[:n, d0 + delay - 1] = Bu[:, i]
         else:
             A[:n, ik] += np.outer(Bu[:, i], Ck[0])
-            A[:n, :n] += np.outer(Bu[:, i], (Dk @ Cy)[0])
-        off += m + delay
+            A[:n, :] += np.outer(Bu[:, i], (Dk @ Y)[0])
+        off += m + delay + extra
     if not np.all(np.isfinite(A)):      # a controller whose discretised coefficients overflowed
         return np.full(A.shape[0], np.inf)
     return np.linalg.eigvals(A)
@@ -222,7 +245,7 @@ def slow_poles_continuous(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3)) -> np.nda
     return ev[np.abs(ev) < 2 * np.pi * SLOW_HZ]
 
 
-def is_stable(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay: int = 1) -> tuple[bool, np.ndarray]:
+def is_stable(rig: DiscreteRig, ctrls, loops=(0, 1, 2, 3), delay=1) -> tuple[bool, np.ndarray]:
     """(stable, discrete poles): fast poles |z| < 1 on the discrete loop, slow poles Re s < 0 on the twin."""
     z = closed_loop_poles(rig, ctrls, loops, delay)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -289,14 +312,17 @@ def floor_accel(rig: DiscreteRig) -> np.ndarray:
     return -(rig.w ** 2)
 
 
-def siso(rig: DiscreteRig, ctrl, i: int, delay: int = 1, ff=None) -> dict:
+def siso(rig: DiscreteRig, ctrl, i: int, delay=1, ff=None) -> dict:
     """One mount's loop closed, the others nulled; ground at that mount. Returns L, transmissibilities.
     ff: that mount's FeedforwardFilter (its command, computed from the floor accelerometer with the same
-    `delay`, is added to the feedback's); ctrl None: feedforward alone (no feedback loop)."""
-    zd = rig.zi ** delay
+    `delay`, is added to the feedback's); ctrl None: feedforward alone (no feedback loop). delay: periods, or
+    (accelerometer, stroke) periods (channel_delays)."""
+    da, ds = channel_delays(delay)
+    zd, zs = rig.zi ** da, rig.zi ** (ds - da)               # the stroke comes ds - da periods later still
     P, G = rig.Pu, rig.Gg
     if ctrl is not None:
         K_a, K_s = ctrl.frf(rig.w)
+        K_s = K_s * zs
         L = -zd * (K_a * P[:, I_ACCEL + i, i] + K_s * P[:, I_STROKE + i, i])
         drive = K_a * G[:, I_ACCEL + i, i] + K_s * G[:, I_STROKE + i, i]
     else:
@@ -314,13 +340,14 @@ def siso(rig: DiscreteRig, ctrl, i: int, delay: int = 1, ff=None) -> dict:
             "margins": margins(rig.f, L, stable)}
 
 
-def mimo(rig: DiscreteRig, ctrls, delay: int = 1, ffs=None, check_stability: bool = True) -> dict:
+def mimo(rig: DiscreteRig, ctrls, delay=1, ffs=None, check_stability: bool = True) -> dict:
     """All four loops closed. TR for uniform ground ('uniform', all mounts in phase) and for ground at each
     mount in turn (tr_controlled[..., j]); plus det(I + L) for the generalised Nyquist view.
     ffs: one FeedforwardFilter per mount (each reads the floor accelerometer at its own mount); ctrls None:
-    feedforward alone."""
+    feedforward alone. delay: periods, or (accelerometer, stroke) periods (channel_delays)."""
     nf = len(rig.f)
-    zd = rig.zi ** delay
+    da, ds = channel_delays(delay)
+    zd, zs = rig.zi ** da, rig.zi ** (ds - da)
     P, G = rig.Pu, rig.Gg
     I4 = np.eye(4)[None]
     if ctrls is not None:
@@ -328,6 +355,7 @@ def mimo(rig: DiscreteRig, ctrls, delay: int = 1, ffs=None, check_stability: boo
         Ks = np.empty((nf, 4), dtype=complex)
         for i, c in enumerate(ctrls):
             Ka[:, i], Ks[:, i] = c.frf(rig.w)
+        Ks *= zs[:, None]
         Pa, Ps = P[:, I_ACCEL:I_ACCEL + 4, :], P[:, I_STROKE:I_STROKE + 4, :]
         Ga, Gs = G[:, I_ACCEL:I_ACCEL + 4, :], G[:, I_STROKE:I_STROKE + 4, :]
         Lm = -zd[:, None, None] * (Ka[:, :, None] * Pa + Ks[:, :, None] * Ps)
@@ -529,9 +557,11 @@ def robust_check(cfg, dt: float, ctrls, *, gain_tol: float = 0.3, mode_tol: floa
         stable, _ = is_stable(rig, ctrls, delay=delay)
         Ka = np.empty((len(f), 4), dtype=complex)
         Ks = np.empty_like(Ka)
+        da, ds = channel_delays(delay)
         for i, c in enumerate(ctrls):
             Ka[:, i], Ks[:, i] = c.frf(rig.w)
-        zd = rig.zi ** delay
+        Ks *= (rig.zi ** (ds - da))[:, None]
+        zd = rig.zi ** da
         P = rig.Pu
         Lm = -zd[:, None, None] * (Ka[:, :, None] * P[:, I_ACCEL:I_ACCEL + 4, :]
                                    + Ks[:, :, None] * P[:, I_STROKE:I_STROKE + 4, :])
@@ -646,7 +676,7 @@ def worst_model_error(cfg, dt: float, ctrls, ffs, *, tol: float = 0.1, band_hz=(
 
 def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None = None, *,
                         accel_noise_density: float | None = None, stroke_noise_m: float | None = None,
-                        floor_accel_noise_density: float | None = None, delay: int = 1) -> dict:
+                        floor_accel_noise_density: float | None = None, delay=1) -> dict:
     """One-sided PSDs (m^2/Hz) of the table's vertical motion on the grid f_hz under the configured floor
     (FloorMotion: spectrum, rms, correlation rho between mounts), passive and with the loops (ctrls; None: open)
     and feedforward (ffs) closed, split by cause: the floor, and each sensor's noise.
@@ -672,7 +702,8 @@ def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None
         return out
     mm = mimo(rig, ctrls, delay, ffs=ffs, check_stability=False)
     out["floor"] = from_floor(mm["tr_controlled"][:, o, :])
-    zd = rig.zi ** delay
+    da, ds = channel_delays(delay)
+    zd = rig.zi ** da
     Sinv = np.linalg.inv(np.eye(4)[None] + mm["L"])                  # valves per injected command
 
     def from_noise(gain, psd):                                       # gain (nf, 4): command per noise unit
@@ -681,7 +712,8 @@ def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None
     zero = np.zeros_like(f)
     if ctrls is not None:
         out["accel_noise"] = from_noise(np.stack([c.frf(rig.w)[0] for c in ctrls], axis=1), nd_a ** 2)
-        out["stroke_noise"] = from_noise(np.stack([c.frf(rig.w)[1] for c in ctrls], axis=1), sx ** 2 / (0.5 / dt))
+        out["stroke_noise"] = from_noise(np.stack([c.frf(rig.w)[1] * rig.zi ** (ds - da) for c in ctrls], axis=1),
+                                         sx ** 2 / (0.5 / dt))
     else:
         out["accel_noise"] = out["stroke_noise"] = zero
     out["floor_accel_noise"] = (from_noise(np.stack([ff.frf(rig.w) for ff in ffs], axis=1), nd_g ** 2)
@@ -690,7 +722,7 @@ def predicted_table_psd(cfg, dt: float, ctrls, ffs=None, f_hz: np.ndarray | None
     return out
 
 
-def predicted_rms(cfg, dt: float, ctrls, ffs=None, *, band_hz=(1.0, 100.0), delay: int = 1, **noise) -> dict:
+def predicted_rms(cfg, dt: float, ctrls, ffs=None, *, band_hz=(1.0, 100.0), delay=1, **noise) -> dict:
     """Linear prediction of `rig demo`'s figure over the same floor realisation statistics: rms table motion
     (Y) in band_hz, passive and controlled, split by cause (predicted_table_psd), and the reduction in dB."""
     f = np.geomspace(band_hz[0], band_hz[1], 1200)

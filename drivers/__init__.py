@@ -1,5 +1,6 @@
 """Hardware I/O behind one port (rig.port.Port): CANopen valves, Modbus TCP accelerometers, serial displacement
-transducers. Hardware libraries (canopen, pymodbus, pyserial) are imported only when a port is built.
+transducers, each in an I/O process of its own (drivers/process.py) that meets the loop in an exchange block
+(rig/runtime/exchange.py). Hardware libraries (canopen, pymodbus, pyserial) load only in those processes.
 Backends are chosen by name in rig/backends.py ("hardware": these drivers against the configured devices;
 "hil": the same drivers against the emulated rig, sim_backend/emulators).
 
@@ -8,7 +9,8 @@ the protocol maps the emulators share: drivers/protocol/.
 """
 from __future__ import annotations
 
-from drivers.port import DriverPort
+from drivers import conversion
+from drivers.port import ANALOG, DEVICES, TRANSDUCER, VALVES, DriverPort
 from rig.config import layout_mounts
 from rig.errors import ConfigError
 
@@ -18,37 +20,48 @@ MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 o
 
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
                       modbus_port: int, serial_port: str, stale_s: float, serial_stale_s: float | None = None,
-                      poll_s: float | None = None, on_close=None, priority: int | None = None,
-                      sample_driven: bool | None = None):
-    """The three drivers as one port for the layout's mounts (nothing is opened here; the hardware libraries
-    load here). Mount i (rig.config.layout_mounts order): valve node valve_node_id_base + i, accelerometer AI
-    ch i, transducer channel i + 1 (drivers/devicemaps/: the four-mount map in README.md, the prototype's
-    in prototype.md). With floor accelerometers ([sensors] floor_accel) the analog module also reads
-    [sensors] floor_channels, one per mount."""
-    from drivers.canopen_valves import CanopenValves           # lazy: loads canopen and python-can
-    from drivers.modbus_io import ModbusAnalogIO               # lazy: loads pymodbus
-    from drivers.serial_dta import DisplacementAmplifier       # lazy: loads pyserial
+                      on_close=None, priority: int | None = None, sample_driven: bool | None = None,
+                      can_options: dict | None = None, silent_s: float | None = None,
+                      period_s: float | None = None):
+    """The three drivers as one port for the layout's mounts (nothing is opened here; the I/O processes start
+    at open()). Mount i (rig.config.layout_mounts order): valve node valve_node_id_base + i, accelerometer AI
+    ch i, transducer channel i + 1 (drivers/devicemaps/: the four-mount map in README.md, the prototype's in
+    prototype.md). With floor accelerometers ([sensors] floor_accel) the analog module also reads [sensors]
+    floor_channels, one per mount. can_options: further python-can arguments of the bus (a socketcand
+    gateway's host and port); silent_s: how long an I/O process may go without reporting (default stale_s);
+    period_s: the loop's period (default [loop] rate_hz's): the valves' SYNC and the module's fetch follow it."""
     d = cfg.drivers
     names = list(layout_mounts(cfg))
-    if len(names) > MAX_MOUNTS:
-        raise ConfigError(f"{cfg.source}: layout.mounts: {len(names)} mounts; the drivers' devices carry at most "
+    n = len(names)
+    if n > MAX_MOUNTS:
+        raise ConfigError(f"{cfg.source}: layout.mounts: {n} mounts; the drivers' devices carry at most "
                           f"{MAX_MOUNTS} (one DTA-4 amplifier, AI ch0-3)")
     prio = d.thread_priority if priority is None else priority
     fifo = d.accel_sync_fifo if sample_driven is None else sample_driven
-    poll = poll_s if poll_s is not None else 1.0 / cfg.loop.rate_hz      # triggered each period by read()
-    valves = CanopenValves(interface=can_interface, channel=can_channel, bitrate=d.can_bitrate,
-                           node_ids=[d.valve_node_id_base + i for i in range(len(names))], names=names,
-                           max_V=cfg.valve.max_V, stale_s=stale_s, priority=prio)
+    period_s = 1.0 / cfg.loop.rate_hz if period_s is None else period_s
     s = cfg.sensors
-    floor = list(s.floor_channels)[:len(names)] if s.floor_accel else []
-    accel = ModbusAnalogIO(host=modbus_host, port=modbus_port, unit=d.modbus_unit,
-                           channels=list(range(len(names))) + floor,
-                           names=names + [f"floor {m}" for m in names][:len(floor)],
-                           V_per_mps2=[d.accel_V_per_mps2] * len(names) + [s.floor_V_per_mps2] * len(floor),
-                           timeout_s=d.modbus_timeout_s, watchdog_s=d.modbus_watchdog_s, stale_s=stale_s, poll_s=poll,
-                           priority=prio, fifo=fifo)
-    stroke = DisplacementAmplifier(port=serial_port, baud=d.serial_baud, names=names, channels=list(range(len(names))),
-                                   stale_s=serial_stale_s if serial_stale_s is not None else stale_s, poll_s=poll,
-                                   priority=prio)
-    return DriverPort(name, valves, accel, stroke, n_mounts=len(names), on_close=on_close,
-                      sample_driven=fifo, floor_sensors=bool(floor))
+    floor = list(s.floor_channels)[:n] if s.floor_accel else []
+    x_stale = serial_stale_s if serial_stale_s is not None else stale_s
+    silent = stale_s if silent_s is None else silent_s
+    common = {"period_s": period_s, "priority": prio}
+    valves = {"kind": "valves", "device": VALVES, "name": f"canopen {can_interface}:{can_channel} valves",
+              "interface": can_interface, "channel": can_channel, "bus": dict(can_options or {}),
+              "bitrate": d.can_bitrate, "node_ids": [d.valve_node_id_base + i for i in range(n)], "names": names,
+              "max_V": cfg.valve.max_V, "stale_s": stale_s, "silent_s": silent, "sync_offset_s": d.sync_offset_s,
+              "sync_wait_s": d.sync_wait_s,
+              "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)), **common}
+    accel = {"kind": "analog", "device": ANALOG, "name": f"modbus_tcp {modbus_host}:{modbus_port}",
+             "host": modbus_host, "port": modbus_port, "unit": d.modbus_unit,
+             "channels": conversion.to_dict(conversion.channels(
+                 list(range(n)) + floor, [1.0 / d.accel_V_per_mps2] * n + [1.0 / s.floor_V_per_mps2] * len(floor))),
+             "names": names + [f"floor {m}" for m in names][:len(floor)], "timeout_s": d.modbus_timeout_s,
+             "watchdog_s": d.modbus_watchdog_s, "stale_s": stale_s, "silent_s": silent, "fifo": fifo,
+             "fetch_every": d.accel_fetch_every, "fetch_delay_s": d.accel_fetch_delay_s, "sync_device": VALVES,
+             **common}
+    stroke = {"kind": "transducer", "device": TRANSDUCER, "name": f"serial DTA-4 {serial_port}",
+              "port": serial_port, "baud": d.serial_baud, "names": names,
+              "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)),
+              "stale_s": x_stale, "silent_s": max(silent, x_stale), "rate_hz": min(d.serial_rate_hz, 1.0 / period_s),
+              **common}
+    return DriverPort(name, [valves, accel, stroke], n_mounts=n, floor_sensors=bool(floor), counted=fifo,
+                      stroke_stale_s=x_stale, on_close=on_close)

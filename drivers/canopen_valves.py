@@ -1,10 +1,18 @@
-"""CANopen proportional valves (CiA 408 style), one node per mount, on python-can + canopen.
+"""CANopen proportional valves (CiA 408 style), one node per mount, on python-can + canopen, in an I/O process
+of their own (drivers/process.py).
 
 open():  SDO only here: PDO mapping (RPDO1 = controlword + setpoint, event-driven type 255; TPDO1 = statusword
          + actual + sample counter, synchronous type 1), device mode, control mode, NMT start, DEVICE MODE ACTIVE.
-period:  sync() sends SYNC (the valves sample and answer by TPDO); write() sends one RPDO per valve, applied
-         on receipt. No SDO and no waiting inside the period.
-faults:  a valve reporting FAULT or HOLD, a garbled TPDO stream, or a SYNC not answered within stale_s.
+cycle:   the SYNC producer at the loop's rate. Each SYNC goes out `sync_offset_s` after the loop's period
+         starts, right after the period's commands (the exchange block, written by the loop's kernel): one RPDO1
+         per valve, then SYNC. If the period's commands are not there yet, the process waits for them (a futex
+         the loop's commit wakes) up to `sync_wait_s` after the period's start, then sends the ones it has (a
+         late command, counted). The valves apply the setpoint, sample and answer by TPDO (decoded in canopen's
+         notifier thread); the SYNC's time goes to the block, and the accelerometer module's I/O is woken (the
+         module converts on the same SYNC). Without the loop (before it starts, after it stops) SYNC keeps the
+         rate on this process's own clock, with the commands last written (null until the loop writes).
+faults:  a valve reporting FAULT or HOLD, a garbled TPDO stream, or a SYNC not answered within stale_s: the
+         device's line in the block; the port's safe state (the block's safe count): null to every valve.
 Device map: drivers/devicemaps/valve408_canopen.md, object dictionary drivers/devicemaps/valve408.eds.
 """
 from __future__ import annotations
@@ -12,42 +20,64 @@ from __future__ import annotations
 import struct
 import time
 
+import numpy as np
+
+from drivers import conversion
+from drivers.process import IODevice
 from drivers.protocol import valve408 as v4
-from rig.runtime.rt import raise_priority
 from rig.errors import DeviceError
+from rig.runtime import exchange as ex
+from rig.runtime.rt import raise_priority
 
 SYNC_COB = 0x80
 
 
-class CanopenValves:
-    def __init__(self, *, interface: str, channel: str, node_ids: list[int], names: list[str], max_V: float,
-                 stale_s: float, bitrate: int | None = None, sdo_timeout_s: float = 0.5, priority: int = 0):
-        self.interface = interface
-        self.channel = channel
-        self.bitrate = bitrate
-        self.node_ids = list(node_ids)
-        self.names = list(names)
-        self.max_V = max_V
-        self.stale_ns = int(stale_s * 1e9)
-        self.sdo_timeout_s = sdo_timeout_s
-        self.priority = priority
-        self._raised = False
+def _no_delay(bus) -> None:
+    """A socketcand gateway's TCP socket without Nagle's delay. python-can sets it only with tcp_tune, which also
+    re-arms TCP_QUICKACK with a system call after every send and receive: that doubled this process's CPU time
+    per SYNC (104 -> 196 us for the SYNC, four RPDOs and four TPDOs, measured here). Other buses: nothing."""
+    import socket
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class ValveIO(IODevice):
+    """spec: interface, channel (python-can), bus (extra python-can keyword arguments, e.g. a socketcand host and
+    port), bitrate, node_ids, names, max_V, stale_s, period_s (the loop's), sync_offset_s, sync_wait_s,
+    channels (conversion rows: command V -> setpoint, per valve), priority."""
+
+    def __init__(self, spec: dict, block: ex.Block) -> None:
+        super().__init__(spec, block)
+        self.interface, self.channel = spec["interface"], spec["channel"]
+        self.bus_kw = dict(spec.get("bus", {}))
+        self.bitrate = spec.get("bitrate")
+        self.node_ids = list(spec["node_ids"])
+        self.names = list(spec["names"])
+        self.max_V = float(spec["max_V"])
+        self.stale_ns = int(spec["stale_s"] * 1e9)
+        self.period_ns = int(round(spec["period_s"] * 1e9))
+        self.offset_ns = int(round(spec.get("sync_offset_s", 0.3 * spec["period_s"]) * 1e9))
+        self.wait_ns = int(round(spec.get("sync_wait_s", 0.6 * spec["period_s"]) * 1e9))
+        self.sdo_timeout_s = float(spec.get("sdo_timeout_s", 0.5))
+        self.priority = int(spec.get("priority", 0))
+        self.chs = conversion.from_dict(spec["channels"]) if "channels" in spec else \
+            conversion.channels(range(len(self.node_ids)), [1.0] * len(self.node_ids))
+        self.where = f"canopen {self.interface}:{self.channel}"
+        n = len(self.node_ids)
         self.network = None
         self.nodes = []
-        n = len(node_ids)
         self.statusword = [0] * n
         self.actual = [0.0] * n               # spool actual, -1..1
         self.counter = [-1] * n
-        self.rx_ns = [0] * n                  # when the last TPDO with a new counter arrived
         self.bad = [""] * n                   # a garbled TPDO: the reason
         self.pending_ns = [0] * n             # first SYNC not yet answered by a new TPDO (0 = none)
         self._sync_t = 0
-        self.latency_ns = [0] * (1 << 16)     # SYNC -> first valve's TPDO, for the benchmark
-        self.n_latency = 0
-        self._setpoints = [0] * n
-        self._rpdo_cob = [0x200 + nid for nid in node_ids]
-        self._tpdo_cob = {0x180 + nid: i for i, nid in enumerate(node_ids)}
-        self.where = f"canopen {interface}:{channel}"
+        self._raised = False
+        self._cmd = np.zeros(n)
+        self._T = 0.0                         # the deadline of the loop's period whose commands went out last
+        self._requests = self.requests()
+        self._seq_at = block.part("cmd") + ex.C_SEQ
 
     def label(self, i: int) -> str:
         return f"{self.where} valve {self.names[i]} (node {self.node_ids[i]})"
@@ -58,18 +88,25 @@ class CanopenValves:
 
         import can
         import canopen
-        logging.getLogger("canopen").setLevel(logging.WARNING)     # its INFO lines narrate every SDO
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)    # our own one-line faults say it
+        logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)   # a frame split by TCP: normal
         net = canopen.Network()
-        kw = {"interface": self.interface, "channel": self.channel}
-        if self.bitrate and self.interface != "virtual":
+        net.NOTIFIER_CYCLE = 0.01              # the notifier (set-up only) stops within 10 ms when run() begins
+        kw = {"interface": self.interface, "channel": self.channel, **self.bus_kw}
+        if self.bitrate and self.interface not in ("virtual", "socketcand"):
             kw["bitrate"] = self.bitrate
         if self.interface == "virtual":
             kw["receive_own_messages"] = False
         try:
             net.connect(**kw)
-        except (can.CanError, OSError, ValueError, ImportError) as e:
+        except (can.CanError, OSError, ValueError, ImportError, TimeoutError) as e:
             raise DeviceError(f"{self.where}: cannot open the CAN bus ({e.__class__.__name__}: {e})") from None
         self.network = net
+        _no_delay(net.bus)
+        self._bus = net.bus
+        self._rpdo = [can.Message(arbitration_id=0x200 + nid, data=bytearray(4), is_extended_id=False)
+                      for nid in self.node_ids]
+        self._sync_msg = can.Message(arbitration_id=SYNC_COB, data=b"", is_extended_id=False)
         try:
             for i, nid in enumerate(self.node_ids):
                 node = canopen.RemoteNode(nid, canopen.import_od(str(v4.EDS_PATH), nid))
@@ -77,13 +114,15 @@ class CanopenValves:
                 net.add_node(node)
                 self.nodes.append(node)
                 self._configure(i, node)
-            for cob in self._tpdo_cob:
+            self._tpdo_cob = {0x180 + nid: i for i, nid in enumerate(self.node_ids)}
+            for cob in self._tpdo_cob:             # the TPDOs to us only (canopen's PDO maps need not decode them)
+                net.subscribers.get(cob, []).clear()
                 net.subscribe(cob, self._on_tpdo)
             for node in self.nodes:
                 node.nmt.state = "OPERATIONAL"
             for i, node in enumerate(self.nodes):
                 self._sdo(i, lambda: setattr(node.sdo[v4.CONTROLWORD], "raw", v4.CW_ACTIVE), "controlword")
-            self.sync()
+            self._send(null=True)
             deadline = time.monotonic() + max(0.2, 10 * self.stale_ns * 1e-9)
             while time.monotonic() < deadline and min(self.counter) < 0:
                 time.sleep(0.001)
@@ -134,10 +173,11 @@ class CanopenValves:
         if got != v4.DEVICE_MODE_BUS:
             raise DeviceError(f"{self.label(i)}: device mode 0x6042 reads {got}, expected {v4.DEVICE_MODE_BUS}")
 
-    # ---- cyclic (no SDO, no waiting) ---------------------------------------------------------------------
+    # ---- cyclic ------------------------------------------------------------------------------------------
     def _on_tpdo(self, can_id: int, data, timestamp) -> None:
-        """TPDO1: statusword UNSIGNED16, actual INT16, sample counter UNSIGNED8 (little endian)."""
-        if not self._raised:                       # runs in the bus notifier thread: raise it once
+        """TPDO1: statusword UNSIGNED16, actual INT16, sample counter UNSIGNED8 (little endian); canopen's
+        notifier thread."""
+        if not self._raised:                       # raise the notifier thread once
             self._raised = True
             raise_priority(self.priority)
         i = self._tpdo_cob[can_id]
@@ -145,52 +185,104 @@ class CanopenValves:
             self.bad[i] = f"TPDO of {len(data)} bytes (expected 5)"
             return
         sw, act, cnt = struct.unpack("<HhB", bytes(data))
-        now = time.monotonic_ns()
         self.statusword[i] = sw
         self.actual[i] = act / v4.FULL_SCALE
         self.bad[i] = ""
         if cnt != self.counter[i]:
             self.counter[i] = cnt
-            self.rx_ns[i] = now
             self.pending_ns[i] = 0
             if i == 0 and self._sync_t:
-                self.latency_ns[self.n_latency % len(self.latency_ns)] = now - self._sync_t
-                self.n_latency += 1
+                self.stat((time.monotonic_ns() - self._sync_t) * 1e-3)
                 self._sync_t = 0
 
-    def sync(self) -> None:
+    def _send(self, null: bool = False, cw: int = v4.CW_ACTIVE) -> None:
+        """One RPDO1 per valve (the commands held, or null), then SYNC; the SYNC's time to the block and the
+        module's I/O woken."""
+        send = self._bus.send
+        mx = self.max_V
+        for i, (c, msg) in enumerate(zip(self.chs, self._rpdo)):
+            v = 0.0 if null else c.gain * self._cmd[c.source] + c.offset
+            struct.pack_into("<Hh", msg.data, 0, cw, v4.volts_to_setpoint(v, mx))
+            send(msg)
         now = time.monotonic_ns()
         pend = self.pending_ns
         for i in range(len(pend)):
             if not pend[i]:
                 pend[i] = now
         self._sync_t = now
-        self.network.send_message(SYNC_COB, b"")
+        send(self._sync_msg)
+        self._row[ex.D_SAMPLE] = float(now)
+        self.block.wake(ex.FUTEX_SYNC)
 
-    def write(self, valve_cmd_V) -> None:
-        send = self.network.send_message
-        mx = self.max_V
-        for i, v in enumerate(valve_cmd_V):
-            sp = v4.volts_to_setpoint(v, mx)
-            self._setpoints[i] = sp
-            send(self._rpdo_cob[i], struct.pack("<Hh", v4.CW_ACTIVE, sp))
+    def _take(self, due: int) -> tuple[bool, bool]:
+        """The loop's commands for the SYNC at `due` into self._cmd: (null: the port's safe state or no
+        commands yet, late: the loop runs but its period's commands were not there in time)."""
+        io = self.io
+        seq, T, null = ex.get_commands(io, self._cmd)
+        P = self.period_ns
+        running = T > 0 and due - T < 4 * P
+        if not running or T >= self._T + P // 2 or seq < 0:
+            self._T = max(T, self._T)
+            return null or T == 0, False
+        # the loop runs and this period's commands are not in yet: wait for them (the loop's commit wakes us)
+        until = self._T + P + self.wait_ns
+        while time.monotonic_ns() < until:
+            seen = int(self.block.futex[ex.FUTEX_CMD])
+            s2 = ex.ask_wake(io)
+            if s2 != seq:
+                break
+            self.block.wait(ex.FUTEX_CMD, seen, (until - time.monotonic_ns()) * 1e-9)
+            if io[self._seq_at] != seq:
+                break
+        seq, T, null = ex.get_commands(io, self._cmd)
+        late = T < self._T + P // 2
+        self._T = max(T, self._T)
+        return null, late
 
-    def null(self) -> None:
-        """Setpoint 0 on every valve, then a SYNC so it takes effect and is reported at once: the actuators are
-        then passive and stiff."""
-        if self.network is None:
-            return
-        self.write([0.0] * len(self.node_ids))
-        self.sync()
+    def run(self, stop) -> None:
+        """SYNC after SYNC; the TPDOs taken in this thread (canopen's notifier stopped after the set-up: one
+        thread, no hand-over of the interpreter per frame), each through the network's notify."""
+        net = self.network
+        if net.notifier is not None:
+            net.notifier.stop()
+            net.notifier = None
+        raise_priority(self.priority)
+        self._raised = True
+        P = self.period_ns
+        due = time.monotonic_ns() + P
+        while not stop.is_set():
+            self.sleep_until(due)
+            null, late = self._take(due)
+            self.counted(1, late)
+            req = self.requests()
+            if req != self._requests:              # the port asked for a fault reset: the R edge, then on
+                self._requests = req
+                self._send(null=True, cw=v4.CW_ACTIVE | v4.CW_RESET_FAULT)
+                self.bad = [""] * len(self.bad)
+            self._send(null=null)
+            T = self._T
+            due = T + P + self.offset_ns if time.monotonic_ns() - T < 2 * P and not late else due + P
+            self._receive(due - P // 4)
+            now = time.monotonic_ns()
+            self.report(self.check(now))
+            self.beat()
+            if due < now - 2 * P:                  # this process was held up: on from now
+                due = now + P // 2
 
-    def reset_fault(self) -> None:
-        """Rising edge of controlword bit R on every valve (by RPDO, with a SYNC), then the normal controlword."""
-        send = self.network.send_message
-        for i in range(len(self.node_ids)):
-            send(self._rpdo_cob[i], struct.pack("<Hh", v4.CW_ACTIVE | v4.CW_RESET_FAULT, 0))
-        self.sync()
-        self.write([0.0] * len(self.node_ids))
-        self.bad = [""] * len(self.node_ids)
+    def _receive(self, until_ns: int) -> None:
+        """The frames that came, through the network's notify (the TPDOs to _on_tpdo), until every valve
+        answered this SYNC or until_ns."""
+        recv, notify, pend = self._bus.recv, self.network.notify, self.pending_ns
+        tpdo, on_tpdo = self._tpdo_cob, self._on_tpdo
+        while True:
+            left = 0.0 if not any(pend) else (until_ns - time.monotonic_ns()) * 1e-9   # answered: what is in
+            msg = recv(max(left, 0.0))
+            if msg is None:
+                return
+            if msg.arbitration_id in tpdo:         # (the one subscriber of a TPDO: straight to it)
+                on_tpdo(msg.arbitration_id, msg.data, msg.timestamp)
+            else:
+                notify(msg.arbitration_id, msg.data, msg.timestamp)
 
     def check(self, now_ns: int) -> str | None:
         """A one-line fault naming the valve, or None."""
@@ -207,10 +299,6 @@ class CanopenValves:
                         f"(limit {self.stale_ns / 1e6:g} ms): not answering")
         return None
 
-    def latencies_us(self) -> list[float]:
-        n = min(self.n_latency, len(self.latency_ns))
-        return [x * 1e-3 for x in self.latency_ns[:n]]
-
     def close(self) -> None:
         net = self.network
         if net is None:
@@ -221,8 +309,14 @@ class CanopenValves:
                     net.send_message(0x200 + node.id, struct.pack("<Hh", v4.CW_DISABLE, 0))
                 except Exception:          # noqa: BLE001 - closing: best effort
                     pass
-            net.send_message(SYNC_COB, b"")
+            try:
+                net.send_message(SYNC_COB, b"")
+            except Exception:              # noqa: BLE001
+                pass
         finally:
             self.network = None
             self.nodes = []
-            net.disconnect()
+            try:
+                net.disconnect()
+            except Exception:              # noqa: BLE001 - the bus may be gone already
+                pass

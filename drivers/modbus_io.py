@@ -1,75 +1,89 @@
-"""Modbus TCP analog input module (ADAM-6024-style registers, eight AI channels) carrying the four mount
-accelerometers (AI ch0-3) and, when fitted ([sensors] floor_accel), the four floor accelerometers (ch4-7), on
-pymodbus. All channels of one conversion are sampled together, so the floor and the mount values share one
-time stamp and one conversion counter.
+"""Modbus TCP analog input module (ADAM-6024-style registers, eight AI channels) carrying the mount
+accelerometers (AI ch0-3) and, when fitted ([sensors] floor_accel), the floor accelerometers (ch4-7), on
+pymodbus, in an I/O process of its own (drivers/process.py). All channels of one conversion are sampled
+together: the floor and the mount values share one conversion (counter, time stamp).
 
-Request/response never runs inside the control period: a driver-owned thread polls AI ch0-7 + the conversion
-counter (one read of 40001-40010) every poll period and keeps the latest sample with its time stamp. The loop
-only picks that sample up. A sample is new when the module's conversion counter moved; no new sample for
-stale_s (silence, exceptions, garbage, frozen module) is a fault naming the module and the last error.
-open() configures the module's host watchdog (40021) and clears its status (40010).
-Device map: drivers/devicemaps/adam6024_modbus.md.
+Conversions on SYNC (`fifo`, [drivers] accel_sync_fifo): the module converts on each CAN SYNC into a FIFO of its
+last 64 conversions with their counters. The process wakes on each SYNC the valves' I/O sends (a futex in the
+exchange block), waits `fetch_delay_s` (the module's conversion time), and every `fetch_every` SYNCs reads the
+counter and the newest `fetch_every` + 1 FIFO entries in one request (after a stall the entries further back,
+in blocks); a reply without the new conversion is asked again once it is due. Every conversion, in order,
+goes into the block's conversion ring by its counter (unwrapped from 16 bits): the loop's kernel steps the
+controllers once per conversion. One lost from the FIFO before it was fetched is interpolated and counted.
+Without a FIFO the module's latest value (AI ch0-7 and its counter) is read once per loop period.
+
+Faults (the device's line in the block): no new conversion for stale_s (silence, exceptions, garbage, frozen
+module: with the last error), an input at the rail, the host watchdog tripped. open() configures the host
+watchdog (40021) and clears the status (40010). Device map: drivers/devicemaps/adam6024_modbus.md.
+The conversion from registers to m/s^2 per channel: drivers/conversion.py.
 """
 from __future__ import annotations
 
 import logging
-import threading
 import time
 
+import numpy as np
+
+from drivers import conversion
+from drivers.process import IODevice
 from drivers.protocol.modbus_map import (FIFO_DEPTH, FIFO_WIDTH, REG_AI, REG_COUNT, REG_FIFO, REG_STATUS,
-                                        REG_WDOG, raw_to_volts, volts_to_raw)  # noqa: F401 (volts_to_raw: API)
-from drivers.rt import TriggeredPoller
+                                        REG_WDOG, raw_to_volts)
 from rig.errors import DeviceError
+from rig.runtime import exchange as ex
+from rig.runtime.rt import raise_priority
 
-N_READ = 10                     # 40001-40010 in one request
-# Conversion FIFO (modules converting on SYNC, [drivers] accel_sync_fifo): each poll reads 40001-40010 and the
-# newest FIFO_FIRST entries in one request (123 registers; FC 3 allows 125); after a stall it reads further
-# entries, FIFO_CHUNK at a time (117 registers), until nothing is missing (or the FIFO ends)
-FIFO_FIRST, FIFO_CHUNK = 11, 13
-N_READ_FIFO = REG_FIFO + FIFO_FIRST * FIFO_WIDTH
-KEEP_CONVERSIONS = 256          # conversions kept by counter: a loop stall up to this long is replayed exactly
+N_LATEST = 10                   # 40001-40010: AI ch0-7, the counter, the status
+FIFO_CHUNK = 13                 # entries per request reaching further back after a stall (117 registers)
+DELAY_STEP_NS = 10_000          # the learnt fetch delay: +10 us after a request too early, -2 us after one in time
+STATUS_EVERY = 50               # with the FIFO: the status register (host watchdog) every this many polls
+MAX_BEHIND = 1024               # conversions taken after a stall at most (beyond the FIFO: interpolated)
 
 
-class ModbusAnalogIO(TriggeredPoller):
-    def __init__(self, *, host: str, port: int, unit: int, channels: list[int], names: list[str],
-                 V_per_mps2, timeout_s: float, watchdog_s: float, stale_s: float, poll_s: float,
-                 priority: int = 0, keep_latency: int = 1 << 16, fifo: bool = False):
-        self.host, self.port, self.unit = host, port, unit
-        self.channels = list(channels)
-        self.names = list(names)
-        # sensitivity per channel (one number: the same for all)
-        self.k = tuple(V_per_mps2) if isinstance(V_per_mps2, (list, tuple)) else (float(V_per_mps2),) * len(channels)
-        self.timeout_s = timeout_s
-        self.watchdog_s = watchdog_s
-        self.stale_ns = int(stale_s * 1e9)
-        self.poll_ns = int(poll_s * 1e9)
-        self.priority = priority
-        self.where = f"modbus_tcp {host}:{port} unit {unit}"
+class AnalogIO(IODevice):
+    """spec: host, port, unit, channels (conversion rows: AI ch -> m/s^2, mount accelerometers then floor
+    ones), names (per channel), timeout_s, watchdog_s, stale_s, period_s (the loop's), fifo, fetch_every,
+    fetch_delay_s, sync_device (the valves' row: the SYNC's time), priority."""
+
+    def __init__(self, spec: dict, block: ex.Block) -> None:
+        super().__init__(spec, block)
+        self.host, self.port, self.unit = spec["host"], int(spec["port"]), int(spec["unit"])
+        self.chs = conversion.from_dict(spec["channels"])
+        self.names = list(spec["names"])
+        self.timeout_s = float(spec["timeout_s"])
+        self.watchdog_s = float(spec["watchdog_s"])
+        self.stale_ns = int(spec["stale_s"] * 1e9)
+        self.period_ns = int(round(spec["period_s"] * 1e9))
+        self.fifo = bool(spec.get("fifo", True))
+        self.every = max(1, int(spec.get("fetch_every", 1)))
+        # the request after a SYNC: fetch_delay_s at first, then learnt (a request that comes before the
+        # conversion costs a round trip for nothing; one that comes late delays the conversion)
+        self.delay_ns = self.min_delay_ns = int(round(spec.get("fetch_delay_s", 0.0) * 1e9))
+        self.sync_row = spec.get("sync_device")
+        self.priority = int(spec.get("priority", 0))
+        self.where = f"modbus_tcp {self.host}:{self.port} unit {self.unit}"
+        self.first, self.n_read = (REG_FIFO, (self.every + 1) * FIFO_WIDTH) if self.fifo else (REG_AI, N_LATEST)
+        self._polls = 0
         self.client = None
-        # the latest sample: (accel_mps2 tuple, sample time ns, raw tuple); replaced whole, so reads are atomic
-        self.sample: tuple = ((0.0,) * len(channels), 0, (32768,) * len(channels))
         self.last_error = ""
         self.errors = 0
-        self.polls = 0
-        self._counter = -1
-        # fifo: every conversion by its counter (accel_mps2 tuples), the newest counter; see conversions_since
-        self.fifo = fifo
-        self.n_read = N_READ_FIFO if fifo else N_READ
-        self.conversions: dict[int, tuple] = {}
-        self.newest = -1
-        self.lost_conversions = 0      # handed over interpolated (not fetched before they left the FIFO)
+        self.count = -1.0              # the newest conversion published (unwrapped counter)
+        self._c16 = -1                 # the module's 16-bit counter last seen
+        self._c16_pub = -1             # ... and last published
+        self._last = None              # its values (interpolation of lost ones)
         self.watchdog_tripped = False
-        self.asked_ns = 0              # first request since the last new sample (0 = none outstanding)
-        self._stop = threading.Event()
-        self._trigger = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.latency_ns = [0] * keep_latency   # ring of request round trips, for the benchmark
-        self.n_latency = 0
+        self.sample_ns = 0             # when the newest conversion came
+        self.asked_ns = 0              # first request since the last new conversion (0 = none outstanding)
+        self.rail = ""
+        self._ts = np.zeros(block.n)
+        self._syncs = 0
+        self._said = ""
 
     def open(self) -> None:
         from pymodbus.client import ModbusTcpClient
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # our own one-line faults say it
-        self.client = ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0,
+        # set-up with patience (a module answering its first requests while the other devices start), the
+        # cycle with timeout_s
+        self.client = ModbusTcpClient(self.host, port=self.port, timeout=max(self.timeout_s, 1.0), retries=0,
                                       reconnect_delay=0.0)
         if not self.client.connect():
             self.client = None
@@ -84,26 +98,69 @@ class ModbusAnalogIO(TriggeredPoller):
             if r.isError() or r.registers[0] != wd:
                 raise DeviceError(f"{self.where}: host watchdog 40021 reads back {r}, expected {wd}")
             self.watchdog_tripped = False
-            self._poll_once()
-            if self.sample[1] == 0:
+            self.poll()
+            if self.count < 0:
                 raise DeviceError(f"{self.where}: no valid first sample ({self.last_error})")
+            self.client.comm_params.timeout_connect = self.timeout_s
         except DeviceError:
             self.close()
             raise
         except Exception as e:                      # noqa: BLE001 - pymodbus raises its own types
             self.close()
             raise DeviceError(f"{self.where}: set-up failed ({e.__class__.__name__}: {e})") from None
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="modbus-poller", daemon=True)
-        self._thread.start()
 
-    def _poll_once(self) -> bool:
-        """One request; True when it brought a new sample."""
+    # ---- the cycle ----------------------------------------------------------------------------------------
+    def run(self, stop) -> None:
+        raise_priority(self.priority)
+        P = self.period_ns
+        block = self.block
+        sync_row = block.device_row(self.sync_row) if self.sync_row is not None else None
+        due = time.monotonic_ns() + P
+        while not stop.is_set():
+            if self.fifo and self.sync_row is not None:    # each SYNC (or, without one, every other period)
+                seen = int(block.futex[ex.FUTEX_SYNC])
+                block.wait(ex.FUTEX_SYNC, seen, 2 * P * 1e-9)
+                self._syncs += 1
+                if self._syncs % self.every:
+                    self._idle()
+                    continue
+                t_sync = int(sync_row[ex.D_SAMPLE])
+                self.sleep_until(max(t_sync + self.delay_ns, time.monotonic_ns()))
+                end = time.monotonic_ns() + P // 2
+                first = True
+                while not self.poll() and time.monotonic_ns() < end and not stop.is_set():
+                    if first:                                  # too early: ask later after the next SYNCs
+                        self.delay_ns = min(self.delay_ns + DELAY_STEP_NS, P // 2)
+                        first = False
+                    self.sleep_until(time.monotonic_ns() + P // 8)     # not converted yet: once more
+                if first:                                      # in at once: try a little earlier next time
+                    self.delay_ns = max(self.delay_ns - DELAY_STEP_NS // 5, self.min_delay_ns)
+            else:                                           # the latest value, once per loop period
+                self.sleep_until(due)
+                due += P
+                self.poll()
+            self._idle()
+
+    def _idle(self) -> None:
+        self.report(self.check(time.monotonic_ns()))
+        self._row[ex.D_SAMPLE] = float(self.sample_ns)
+        if not self._fault_text and self.last_error != self._said:     # why it has nothing new, if it has not
+            self._said = self.last_error
+            self.block.set_text(self.d, self.last_error)
+        self.beat()
+
+    def poll(self) -> bool:
+        """One request (with the FIFO: its newest entries, the newest first; without: AI ch0-7, the counter and
+        the status); True when it brought a new conversion (published, with any older ones it had not
+        published). With the FIFO the status (the host watchdog's bit) is read every STATUS_EVERY polls."""
         t0 = time.monotonic_ns()
         if not self.asked_ns:
             self.asked_ns = t0
+        self._polls += 1
+        if self.fifo and self._polls % STATUS_EVERY == 1 and not self._status():
+            return False
         try:
-            r = self.client.read_holding_registers(REG_AI, count=self.n_read, device_id=self.unit)
+            r = self.client.read_holding_registers(self.first, count=self.n_read, device_id=self.unit)
         except Exception as e:                      # noqa: BLE001 - timeouts, garbage, closed socket
             self.errors += 1
             text = str(e)
@@ -113,41 +170,56 @@ class ModbusAnalogIO(TriggeredPoller):
                 self.client.connect()
             return False
         t1 = time.monotonic_ns()
-        self.latency_ns[self.n_latency % len(self.latency_ns)] = t1 - t0
-        self.n_latency += 1
-        self.polls += 1
+        self.stat((t1 - t0) * 1e-3)
         if r.isError():
             self.errors += 1
             code = getattr(r, "exception_code", None)
             self.last_error = f"exception response {code}" if code is not None else str(r)
             return False
         regs = r.registers
-        if len(regs) == self.n_read and regs[REG_STATUS] & 1:
-            self.watchdog_tripped = True            # latched in the module until open() clears it
         if len(regs) != self.n_read:
             self.errors += 1
             self.last_error = f"{len(regs)} registers (expected {self.n_read})"
             return False
-        if regs[REG_COUNT] == self._counter:
-            return False                            # no new conversion: keep the old time stamp
-        self._counter = regs[REG_COUNT]
+        if not self.fifo and regs[REG_STATUS] & 1:
+            self.watchdog_tripped = True            # latched in the module until open() clears it
+        c16 = regs[0] if self.fifo else regs[REG_COUNT]    # entry 0: the newest conversion
+        if c16 == self._c16:
+            return False                            # no new conversion yet
         self.last_error = ""
         self.asked_ns = 0
-        raw = tuple(regs[REG_AI + ch] for ch in self.channels)
-        if self.fifo:
-            self._take_fifo(regs)
-        self.sample = (tuple(raw_to_volts(x) / k for x, k in zip(raw, self.k)), t1, raw)
+        self.sample_ns = t1
+        self._ts[:] = t1
+        if not self.fifo:
+            self._publish(c16, self._values([regs[REG_AI + ch] for ch in range(8)]))
+        elif self._c16 < 0:
+            self._publish(c16, self._values(regs[1:FIFO_WIDTH]))
+        else:
+            self._take_fifo(regs, c16)
+        self._c16 = c16
         return True
 
-    def _take_fifo(self, regs) -> None:
-        """Store the FIFO's conversions by counter; after a stall, fetch the older entries too. The newest
-        counter is published last, so a reader never sees it before its conversion."""
-        conv = self.conversions
-        newest = regs[REG_COUNT]
-        have = self.newest
-        missing = self._store(regs, REG_FIFO, FIFO_FIRST, newest, have)
-        entry = FIFO_FIRST
-        while missing and entry < FIFO_DEPTH:        # a stall: the conversions further back, in chunks
+    def _status(self) -> bool:
+        """The module's status register (the host watchdog's bit); False when the request failed."""
+        try:
+            r = self.client.read_holding_registers(REG_STATUS, count=1, device_id=self.unit)
+        except Exception as e:                      # noqa: BLE001 - as in poll
+            self.last_error = f"{e.__class__.__name__}: {e}"
+            return False
+        if r.isError():
+            return False
+        if r.registers[0] & 1:
+            self.watchdog_tripped = True            # latched in the module until open() clears it
+        return True
+
+    def _take_fifo(self, regs, newest: int) -> None:
+        """The conversions after the last published one up to `newest`, from the FIFO entries (newest first):
+        those in this reply, then after a stall the ones further back, in blocks; one not in the FIFO any more
+        is interpolated (counted in lost_conversions)."""
+        want = min((newest - self._c16) & 0xFFFF, MAX_BEHIND)    # new conversions
+        got = self._entries(regs, 0, self.every + 1, newest)
+        entry = self.every + 1
+        while len(got) < min(want, FIFO_DEPTH) and entry < FIFO_DEPTH:     # a stall: further back
             n = min(FIFO_CHUNK, FIFO_DEPTH - entry)
             try:
                 r = self.client.read_holding_registers(REG_FIFO + FIFO_WIDTH * entry, count=FIFO_WIDTH * n,
@@ -156,72 +228,63 @@ class ModbusAnalogIO(TriggeredPoller):
                 break
             if r.isError() or len(r.registers) != FIFO_WIDTH * n:
                 break
-            missing = self._store(r.registers, 0, n, newest, have)
+            got.update(self._entries(r.registers, 0, n, newest))
             entry += n
-        if len(conv) > KEEP_CONVERSIONS + FIFO_DEPTH:
-            for c in [c for c in conv if ((newest - c) & 0xFFFF) >= KEEP_CONVERSIONS]:
-                del conv[c]
-        self.newest = newest
+        convs = [((newest - j) & 0xFFFF, got.get((newest - j) & 0xFFFF)) for j in range(want - 1, -1, -1)]
+        values = [None if raw is None else self._values(raw) for _, raw in convs]
+        for j, v in enumerate(values):                  # lost: on the line from the one before to the next known
+            if v is None:
+                self.counted(0, 1)
+                k = next((k for k in range(j + 1, len(values)) if values[k] is not None), None)
+                a = values[j - 1] if j else self._last
+                b = values[k] if k is not None else a
+                f = 1.0 / (k - j + 1) if k is not None else 0.0
+                values[j] = a if a is None else [x + f * (y - x) for x, y in zip(a, b)]
+        for (c, _), v in zip(convs, values):
+            self._publish(c, v)
 
-    def _store(self, regs, base: int, entries: int, newest: int, have: int) -> bool:
-        """Take `entries` FIFO entries from regs[base:]; True if conversions after `have` are still missing."""
-        conv, k, ch = self.conversions, self.k, self.channels
-        oldest = newest
+    @staticmethod
+    def _entries(regs, base: int, entries: int, newest: int) -> dict:
+        """counter -> the AI ch0-7 registers of the FIFO entries in regs[base:] (those already converted)."""
+        out = {}
         for e in range(entries):
             b = base + FIFO_WIDTH * e
             c = regs[b]
-            if ((newest - c) & 0xFFFF) >= FIFO_DEPTH:    # an entry not filled yet
-                continue
-            if c not in conv:
-                conv[c] = tuple(raw_to_volts(regs[b + 1 + j]) / kj for j, kj in zip(ch, k))
-            if ((newest - c) & 0xFFFF) > ((newest - oldest) & 0xFFFF):
-                oldest = c
-        return have >= 0 and 1 < ((oldest - have) & 0xFFFF) < 0x8000     # a gap after `have`
+            if ((newest - c) & 0xFFFF) < FIFO_DEPTH:
+                out[c] = regs[b + 1:b + FIFO_WIDTH]
+        return out
 
-    def conversions_since(self, counter: int) -> tuple[int, int, tuple, list]:
-        """(n, newest counter, newest accel, older): n = conversions after `counter` up to the newest fetched (counter -1: the
-        first read, n = 1), older = the accel tuples of the n - 1 before the newest, oldest first. A conversion
-        missing here (a stall longer than the FIFO) is interpolated, so the count - the time base of the
-        controllers' integration - stays exact."""
-        newest = self.newest
-        conv = self.conversions
-        if newest < 0 or newest not in conv:
-            return 0, counter, self.sample[0], []
-        last = conv[newest]
-        if counter < 0:
-            return 1, newest, last, []
-        n = (newest - counter) & 0xFFFF
-        if n == 0 or n > KEEP_CONVERSIONS:
-            return (0 if n == 0 else 1), newest, last, []
-        older = []
-        prev = conv.get(counter, last)
-        for j in range(n - 1, 0, -1):
-            a = conv.get((newest - j) & 0xFFFF)
-            if a is None:                           # lost: hold the trend towards the newest
-                a = tuple(x + (y - x) / (j + 1) for x, y in zip(prev, last))
-                self.lost_conversions += 1
-            older.append(a)
-            prev = a
-        return n, newest, last, older
+    def _values(self, raw) -> list[float]:
+        """The channels' values of one conversion (AI ch0-7 registers): the per-channel conversion
+        (drivers/conversion.py); a channel at a rail is named for the fault check."""
+        self.rail = next((f"AI ch{c.source} ({name})" for c, name in zip(self.chs, self.names)
+                          if raw[c.source] in (0, 65535)), "")
+        return conversion.apply(self.chs, [raw_to_volts(x) for x in raw])
+
+    def _publish(self, c16: int, values) -> None:
+        """One conversion into the block (the channels' values), its counter unwrapped from 16 bits."""
+        if values is None:                              # (nothing known before it: lost at the very start)
+            return
+        self.count = c16 if self.count < 0 else self.count + ((c16 - self._c16_pub) & 0xFFFF)
+        self._c16_pub = c16
+        self._last = values
+        self.counted(1)
+        ex.put_conversion(self.io, float(self.count), self._ts, np.asarray(values, dtype=np.float64))
 
     def check(self, now_ns: int) -> str | None:
-        acc, t_ns, raw = self.sample
-        # the module was asked and its newest sample is older than the limit: measured from the sample, as
-        # the loop's sensor check measures it, so a silent module is named here first (not as a stale mount)
-        if self.asked_ns and now_ns - t_ns > self.stale_ns:
+        # asked, and the newest conversion older than the limit: named here first (not as a stale mount)
+        if self.asked_ns and now_ns - self.sample_ns > self.stale_ns:
             why = f"; last error: {self.last_error}" if self.last_error else "; values not updating"
-            return (f"{self.where}: no new sample for {(now_ns - t_ns) / 1e6:.1f} ms "
+            return (f"{self.where}: no new sample for {(now_ns - self.sample_ns) / 1e6:.1f} ms "
                     f"(limit {self.stale_ns / 1e6:g} ms){why}")
         if self.watchdog_tripped:
             return (f"{self.where}: module host watchdog tripped (no request for {self.watchdog_s:g} s): "
                     f"outputs at their safe values")
-        for i, x in enumerate(raw):
-            if x == 0 or x == 65535:
-                return f"{self.where}: AI ch{self.channels[i]} ({self.names[i]}) at the +-10 V rail (over range)"
+        if self.rail:
+            return f"{self.where}: {self.rail} at the +-10 V rail (over range)"
         return None
 
     def close(self) -> None:
-        self._stop_thread()
         if self.client is not None:
             self.client.close()
             self.client = None

@@ -1,47 +1,53 @@
-"""Serial displacement-transducer amplifier (DTA-4, RS-232/485, ASCII), four channels, on pyserial.
+"""Serial displacement-transducer amplifier (DTA-4, RS-232/485, ASCII), four channels, on pyserial, in an I/O
+process of its own (drivers/process.py).
 
-A driver-owned thread sends `RD` every poll period and parses the replies with drivers/protocol/dta.py
-(garbage and partial frames are skipped or completed, never raised). The loop picks up the latest sample.
-Faults: a channel reporting UR/OR/NP, an `$E` error reply, or no new sample (sequence number) for stale_s.
+The process asks `RD` at the transducer's own rate (`rate_hz`: what its line allows, below the loop's rate) and
+parses the replies with drivers/protocol/dta.py (garbage and partial frames are skipped or completed, never
+raised). Each frame with a new sequence number goes into the block's transducer part, stamped with its
+arrival: the loop holds it between frames and checks its age against the transducer's own staleness limit.
+Faults (the device's line in the block): a channel reporting UR/OR/NP, an `$E` error reply, or no new sample
+(sequence number) for stale_s. The conversion from the frame's micrometres per channel: drivers/conversion.py.
 Device map and protocol: drivers/devicemaps/dta4_serial.md.
 """
 from __future__ import annotations
 
-import threading
 import time
 
+import numpy as np
+
+from drivers import conversion
+from drivers.process import IODevice
 from drivers.protocol import dta as proto
-from drivers.rt import TriggeredPoller
 from rig.errors import DeviceError
+from rig.runtime import exchange as ex
+from rig.runtime.rt import raise_priority
 
 
-class DisplacementAmplifier(TriggeredPoller):
-    def __init__(self, *, port: str, baud: int, names: list[str], stale_s: float, poll_s: float,
-                 reply_timeout_s: float = 0.01, priority: int = 0, keep_latency: int = 1 << 16,
-                 channels: list[int] | None = None):
-        self.path = port
-        self.baud = baud
-        self.names = list(names)
-        self.channels = list(range(len(names))) if channels is None else list(channels)   # 0-based, per name
-        self.stale_ns = int(stale_s * 1e9)
-        self.poll_ns = int(poll_s * 1e9)
-        self.priority = priority
-        self.reply_timeout_s = reply_timeout_s
-        self.where = f"serial DTA-4 {port}"
+class TransducerIO(IODevice):
+    """spec: port, baud, names, channels (conversion rows: DTA-4 channel index -> m), stale_s, rate_hz,
+    reply_timeout_s, priority."""
+
+    def __init__(self, spec: dict, block: ex.Block) -> None:
+        super().__init__(spec, block)
+        self.path = spec["port"]
+        self.baud = int(spec["baud"])
+        self.names = list(spec["names"])
+        self.chs = conversion.from_dict(spec["channels"])
+        self.stale_ns = int(spec["stale_s"] * 1e9)
+        self.period_ns = int(round(1e9 / float(spec["rate_hz"])))
+        self.reply_timeout_s = float(spec.get("reply_timeout_s", 0.01))
+        self.priority = int(spec.get("priority", 0))
+        self.where = f"serial DTA-4 {self.path}"
         self.ser = None
         self.parser = proto.FrameParser()
-        n = len(names)
-        self.sample: tuple = ((0.0,) * n, 0, ("OK",) * n)     # (position_m, sample time ns, status)
         self.last_error = ""
         self.device_error = ""
+        self.status = ("OK",) * len(self.chs)
         self.ident = None
-        self._seq = -1
+        self._seq16 = -1
+        self.seq = -1.0                # the newest sample published (unwrapped sequence number)
+        self.sample_ns = 0
         self.asked_ns = 0              # first request since the last new sample (0 = none outstanding)
-        self._stop = threading.Event()
-        self._trigger = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.latency_ns = [0] * keep_latency
-        self.n_latency = 0
 
     def open(self) -> None:
         import serial
@@ -55,17 +61,14 @@ class DisplacementAmplifier(TriggeredPoller):
             if self.ident is None:
                 raise DeviceError(f"{self.where}: no identification reply to 'ID' ({self.last_error or 'silent'})")
             for _ in range(20):
-                self._poll_once()
-                if self.sample[1]:
+                self.poll()
+                if self.seq >= 0:
                     break
-            if not self.sample[1]:
+            if self.seq < 0:
                 raise DeviceError(f"{self.where}: no valid data frame ({self.device_error or self.last_error})")
         except BaseException:
             self.close()
             raise
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="dta4-poller", daemon=True)
-        self._thread.start()
 
     def _request(self, cmd: bytes, kind: str, tries: int = 1):
         for _ in range(tries):
@@ -77,10 +80,24 @@ class DisplacementAmplifier(TriggeredPoller):
                         return f
         return None
 
-    def _poll_once(self) -> bool:
-        """One RD request; True when it brought a new sample."""
+    def run(self, stop) -> None:
+        raise_priority(self.priority)
+        P = self.period_ns
+        due = time.monotonic_ns() + P
+        while not stop.is_set():
+            self.sleep_until(due)
+            self.poll()
+            now = time.monotonic_ns()
+            self.report(self.check(now))
+            self.beat()
+            due += P
+            if due < now:                          # the line (or this process) fell behind: on from now
+                due = now + P // 2
+
+    def poll(self) -> bool:
+        """One RD request; True when it brought a new sample (published)."""
         ser = self.ser
-        seq0 = self._seq
+        seq0 = self.seq
         t0 = time.monotonic_ns()
         if not self.asked_ns:
             self.asked_ns = t0
@@ -99,42 +116,44 @@ class DisplacementAmplifier(TriggeredPoller):
             if not got:
                 self.last_error = ("garbled frames (checksum or format)" if self.parser.bad_frames > bad0
                                    else f"no reply within {self.reply_timeout_s * 1e3:g} ms")
+                self.counted(0, 1)
         except Exception as e:                      # noqa: BLE001 - port gone, I/O error
             self.last_error = f"{e.__class__.__name__}: {e}"
             time.sleep(self.reply_timeout_s)
-        return self._seq != seq0
+        return self.seq != seq0
 
     def _take(self, f, t0: int) -> None:
         t1 = time.monotonic_ns()
         if isinstance(f, proto.DataFrame):
-            self.latency_ns[self.n_latency % len(self.latency_ns)] = t1 - t0
-            self.n_latency += 1
+            self.stat((t1 - t0) * 1e-3)
             self.device_error = ""
             self.last_error = ""
-            if f.seq != self._seq:
-                self._seq = f.seq
+            if f.seq != self._seq16:
+                self.seq = f.seq if self.seq < 0 else self.seq + ((f.seq - self._seq16) & 0xFFFF)
+                self._seq16 = f.seq
                 self.asked_ns = 0
-                ch = self.channels
-                self.sample = (tuple(f.position_m[c] for c in ch), t1, tuple(f.status[c] for c in ch))
+                self.sample_ns = t1
+                self.status = tuple(f.status[c.source] for c in self.chs)
+                values = conversion.apply(self.chs, f.position_m)
+                ex.put_sample(self.io, float(self.seq), float(t1), np.asarray(values, dtype=np.float64))
+                self.counted(1)
         elif f.kind == "E":
             self.device_error = ",".join(f.fields)
 
     def check(self, now_ns: int) -> str | None:
-        pos, t_ns, status = self.sample
         if self.device_error:
             return f"{self.where}: amplifier reports error {self.device_error}"
-        for i, st in enumerate(status):
+        for c, name, st in zip(self.chs, self.names, self.status):
             if st != "OK":
-                return f"{self.where} ch{self.channels[i] + 1} ({self.names[i]}): {proto.STATUS_TEXT.get(st, st)}"
+                return f"{self.where} ch{c.source + 1} ({name}): {proto.STATUS_TEXT.get(st, st)}"
         asked = self.asked_ns
         if asked and now_ns - asked > self.stale_ns:        # asked, and no new sample for too long
             why = self.last_error or "sequence number not advancing (frozen amplifier)"
-            return (f"{self.where}: no new sample for {(now_ns - t_ns) / 1e6:.1f} ms "
+            return (f"{self.where}: no new sample for {(now_ns - self.sample_ns) / 1e6:.1f} ms "
                     f"(limit {self.stale_ns / 1e6:g} ms); {why}")
         return None
 
     def close(self) -> None:
-        self._stop_thread()
         if self.ser is not None:
             try:
                 self.ser.close()

@@ -74,12 +74,14 @@ def _hardware(cfg, *, dt: float | None = None, clock=None):
 
 
 def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale_s: float | None = None,
-                  serial_stale_s: float | None = None, poll_s: float | None = None, priority: int | None = None):
+                  serial_stale_s: float | None = None, priority: int | None = None, trace_s: float = 0.0):
     """The drivers against a freshly started emulated rig (the port's `.rig`; stopped by port.close()).
     plant: default the layout's, stepped at the loop period: the four-mount RigPlant under the configured floor
     vibration, or on the stand layout the actuators on their stands (the prototype: one) on the floor of
     [stand] base_motion_rms_m. The emulated module converts at each plant step (each SYNC), so the port is
-    sample-driven."""
+    sample-driven. The valves' bus reaches the emulated nodes through a socketcand gateway on 127.0.0.1
+    (python-can's socketcand interface: sim_backend/emulators/canopen_valve.py says why). trace_s: seconds of the
+    plant's table motion kept for band-limited isolation figures (EmulatedRig.trace)."""
     from drivers import build_driver_port
     from sim_backend.backend import stand_bank
     from sim_backend.emulators.rig import EmulatedRig
@@ -94,20 +96,21 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     elif plant is None:
         plant = RigPlant(cfg, dt, floor=FloorMotion.from_config(cfg, dt), seed=cfg.vibration.seed)
     d = cfg.drivers
+    prio = cfg.hil.device_priority if priority is None else priority
     emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
-                      node_ids=[d.valve_node_id_base + i for i in range(len(layout_mounts(cfg)))],
-                      priority=cfg.hil.device_priority if priority is None else priority,
-                      floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels).start()
+                      node_ids=[d.valve_node_id_base + i for i in range(len(layout_mounts(cfg)))], priority=prio,
+                      floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels,
+                      trace_s=trace_s).start()
     try:
-        port = build_driver_port(cfg, "hil", can_interface="virtual", can_channel=emu.channel,
+        stale = stale_s if stale_s is not None else cfg.hil.stale_s
+        port = build_driver_port(cfg, "hil", can_interface="socketcand", can_channel="can0",
+                                 can_options={"host": "127.0.0.1", "port": emu.can_port},
                                  modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,
-                                 stale_s=stale_s if stale_s is not None else cfg.hil.stale_s,
-                                 serial_stale_s=serial_stale_s if serial_stale_s is not None else
-                                 (stale_s if stale_s is not None else cfg.hil.serial_stale_s), poll_s=poll_s,
-                                 on_close=emu.stop, priority=priority, sample_driven=True)
+                                 stale_s=stale, serial_stale_s=serial_stale_s if serial_stale_s is not None else
+                                 (stale_s if stale_s is not None else cfg.hil.serial_stale_s),
+                                 on_close=emu.stop, priority=priority, sample_driven=True, period_s=dt)
     except BaseException:
         emu.stop()
         raise
     port.rig = emu
     return port
-

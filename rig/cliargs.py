@@ -15,8 +15,6 @@ import argparse
 import math
 from pathlib import Path
 
-from controllers.reference import parse_length
-from rig.config import check_nyquist
 from rig.errors import RigError
 
 MAX_RATE_HZ = 100000.0        # the loop's own ceiling ([loop] rate_hz): 10 us a period
@@ -76,6 +74,7 @@ def length(text: str) -> str:
     """A length with its unit (argparse type): `5um`, `0.5mm`, `-250nm`, `0`; the text as given (the mode request
     reads it), refused when the unit is missing or it is not a number."""
     try:
+        from controllers.reference import parse_length    # lazy: `rig --help` loads cliargs, not numpy
         parse_length(text, "length", "length")
     except RigError as e:
         why = " (a bare number would be metres)" if "no unit" in str(e) else ""
@@ -181,5 +180,6 @@ def check_periods(seconds_s: float, rate_hz: float, at_least: int = 10, option: 
 def check_rate(cfg, rate_hz: float, where: str = "", *, sections=("controller", "vibration")) -> None:
     """Frequencies of the configuration against the Nyquist frequency of the rate the command will run at
     (where: the option or key that set it, for the message)."""
+    from rig.config import check_nyquist                 # lazy: as parse_length above
     check_nyquist(cfg, rate_hz, sections=sections,
                   rate_source=f"the loop at {rate_hz:g} Hz" + (f", {where}" if where else ""))

@@ -182,7 +182,22 @@ class DriversConfig:
     serial_baud: int = _f(921600, "bit/s", ge=300, le=12000000)
     stale_s: float = _f(0.02, "s", gt=0, le=10)          # a device silent for longer ends in FAULT
     serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the displacement amplifier (centring)
-    thread_priority: int = _f(55, "", ge=0, le=99)       # SCHED_FIFO of the driver threads (0 = normal)
+    thread_priority: int = _f(55, "", ge=0, le=99)       # SCHED_FIFO of the drivers' I/O processes (0 = normal)
+    # Each device's rate and latency (drivers/README.md shows the timing; `rig hil --bench` measures them):
+    # the valves: SYNC at the loop's rate, sync_offset_s after the period starts (after the loop wrote its
+    # commands), waiting for a late loop up to sync_wait_s after the period's start
+    sync_offset_s: float = _f(0.0001, "s", ge=0, le=0.1)
+    sync_wait_s: float = _f(0.00025, "s", ge=0, le=0.1)
+    # the accelerometer module: converts on each SYNC; its FIFO fetched every accel_fetch_every SYNCs (the
+    # conversions then reach the loop in blocks of that many), accel_fetch_delay_s after the SYNC (the module's
+    # conversion time)
+    accel_fetch_every: int = _f(1, "", ge=1, le=32)
+    accel_fetch_delay_s: float = _f(0.0001, "s", ge=0, le=0.1)
+    # the transducer amplifier: asked at serial_rate_hz (its line carries up to about 1 kHz: a frame of about 75
+    # bytes takes 0.8 ms at 921600 baud; the stroke serves the slow centring and the limits), its frame in
+    # serial_latency_s after its sample; held between frames
+    serial_rate_hz: float = _f(500.0, "Hz", gt=0, le=10000)
+    serial_latency_s: float = _f(0.0008, "s", ge=0, le=1)
 
 
 @dataclass(frozen=True)
@@ -196,8 +211,12 @@ class HilConfig:
     stale_s: float = _f(0.1, "s", gt=0, le=10)           # staleness limit of HIL runs (drivers and safety)
     watchdog_s: float = _f(0.1, "s", gt=0, le=10)        # loop watchdog of HIL runs (safety.watchdog_s)
     lag_limit_s: float = _f(0.1, "s", gt=0, le=10)       # lag limit of HIL runs (safety.lag_limit_s)
-    serial_stale_s: float = _f(0.1, "s", gt=0, le=10)    # the same for the emulated serial amplifier
-    device_priority: int = _f(50, "", ge=0, le=99)       # SCHED_FIFO of the emulated devices (0 = normal)
+    # the emulated serial amplifier's own limit: its pty's bytes wait for a normal-priority kernel worker, which
+    # the machine's other load holds off for up to 0.5 s (`rig bench stalls`); the stroke serves the slow centring
+    serial_stale_s: float = _f(0.5, "s", gt=0, le=10)
+    # SCHED_FIFO of the emulated devices (0 = normal): above the drivers' I/O processes ([drivers] thread_priority),
+    # below the loop: real devices are never held up by the host's drivers
+    device_priority: int = _f(60, "", ge=0, le=99)
 
 
 @dataclass(frozen=True)
@@ -556,6 +575,19 @@ def hil_run_config(cfg: Config, rate_hz: float | None = None) -> Config:
     return cfg.replace(loop=dataclasses.replace(cfg.loop, rate_hz=rate),
                        safety=dataclasses.replace(cfg.safety, stale_s=cfg.hil.stale_s,
                                                   watchdog_s=cfg.hil.watchdog_s, lag_limit_s=cfg.hil.lag_limit_s))
+
+
+def channel_delays(cfg: Config, rate_hz: float | None = None) -> tuple[int, int]:
+    """The delay in loop periods from a sensor's sample to the command it changes acting, per channel, through
+    the drivers' timing ([drivers]): the accelerometers' conversion at SYNC k reaches the commands sent with SYNC
+    k + 1, or with blocks of conversions (accel_fetch_every) the last of the block; the transducer's sample is
+    held between frames (serial_rate_hz) and arrives serial_latency_s after it was taken. (accel, stroke); the
+    controller design (controllers/tune_hil.py) and the lockstep simulation of the same timing use them."""
+    rate = float(rate_hz or cfg.loop.rate_hz)
+    d = cfg.drivers
+    accel = d.accel_fetch_every
+    age = d.serial_latency_s + 0.5 / d.serial_rate_hz          # the transducer sample's mean age when used
+    return accel, max(1, 1 + int(math.floor(age * rate + 0.5)))
 
 
 def modal_model_path(cfg: Config) -> Path | None:

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.optimize
 
 from rig.recordings import closedloop
-from rig.errors import RecordingError
+from rig.errors import RecordingError, RigError
 from rig.frf import FRF, frf_estimate
 from rig.recordings.recording import Recording, check_plausible
 from sim_backend.linear import IDENTIFIED, ActuatorParams, discretize_zoh, g_eha_frf, zoh_delay
@@ -352,6 +352,15 @@ def _fit_quality(rec: Recording, p: ActuatorParams, p0: ActuatorParams, frf: FRF
                           f"these open-loop parameters are biased; identify from an open-loop run (rig chirp)"
                           + (f"; also {fit['warning']}" if "warning" in fit else ""))
     return fit, ym
+
+
+def refuse_feedback_only(rec: Recording) -> None:
+    """RigError when the command was a function of the measured stroke alone (feedback, no external reference):
+    an FRF fit of position over command then gives the loop's sensitivity, not the actuator, and looks
+    confident doing so. A track run has its reference as external excitation: it may be identified."""
+    if rec.closed_loop and rec.reference_m is None:
+        raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
+                       "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
 
 
 def identify(rec: Recording, p0: ActuatorParams | None = None, *, starts: int = 8, refine_time_domain: bool = True,

@@ -51,7 +51,11 @@ class Port(Protocol):
     """What the loop needs from a backend. `open` may do slow configuration (SDO, register set-up);
     `read` and `write` run inside the control period and must not block on a bus request. Optional:
     `idle()`, work that does not depend on the period's data, which the loop runs after a period when at least
-    half a period is left (the simulated plant draws its next block of floor motion there)."""
+    half a period is left (the simulated plant draws its next block of floor motion there).
+    Optional, the loop's fast path: `exchange`, the port's exchange block (rig/runtime/exchange.py), which the
+    period's kernel reads and writes itself instead of calling read and write, with `update(t_ns)` (before
+    the kernel) and `commit(t_ns)` (after it) if the port needs a step there. The drivers and the simulated
+    backend have one; for a port without it the loop keeps one of its own (rig/runtime/measured.py)."""
 
     n_mounts: int
     name: str

@@ -30,15 +30,18 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from drivers.protocol.modbus_map import raw_to_volts, volts_to_raw
+from rig.config import layout_mounts
 from rig.errors import RigError
 from rig.port import Commands, Measurements, PortContext
-from rig.config import layout_mounts
+from rig.runtime.exchange import (A_COUNTED, A_NEWEST, A_SLOTS, C_ACK, C_SEQ, C_VALUES, H_ACAP, H_AWIDTH, H_SCAP,
+                                  H_SWIDTH, S_NEWEST, S_SLOTS, S_STALE, Block, Layout, put_commands, put_step_entry,
+                                  safe)
 from sim_backend.actuator import Effects, StandBank, StandPlant
 from sim_backend.linear import ActuatorParams
 from sim_backend.rig_plant import FloorMotion, RigPlant
 
 KINDS = ("drop", "stale", "nan", "stuck", "range", "device", "overrun")
-_NO_SPOOL = ()                 # Measurements.spool_actual of the simulated backend: no spool feedback
 _NO_FLOOR: list = []           # Measurements.floor_accel_mps2 without floor sensors (never written to)
 
 
@@ -74,13 +77,21 @@ class StandAdapter:
 class SimBackend(PortContext):
     """Port over a stepped plant. dt is the loop period (one plant step); noise is added here (seeded,
     Gaussian, rms accel_noise_mps2 / stroke_noise_m) unless set to 0: real sensors are never bit-exact
-    constant, and the stuck check relies on that."""
+    constant, and the stuck check relies on that.
+
+    The loop reaches it through its exchange block (rig/runtime/exchange.py), as it reaches the drivers: every
+    plant step publishes a conversion (sample-driven: counted, each one reaches the controllers; else the
+    period's latest value) and the strokes, stamped with the loop time of the step (t0 + k dt: the deadline of
+    the period that reads it); the kernel writes its commands there and the next step applies them.
+    `update(t)` steps the plant up to the period at t (usually `idle` already did, in the slack before it);
+    `read`/`write` are the same through the Port protocol, for callers of their own."""
 
     name = "sim"
 
     def __init__(self, plant, dt: float, *, n_mounts: int | None = None, clock=None, seed: int = 0,
                  accel_noise_mps2: float = 1e-4, stroke_noise_m: float = 2e-9,
-                 cmd_delay_periods: int = 0, sample_driven: bool = False) -> None:
+                 cmd_delay_periods: int = 0, sample_driven: bool = False, stroke_stale_s: float = 0.0,
+                 adc: tuple[float, float] | None = None, stroke_timing: tuple[int, int] = (0, 1)) -> None:
         self.plant = plant
         self.dt = float(dt)
         self.dt_ns = int(round(dt * 1e9))
@@ -89,12 +100,11 @@ class SimBackend(PortContext):
         self.clock = clock
         self.cmd_delay_periods = int(cmd_delay_periods)
         n = self.n_mounts
+        nf = n if self.floor_sensors else 0
         self._cmd = [0.0] * n
         self._pipe = [[0.0] * n for _ in range(self.cmd_delay_periods)]
         self._t0_ns: int | None = None
         self._k = 0                               # plant steps taken
-        self._k_read = 0                          # plant step of the last read
-        self._older: list = []                    # accelerations of steps not read (sample-driven)
         self._faults: list[_Fault] = []
         rng = np.random.default_rng(seed)
         self._noise_len = 65521                  # prime: the table does not line up with the period
@@ -102,15 +112,37 @@ class SimBackend(PortContext):
         self._nx = (stroke_noise_m * rng.standard_normal(self._noise_len)).tolist()
         self._ni = 0
         self._noiseless = accel_noise_mps2 == 0.0 and stroke_noise_m == 0.0   # the rig plant adds its own
-        # sample-driven (like the FIFO accelerometer module, drivers/port.py): every plant step is a conversion,
-        # and a read after skipped periods hands over the ones in between, so the controllers' integration of
-        # acceleration sees them all (Measurements.new_samples / accel_older); noiseless plants only
+        # sample-driven (like the FIFO accelerometer module, drivers/): every plant step is a conversion, and the
+        # kernel takes the ones a late period did not see, so the controllers' integration of acceleration sees
+        # them all; noiseless plants only
         self.sample_driven = bool(sample_driven) and self._noiseless
-        self._first_read = True
+        self.exchange = Block.local(Layout(n, nf, devices=("sim",)))
+        io = self._io = self.exchange.io
+        self._a, self._c = self.exchange.part("accel"), self.exchange.part("cmd")
+        io[self._a + A_COUNTED] = 1.0 if self.sample_driven else 0.0
+        io[self.exchange.part("stroke") + S_STALE] = stroke_stale_s * 1e9
+        self._safe = self.exchange.part("safe")
+        self._n, self._nf = n, nf
+        # adc: (accelerometer, floor accelerometer) V per m/s^2 through the analog module's 16-bit converter
+        # (drivers/protocol/modbus_map.py), as the drivers read them; None: the plant's values as they are
+        self._adc = adc
+        self._vals, self._ts, self._xs = np.zeros(n + nf), np.zeros(n), np.zeros(n)   # what _publish hands over
+        self._put = put_step_entry()                    # (the compiled rule's own entry: exactly these types)
+        self._plain = self._noiseless and adc is None and stroke_timing[0] == 0 and stroke_timing[1] <= 1
+        # stroke_timing: (delay, every): the transducer's sample taken every `every` plant steps and held between,
+        # arriving `delay` steps after it was taken (the drivers' serial line: rig.config.channel_delays)
+        self._x_delay, self._x_every = int(stroke_timing[0]), max(1, int(stroke_timing[1]))
+        self._x_line: list = []                   # the strokes of the last steps, newest last
+        self._x_held = None
+        self._conv = -1                           # the last conversion published (its counter)
+        self._pub = (-1, -1)                      # (plant step, time stamp) of the last published sample
+        self._draw = None                         # (read, noise index) of a read's noise draw
+        self._reads = 0                           # update() calls so far
+        self._cmd_seq = 0.0                       # the commands' sequence last applied
+        self._device = None                       # the device knob's text published
+        self._seen = -1                           # read(): the last conversion handed over
         self.opened = False
         self.safe_calls = 0
-        self.writes = 0
-        self.last_written = [0.0] * n           # what the valve(s) got last (null after safe_state)
 
     # ---- Port ---------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -123,83 +155,166 @@ class SimBackend(PortContext):
         n = self.n_mounts
         self._cmd = [0.0] * n
         self._pipe = [[0.0] * n for _ in range(self.cmd_delay_periods)]
-        self.last_written = [0.0] * n
         self.safe_calls += 1
+        safe(self.exchange)                        # null until the kernel writes again
 
     def write(self, t_ns: int, commands: Commands) -> None:
         c = list(commands.valve_cmd_V)
         if len(c) != self.n_mounts:
             raise RigError(f"sim backend: {len(c)} valve commands for {self.n_mounts} mounts")
-        self._cmd = c
-        self.last_written = c
-        self.writes += 1
+        put_commands(self._io, float(t_ns), np.asarray(c, dtype=np.float64))
+
+    def _take_commands(self) -> None:
+        """The commands last written into the block (by the kernel, or write()) for the steps from now on."""
+        io, c = self._io, self._c
+        seq = io[c + C_SEQ]
+        if seq != self._cmd_seq:
+            self._cmd_seq = seq
+            if io[self._safe] == io[c + C_ACK]:
+                self._cmd = io[c + C_VALUES:c + C_VALUES + self._n].tolist()
+
+    @property
+    def writes(self) -> int:
+        """Command sets written so far (by the kernel, or write())."""
+        return int(self._io[self._c + C_SEQ]) // 2
+
+    @property
+    def last_written(self) -> list[float]:
+        """What the valve(s) got last: the commands last written, null after safe_state until the next."""
+        io, c = self._io, self._c
+        if io[self._safe] != io[c + C_ACK]:
+            return [0.0] * self._n
+        return io[c + C_VALUES:c + C_VALUES + self._n].tolist()
 
     def _step(self) -> None:
-        """One plant period with the held command (delayed by cmd_delay_periods)."""
+        """One plant period with the held command (delayed by cmd_delay_periods); sample-driven, its conversion
+        published (stamped with its loop time)."""
+        self._take_commands()
         plant = self.plant
-        if self.sample_driven and self._k > self._k_read:      # a conversion the loop did not read
-            self._older.append(plant.accel_mps2 + plant.floor_accel_mps2 if self.floor_sensors
-                               else plant.accel_mps2)                    # (a fresh list either way)
         if self.cmd_delay_periods:
             self._pipe.append(self._cmd)
             plant.step(self._pipe.pop(0))
         else:
             plant.step(self._cmd)
         self._k += 1
+        if self.sample_driven:
+            self._publish(self._t0_ns + self._k * self.dt_ns)
 
-    def read(self, t_ns: int) -> Measurements:
+    def update(self, t_ns: int) -> None:
+        """The plant up to the period at t_ns (the steps idle() did not take) and its samples published: what
+        the period's kernel then takes from the block."""
         if self._t0_ns is None:
             self._t0_ns = t_ns
+        self._reads += 1
         target = (t_ns - self._t0_ns) // self.dt_ns
         while self._k < target:
             self._step()
-        plant = self.plant
-        n = self.n_mounts
-        acc = plant.accel_mps2
-        xs = plant.stroke_m
-        if self._noiseless:
-            if self.sample_driven:
-                new = self._k - self._k_read
-                if self._first_read:
-                    new += 1
-                    self._first_read = False
-                older = ()
-                if self._older:
-                    older = tuple(self._older)
-                    self._older.clear()
-            else:
-                new, older = None, ()
-            self._k_read = self._k
-            fl = plant.floor_accel_mps2 if self.floor_sensors else _NO_FLOOR
-            if not self._faults:
-                # the plant publishes fresh lists every step: handed on without a copy
-                return Measurements(t_ns, acc, xs, [t_ns] * n, _NO_SPOOL, None, new, older, fl)
-            meas = Measurements(t_ns, list(acc), list(xs), [t_ns] * n, [], None, new, older, list(fl))
-            self._apply_faults(t_ns, meas)             # (the knobs edit the lists in place)
-            return meas
-        self._k_read = self._k
-        i = self._ni
-        na, nx, L = self._na, self._nx, self._noise_len
-        a_out = [0.0] * n
-        x_out = [0.0] * n
-        for m in range(n):
-            j = (i + m) % L
-            a_out[m] = float(acc[m]) + na[j]
-            x_out[m] = float(xs[m]) + nx[j]
-        self._ni = (i + n) % L
-        meas = Measurements(t_ns=t_ns, accel_mps2=a_out, stroke_m=x_out, sample_t_ns=[t_ns] * n)
+        if self._pub != (self._k, t_ns) or self._faults:
+            self._publish(t_ns)
+        for f in self._faults:
+            if f.kind == "overrun" and t_ns - self._t0_ns >= f.at_ns and (f.every or not f.fired):
+                f.fired = True
+                if self.clock is None:
+                    raise RigError("sim backend: the overrun knob needs the loop's clock (clock=...)")
+                self.clock.spend(f.extra_ns)
+
+    def _publish(self, t_ns: int, read: int | None = None) -> None:
+        """The plant's sensors now as the period at t_ns reads them (the read-th update: one noise draw each,
+        also when its sample is published twice), the fault knobs; a conversion (sample-driven: the step's
+        own, counted) and the transducer's sample."""
+        plant, n = self.plant, self._n
+        acc, xs = plant.accel_mps2, plant.stroke_m
+        if self._plain and not self._faults:         # the common case, without the knobs' work
+            vals = self._vals
+            vals[:n] = acc
+            if self._nf:
+                vals[n:] = plant.floor_accel_mps2
+            self._xs[:] = xs
+            self._ts.fill(t_ns)
+            if not (self.sample_driven and self._pub[0] == self._k):
+                self._conv += 1
+            self._put(self._io, float(self._conv), self._ts, vals, float(self._k), float(t_ns), self._xs)
+            self._pub = (self._k, t_ns)
+            return
+        fl = plant.floor_accel_mps2 if self._nf else _NO_FLOOR
+        if not self._noiseless:
+            read = self._reads if read is None else read
+            if self._draw is None or self._draw[0] != read:        # one draw per read (a re-stamp reuses it)
+                self._draw = (read, self._ni)
+                self._ni = (self._ni + n) % self._noise_len
+            i, na, nx, L = self._draw[1], self._na, self._nx, self._noise_len
+            acc = [float(acc[m]) + na[(i + m) % L] for m in range(n)]
+            xs = [float(xs[m]) + nx[(i + m) % L] for m in range(n)]
+        ts = [t_ns] * n
+        if self._x_delay or self._x_every > 1:
+            xs = self._stroke_as_read(xs)
+        if self._adc is not None:
+            ka, kf = self._adc
+            acc = [raw_to_volts(volts_to_raw(a * ka)) / ka for a in acc]
+            fl = [raw_to_volts(volts_to_raw(g * kf)) / kf for g in fl]
         if self._faults:
-            self._apply_faults(t_ns, meas)
-        return meas
+            meas = Measurements(t_ns, list(acc), list(xs), ts, [], None, None, (), list(fl))
+            self._apply_faults(t_ns, meas)             # (the knobs edit the lists in place)
+            acc, xs, ts, fl = meas.accel_mps2, meas.stroke_m, meas.sample_t_ns, meas.floor_accel_mps2
+            if meas.device_fault != self._device:
+                self._device = meas.device_fault
+                self.exchange.fault(0, 1 if meas.device_fault else 0, meas.device_fault or "")
+        vals, a_ts, a_xs = self._vals, self._ts, self._xs
+        vals[:n] = acc
+        if self._nf:
+            vals[n:] = fl
+        a_ts[:] = ts
+        a_xs[:] = xs
+        if not (self.sample_driven and self._pub[0] == self._k):
+            self._conv += 1                            # else the step's conversion again, re-stamped
+        self._put(self._io, float(self._conv), a_ts, vals, float(self._k), float(max(ts)), a_xs)
+        self._pub = (self._k, t_ns)
+
+    def _stroke_as_read(self, xs):
+        """The transducer's sample as the drivers deliver it (stroke_timing): taken at steps that are multiples
+        of `every`, `delay` steps before it is read, held between."""
+        line = self._x_line
+        if not line or line[-1][0] != self._k:
+            line.append((self._k, list(xs)))
+            del line[:-self._x_delay - self._x_every - 1]
+        want = self._k - self._x_delay
+        taken = [x for k, x in line if k <= want and k % self._x_every == 0]
+        if taken:
+            self._x_held = taken[-1]
+        return self._x_held if self._x_held is not None else line[0][1]
+
+    def read(self, t_ns: int) -> Measurements:
+        """The Port protocol's read (callers of their own; the loop takes the block): update, then the newest
+        sample, and sample-driven the conversions since the last read."""
+        self.update(t_ns)
+        io, a, n, nf = self._io, self._a, self._n, self._nf
+        cap, w = int(io[H_ACAP]), int(io[H_AWIDTH])
+        newest = int(io[a + A_NEWEST])
+
+        def conv(c):
+            s = a + A_SLOTS + (c % cap) * w
+            return io[s + 1:s + 1 + n].tolist(), io[s + 1 + n:s + 1 + 2 * n + nf].tolist()
+        ts, vals = conv(newest)
+        so = self.exchange.part("stroke")
+        ss = so + S_SLOTS + (int(io[so + S_NEWEST]) % int(io[H_SCAP])) * int(io[H_SWIDTH])
+        new, older = None, ()
+        if self.sample_driven:
+            new = newest - self._seen if self._seen >= 0 else 1
+            older = tuple(tuple(conv(c)[1]) for c in range(max(self._seen + 1, newest - new + 1), newest))
+        self._seen = newest
+        return Measurements(t_ns, vals[:n], io[ss + 2:ss + 2 + n].tolist(), [int(t) for t in ts], [],
+                            self._device, new, older, vals[n:])
 
     # ---- fault knobs --------------------------------------------------------------------------------
     def idle(self) -> None:
         """The loop's slack after a period (real clock): the plant takes the coming period's step now, with
-        the command just written, as real hardware moves while the controller sleeps (read then finds it
-        done; the sequence is the same as stepping in read), and draws its next block of floor motion and
-        noise."""
-        if self._t0_ns is not None and self._k == self._k_read:
+        the command just written, as real hardware moves while the controller sleeps (update then finds it
+        done; the sequence is the same as stepping in update), publishes what the coming period reads, and
+        draws its next block of floor motion and noise."""
+        if self._t0_ns is not None and self._k == self._pub[0]:
             self._step()
+            if self._pub[0] != self._k:
+                self._publish(self._t0_ns + self._k * self.dt_ns, self._reads + 1)
         pre = getattr(self.plant, "prefetch", None)
         if pre is not None:
             pre()
@@ -220,6 +335,9 @@ class SimBackend(PortContext):
 
     def clear_faults(self) -> None:
         self._faults.clear()
+        if self._device is not None:
+            self._device = None
+            self.exchange.fault(0, 0, "")
 
     def _apply_faults(self, t_ns: int, m: Measurements) -> None:
         rel = t_ns - (self._t0_ns or 0)
@@ -245,12 +363,6 @@ class SimBackend(PortContext):
                 field[i] = f.value
             elif k == "device":
                 m.device_fault = f"sim mount {i}: {f.text}"
-            elif k == "overrun":
-                if f.every or not f.fired:
-                    f.fired = True
-                    if self.clock is None:
-                        raise RigError("sim backend: the overrun knob needs the loop's clock (clock=...)")
-                    self.clock.spend(f.extra_ns)
 
 
 def stand_bank(cfg, dt: float, *, n: int | None = None, effects: Effects | None = None, floor=True) -> StandBank:

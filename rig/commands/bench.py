@@ -23,6 +23,9 @@
                                                   on its page, alternating (rig/console/bench.py)
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
                                                   hour, gzip against none (rig/commands/bench_recorder.py)
+  rig bench stalls [--seconds N] [--json]         where stalls come from: an empty loop at real-time and at normal
+                                                  priority, a pty echo and a socket echo, side by side
+                                                  (rig/commands/bench_stalls.py)
   rig bench sim ...                               simulation speed of the plant
   rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
                                                   in simulated time (rig/commands/prototype_bench.py)
@@ -56,6 +59,7 @@ import time
 import numpy as np
 
 from rig import cliargs
+from rig.commands import bench_cli, bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
@@ -100,6 +104,12 @@ def add_arguments(p) -> None:
     pp.add_argument("--switches", type=cliargs.count(1, 100000), default=100, metavar="N", help="random mode switches (default 100)")
     pp.add_argument("--seed", type=cliargs.seed(), default=18, metavar="N", help="seed of the switches (default 18)")
     pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    st = sub.add_parser("stalls", help="where stalls come from: real-time and normal empty loops, pty and socket "
+                                       "echoes side by side")
+    _config_arg(st)
+    bench_stalls.add_arguments(st)
+    cp = sub.add_parser("cli", help="the command line's --help time against a bare interpreter start")
+    bench_cli.add_arguments(cp)
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
     _config_arg(rp)
     rp.add_argument("--seconds", type=cliargs.seconds(ge=1, le=600), default=10.0, metavar="N",
@@ -132,7 +142,11 @@ def run(args) -> int:
         return 0
     if what == "recorder":
         return bench_recorder(args)
-    raise RigError("bench: expected a benchmark: loop, sim, recorder or prototype (see rig bench --help)")
+    if what == "stalls":
+        return bench_stalls.run(args)
+    if what == "cli":
+        return bench_cli.run(args)
+    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, cli or prototype (see rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------
@@ -674,10 +688,13 @@ def _kernel_us(cfg, mode) -> float:
     least of five means over 20000 back-to-back calls with the last measurement (ACTIVE, no recorder)."""
     from rig.runtime.clock import SimClock
     from rig.runtime.kernel import MODE_ACTIVE
+    from rig.runtime.measured import MeasuredBlock
     with Session(cfg, "sim", clock=SimClock(), mode=mode) as s:
         s.run(seconds=0.1, activate_after_s=0.01)
         k, m = s.loop.kernel, s.loop.last_meas
-        args = [0, 0.0, 0.0, 0.0, MODE_ACTIVE, 0, 0, True, 2, True, 0, 0, *m.accel_mps2, *m.stroke_m, *m.sample_t_ns]
+        feed = MeasuredBlock(k.n, k.nf)                 # the last measurement as a latest value: every call steps
+        feed.put(m)
+        args = (feed.io, 0.0, 0.0, 0.0, 0.0, float(MODE_ACTIVE), 2.0, 1.0, 0.0, 0.0)
         best = math.inf
         for _ in range(5):
             t = time.perf_counter_ns()

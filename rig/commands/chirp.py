@@ -1,4 +1,4 @@
-"""`rig chirp --out REC`: the paper's identification run, through the runtime loop (rig/chirp.py runs it).
+"""`rig chirp --record REC`: the paper's identification run, through the runtime loop (rig/chirp.py runs it).
 
 `--levels` plays the same sweep at several amplitudes back to back, `--multisine` an odd random-phase multisine
 (rig/excitation.py); both are recorded the same way, with the signal's description in the file's attributes.
@@ -16,6 +16,13 @@ from rig.backends import BACKENDS
 from rig.chirp import run_chirp
 from rig.config import load_config
 from rig.errors import RigError
+
+
+class _Renamed(argparse.Action):
+    """`rig chirp --out FILE` of earlier versions: one line saying what it is now."""
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error("--out: the chirp's recording is --record FILE now (--out names a folder of reports, "
+                     "in every command)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -39,8 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "simulated time, as fast as possible)")
     p.add_argument("--seed", type=cliargs.seed(), default=None,
                    help="sim backend: sensor noise seed (default: [stand] seed)")
-    cliargs.output_arg(p, "--out", metavar="REC", required=True,
-                   help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
+    cliargs.output_arg(p, "--record", metavar="FILE", required=True,
+                       help="recording to write (HDF5; with --csv the shared CSV format, gzip if it ends in .gz)")
+    p.add_argument("--out", action=_Renamed, help=argparse.SUPPRESS)
     p.add_argument("--csv", action="store_true", help="write the shared CSV format instead of HDF5")
     p.add_argument("--levels", type=level_list, default=None, metavar="V,V,...",
                    help="the same sweep at several amplitudes back to back, e.g. 0.5,1.5,3.0 (each --duration "
@@ -81,7 +89,7 @@ def run(args) -> int:
     bar.start()
     try:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
-                      duration_s=args.duration, rate_hz=args.rate, out=args.out, csv=args.csv, mount=args.mount,
+                      duration_s=args.duration, rate_hz=args.rate, out=args.record, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
                       progress=progress, levels_V=args.levels, multisine=args.multisine, period_s=args.period)
     finally:

@@ -16,8 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path,
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2), "
                         "or a run of the four-mount rig (rig run --record, rig hil: docs/RUN_RECORDING.md)")
-    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", required=True,
-                       help="folder for diagnosis.json, fit.csv, report.md and the PNG plots")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="write diagnosis.json, fit.csv, report.md and the PNG plots to DIR (default: the "
+                            "summary only)")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
     p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
     p.add_argument("--plant", metavar="FILE", type=Path, default=None,
@@ -36,8 +37,6 @@ def run(args) -> int:
     rec = subject.rec
     if rec.gaps:
         print(f"note: {rec.gaps}", file=sys.stderr)
-    if args.out.exists() and not args.out.is_dir():
-        raise RigError(f"--out {args.out}: exists and is not a folder")
 
     from rig.diagnose.engine import diagnose
     from rig.diagnose import report
@@ -52,15 +51,18 @@ def run(args) -> int:
         from rig.recordings.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
     diag = diagnose(rec, subject.plant, progress=progress, seed=args.seed)
-    progress("writing outputs")
-    try:
-        paths = report.write_outputs(args.out, diag, rec)
-    except OSError as e:
-        raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    paths = {}
+    if args.out is not None:
+        progress("writing outputs")
+        try:
+            paths = report.write_outputs(args.out, diag, rec)
+        except OSError as e:
+            raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
     progress(f"done in {time.perf_counter() - t0:.1f} s")
     if args.json:
         print(json.dumps(report.diagnosis_dict(diag, rec), indent=1))
     else:
         print(report.summary_text(diag, rec))
-        print("written: " + ", ".join(str(p) for p in paths.values()))
+        print("written: " + ", ".join(str(p) for p in paths.values()) if paths else
+              "(add --out DIR for diagnosis.json, fit.csv, report.md and the plots)")
     return 0

@@ -1,4 +1,4 @@
-"""`rig diagnose RUN.h5 --out DIR` on a run of the four-mount rig (`rig run --record`, `rig hil`; the layout of
+"""`rig diagnose RUN.h5 [--out DIR]` on a run of the four-mount rig (`rig run --record`, `rig hil`; the layout of
 docs/RUN_RECORDING.md): where the rig differs from its model, per mount, sensor and band, which machine-level
 physics explains it, the fit it gives, the transmissibilities measured against predicted and the margins on the
 diagnosed rig (rig/diagnose/machine/; docs/DIAGNOSIS.md, "Runs of the four-mount rig").
@@ -40,8 +40,6 @@ def run(args) -> int:
     if cfg.layout.plant != "machine":
         raise RigError(f"{cfg.source}: [layout] plant = {cfg.layout.plant!r}: a run of the four-mount rig is "
                        "diagnosed against the machine's model (--config of the run, or none for Table 1 and 2)")
-    if args.out.exists() and not args.out.is_dir():
-        raise RigError(f"--out {args.out}: exists and is not a folder")
     t0 = time.perf_counter()
 
     def progress(msg: str) -> None:
@@ -53,19 +51,22 @@ def run(args) -> int:
     progress(f"diagnosing {rec.source}: {rec.n} rows at {rec.fs_hz:g} Hz, the four-mount rig against "
              f"{cfg.source}")
     diag = diagnose_rig(rec, cfg, progress=progress)
-    progress("writing outputs (and the replay as time series)")
-    th = {k: np.asarray(v) for k, v in diag.theta.items()}
-    try:
-        series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
-        paths = report.write_outputs(args.out, diag, series)
-    except OSError as e:
-        raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    paths = {}
+    if args.out is not None:
+        progress("writing outputs (and the replay as time series)")
+        th = {k: np.asarray(v) for k, v in diag.theta.items()}
+        try:
+            series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
+            paths = report.write_outputs(args.out, diag, series)
+        except OSError as e:
+            raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
     progress(f"done in {time.perf_counter() - t0:.1f} s")
     if args.json:
         print(json.dumps(report.diagnosis_dict(diag), indent=1))
     else:
         print(report.console_text(diag))
-        print("written: " + ", ".join(str(p) for p in paths.values()))
+        print("written: " + ", ".join(str(p) for p in paths.values()) if paths else
+              "(add --out DIR for diagnosis.json, report.md, replay.csv and the plots)")
     return 0
 
 

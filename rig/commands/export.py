@@ -1,9 +1,10 @@
-"""`rig export REC --to mat|csv [--out FILE]`: a recording for MATLAB or a spreadsheet, with its metadata and
+"""`rig export REC --to mat|csv [--out DIR]`: a recording for MATLAB or a spreadsheet, with its metadata and
 units (rig/export.py says what goes where).
 
-  rig export run.h5 --to mat                 -> run.mat (a variable per dataset, the struct meta)
-  rig export run.h5 --to csv --out run.csv   -> run.csv, run.meta.json, run.events.csv
-The default output is REC's name with .mat or .csv; nothing is overwritten without --overwrite. What was
+  rig export run.h5 --to mat                   -> run.mat (a variable per dataset, the struct meta)
+  rig export run.h5 --to csv --out exported    -> exported/run.csv, run.meta.json, run.events.csv
+The files take REC's name, beside REC or in the folder --out (made if missing, as every command's --out);
+nothing is overwritten without --overwrite. What was
 written goes to stdout (--json: only JSON), progress to stderr.
 """
 from __future__ import annotations
@@ -23,28 +24,23 @@ def add_arguments(p) -> None:
     p.add_argument("--to", choices=export.FORMATS, required=True,
                    help="mat: MATLAB (scipy.io.savemat, v5); csv: one header line naming each column, with "
                         "FILE.meta.json (units, labels, attributes, events) and FILE.events.csv beside it")
-    cliargs.output_arg(p, "--out", metavar="FILE", default=None,
-                       help="file to write (default: REC's name with .mat or .csv; a CSV ending in .gz is gzipped)")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="folder to write REC's name with .mat or .csv into (and the CSV's sidecars; "
+                            "default: REC's folder)")
+    p.add_argument("--gzip", action="store_true", help="--to csv: gzip the table (.csv.gz)")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
-def output_path(rec: Path, fmt: str, out: Path | None) -> Path:
-    """The file to write: --out (its suffix added if it has none, refused if it names another format), or REC's
-    name with the format's suffix."""
-    if out is None:
-        return rec.with_suffix(SUFFIX[fmt][0])
-    name = out.name.lower()
-    if any(name.endswith(s) for s in SUFFIX[fmt]):
-        return out
-    other = [s for f, ss in SUFFIX.items() if f != fmt for s in ss]
-    if any(name.endswith(s) for s in other) or out.suffix:
-        raise RigError(f"--out {out}: expected a file name ending in {' or '.join(SUFFIX[fmt])} for --to {fmt}")
-    return out.with_name(out.name + SUFFIX[fmt][0])
+def output_path(rec: Path, fmt: str, out: Path | None, gzip: bool = False) -> Path:
+    """The file to write: REC's name with the format's suffix, in --out (a folder) or beside REC."""
+    if gzip and fmt != "csv":
+        raise RigError(f"--gzip: for --to csv only (got --to {fmt})")
+    return (out if out is not None else rec.parent) / (rec.stem + SUFFIX[fmt][1 if gzip else 0])
 
 
 def run(args) -> int:
     rec = Path(args.recording)
-    out = output_path(rec, args.to, args.out)
+    out = output_path(rec, args.to, args.out, args.gzip)
     files = [out] + (list(export.sidecars(out)) if args.to == "csv" else [])
     if not args.overwrite:                  # the default name is not an option check_outputs saw
         for f in files:
@@ -52,8 +48,7 @@ def run(args) -> int:
                 raise RigError(f"{f}: file exists (add --overwrite to replace it)")
     if out.resolve() == rec.resolve():
         raise RigError(f"--out {out}: is the recording itself")
-    if not out.parent.is_dir():
-        raise RigError(f"--out {out}: folder {out.parent} does not exist")
+    out.parent.mkdir(parents=True, exist_ok=True)
     exp = export.load(rec)
     if args.to == "mat":
         export.write_mat(exp, out)

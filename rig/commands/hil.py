@@ -46,10 +46,11 @@ import time
 
 import numpy as np
 
-from drivers.protocol import dta as proto
 from rig import cliargs, operated
 from rig.runtime import inject
 from rig.backends import default_config, make_port
+from rig.commands import hil_bench
+from rig.commands.hil_lockstep import BAND_HZ, lockstep, phase_rms, reductions
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import RecordingError, RigError
@@ -62,6 +63,9 @@ from rig.runtime.session import Session
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
 HIL_DEFAULT_CONFIG = default_config("hil")
+JSON_KEYS = ("transports", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
+             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording")
+TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
 
@@ -102,47 +106,36 @@ def _pct(xs: list[float]) -> dict:
             "max": round(float(a.max()), 1), "n": int(a.size)}
 
 
-class _Phases(threading.Thread):
-    """The modes in turn, an equal share of the run each, switched through the loop's mode request; meters the
-    table motion of each after settle_s."""
+class _Progress(threading.Thread):
+    """One progress line a second on stderr (the loop's time, state and isolation mode)."""
 
-    def __init__(self, loop, rig, seconds: float, settle_s: float, quiet: bool, priority: int = 0,
-                 modes=ISOLATION_MODES[:2]):
-        super().__init__(name="hil-phases", daemon=True)
-        self.priority = priority
-        self.modes = tuple(modes)
-        self.loop, self.rig, self.share, self.settle, self.quiet = loop, rig, seconds / len(modes), settle_s, quiet
+    def __init__(self, loop, quiet: bool) -> None:
+        super().__init__(name="hil-progress", daemon=True)
+        self.loop, self.quiet = loop, quiet
         self._halt = threading.Event()
 
-    def elapsed(self) -> float:
-        lp = self.loop
-        return (lp.t_ns - lp.t0_ns) * 1e-9 if lp.t0_ns is not None and lp.t_ns else 0.0
-
     def run(self) -> None:
-        # every thread of this process runs SCHED_FIFO where allowed: a normal thread preempted while it
-        # holds the GIL would stall the loop and the drivers behind it
-        raise_priority(self.priority)
-        k, metering = 0, False
-        last_note = 0.0
-        while not self._halt.wait(0.005):
-            t = self.elapsed()
-            if k + 1 < len(self.modes) and t >= (k + 1) * self.share:
-                k += 1
-                metering = False
-                self.rig.phase(None)
-                self.loop.request_isolation_mode(self.modes[k])
-            elif not metering and t >= k * self.share + self.settle:
-                metering = True
-                self.rig.phase(self.modes[k])
-            if not self.quiet and t - last_note >= 1.0:
-                last_note = t
-                print(f"rig hil: t={t:5.1f} s {self.loop.state.name} isolation mode {self.loop.isolation_mode} "
-                      f"overruns {self.loop.overruns}", file=sys.stderr)
+        lp = self.loop
+        while not self._halt.wait(1.0):
+            if not self.quiet and lp.t0_ns is not None and lp.t_ns:
+                print(f"rig hil: t={(lp.t_ns - lp.t0_ns) * 1e-9:5.1f} s {lp.state.name} isolation mode "
+                      f"{lp.isolation_mode} overruns {lp.overruns}", file=sys.stderr)
 
     def stop(self) -> None:
         self._halt.set()
         self.join(1.0)
-        self.rig.phase(None)
+
+
+def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
+    """The modes in turn, an equal share of the run each, switched at those loop times (the gate's schedule: the
+    period boundary at or after them, as the lockstep run switches); each metered from settle_s into its share
+    (the emulated plant's phase, per plant step) to its end."""
+    share = seconds / len(modes)
+    for k, mode in enumerate(modes):
+        if k:
+            loop.gate.schedule(k * share, lambda m=mode: loop.request_isolation_mode(m))
+        loop.gate.schedule(k * share + settle_s, lambda m=mode: rig.phase(m))
+        loop.gate.schedule((k + 1) * share - 0.5 * loop.dt, lambda: rig.phase(None))
 
 
 def run(args) -> int:
@@ -160,7 +153,7 @@ def run(args) -> int:
     for inj in injections:
         inject.check(inj, "hil")
     if args.bench:
-        return bench(cfg, seconds, args.json)
+        return hil_bench.run(cfg, seconds if args.seconds is not None else hil_bench.SECONDS, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     if not args.json:
         print(f"rig hil: config {cfg.source}", file=sys.stderr)
@@ -168,9 +161,7 @@ def run(args) -> int:
         return _prototype(cfg, seconds, args)
     res = run_hil(cfg, seconds, record=args.record, realtime=cfg.loop.realtime and not args.no_realtime,
                   quiet=args.json, injections=injections, stability_check=not getattr(args, "force", False))
-    out = {k: res[k] for k in ("transports", "faults", "overruns", "iterations", "samples_recorded",
-                               "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db",
-                               "late_periods", "recording")}
+    out = {k: res[k] for k in JSON_KEYS if k in res}
     if res["stop_reason"] in ("SIGINT", "SIGTERM"):
         print(f"rig hil: interrupted ({res['stop_reason']}) at t = {res['t_s']:.1f} s of {seconds:g} s: the run "
               f"did not finish, no isolation figure; {out['samples_recorded']} samples recorded to "
@@ -182,22 +173,26 @@ def run(args) -> int:
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)
     print(f"rig hil: accelerometer conversions interpolated (left the module's FIFO unfetched): "
-          f"{res['lost_conversions']}", file=sys.stderr)
+          f"{res['lost_conversions']}; SYNCs sent with the period before's commands (the loop late): "
+          f"{res['late_commands']}", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
     else:
         print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at "
               f"{cfg.loop.rate_hz:g} Hz, {out['faults']} faults, {out['overruns']} overruns, "
               f"{out['samples_recorded']} samples recorded to {out['recording']}")
+        ls = res.get("lockstep_reduction_db", {})
         for key, mode in (("isolation_reduction_db", "feedback"), ("feedforward_reduction_db",
                                                                   "feedback_feedforward")):
             if mode not in res["table_rms_m"]:
                 continue
-            red = out[key]
-            print(f"reduction of table motion, {mode.replace('_', ' + ')}: "
-                  f"{'n/a' if red is None else f'{red:.1f} dB'} (rms {res['table_rms_m']['off'] * 1e6:.3f} um off -> "
-                  f"{res['table_rms_m'][mode] * 1e6:.3f} um; table/floor "
-                  f"{out['transmissibility_db'].get('off')} -> {out['transmissibility_db'].get(mode)} dB)")
+            red, sim = out[key], ls.get(mode)
+            print(f"reduction of table motion ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz), {mode.replace('_', ' + ')}: "
+                  f"{'n/a' if red is None else f'{red:.1f} dB'} through the drivers, "
+                  f"{'n/a' if sim is None else f'{sim:.1f} dB'} in lockstep"
+                  f"{'' if red is None or sim is None else f' ({red - sim:+.1f} dB)'} "
+                  f"(rms {res['table_rms_m']['off'] * 1e6:.3f} um off -> {res['table_rms_m'][mode] * 1e6:.3f} um; "
+                  f"table/floor {out['transmissibility_db'].get('off')} -> {out['transmissibility_db'].get(mode)} dB)")
         late = out["late_periods"]
         if late:
             print("late periods (woke a period late or no new accelerometer conversion), metered: " + ", ".join(
@@ -206,63 +201,73 @@ def run(args) -> int:
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
-            port_options: dict | None = None, injections=(), stability_check: bool = True) -> dict:
-    """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more)."""
+            port_options: dict | None = None, injections=(), stability_check: bool = True,
+            compare: bool = True) -> dict:
+    """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more); compare:
+    also the same run in lockstep simulated time (rig/commands/hil_lockstep.py)."""
     rate = cfg.loop.rate_hz
     if record is None:
         record = time.strftime("hil-%Y%m%d-%H%M%S.h5")
     if not quiet:
-        print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) "
-              f"at {rate:g} Hz", file=sys.stderr)
+        print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) and the "
+              f"drivers' I/O processes at {rate:g} Hz", file=sys.stderr)
     modes = ISOLATION_MODES if cfg.sensors.floor_accel else ISOLATION_MODES[:2]
     settle = min(cfg.hil.settle_s, seconds / (2 * len(modes)))      # of each mode's share, not metered
-    session = Session(cfg, "hil", rate_hz=rate, port_options=port_options, isolation=False,
+    activate = min(0.05, seconds / 10)
+    opts = {"trace_s": seconds + TRACE_MARGIN_S, **(port_options or {})}
+    session = Session(cfg, "hil", rate_hz=rate, port_options=opts, isolation=False,
                       keep_timing=int(seconds * rate) + 16, record=record,
                       record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial",
                                     "modes": ",".join(modes)},
                       realtime=realtime, signals=True, stability_check=stability_check)
-    phases = None
+    progress = None
     reason = None
     with session:
         port, loop = session.port, session.loop
         rig = port.rig
         try:
-            time.sleep(0.2)          # driver threads refresh their samples after the set-up pause
-            phases = _Phases(loop, rig, seconds, settle, quiet,
-                             cfg.hil.device_priority, modes)
-            phases.start()
+            time.sleep(0.2)          # the I/O processes refresh their samples after the set-up pause
+            schedule_modes(loop, rig, seconds, settle, modes)
+            progress = _Progress(loop, quiet)
+            progress.start()
+            pre_steps = rig.steps
             with inject.Armed(session, injections):
-                reason = session.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
+                reason = session.run(seconds=seconds, activate_after_s=activate)
         finally:
-            if phases is not None:
-                phases.stop()
+            if progress is not None:
+                progress.stop()
+            rig.phase(None)
             rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
-            lost = getattr(port.accel, "lost_conversions", 0)
+            counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds / len(modes), settle, rate)
-    table = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
-    tr = {m: 20 * math.log10(table[m] / rig.floor_rms_m(m)) if m in rig.meter and table[m] > 0 else math.nan
+    table, floor, codes = rig.trace()
+    band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter})
+    total = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
+    tr = {m: 20 * math.log10(total[m] / rig.floor_rms_m(m)) if m in rig.meter and total[m] > 0 else math.nan
           for m in modes}
-
-    def reduction(mode):
-        off, on = table["off"], table.get(mode, math.nan)
-        red = 20 * math.log10(off / on) if off > 0 and on > 0 else math.nan
-        return None if math.isnan(red) else round(red, 2)
-    return {"transports": ["canopen", "modbus_tcp", "serial"],
-            "faults": 1 if loop.lc.fault_reason else 0, "overruns": loop.overruns, "iterations": loop.iterations,
-            "samples_recorded": rec.rows_written if rec is not None else 0,
-            "isolation_reduction_db": reduction("feedback"),
-            "feedforward_reduction_db": reduction(ISOLATION_MODES[2]),
-            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-            "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
-            "table_rms_m": table,
-            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
-            "lost_conversions": lost, "stop_reason": reason,
-            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
+    red = reductions(band_rms)
+    out = {"transports": ["canopen", "modbus_tcp", "serial"],
+           "faults": 1 if loop.lc.fault_reason else 0, "overruns": loop.overruns, "iterations": loop.iterations,
+           "samples_recorded": rec.rows_written if rec is not None else 0,
+           "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
+           "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
+           "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
+           "table_rms_m": band_rms, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
+           "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
+           "stop_reason": reason, "pre_steps": pre_steps,
+           "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
+    if compare and reason not in ("SIGINT", "SIGTERM") and not out["faults"]:
+        if not quiet:
+            print("rig hil: the same design and floor in lockstep simulated time", file=sys.stderr)
+        ls = lockstep(cfg, seconds, modes, settle, activate, pre_steps)
+        out["lockstep_table_rms_m"] = ls["table_rms_m"]
+        out["lockstep_reduction_db"] = reductions(ls["table_rms_m"])
+    return out
 
 
 def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float) -> dict:
-    """Per mode (each share_s of loop time in turn, metered after settle_s, as _Phases meters): the share of its
+    """Per mode (each share_s of loop time in turn, metered after settle_s, as schedule_modes meters): the share of its
     periods that were late, from the recording: the loop woke more than a period after the deadline, or the
     accelerometers read as in the period before (the module's new conversion had not arrived: the controllers
     held). {} when the recording cannot be read."""
@@ -278,94 +283,6 @@ def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float)
         m = (t >= k * share_s + settle_s) & (t < (k + 1) * share_s)
         out[mode] = round(float(late[m].mean()), 4) if m.any() else None
     return out
-
-
-def _raw_round_trips(port, n: int) -> dict:
-    """Each transport alone (poller threads stopped, no loop): SYNC -> first valve's TPDO through canopen and the
-    emulated node, one Modbus read of 10 registers, one RD -> data frame over the pty; plus a bare python-can
-    virtual send -> recv for reference."""
-    import can                                   # a hardware library: loaded for the benchmark only
-    for dev in (port.accel, port.stroke):
-        dev._stop.set()
-        dev._trigger.set()
-        if dev._thread is not None:
-            dev._thread.join(2.0)
-            dev._thread = None
-    res = {}
-    a = can.Bus(interface="virtual", channel=port.rig.channel + "-raw", receive_own_messages=False)
-    b = can.Bus(interface="virtual", channel=port.rig.channel + "-raw", receive_own_messages=False)
-    msg = can.Message(arbitration_id=0x201, data=b"\x07\x00\x00\x10", is_extended_id=False)
-    lat = []
-    for _ in range(n):
-        t0 = time.perf_counter_ns()
-        a.send(msg)
-        b.recv(1.0)
-        lat.append((time.perf_counter_ns() - t0) * 1e-3)
-    a.shutdown()
-    b.shutdown()
-    res["can_virtual_send_recv"] = _pct(lat)
-    v = port.valves
-    lat = []
-    for _ in range(n):
-        c0 = v.counter[0]
-        t0 = time.perf_counter_ns()
-        v.sync()
-        while v.counter[0] == c0 and time.perf_counter_ns() - t0 < 50_000_000:
-            time.sleep(0)
-        lat.append((time.perf_counter_ns() - t0) * 1e-3)
-    res["canopen_sync_to_tpdo"] = _pct(lat)
-    cl, unit = port.accel.client, port.accel.unit
-    lat = []
-    for _ in range(n):
-        t0 = time.perf_counter_ns()
-        cl.read_holding_registers(0, count=10, device_id=unit)
-        lat.append((time.perf_counter_ns() - t0) * 1e-3)
-    res["modbus_read"] = _pct(lat)
-    ser, parser = port.stroke.ser, proto.FrameParser()
-    lat = []
-    for _ in range(n):
-        t0 = time.perf_counter_ns()
-        ser.write(b"RD\r")
-        got = False
-        while not got and time.perf_counter_ns() - t0 < 50_000_000:
-            got = any(isinstance(f, proto.DataFrame) for f in parser.feed(ser.read(ser.in_waiting or 1)))
-        lat.append((time.perf_counter_ns() - t0) * 1e-3)
-    res["serial_frame"] = _pct(lat)
-    return res
-
-
-def bench(cfg, seconds: float, as_json: bool) -> int:
-    """Driver round trips with the loop's read/write pattern (null commands), no controller."""
-    port = make_port(cfg, "hil")
-    period = int(1e9 / cfg.loop.rate_hz)
-    null = Commands([0.0] * port.n_mounts)
-    faults = []
-    try:
-        port.open()
-        t = time.monotonic_ns()
-        end = t + int(seconds * 1e9)
-        while t < end:
-            t += period
-            d = t - time.monotonic_ns()
-            if d > 0:
-                time.sleep(d * 1e-9)
-            m = port.read(t)
-            if m.device_fault:
-                faults.append(m.device_fault)
-            port.write(t, null)
-        out = {k: _pct(v) for k, v in port.round_trips_us().items()}
-        raw = _raw_round_trips(port, 2000)
-    finally:
-        port.close()
-    out = {"in_loop_us": out, "alone_us": raw, "rate_hz": cfg.loop.rate_hz, "device_faults": len(faults)}
-    if as_json:
-        print(json.dumps(out))
-    else:
-        for k, v in out.items():
-            print(f"{k}: {v}")
-        if faults:
-            print(f"first device fault: {faults[0]}")
-    return 0
 
 
 PROTOTYPE_SINE = "sine:amp=10um,freq=5"

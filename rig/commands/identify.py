@@ -20,6 +20,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='print only {"parameters", "std", "fit", ...} as JSON (SI units, w_nv in rad/s)')
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                        help="write identified.md (table beside Table 1), identify.json and fig3_bode.png here")
+    cliargs.output_arg(p, "--plot", metavar="FILE", default=None, suffix=".png",
+                       help="write the Bode plot of the identified model against the measured FRF (the paper's "
+                            "Fig. 3) to FILE (.png added to a name without a suffix)")
     p.add_argument("--starts", type=cliargs.count(1, 1000), default=8,
                    help="multi-start count of the FRF fit (default 8)")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the multi-start points (default 0)")
@@ -172,7 +175,7 @@ def _run_plant(args, rec, plant, t0: float) -> int:
 
 
 def run(args) -> int:
-    from rig.identify import identify
+    from rig.identify import identify, refuse_feedback_only
     from rig.plant.file import load_subject
 
     if args.starts < 1:
@@ -185,12 +188,7 @@ def run(args) -> int:
     if plant.family != "eha":
         return _run_plant(args, rec, plant, t0)
     p0 = plant.actuator
-    if rec.closed_loop and rec.reference_m is None:
-        # feedback alone: the command is a function of the measured signals (and their noise), so an FRF fit
-        # of position/command gives the loop's sensitivity, not the actuator, and looks confident doing so.
-        # A track run has its reference as external excitation: identified, with CLOSED_LOOP_NOTE below
-        raise RigError(f"{rec.source}: closed-loop recording ({rec.closed_loop}): the valve command depends on the "
-                       "measured stroke, so an actuator fit would be biased; record an open-loop chirp (rig chirp)")
+    refuse_feedback_only(rec)
 
     def progress(stage: str, frac: float) -> None:
         print(f"[{time.perf_counter() - t0:5.2f} s] {100 * frac:3.0f} % {stage}", file=sys.stderr, flush=True)
@@ -214,6 +212,9 @@ def run(args) -> int:
             print(f"identify {what} time over {len(t)} runs ({rec.n} samples at {rec.fs_hz:g} Hz): p50 "
                   f"{np.percentile(t, 50):.3f} s, p99 {np.percentile(t, 99):.3f} s, max {max(t):.3f} s", file=sys.stderr)
     paths = write_outputs(res, args.out) if args.out else {}
+    if args.plot is not None:
+        plot_fig3(res, args.plot)
+        paths["plot"] = args.plot
     if args.json:
         print(json.dumps(res.to_json(), indent=1))
         return 0

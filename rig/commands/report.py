@@ -20,6 +20,8 @@ def add_arguments(p) -> None:
                    help="seconds left out at the start of each mode (switching fade; default 1)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                        help="write report.png and report.json to DIR")
+    cliargs.output_arg(p, "--plot", metavar="FILE", default=None, suffix=".png",
+                       help="write the VC curves of each isolation mode (report.png of --out) to FILE")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
@@ -32,6 +34,9 @@ def run(args) -> int:
         report.plot(args.out / "report.png", rep)
         (args.out / "report.json").write_text(json.dumps(rep, indent=2))
         print(f"rig report: wrote {args.out / 'report.png'} and {args.out / 'report.json'}", file=sys.stderr)
+    if args.plot is not None:
+        report.plot(args.plot, rep)
+        print(f"rig report: wrote {args.plot}", file=sys.stderr)
     if args.json:
         print(json.dumps(rep, indent=2))
         return 0

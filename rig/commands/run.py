@@ -49,24 +49,26 @@ Ctrl-C during the start-up.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import logging
 import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import drivers
-from rig import cliargs, operated, report
+from rig import cliargs
 from rig.runtime import inject
 from rig.backends import BACKENDS, default_config
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
-from rig.console.runner import run_with_console
 from rig.errors import RecordingError, RigError
-from rig.runtime.lifecycle import State
-from rig.runtime.session import Session
 
-DEVICEMAPS = Path(drivers.__file__).resolve().parent / "devicemaps"
+if TYPE_CHECKING:
+    from rig.runtime.session import Session
+
+# the package's folder, found without importing it (its drivers load numba: `rig run --help` stays quick)
+DEVICEMAPS = Path(importlib.util.find_spec("drivers").submodule_search_locations[0]) / "devicemaps"
 LAYOUTS = {"prototype": {"hil": DEVICEMAPS / "prototype_hil.toml", None: DEVICEMAPS / "prototype.toml"}}
 
 log = logging.getLogger("rig.run")
@@ -128,8 +130,9 @@ def add_arguments(p) -> None:
                         "chirp:amp=A,f0=F0,f1=F1,duration=T, csv:FILE")
     p.add_argument("--script", metavar="FILE", default=None,
                    help="timed control words, one per line: `<loop time s> <word>` (# comments)")
-    cliargs.output_arg(p, "--plot", metavar="PNG", default=None, suffix=".png",
-                       help="stand layout: plot reference, position and tracking error after the run")
+    cliargs.output_arg(p, "--plot", metavar="FILE", default=None, suffix=".png",
+                       help="after the run, a PNG: the stand layout's reference, position and tracking error; the "
+                            "machine's VC curves per isolation mode (as rig report --plot)")
 
 
 def layout_config(args, backend: str | None = None):
@@ -194,6 +197,7 @@ def run(args) -> int:
     _log_to_stderr()
     plan = _RunPlan(args)
     if args.console:
+        from rig.console.runner import run_with_console
         loop, reason = run_with_console(args, plan.cfg, plan.backend, plan.new_session, plan.started)
     else:
         loop, reason = plan.run_alone()
@@ -249,8 +253,6 @@ class _RunPlan:
             raise RigError("--mode/--position/--reference: operating modes are for the stand layout "
                            "(--layout prototype)")
         self.record, self.tmp = args.record, None
-        if args.plot and not stand:
-            raise RigError("--plot: for the stand layout (--layout prototype)")
         if args.plot and self.record is None:
             fd, self.tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
             os.close(fd)
@@ -262,6 +264,7 @@ class _RunPlan:
         self.script = read_script(args.script) if args.script else None
 
     def new_session(self, record) -> Session:
+        from rig.runtime.session import Session
         # with the console a fault keeps the loop running in FAULT (valves safe, sensors read) for the operator
         args = self.args
         return Session(self.cfg, self.backend, clock=self.clock, isolation=(args.isolation == "on"),
@@ -317,8 +320,13 @@ class _RunPlan:
             finally:
                 if self.tmp:
                     os.unlink(self.tmp)
-        elif args.record:
-            _vc_summary(args.record)
+        elif record is not None:
+            try:
+                _vc_summary(record, args.plot, "the run" if self.tmp else str(record))
+            finally:
+                if self.tmp:
+                    os.unlink(self.tmp)
+        from rig.runtime.lifecycle import State
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
         return 0
@@ -332,17 +340,24 @@ def _on_stands(names) -> str:
     return f"{len(names)} actuators on their stands ({', '.join(names)})"
 
 
-def _vc_summary(path) -> None:
-    """The recording's VC classes per isolation mode, one line (rig report REC gives the curves)."""
+def _vc_summary(path, png=None, name: str | None = None) -> None:
+    """The recording's VC classes per isolation mode, one line, and with png their curves (rig report REC)."""
+    from rig import report
     try:
-        log.info("%s (curves: rig report %s)", report.summary(report.vc_of_recording(path)), path)
+        rep = report.vc_of_recording(path)
     except RecordingError as e:
-        log.info("no VC report: %s", e)
+        log.info("no VC report%s: %s", f" (no {png})" if png else "", str(e).replace(str(path), name or str(path)))
+        return
+    log.info("%s%s", report.summary(rep), "" if png else f" (curves: rig report {path} --plot FILE)")
+    if png:
+        report.plot(png, rep)
+        log.info("plot: %s", png)
 
 
 def _report(record, png, names, title: str | None = None) -> None:
     """The operated run's figures per segment on stdout, per mount (and the first mount's plot, titled with
     the recording's name, or `title` for a recording of its own that is not kept)."""
+    from rig import operated
     for i, name in enumerate(names):
         run = operated.load_operated(record, name)
         if title:

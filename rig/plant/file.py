@@ -18,6 +18,7 @@ Only [plant] is read here; the signal map ([signals]) is read by the recording's
 """
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from dataclasses import dataclass
@@ -74,6 +75,9 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
     family = table.get("family", "eha")
     if family not in FAMILIES:
         raise ConfigError(f"{where} family: {family!r} is not a plant family (expected one of {', '.join(FAMILIES)})")
+    if family == "mechanical_axis" and "input_unit" not in table:
+        raise ConfigError(f"{where} input_unit: missing: the command's unit (\"N\" when the command is a force, "
+                          f"else \"V\" or \"A\" with gain_n_per_unit, the force per unit of command)")
     unit = table.get("input_unit", "V")
     if unit not in INPUT_UNITS:
         raise ConfigError(f"{where} input_unit: {unit!r} (expected one of {', '.join(INPUT_UNITS)})")
@@ -136,6 +140,9 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
     return Plant(family, params, unit, source, order=(nn, nd))
 
 
+PLANT_FILE_TABLES = ("plant", "signals")      # docs/PLANT.md
+
+
 def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
     """The plant of a plant file (its [plant] table; no table: the default eha plant)."""
     path = Path(path)
@@ -147,6 +154,12 @@ def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML ({e})") from None
+    unknown = sorted(set(data) - set(PLANT_FILE_TABLES))
+    if unknown:
+        near = difflib.get_close_matches(unknown[0], PLANT_FILE_TABLES, n=1)
+        raise ConfigError(f"{path}: [{unknown[0]}]: not a table of a plant file (expected "
+                          f"{' and '.join(f'[{t}]' for t in PLANT_FILE_TABLES)}"
+                          + (f"; did you mean [{near[0]}]?)" if near else ")"))
     if "plant" not in data:
         return eha_plant(p0, str(path))
     return parse_plant(data["plant"], str(path), p0)
@@ -161,13 +174,19 @@ class Subject:
     against: str
 
 
+def plant_for(plant_path=None, config_path=None) -> Plant:
+    """The plant a recording is held against: the plant file's, else the eha actuator of the configuration's
+    [actuator] (default Table 1)."""
+    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
+    return load_plant(plant_path, p0) if plant_path is not None else eha_plant(
+        p0, str(Path(config_path)) if config_path else "Table 1")
+
+
 def load_subject(recording, plant_path=None, config_path=None) -> Subject:
     """Read the recording (through the plant file's signal map when it has one) and the plant, and check them
     together: the command's unit is the plant's input, the values plausible. One line for any problem
     (ConfigError, RecordingError)."""
-    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
-    plant = load_plant(plant_path, p0) if plant_path is not None else eha_plant(
-        p0, str(Path(config_path)) if config_path else "Table 1")
+    plant = plant_for(plant_path, config_path)
     rec = load_recording_for(recording, plant_path)
     if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"

@@ -156,7 +156,7 @@ class Armed:
             else:
                 self._pending.append(inj)
         if any(i.kind in ("overrun", "stall") for i in self._pending):
-            loop.port = _SlowRead(loop.port, self)          # the loop's reads only; the gate keeps the port
+            loop.slow_down(self.slow)          # the loop's own step before its kernel; the gate keeps the port
         if self._pending:
             self._thread = threading.Thread(target=self._run, name="rig-inject", daemon=True)
             self._thread.start()
@@ -201,22 +201,11 @@ class Armed:
                 emu.set_serial(inj.kind)
 
 
-class _SlowRead:
-    """The loop's port with a read that takes extra time when an overrun or stall is being drilled. It sleeps
-    rather than spins: the driver threads of the process keep the interpreter meanwhile, as they would while
-    the loop waits on a slow device (a spinning wait would starve them and fault them instead)."""
-
-    def __init__(self, port, armed: Armed) -> None:
-        self._port, self._armed = port, armed
-
-    def __getattr__(self, name):
-        return getattr(self._port, name)
-
-    def read(self, t_ns: int):
-        a = self._armed
-        if a._extra_ns:
-            extra = a._extra_ns
-            if not a._extra_every:
-                a._extra_ns = 0
+    def slow(self) -> None:
+        """The extra time of a drilled overrun or stall, in the loop's period before its kernel. It sleeps
+        rather than spins, as the loop would while it waits on a slow device."""
+        if self._extra_ns:
+            extra = self._extra_ns
+            if not self._extra_every:
+                self._extra_ns = 0
             time.sleep(extra * 1e-9)
-        return self._port.read(t_ns)

@@ -24,7 +24,9 @@ keeps numba's argument unboxing small: it is most of the cost of a call this siz
 from __future__ import annotations
 
 import functools
+import hashlib
 import struct
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -38,25 +40,53 @@ from controllers.timebase import same_period
 from controllers.tracking import track_step
 from rig.config import MAX_MOUNTS, Config
 from rig.errors import ConfigError
+from rig.port import Measurements
+from rig.runtime import exchange as ex
 from rig.runtime import ring as ring_rule
 from rig.runtime.layout import RowLayout, loop_channels
+from rig.runtime.measured import MeasuredBlock
 from rig.runtime.recorder import Channel
 from rig.runtime.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimiter, OscillationRule, SensorCheck,
                         _F_LIMITED, _F_SATRUN, _L_OSC_N, OSC_STATE, check_floor, check_oscillation, check_sensors,
                         limit_commands)
 
+def _drop_stale_cache() -> None:
+    """numba's cache knows a compiled function by its own file only, and the period compiles in the exchange
+    block's and the safety rules' constants (rig/runtime/exchange.py, safety.py): when those files change, this
+    module's cached code is dropped, so it is compiled again with the new constants."""
+    here = Path(__file__).resolve()
+    deps = [here, here.with_name("exchange.py"), here.with_name("safety.py")]
+    stamp = hashlib.sha1(b"".join(p.read_bytes() for p in deps)).hexdigest()
+    cache = Path(numba.config.CACHE_DIR) if numba.config.CACHE_DIR else here.parent / "__pycache__"
+    mark = cache / f"{here.stem}.deps"
+    try:
+        if mark.read_text() == stamp:
+            return
+    except OSError:
+        pass
+    for f in cache.glob(f"{here.stem}.*.nb[ic]"):
+        f.unlink(missing_ok=True)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        mark.write_text(stamp)
+    except OSError:             # a read-only install: its cache came with it
+        pass
+
+
+_drop_stale_cache()
+
 KIND_OFF = 0
 KINDS = {KIND_OFF: "off", isolation.KIND: "isolation", playback.KIND: "playback", tracking.KIND: "pid",
          modes.KIND: "modes"}
 _ISO, _PLAY, _PID, _MODES = isolation.KIND, playback.KIND, tracking.KIND, modes.KIND
-OLDER_CAP = 64              # conversions a sample-driven port may hand over besides the newest (its FIFO)
+OLDER_CAP = 128             # conversions taken in one period besides the newest (a hold-up of 64 ms at 2 kHz)
 
 MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTIVE steps, writes null
 # the inputs, then MOUNT_INPUTS; state .. skipped: the row's flag columns (the lifecycle state, isolation on, the
 # scheduler's overrun and skipped counts at the period's start)
 INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step", "state", "isolation",
           "overruns", "skipped")
-MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel")   # n each; floor_accel with floor sensors only
+MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel", "stroke_t")   # n each; floor_accel: floor sensors
 (_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
  _IN_SKIP) = range(len(INPUTS))
 _FAULT_STATE = 3.0          # rig.runtime.lifecycle.State.FAULT (the row's fault column)
@@ -64,10 +94,16 @@ MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
           "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
-          "r_ff_on", "r_flags")
+          "r_ff_on", "r_flags", "dt_ns", "a_last", "t_prev", "held_up", "x_age")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
  _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
- _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS) = range(len(HEADER))
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS, _H_DTNS, _H_ALAST, _H_TPREV, _H_HELD, _H_XAGE) = range(len(HEADER))
+# The period's input rules over the exchange block (codes beside the safety rules' of rig/runtime/safety.py)
+CHECK_STROKE_STALE = 1000   # the transducer's newest sample older than its own limit (it is held between frames)
+DEVICE_FAULT = 1100         # + device: a device reported a fault (its line: the block's text part)
+DEVICE_SILENT = 1200        # + device: a device's I/O has not reported for longer than its limit
+BEHIND = 1300               # the loop fell further behind the accelerometer module than it replays
+NO_SAMPLE = 1400            # no conversion (or no transducer sample) published yet
 _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
 # The feedforward part of the block: the floor range, then per mount FF_TABLE
 FF_TABLE = ("coef", "n_sections", "state", "fade")
@@ -157,8 +193,9 @@ def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
     m0 = i + len(INPUTS)
     rc, rr = int(mem[_H_RC]), int(mem[_H_RR])
     lim = mem[int(mem[_H_LIM]):int(mem[_H_LIM]) + len(LIMITS)]
-    chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + 5 * n].reshape((5, n))
-    code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[i + _IN_T_NS])
+    chk = mem[int(mem[_H_CHK]):int(mem[_H_CHK]) + len(CHECK_STATE) * n].reshape((len(CHECK_STATE), n))
+    code = check_sensors(chk, lim, acc, xs, mem[m0 + 2 * n:m0 + 3 * n], mem[m0 + 3 * n + nf:m0 + 4 * n + nf],
+                         mem[i + _IN_T_NS])
     if code == 0 and nf:
         code = check_floor(fl, mem[int(mem[_H_FF])])
     if code != 0:
@@ -253,29 +290,145 @@ def run_period(mem, ring, hdr):
     return code
 
 
-_ENTRIES: dict = {}
+@numba.njit(cache=True)
+def _take_conversions(mem, io, t_ns, i, n, nf):
+    """The accelerometer module's newest conversion into the inputs (mount accelerations, their time stamps,
+    floor accelerations) and, counted, the older ones since the last period into the block's older part; latest
+    value only: the periods skipped since the last one (replayed). 0, or BEHIND / NO_SAMPLE."""
+    a = int(io[ex.H_ACCEL])
+    cap, w = int(io[ex.H_ACAP]), int(io[ex.H_AWIDTH])
+    newest = io[a + ex.A_NEWEST]
+    ex.fence()
+    if newest < 0:
+        return NO_SAMPLE
+    m0 = i + len(INPUTS)
+    s = a + ex.A_SLOTS + (int(newest) % cap) * w
+    mem[m0 + 2 * n:m0 + 3 * n] = io[s + 1:s + 1 + n]
+    mem[m0:m0 + n] = io[s + 1 + n:s + 1 + 2 * n]
+    mem[m0 + 3 * n:m0 + 3 * n + nf] = io[s + 1 + 2 * n:s + 1 + 2 * n + nf]
+    ex.fence()
+    if io[s + ex.SLOT_COUNTER] != newest:         # rewritten meanwhile: the module lapped the loop
+        mem[_H_HELD] = cap
+        return BEHIND
+    last = mem[_H_ALAST]
+    mem[_H_ALAST] = newest
+    if io[a + ex.A_COUNTED] < 0.5:                # the latest value: skipped periods are replayed
+        tp = mem[_H_TPREV]
+        miss = int((t_ns - tp) // mem[_H_DTNS]) - 1 if tp >= 0 else 0
+        mem[i + _IN_MISS] = miss if miss > 0 else 0
+        mem[i + _IN_OLDER] = 0.0
+        mem[i + _IN_STEP] = 1.0
+        return 0
+    k = 1 if last < 0 else int(newest - last)
+    older = k - 1 if k > 0 else 0
+    mem[i + _IN_MISS] = 0.0
+    mem[i + _IN_STEP] = 1.0 if k > 0 else 0.0
+    mem[i + _IN_OLDER] = older
+    if older > OLDER_CAP:
+        mem[_H_HELD] = older
+        return BEHIND
+    o, wc = int(mem[_H_OLDER]), n + nf
+    for j in range(older):
+        c = last + 1 + j
+        sj = a + ex.A_SLOTS + (int(c) % cap) * w
+        mem[o + j * wc:o + j * wc + n] = io[sj + 1 + n:sj + 1 + 2 * n]
+        mem[o + j * wc + n:o + (j + 1) * wc] = io[sj + 1 + 2 * n:sj + 1 + 2 * n + nf]
+        ex.fence()
+        if io[sj + ex.SLOT_COUNTER] != c:
+            mem[_H_HELD] = older
+            return BEHIND
+    return 0
 
 
-def period_entry(n: int, floor: bool = False):
-    """The period's entry for n mounts: the inputs (INPUTS, then accelerations, strokes, sample times and,
-    with floor sensors, floor accelerations) as float64 scalars, stored into the block, then run_period.
-    Scalars are the cheapest arguments to hand over (about as cheap as packing them into the block in Python,
-    without the second call), so the entry is generated per mount count (and floor input), once per process,
-    with exactly that signature: a loop without floor sensors hands over nothing more than before."""
-    key = (n, bool(floor))
-    if key not in _ENTRIES:
-        meas = [f"a{i}" for i in range(n)] + [f"x{i}" for i in range(n)] + [f"ts{i}" for i in range(n)]
-        meas += [f"g{i}" for i in range(n)] if floor else []
-        args = list(INPUTS) + meas
-        name = f"period_{n}{'_floor' if floor else ''}"
-        src = (f"def {name}(mem, ring, hdr, {', '.join(args)}):\n    i = int(mem[{_H_IN}])\n"
-               + "".join(f"    mem[i + {k}] = {a}\n" for k, a in enumerate(args))
-               + "    return run_period(mem, ring, hdr)\n")
-        scope = {"run_period": run_period}
-        exec(src, scope)
-        sig = f"int64(float64[::1], float64[:, ::1], int64[::1], {', '.join(['float64'] * len(args))})"
-        _ENTRIES[key] = native_entry(numba.njit(sig)(scope[name]))
-    return _ENTRIES[key]
+@numba.njit(cache=True)
+def _take(mem, io, t_ns):
+    """The period's inputs from the exchange block (rig/runtime/exchange.py): the conversions, the transducer's
+    newest sample (held between its frames, checked against its own staleness limit) and the devices' reports.
+    0, or the code of the input rule that fired. The age of the samples used goes to the block's ages ring."""
+    n, nf, i = int(mem[_H_N]), int(mem[_H_NFL]), int(mem[_H_IN])
+    code = _take_conversions(mem, io, t_ns, i, n, nf)
+    mem[_H_TPREV] = t_ns
+    if code != 0:
+        return code
+    so, scap, sw = int(io[ex.H_STROKE]), int(io[ex.H_SCAP]), int(io[ex.H_SWIDTH])
+    t_x = 0.0
+    for _ in range(2):                            # (a sample rewritten while read: the newer one, once more)
+        sn = io[so + ex.S_NEWEST]
+        ex.fence()
+        if sn < 0:
+            return NO_SAMPLE
+        ss = so + ex.S_SLOTS + (int(sn) % scap) * sw
+        m0 = i + len(INPUTS)
+        mem[m0 + n:m0 + 2 * n] = io[ss + 2:ss + 2 + n]
+        t_x = io[ss + 1]
+        mem[m0 + 3 * n + nf:m0 + 4 * n + nf] = t_x
+        ex.fence()
+        if io[ss + ex.SLOT_COUNTER] == sn:
+            break
+    lim = io[so + ex.S_STALE]
+    if lim > 0 and t_ns - t_x > lim:
+        mem[_H_XAGE] = t_ns - t_x
+        return CHECK_STROKE_STALE
+    dv, nd = int(io[ex.H_DEV]), int(io[ex.H_NDEV])
+    for d in range(nd):
+        r = dv + d * int(io[ex.H_DWIDTH])
+        if io[r + ex.D_FAULT] != 0:
+            return DEVICE_FAULT + d
+        sil = io[r + ex.D_SILENT]
+        if sil > 0 and t_ns - io[r + ex.D_BEAT] > sil:
+            mem[_H_XAGE] = t_ns - io[r + ex.D_BEAT]
+            return DEVICE_SILENT + d
+    g, gcap = int(io[ex.H_AGES]), int(io[ex.H_AGESCAP])
+    k = int(io[g])
+    j = g + 1 + 2 * (k % gcap)
+    io[j] = t_ns - mem[i + len(INPUTS) + 2 * n]
+    io[j + 1] = t_ns - t_x
+    io[g] = k + 1
+    return 0
+
+
+_IO_SIG = ("int64(float64[::1], float64[:, ::1], int64[::1], float64[::1], float64, float64, float64, float64, "
+           "float64, float64, float64, float64, float64)")
+
+
+@numba.njit(cache=True)
+def period_io(mem, ring, hdr, io, t_ns, t_s, wake_us, comp_us, mode, state, isolation, overruns, skipped):
+    """One period over the exchange block: take the inputs (_take), run_period, and outside FAULT, when no rule
+    fired, write the period's commands (the limited ones ACTIVE, the null INACTIVE) into the block for the port
+    (rig/runtime/exchange.py put_commands). 0 or the code of the rule that fired (an input rule's: the period
+    recorded as FAULT, nothing written)."""
+    i = int(mem[_H_IN])
+    mem[i + _IN_T_NS] = t_ns
+    mem[i + _IN_T_S] = t_s
+    mem[i + _IN_WAKE] = wake_us
+    mem[i + _IN_COMP] = comp_us
+    mem[i + _IN_MODE] = mode
+    mem[i + _IN_STATE] = state
+    mem[i + _IN_ISO] = isolation
+    mem[i + _IN_OVER] = overruns
+    mem[i + _IN_SKIP] = skipped
+    code = _take(mem, io, t_ns)
+    if code != 0:
+        mem[i + _IN_MODE] = MODE_FAULT
+        run_period(mem, ring, hdr)
+        return code
+    code = run_period(mem, ring, hdr)
+    if code == 0 and mode != MODE_FAULT:
+        rc = int(mem[_H_ROW]) + int(mem[_H_RC])
+        ex.put_commands(io, t_ns, mem[rc:rc + int(mem[_H_N])])
+    return code
+
+
+_ENTRY: list = []
+
+
+def io_entry():
+    """The compiled period over an exchange block (period_io), its native entry: compiled (or loaded from
+    numba's cache) on the first call, which a Session makes before its port starts any device."""
+    if not _ENTRY:
+        period_io.compile(_IO_SIG)
+        _ENTRY.append(native_entry(period_io))
+    return _ENTRY[0]
 
 
 def native_entry(dispatcher):
@@ -315,7 +468,7 @@ class PeriodKernel:
         ffs = list(feedforward) if feedforward else []
         _check_feedforward(names, ffs, dt)
         nf = n if ffs else 0
-        self.n, self.ctrls, self.names = n, list(controllers), tuple(names)
+        self.n, self.ctrls, self.names, self.dt = n, list(controllers), tuple(names), dt
         self.ffs, self.nf = ffs, nf
         self.floor_range = cfg.sensors.floor_range_mps2
         self.state_labels = tuple(f"{m}.{s}" for m, c in zip(names, controllers) for s in c.state_names)
@@ -332,7 +485,7 @@ class PeriodKernel:
         ff_nst = [len(f.initial_state()) for f in ffs]
         # the controllers' coefficients last: a tracking controller's profile table (track_profile_s of
         # samples) would otherwise sit between the parts every period touches
-        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 3 * n + nf, "older": OLDER_CAP * (n + nf),
+        parts = {"header": len(HEADER), "inputs": len(INPUTS) + 4 * n + nf, "older": OLDER_CAP * (n + nf),
                  "prev": 2 * n + nf, "limits": len(LIMITS), "check": len(CHECK_STATE) * n, "last_cmd": n,
                  "flags": len(LIMITER_FLAGS), "mounts": len(MOUNT_TABLE) * n, "states": sum(nst),
                  "pub": len(self.published) * n, "osc": n * self.osc.width,
@@ -359,10 +512,10 @@ class PeriodKernel:
         self.row = mem[off["row"]:off["row"] + lay.ncols]
         self.no_ring = np.zeros((0, lay.ncols))       # stands in for the ring without a recorder (no rows) ...
         self.no_hdr = np.zeros(len(ring_rule.HEADER), dtype=np.int64)     # ... and for its header
-        self._older_bytes = 8 * off["older"]
-        self._older_width = n + nf                  # a conversion: mount accelerations, then floor ones
-        self._pack_older = struct.Struct(f"<{n + nf}d").pack_into
+        self._in = off["inputs"] + len(INPUTS)          # the measurement inputs: accel, stroke, sample_t, floor
+        self._in_t = off["inputs"] + _IN_T_NS
         self._prev_x = off["prev"] + n                  # the last checked stroke per mount
+        self._local = None                              # period(): a block of its own for a Measurements
         unpack = struct.Struct(f"<{n}d").unpack_from
         # commands(): the limited commands of the last period (the row's valve_cmd_V), a tuple; a partial of
         # the C unpack, no Python frame (the loop's hot path)
@@ -370,7 +523,7 @@ class PeriodKernel:
         self._raw = functools.partial(unpack, mem, 8 * (off["row"] + lay["valve_cmd_raw_V"]))
         self.reset_check()
         self.fresh_states()
-        self.call = period_entry(n, bool(nf))          # compiled (or loaded) now, not in the first period
+        self.call = io_entry()                          # compiled (or loaded) now, not in the first period
 
     def _header(self, off: dict, max_held_steps: int, n_states: int) -> tuple:
         """The block's header (HEADER's order): where each part and each row column is."""
@@ -384,7 +537,7 @@ class PeriodKernel:
                 off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
                 nf, off["ff"],
                 *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                  else (lay.ncols,) * 3), lay["lifecycle_state"])
+                  else (lay.ncols,) * 3), lay["lifecycle_state"], round(self.dt * 1e9), -1.0, -1.0, 0.0, 0.0)
 
     def _place_controllers(self, off: dict, coefs: list, nst: list) -> None:
         """Each mount's controller: its table entry, its coefficients and state in the block, and where its
@@ -419,25 +572,35 @@ class PeriodKernel:
             so += ff_nst[m]
 
     # ---- the period -----------------------------------------------------------------------------------
-    def pack_older(self, older) -> int:
-        """A sample-driven port's conversions before the newest into the block (rare); how many."""
-        if len(older) > OLDER_CAP:
-            raise ValueError(f"{len(older)} older conversions in one read (at most {OLDER_CAP})")
-        for k, a in enumerate(older):
-            self._pack_older(self.mem, self._older_bytes + 8 * self._older_width * k, *a[:self._older_width])
-        return len(older)
+    def measurements(self):
+        """The period's measurement as the kernel took it (rig.port.Measurements): accelerations, strokes, the
+        accelerometers' time stamps, the floor accelerations."""
+        n, nf, m0 = self.n, self.nf, self._in
+        mem = self.mem
+        return Measurements(int(mem[self._in_t]), mem[m0:m0 + n].tolist(), mem[m0 + n:m0 + 2 * n].tolist(),
+                            [int(x) for x in mem[m0 + 2 * n:m0 + 3 * n]],
+                            floor_accel_mps2=mem[m0 + 3 * n:m0 + 3 * n + nf].tolist())
 
     def period(self, m, t_ns: int, t_s: float, wake_us: float, comp_us: float, mode: int, miss: int,
                ring=None, hdr=None, flags=(0, False, 0, 0)) -> int:
-        """One period for the measurement `m` (rig.port.Measurements): 0 or a rule's code; given a recorder's
-        ring and header, its row written there; flags: the row's (lifecycle state, isolation, overruns,
-        skipped). (The loop makes this call itself, inlined, on its hot path.)"""
-        ns = m.new_samples
+        """One period for the measurement `m` (rig.port.Measurements) through a block of its own (the loop's
+        path, for tests and tools): 0 or a rule's code; given a recorder's ring and header, its row written
+        there; miss: periods skipped before this one (a latest-value measurement); flags: the row's (lifecycle
+        state, isolation, overruns, skipped)."""
+        if self._local is None:
+            self._local = MeasuredBlock(self.n, self.nf)
+        if m.new_samples is None:
+            self.mem[_H_TPREV] = t_ns - (miss + 1) * self.mem[_H_DTNS]
+        self._local.put(m)
         if ring is None:
             ring, hdr = self.no_ring, self.no_hdr
-        return self.call(self.mem, ring, hdr, t_ns, t_s, wake_us, comp_us, mode, miss if ns is None else 0,
-                         self.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0, *flags,
-                         *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *(m.floor_accel_mps2 if self.nf else ()))
+        return self.call(self.mem, ring, hdr, self._local.io, float(t_ns), t_s, wake_us, comp_us, float(mode),
+                         *(float(f) for f in flags))
+
+    @staticmethod
+    def mem_index(name: str) -> int:
+        """The header word `name` (HEADER)."""
+        return HEADER.index(name)
 
     def record_flags(self, state, isolation: bool, overruns: int, skipped: int) -> None:
         """The row's flag columns, after a period that faulted past the compiled call (row_flags)."""

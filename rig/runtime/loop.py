@@ -22,16 +22,16 @@ mount) the loop takes the port's floor accelerometers (Measurements.floor_accel_
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 
 from rig.runtime.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
 from rig.runtime.gate import LifecycleGate
-from rig.runtime.kernel import MODE_ACTIVE, MODE_FAULT, MODE_INACTIVE, OLDER_CAP, PeriodKernel
+from rig.runtime.kernel import (BEHIND, CHECK_STROKE_STALE, DEVICE_FAULT, DEVICE_SILENT, MODE_ACTIVE, MODE_FAULT,
+                                MODE_INACTIVE, OLDER_CAP, PeriodKernel)
+from rig.runtime.measured import MalformedMeasurement, MeasuredPort
 from rig.runtime.lifecycle import State
-from rig.port import Commands
 from rig.runtime.safety import CHECK_FLOOR, LIMIT_NAN, LIMIT_OSC, floor_reason
 from rig.runtime.scheduler import Scheduler
 from rig.runtime.tap import RecordingTap
@@ -74,17 +74,15 @@ class Loop:
                               f"has none ([sensors] floor_accel)")
         self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS, feedforward)
         self.channels = self.kernel.layout.channels         # the recording layout of this loop
-        self._floor = bool(self.kernel.nf)                   # the kernel takes the floor accelerometers
         self.tap = RecordingTap(self.kernel)
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
                                   stop_on_fault=stop_on_fault, feedforward=feedforward_on)
         self.gate.bind_recorder = self.tap.bind
         self.gate.loop_time_s = lambda: self._t_s(self.gate.t_ns)
         self.check, self.limiter, self.states = self.kernel.check, self.kernel.limiter, self.kernel.states
-        self._commands = Commands([0.0] * self.n)          # the port must copy, not keep, the list
+        self._bind_port(port)
         self.recorder = recorder
-        self.last_meas = None
-        self._last_cycle_t = None            # start of the previous cycle (skipped periods in between)
+        self._read = False                   # a period has taken a measurement (last_meas)
         self._susp_every = max(1, int(round(0.1 * self.rate_hz)))   # suspension watch (event/log), 10 Hz
         self._susp_count = self._susp_every
         # the 10 Hz watch runs in the period when its count reaches this: 0 in simulated time; on the real clock
@@ -94,60 +92,87 @@ class Loop:
         self._susp = [False] * self.n
         self._port_idle = getattr(port, "idle", None)      # the port's slack housekeeping (optional), bound once
 
+    def _bind_port(self, port) -> None:
+        """The port's exchange block (rig/runtime/exchange.py), or one of the loop's own for a port that only
+        reads and writes (rig/runtime/measured.py); its steps before the period (`update`) and after it
+        (`commit`), bound once."""
+        block = getattr(port, "exchange", None)
+        if block is None:
+            feed = MeasuredPort(port, self.n, self.kernel.nf)
+            block, self._update, self._commit, self._feed = feed.exchange, feed.update, feed.commit, feed
+        else:
+            self._update, self._commit = getattr(port, "update", None), getattr(port, "commit", None)
+            self._feed = None
+        if block.n != self.n or block.nf < self.kernel.nf:
+            raise ConfigError(f"loop: the {port.name} port's exchange block has {block.n} mounts and {block.nf} floor "
+                              f"accelerometers; the loop has {self.n} and {self.kernel.nf}")
+        self.exchange = block
+        self._io = block.io
+
+    def slow_down(self, extra) -> None:
+        """extra() runs in every period before the port's update (fault rehearsal: rig/runtime/inject.py)."""
+        update = self._update
+
+        def slowed(t_ns: int) -> None:
+            extra()
+            if update is not None:
+                update(t_ns)
+        self._update = slowed
+
     # ---- one period ----------------------------------------------------------------------------------
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
-        """read -> kernel -> write -> record for the period starting at t_ns."""
+        """The port's update -> kernel (takes the inputs from the exchange block, checks, controls, limits,
+        writes the commands there, records) -> the port's commit, for the period starting at t_ns."""
         gate, kernel, tap, sched = self.gate, self.kernel, self.tap, self.sched
-        prev_t, self._last_cycle_t = self._last_cycle_t, t_ns
         gate.t_ns = t_ns
         if gate.pending:
             gate.apply_requests()
         self._susp_count -= 1
         if self._susp_count <= self._watch_late:    # 10 Hz: suspension events; the recorder's writer alive
             self._watch()
-        try:
-            m = self.port.read(t_ns)
-        except Exception as e:              # noqa: BLE001 - a driver error is a fault, not a dead loop
-            gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
-            return
-        self.last_meas = m
+        update = self._update
+        if update is not None:
+            try:
+                update(t_ns)
+            except MalformedMeasurement as e:       # a driver bug
+                gate.fault(f"malformed measurement from the port: {e}")
+                return
+            except Exception as e:          # noqa: BLE001 - a driver error is a fault, not a dead loop
+                gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
+                return
         wd = sched.wd
-        if (wd is not None and wd.tripped) or m.device_fault or m.accel_older:
-            m = self._held_up(m, wd)        # rare: the watchdog, a device fault, conversions to replay
-        lc = gate.lc
-        st = lc.state
+        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
+            gate.fault(wd.tripped)              # (in this period: its line, not the aftermath)
+        st = gate.lc.state
         recording = tap.recorder is not None
         if tap.waits:
             tap.wait_room()                 # simulated time: the writer's room for the row
-        ns = m.new_samples
-        miss = (t_ns - prev_t) // self.period_ns - 1 if prev_t is not None and ns is None else 0
         t0 = sched.t0_ns
-        fl = m.floor_accel_mps2 if self._floor else ()
-        try:        # the inputs as scalars straight into the compiled entry (PeriodKernel.period, inlined)
-            code = kernel.call(kernel.mem, tap.ring, tap.hdr, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
-                               wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], miss if miss > 0 else 0,
-                               kernel.pack_older(m.accel_older) if m.accel_older else 0, ns is None or ns > 0,
-                               st, gate.isolation, sched.overruns, sched.skipped,
-                               *m.accel_mps2, *m.stroke_m, *m.sample_t_ns, *fl)
-        except (TypeError, ValueError) as e:      # a malformed measurement (a driver bug)
-            gate.fault(f"malformed measurement from the port: {e.__class__.__name__}: {e}")
-            code = -1
+        code = kernel.call(kernel.mem, tap.ring, tap.hdr, self._io, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
+                           wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], st, gate.isolation, sched.overruns,
+                           sched.skipped)
+        self._read = True
         if code > 0:
-            gate.fault(self._reason(code, m, t_ns))
-        elif code == 0 and st is _ACTIVE:
-            self._commands.valve_cmd_V[:] = kernel.commands()
+            gate.fault(self._reason(code, t_ns))
+        elif self._commit is not None:
             try:
-                self.port.write(t_ns, self._commands)
+                self._commit(t_ns)
             except Exception as e:          # noqa: BLE001
                 gate.fault(f"port write failed: {e.__class__.__name__}: {e}")
-        elif code == 0 and st is _INACTIVE:
-            gate.write_null()
-        faulted = lc.state is not st
+        faulted = gate.lc.state is not st
         if faulted:                          # the period is recorded with its fault and nothing written
             kernel.null_commands()
-            kernel.record_flags(lc.state, gate.isolation, sched.overruns, sched.skipped)
+            kernel.record_flags(gate.lc.state, gate.isolation, sched.overruns, sched.skipped)
         if recording and (faulted or code or tap.pushes):    # the kernel recorded the row as it stands
-            tap.close(code >= 0)
+            tap.close(True)
+
+    @property
+    def last_meas(self):
+        """The measurement the last period took (rig.port.Measurements; the port's own read when it has no
+        exchange block), None before the first."""
+        if not self._read:
+            return None
+        return self._feed.last if self._feed is not None else self.kernel.measurements()
 
     def _watch(self) -> None:
         """The 10 Hz watch: the controllers' saturation recovery (events), the recorder's writer alive."""
@@ -164,29 +189,46 @@ class Loop:
         if self._port_idle is not None:
             self._port_idle()
 
-    def _held_up(self, m, wd):
-        """The period's rare checks after the read: the watchdog tripped inside this period (its line, not the
-        aftermath), a device fault, more older conversions than the kernel replays (FAULT; recorded as the
-        fault period, the newest only). The measurement to use."""
-        gate = self.gate
-        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
-            gate.fault(wd.tripped)
-        if m.device_fault and gate.lc.state is not _FAULT:
-            gate.fault(f"device fault: {m.device_fault}")
-        if m.accel_older and len(m.accel_older) > OLDER_CAP and gate.lc.state is not _FAULT:
-            gate.fault(f"the loop fell {len(m.accel_older)} conversions behind the accelerometer module (it "
-                       f"replays at most {OLDER_CAP}): held up for about {len(m.accel_older) * self.dt * 1e3:.0f} ms")
-            m = dataclasses.replace(m, accel_older=())
-        return m
-
-    def _reason(self, code: int, m, t_ns: int) -> str:
+    def _reason(self, code: int, t_ns: int) -> str:
+        """The one-line fault text of a rule's code (off the hot path)."""
+        k = self.kernel
+        if code >= CHECK_STROKE_STALE:
+            return self._input_reason(code)
+        m = k.measurements()
         if code - code % 100 == CHECK_FLOOR:
-            return floor_reason(code, self.names, m.floor_accel_mps2, self.kernel.floor_range)
+            return floor_reason(code, self.names, m.floor_accel_mps2, k.floor_range)
         if code < LIMIT_NAN:
-            return self.check.reason(code, self.kernel.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
+            text = self.check.reason(code, k.check_state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t_ns)
+            named = getattr(self.port, "stale_reason", None)      # a port that knows which device went quiet
+            if named is not None and ": stale sample:" in text:
+                text = named(t_ns, float(self.check.stale_ns)) or text
+            return text
         if code >= LIMIT_OSC:
-            return self.kernel.osc.reason(code, self.kernel.osc_state)
+            return k.osc.reason(code, k.osc_state)
         return self.limiter.reason(code)
+
+    def _input_reason(self, code: int) -> str:
+        """The text of an input rule (rig/runtime/kernel.py _take): a device's own line, a device silent, the
+        transducer's sample too old, the loop behind the accelerometer module."""
+        k, block = self.kernel, self.exchange
+        what = k.mem[k.mem_index("x_age")] / 1e6
+        if code == CHECK_STROKE_STALE:
+            lim = block.io[block.part("stroke") + 1] / 1e6
+            return (f"displacement transducers: newest sample {what:.1f} ms old (limit {lim:g} ms, the "
+                    f"transducer's own staleness limit): the amplifier's frames stopped")
+        if DEVICE_FAULT <= code < DEVICE_SILENT:
+            return f"device fault: {block.text(code - DEVICE_FAULT)}"
+        if DEVICE_SILENT <= code < BEHIND:
+            d = code - DEVICE_SILENT
+            lim = block.device_row(d)[2] / 1e6
+            why = getattr(self.port, "silent_reason", lambda d: None)(d)
+            return (f"device fault: {block.device_name(d)}: {why or 'its I/O process has not reported'} "
+                    f"(nothing for {what:.1f} ms, limit {lim:g} ms)")
+        if code == BEHIND:
+            held = int(k.mem[k.mem_index("held_up")])
+            return (f"{held} accelerometer conversions came in one period (the loop takes at most {OLDER_CAP}): the "
+                    f"loop or the module's I/O was held up for about {held * self.dt * 1e3:.0f} ms")
+        return "no measurement from the port yet (no accelerometer conversion or transducer sample)"
 
     def _t_s(self, t_ns: int) -> float:
         t0 = self.sched.t0_ns

@@ -41,8 +41,9 @@ LIMITS = ("accel_range_mps2", "stroke_bound_m", "stale_ns", "stuck_n", "max_V", 
           "osc_level_V", "osc_window_ns", "osc_swings")
 _L_AR, _L_XB, _L_STALE, _L_STUCK, _L_MAX, _L_STEP, _L_SAT, _L_OSC_LEVEL, _L_OSC_WIN, _L_OSC_N = range(10)
 # Named state of the check (rows of a (5, n) array) and of the limiter (last command per mount, then flags)
-CHECK_STATE = ("last_sample_t_ns", "last_accel_mps2", "last_stroke_m", "same_accel_count", "same_stroke_count")
-_C_TS, _C_A, _C_X, _C_SA, _C_SX = range(5)
+CHECK_STATE = ("last_sample_t_ns", "last_accel_mps2", "last_stroke_m", "same_accel_count", "same_stroke_count",
+               "last_stroke_t_ns")
+_C_TS, _C_A, _C_X, _C_SA, _C_SX, _C_XTS = range(6)
 LIMITER_FLAGS = ("sat_run", "clamped", "limited")
 _F_SATRUN, _F_CLAMPED, _F_LIMITED = range(3)
 # Named state of the oscillation rule, per mount (a row of (n, len(OSC_STATE) + osc_swings)): whether the rule
@@ -54,11 +55,13 @@ _NO_SWING = -1e30          # an empty slot of the ring: no swing ever
 
 
 @numba.njit(cache=True)
-def check_sensors(cs, lim, acc, xs, ts, t_ns):
+def check_sensors(cs, lim, acc, xs, ts, xts, t_ns):
     """Plausibility of one period's measurement, mount by mount: NaN/inf, out of sensor range, beyond the
-    stroke limit, stale (time stamp older than stale_s at the loop time), stuck (the same value over stuck_n
-    NEW samples: the time stamp moved on but the value did not; a held sample is caught as stale instead).
-    0 or a code. Time stamps are float64: exact below 2**53 ns (104 days of monotonic time)."""
+    stroke limit, stale (the accelerometer's time stamp older than stale_s at the loop time), stuck (the same
+    value over stuck_n NEW samples: the time stamp moved on but the value did not; a held sample is caught as
+    stale instead). The transducer's samples have their own time stamps xts (a transducer slower than the
+    loop is held between its frames: only its new samples count). 0 or a code. Time stamps are float64: exact
+    below 2**53 ns (104 days of monotonic time)."""
     ar = lim[_L_AR]
     xb = lim[_L_XB]
     oldest = t_ns - lim[_L_STALE]
@@ -73,6 +76,8 @@ def check_sensors(cs, lim, acc, xs, ts, t_ns):
             cs[_C_TS, i] = tsi
             if _stuck(cs, _C_A, _C_SA, i, a, stuck_n):
                 return CHECK_STUCK_ACCEL + i
+        if xts[i] != cs[_C_XTS, i]:                                       # a new transducer sample
+            cs[_C_XTS, i] = xts[i]
             if _stuck(cs, _C_X, _C_SX, i, x, stuck_n):
                 return CHECK_STUCK_STROKE + i
     return 0
@@ -193,6 +198,7 @@ class SensorCheck:
     def initial_state(self) -> np.ndarray:
         st = np.zeros((len(CHECK_STATE), self.n))
         st[_C_TS:_C_X + 1] = math.nan            # no sample seen yet
+        st[_C_XTS] = math.nan
         return st
 
     def reason(self, code: int, state, acc, xs, ts, t_ns: int) -> str:

@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 
 from controllers import isolation as _isolation
 from controllers.analysis import unstable_loops
@@ -29,7 +30,8 @@ from rig.runtime.clock import MonotonicClock
 from rig.config import Config, layout_mounts, mount_names
 from rig.errors import ConfigError, RigError
 from rig.runtime.gate import ISOLATION_MODES
-from rig.runtime.kernel import period_entry
+from rig.runtime.kernel import io_entry
+from rig.runtime.lifecycle import State
 from rig.runtime.lock import RigLock
 from rig.runtime.loop import Loop
 from rig.runtime.recorder import WRITER_PRIORITY, Recorder
@@ -38,6 +40,10 @@ from rig.runtime.signals import take_held
 from rig.runtime.tap import Columns
 
 log = logging.getLogger("rig.session")
+
+
+class NeverActivated(UserWarning):
+    """A run that never went ACTIVE: the controllers ran, the valves stayed at null."""
 
 
 class Session:
@@ -113,7 +119,7 @@ class Session:
             ffs = self._feedforward(ctrls)
             # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
             # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
-            period_entry(len(ctrls), bool(ffs))
+            io_entry()
             self.port = make_port(self.cfg, self.backend, dt=self.dt, clock=self.clock, **self._port_options)
             stack.callback(self.port.close)         # opened by the loop's configure, closed last
             kw = dict(self._loop_kw)
@@ -255,11 +261,21 @@ class Session:
             rt = enter_realtime(priority=self.cfg.loop.rt_priority, cpu=self.cfg.loop.cpu, lock_memory=False,
                                 freeze_gc=False)
         try:
-            return self.loop.run(seconds=seconds, iterations=iterations, activate_after_s=activate_after_s)
+            reason = self.loop.run(seconds=seconds, iterations=iterations, activate_after_s=activate_after_s)
         finally:
             if rt is not None:
                 leave_realtime(rt)
                 self.rt_summary = rt.summary()
+        if not self.activated and self.loop.lc.fault_reason is None:
+            warnings.warn(NeverActivated(
+                "Session.run: the rig stayed INACTIVE for the whole run (valves at null, nothing controlled): "
+                "pass activate_after_s= (e.g. 0.05 in simulated time) or call request_active(True)"), stacklevel=2)
+        return reason
+
+    @property
+    def activated(self) -> bool:
+        """Whether the loop went ACTIVE (valves under control) at any time so far."""
+        return self.loop is not None and any(state is State.ACTIVE for _, state in self.loop.lc.history)
 
     # ---- requests and published state (any thread) -------------------------------------------------
     def request_isolation(self, on: bool) -> None:

@@ -4,6 +4,8 @@
                                           prints `PORT <n>` once listening on 127.0.0.1:<n>
                                           (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order)
   serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
+  plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a socketcand gateway; prints
+                                          `PORT <n>` once listening on 127.0.0.1:<n> (SPEC_FILE: pickled)
 The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
 """
 from __future__ import annotations
@@ -40,17 +42,19 @@ class _Announce:
 
 
 def main(argv: list[str]) -> int:
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     kind, path = argv[0], argv[1]
     state = SharedFile(path)
     if kind == "modbus":
-        from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only (pymodbus)
+        from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only
         floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))
         modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]), floor_V_per_mps2=floor[0],
                             floor_channels=floor[1])
     elif kind == "serial":
         from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
         serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))
+    elif kind == "plant":
+        from sim_backend.emulators import canopen_valve          # lazy: this child runs canopen and the plant
+        canopen_valve.serve(state.arr, _Announce("PORT"), argv[2], int(argv[3]))
     else:
         print(f"unknown device kind {kind!r}", file=sys.stderr)
         return 2

@@ -1,37 +1,37 @@
-"""The emulated rig behind the real drivers: plant + CANopen valve nodes + Modbus I/O module + serial amplifier.
+"""The emulated rig behind the real drivers: plant + CANopen valve nodes + Modbus I/O module + serial amplifier,
+each in a process of its own, none in the loop's:
 
-  main process   plant (stepped at each CAN SYNC to the wall-clock instant, command held = ZOH), the four
-                 valve LocalNodes on a python-can virtual channel (served by the emulator's notifier thread)
-  child process  pymodbus TCP server on 127.0.0.1:<ephemeral>   (accelerometers, ADAM-6024-style map)
-  child process  DTA-4 amplifier on a pty pair                    (displacement transducers, ASCII)
+  process  the plant and the four valve LocalNodes behind a socketcand gateway on 127.0.0.1:<ephemeral>
+           (sim_backend/emulators/canopen_valve.py): the plant steps at each CAN SYNC to the SYNC instant
+  process  Modbus TCP server on 127.0.0.1:<ephemeral>    (accelerometers, ADAM-6024-style map)
+  process  DTA-4 amplifier on a pty pair                    (displacement transducers, ASCII)
 
-The plant state reaches the children through one shared array (sim_backend/emulators/shared.py, seqlock);
-valve setpoints come from the CAN nodes. Fault knobs: `set_modbus`, `set_serial`, `set_serial_channel`,
-`set_valve`. `phase(name)` starts metering the true table motion (plant.table_m) for isolation figures.
+The plant's state reaches the two device processes through one shared array (sim_backend/emulators/shared.py,
+seqlock): each plant step is a conversion of both. The fault knobs (`set_modbus`, `set_serial`,
+`set_serial_channel`, `set_valve`) and the metering phase (`phase(name)`: the true table motion per phase,
+and its trace for band-limited figures) are words of the same array, read by the device processes.
 """
 from __future__ import annotations
 
-import itertools
 import math
 import os
+import pickle
 import select
 import subprocess
 import sys
-import threading
-import time
+import tempfile
 
-from rig.runtime.rt import raise_priority
+import numpy as np
+
 from rig.errors import DeviceError
 from sim_backend.emulators import shared as sh
-
-_channels = itertools.count()
 
 
 class EmulatedRig:
     def __init__(self, plant, dt: float, *, max_V: float = 10.0, w_spool: float = 524.0,
-                 accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), channel: str | None = None,
-                 start_timeout_s: float = 30.0, priority: int = 0, floor_V_per_mps2: float = 2.0,
-                 floor_channels=(4, 5, 6, 7)):
+                 accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), start_timeout_s: float = 60.0,
+                 priority: int = 0, floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7),
+                 trace_s: float = 0.0):
         self.plant = plant
         self.dt = float(dt)
         self.max_V = max_V
@@ -41,38 +41,29 @@ class EmulatedRig:
         self.floor_V_per_mps2, self.floor_channels = floor_V_per_mps2, tuple(floor_channels)
         self.floor_sensors = bool(getattr(plant, "floor_sensors", False))
         self.node_ids = list(node_ids)
-        self.channel = channel or f"rig-hil-{os.getpid()}-{next(_channels)}"
         self.start_timeout_s = start_timeout_s
-        self.priority = priority              # SCHED_FIFO of the device processes and threads (0 = normal)
-        self.state = sh.SharedFile()
+        self.priority = priority              # SCHED_FIFO of the device processes (0 = normal)
+        self.state = sh.SharedFile(trace_steps=int(math.ceil(trace_s / self.dt)) if trace_s else 0)
         self.arr = self.state.arr
+        self.can_port: int | None = None
         self.modbus_port: int | None = None
         self.serial_path: str | None = None
-        self.valves = None
         self._procs: list[tuple[subprocess.Popen, str]] = []
-        self._t0: float | None = None
-        self._steps = 0
-        self.last_cmd_V = [0.0] * len(self.node_ids)
-        self.lock = threading.Lock()
-        self._stop = threading.Event()
-        self._keeper: threading.Thread | None = None
-        self._phase: str | None = None
-        self.meter: dict[str, list] = {}
+        self._phases: dict[str, int] = {}
 
     # ---- lifetime --------------------------------------------------------------------------------------
     def start(self) -> "EmulatedRig":
-        from sim_backend.emulators.canopen_valve import ValveBus   # lazy: loads canopen and python-can
-        self._publish()
-        self._stop.clear()
-        self._keeper = threading.Thread(target=self._keep_pace, name="hil-plant-keeper", daemon=True)
-        self._keeper.start()
         try:
+            fd, spec = tempfile.mkstemp(prefix="rig-hil-plant-", dir=os.path.dirname(self.state.path))
+            with os.fdopen(fd, "wb") as f:
+                pickle.dump({"plant": self.plant, "dt": self.dt, "node_ids": self.node_ids, "w_spool": self.w_spool,
+                             "max_V": self.max_V, "floor_sensors": self.floor_sensors,
+                             "trace_steps": self.state.trace_steps}, f)
+            self.can_port = int(self._spawn("plant", spec, str(self.priority)))
             self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority),
                                                str(self.floor_V_per_mps2), ",".join(map(str, self.floor_channels))))
             self.serial_path = self._spawn("serial", str(self.priority))
-            self.state.unlink()                 # both devices have it mapped: nothing is left behind on a crash
-            self.valves = ValveBus(self.channel, self.node_ids, self.w_spool, self.max_V, self,
-                                   priority=self.priority)
+            self.state.unlink()                 # every device has it mapped: nothing is left behind on a crash
         except BaseException:
             self.stop()
             raise
@@ -91,13 +82,6 @@ class EmulatedRig:
         return line.split(None, 1)[1].strip()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._keeper is not None:
-            self._keeper.join(2.0)
-            self._keeper = None
-        if self.valves is not None:
-            self.valves.close()
-            self.valves = None
         for p, _ in self._procs:
             try:
                 p.stdin.close()                 # the device's signal to stop
@@ -105,7 +89,7 @@ class EmulatedRig:
                 pass
         for p, _ in self._procs:
             try:
-                p.wait(2.0)
+                p.wait(3.0)
             except subprocess.TimeoutExpired:
                 p.terminate()
                 try:
@@ -116,7 +100,8 @@ class EmulatedRig:
             p.stdout.close()
         self._procs.clear()
         if self.state is not None:
-            self.arr = None
+            self._meter_copy = np.frombuffer(self.state._mm, dtype=np.float64).copy()
+            self.arr = self._meter_copy
             self.state.close()
             self.state = None
 
@@ -133,74 +118,59 @@ class EmulatedRig:
     def device_pid(self, what: str) -> int:
         return next(p.pid for p, w in self._procs if w == what)
 
-    # ---- the plant, advanced at each SYNC --------------------------------------------------------------
-    def apply_sync(self, valve_cmd_V: list[float]) -> None:
-        """Called by the valve bus on SYNC with the commands the valves now apply. The plant keeps pace
-        with the wall clock: normally one step per SYNC, extra steps when it fell behind, none when ahead."""
-        with self.lock:
-            self.last_cmd_V = list(valve_cmd_V)
-            self._advance(time.monotonic(), sync=True)
+    @property
+    def last_cmd_V(self) -> list[float]:
+        """The commands the emulated valves apply now."""
+        return list(self.arr[sh.LAST_CMD:sh.LAST_CMD + len(self.node_ids)])
 
-    def _keep_pace(self) -> None:
-        """Without SYNC (loop not started, stalled, stopped) the rig still runs: catch up with held commands."""
-        raise_priority(self.priority)
-        while not self._stop.wait(2 * self.dt):
-            with self.lock:
-                self._advance(time.monotonic(), sync=False)
-
-    def _advance(self, now: float, sync: bool) -> None:
-        if self._t0 is None:
-            self._t0 = now - self.dt
-        behind = (now - self._t0) / self.dt - self._steps
-        if sync:
-            n = 1 if -1.5 <= behind <= 1.5 else (0 if behind < 0 else min(int(behind), 1000))
-        else:
-            n = min(int(behind - 1.5), 1000) if behind > 2.5 else 0
-        if n:
-            plant = self.plant
-            valve_cmd_V = self.last_cmd_V
-            for _ in range(n):
-                plant.step(valve_cmd_V)
-                self._steps += 1
-                if self._phase is not None:
-                    self._meter(plant.table_m, plant.floor_m)
-                self._publish()                 # every step is a conversion of the devices
-
-    def _publish(self) -> None:
-        p = self.plant
-        # the devices convert at each plant step (the SYNC instants): their counters count plant steps
-        sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m, self._steps,
-                   p.floor_accel_mps2 if self.floor_sensors else None)
+    @property
+    def steps(self) -> int:
+        """Plant steps so far (= conversions of the devices)."""
+        return int(self.arr[sh.COUNT])
 
     # ---- table motion metering (true plant output, for isolation figures) ------------------------------
-    def phase(self, name: str | None) -> None:
-        with self.lock:
-            self._phase = name
-            if name is not None:
-                self.meter[name] = [0, 0.0, 0.0, 0.0, 0.0]       # n, sum, sum of squares (table, then floor)
+    @property
+    def meter(self) -> dict:
+        return {name: self._sums(name) for name in self._phases}
 
-    def _meter(self, table_m, floor_m=()) -> None:
-        x = float(table_m) if not isinstance(table_m, (list, tuple)) else math.fsum(table_m) / len(table_m)
-        g = math.fsum(floor_m) / len(floor_m) if floor_m else 0.0        # the floor under the machine (mean)
-        m = self.meter[self._phase]
-        m[0] += 1
-        m[1] += x
-        m[2] += x * x
-        m[3] += g
-        m[4] += g * g
+    def phase(self, name: str | None) -> None:
+        """Meter the true table motion as phase `name` from the plant's next step (None: stop metering)."""
+        if name is None:
+            self.arr[sh.PHASE] = 0.0
+            return
+        if name not in self._phases:
+            if len(self._phases) >= sh.MAX_PHASES:
+                raise ValueError(f"at most {sh.MAX_PHASES} metering phases")
+            self._phases[name] = len(self._phases) + 1
+            m = sh.METER + 5 * (self._phases[name] - 1)
+            self.arr[m:m + 5] = [0.0] * 5
+        self.arr[sh.PHASE] = float(self._phases[name])
+
+    def _sums(self, name: str) -> list[float]:
+        m = sh.METER + 5 * (self._phases[name] - 1)
+        return list(self.arr[m:m + 5])
 
     def table_rms_m(self, name: str) -> float:
-        n, s, ss = self.meter[name][:3]
+        n, s, ss = self._sums(name)[:3]
         if n < 2:
             return math.nan
         return math.sqrt(max(ss / n - (s / n) ** 2, 0.0))
 
     def floor_rms_m(self, name: str) -> float:
-        """The floor's rms (mean of the four mounts) over the same periods as table_rms_m."""
-        n, s, ss = self.meter[name][0], self.meter[name][3], self.meter[name][4]
+        """The floor's rms (mean of the mounts) over the same steps as table_rms_m."""
+        n, _, _, s, ss = self._sums(name)
         if n < 2:
             return math.nan
         return math.sqrt(max(ss / n - (s / n) ** 2, 0.0))
+
+    def trace(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(table_m, floor_m, phase code) per plant step traced so far (as long as the trace had room)."""
+        k = int(self.arr[sh.TRACE])
+        t = np.asarray(self.arr[sh.SIZE:sh.SIZE + sh.TRACE_WIDTH * k]).reshape(k, sh.TRACE_WIDTH)
+        return t[:, 0].copy(), t[:, 1].copy(), t[:, 2].astype(int)
+
+    def phase_code(self, name: str) -> int:
+        return self._phases[name]
 
     # ---- fault knobs --------------------------------------------------------------------------------------
     def set_modbus(self, mode: str) -> None:
@@ -214,7 +184,7 @@ class EmulatedRig:
         self.arr[sh.SERIAL_CH + ch] = code
 
     def set_valve(self, mount: int, mode: str) -> None:
-        from sim_backend.emulators.canopen_valve import VALVE_MODES   # lazy: loads canopen and python-can
+        from sim_backend.emulators.canopen_valve import VALVE_MODES   # lazy: the mode names only
         if mode not in VALVE_MODES:
             raise ValueError(f"valve knob {mode!r} (expected one of {', '.join(VALVE_MODES)})")
-        self.valves.nodes[mount].mode = mode
+        self.arr[sh.VALVE_MODE + mount] = float(VALVE_MODES.index(mode))

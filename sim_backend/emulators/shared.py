@@ -25,7 +25,15 @@ FLOOR = 17       # 4 x floor accel_mps2 (the floor accelerometers; 0 without the
 FIFO = 21        # the last FIFO_SLOTS conversions, slot = counter % FIFO_SLOTS: FIFO_WIDTH values each
 FIFO_SLOTS = 64
 FIFO_WIDTH = 1 + 2 * N_MOUNTS   # [counter, 4 x accel_mps2, 4 x floor accel_mps2]
-SIZE = FIFO + FIFO_WIDTH * FIFO_SLOTS
+VALVE_MODE = FIFO + FIFO_WIDTH * FIFO_SLOTS     # 4 x a valve node's knob (canopen_valve.VALVE_MODES index)
+PHASE = VALVE_MODE + N_MOUNTS   # the metering phase (0: none; the loop's process names them)
+LAST_CMD = PHASE + 1            # 4 x the commands the valves apply now (V)
+SYNCS = LAST_CMD + N_MOUNTS     # SYNCs the valves have answered
+METER = SYNCS + 1               # MAX_PHASES x [n, sum, sum of squares of the table, then of the floor]
+MAX_PHASES = 8
+TRACE = METER + 5 * MAX_PHASES  # [steps traced, then per step: table, floor (mean of the mounts), phase]
+SIZE = TRACE + 1                # (the trace's steps follow: SharedFile(trace_steps=...))
+TRACE_WIDTH = 3
 
 # fault knob modes (same codes for every emulator)
 OK, SILENCE, EXCEPTION, GARBAGE, STALE, FRAGMENT = 0, 1, 2, 3, 4, 5
@@ -41,19 +49,22 @@ def new_shared():
 
 class SharedFile:
     """The array in a file-backed mmap under /dev/shm, so a device process started by path (python -m ...)
-    attaches by name, independent of the parent's __main__. The creator removes the file."""
+    attaches by name, independent of the parent's __main__. The creator removes the file. trace_steps: room for
+    the plant's table and floor motion of that many steps (the metered phases' band-limited figures)."""
 
-    def __init__(self, path: str | None = None):
+    def __init__(self, path: str | None = None, trace_steps: int = 0):
         self.owner = path is None
         if self.owner:
             d = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
             fd, path = tempfile.mkstemp(prefix="rig-hil-", suffix=".state", dir=d)
-            os.write(fd, bytes(8 * SIZE))
+            os.ftruncate(fd, 8 * (SIZE + TRACE_WIDTH * trace_steps))
             os.close(fd)
         self.path = path
         with open(path, "r+b") as f:
-            self._mm = mmap.mmap(f.fileno(), 8 * SIZE)
-        self.arr = (ctypes.c_double * SIZE).from_buffer(self._mm)
+            self._mm = mmap.mmap(f.fileno(), 0)
+        size = len(self._mm) // 8
+        self.arr = (ctypes.c_double * size).from_buffer(self._mm)
+        self.trace_steps = (size - SIZE) // TRACE_WIDTH
 
     def unlink(self) -> None:
         """Remove the file (the mappings stay valid); done once every process has attached."""
@@ -105,14 +116,18 @@ def snapshot(arr) -> tuple[int, float, list[float], list[float]]:
     return int(block[1]), block[0], block[2:6], block[6:10]
 
 
-def snapshot_fifo(arr) -> tuple[int, list[float], list[tuple[int, list[float]]]]:
-    """(counter, accel_mps2[4] + floor accel_mps2[4], FIFO as (counter, the same 8 values) per slot), one
-    consistent copy."""
+def read_fifo(arr, e0: int, e1: int) -> tuple[int, list[float], list[tuple[int, int, list[float]]]]:
+    """(counter, accel_mps2[4] + floor accel_mps2[4], [(entry, its counter, its 8 values)] for FIFO entries e0..e1-1,
+    entry e = conversion counter - e), one consistent copy (only the slots asked for)."""
+    w = FIFO_WIDTH
     for _ in range(1000):
         s0 = arr[SEQ]
-        block = arr[COUNT:SIZE]
+        count = int(arr[COUNT])
+        acc = arr[ACCEL:ACCEL + N_MOUNTS] + arr[FLOOR:FLOOR + N_MOUNTS]
+        slots = []
+        for e in range(e0, min(e1, FIFO_SLOTS)):
+            b = FIFO + w * ((count - e) % FIFO_SLOTS)
+            slots.append((e, int(arr[b]), arr[b + 1:b + w]))
         if s0 == arr[SEQ] and int(s0) % 2 == 0:
             break
-    f, w = FIFO - COUNT, FIFO_WIDTH
-    return (int(block[0]), block[ACCEL - COUNT:ACCEL - COUNT + N_MOUNTS] + block[FLOOR - COUNT:FLOOR - COUNT + N_MOUNTS],
-            [(int(block[f + w * j]), block[f + w * j + 1:f + w * (j + 1)]) for j in range(FIFO_SLOTS)])
+    return count, acc, slots

@@ -13,6 +13,7 @@ from controllers.modes import (MODES, ModeRequest, OperatingModes, make_operatin
 from rig.config import config_from_dict, load_config
 from rig.commands.run import LAYOUTS
 from rig.errors import RigError
+from rig.port import Measurements
 from rig.runtime.kernel import PeriodKernel
 
 DT = 1.0 / 5000.0
@@ -87,7 +88,7 @@ def test_published_state_becomes_channels_with_nan_where_a_mount_has_none():
     lay = k.layout
     assert lay.width("mode") == 2 and lay.width("reference_m") == 2
     k.states[0][:] = om.switch(k.states[0].tolist(), None, 0.0, 0.0)
-    rc = k.call(k.mem, k.no_ring, k.no_hdr, 0, 0.0, 0.0, 0.0, 1, 0, 0, True, 1, 0, 0, 0, 0.0, 0.0, 1e-7, 2e-7, 0, 0)
+    rc = k.period(Measurements(0, [0.0, 0.0], [1e-7, 2e-7], [0, 0]), 0, 0.0, 0.0, 0.0, 1, 0, flags=(1, 0, 0, 0))
     assert rc == 0
     row = k.row
     assert row[lay["mode"]] == MODES.index("hold") and math.isnan(row[lay["mode"] + 1])

@@ -23,8 +23,8 @@ def contract_config() -> Config:
 
 @pytest.fixture(scope="module", params=["sim", "hil"])
 def backend(request):
-    from rig.runtime.kernel import period_entry
-    period_entry(4, False)      # compiled before the port runs (cold numba cache: ~20 s the port would queue)
+    from rig.runtime.kernel import io_entry
+    io_entry()                  # compiled before the port runs (cold numba cache: ~20 s the port would queue)
     port = make_port(contract_config(), request.param)
     port.open()
     try:

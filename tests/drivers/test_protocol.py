@@ -131,7 +131,7 @@ def test_eds_has_the_408_objects_and_pdo_defaults():
 @pytest.mark.parametrize("v,raw", [(-10.0, 0), (0.0, 32768), (10.0, 65535), (12.0, 65535), (-11.0, 0)])
 def test_adam_voltage_scaling(v, raw):
     assert modbus_map.volts_to_raw(v) == raw
-    assert modbus_server.volts_to_raw is modbus_io.volts_to_raw is modbus_map.volts_to_raw   # one map, shared
+    assert modbus_server.volts_to_raw is modbus_map.volts_to_raw and modbus_io.raw_to_volts is modbus_map.raw_to_volts
 
 
 def test_volts_round_trip_within_one_lsb():
@@ -171,7 +171,8 @@ def test_hardware_backend_constructs_and_fails_clearly_on_open():
     port.close()
 
 
-@pytest.mark.parametrize("name", ["hil.toml", "hil_1khz.toml"])
+@pytest.mark.parametrize("name", ["hil.toml", "hil_1khz.toml", "hil_2khz.toml", "prototype_hil.toml",
+                                  "prototype_hil_2khz.toml"])
 def test_shipped_hil_configs_load(name):
     """The HIL configs carry a [controller] section: they must still load when the controller changes."""
     from pathlib import Path

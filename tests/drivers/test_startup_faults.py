@@ -1,6 +1,7 @@
 """Devices that are missing at start-up or die while running (issue 17, items 1 and 7): one line naming the
 device, no traceback, no recording replaced, and the FAULT line printed once. Real stacks on loopback only:
-pymodbus TCP on 127.0.0.1, the python-can virtual bus, pty serial ports (the emulated rig)."""
+Modbus TCP on 127.0.0.1, python-can's virtual bus (inside one I/O process: no valve answers there) and its
+socketcand interface to the emulated valves' gateway, pty serial ports (the emulated rig)."""
 from __future__ import annotations
 
 import os
@@ -15,9 +16,6 @@ from pathlib import Path
 import pytest
 
 from drivers import build_driver_port
-from drivers.canopen_valves import CanopenValves
-from drivers.modbus_io import ModbusAnalogIO
-from drivers.serial_dta import DisplacementAmplifier
 from rig.backends import make_hil_port
 from rig.runtime.clock import MonotonicClock
 from rig.config import Config, HilConfig, VibrationConfig, config_from_dict, hil_run_config
@@ -53,21 +51,16 @@ def _hardware_config(tmp_path: Path) -> Path:
 
 
 def test_drivers_close_safely_without_open():
-    """Closing a driver (or the port) that never started: no thread to join, no socket, no bus."""
-    v = CanopenValves(interface="virtual", channel="never", node_ids=[1, 2, 3, 4], names=["a", "b", "c", "d"],
-                      max_V=10.0, stale_s=0.1)
-    a = ModbusAnalogIO(host="127.0.0.1", port=_closed_port(), unit=1, channels=[0, 1, 2, 3], names=list("abcd"),
-                       V_per_mps2=2.0, timeout_s=0.05, watchdog_s=0.0, stale_s=0.1, poll_s=0.002)
-    s = DisplacementAmplifier(port="/nonexistent/tty", baud=921600, names=list("abcd"), stale_s=0.1, poll_s=0.002)
-    for dev in (v, a, s):
-        dev.close()
-        dev.close()
+    """Closing the port that never started: no process to stop, its exchange block gone from /dev/shm."""
     cfg = Config()
     port = build_driver_port(cfg, "hardware", can_interface="virtual", can_channel="never",
                              modbus_host="127.0.0.1", modbus_port=_closed_port(), serial_port="/nonexistent/tty",
                              stale_s=0.1)
+    path = port.exchange.path
+    assert os.path.exists(path)
     port.close()
     port.close()
+    assert not os.path.exists(path) and not port.pids
 
 
 def test_missing_device_at_start_up_is_one_line_naming_it_and_keeps_the_recording(tmp_path):
@@ -90,7 +83,7 @@ def test_missing_device_at_start_up_is_one_line_naming_it_and_keeps_the_recordin
 def test_missing_device_without_a_recording_leaves_no_empty_file(tmp_path):
     cfg = _hardware_config(tmp_path)
     rec = tmp_path / "new.h5"
-    out = subprocess.run(RIG + ["chirp", "--config", str(cfg), "--duration", "1", "--out", str(rec)],
+    out = subprocess.run(RIG + ["chirp", "--config", str(cfg), "--duration", "1", "--record", str(rec)],
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert out.stderr.strip().splitlines()[-1].startswith("rig chirp: error: modbus_tcp 127.0.0.1:")
@@ -99,21 +92,19 @@ def test_missing_device_without_a_recording_leaves_no_empty_file(tmp_path):
 
 def test_missing_valves_with_the_other_devices_present_name_the_valve():
     """The Modbus module and the serial amplifier answer (emulated), the valves at the configured node ids do
-    not: the DeviceError names the valve node, and the drivers already opened are stopped again."""
+    not: the DeviceError names the valve node, and the I/O processes already started are stopped again."""
     cfg = Config()
     emu = EmulatedRig(StandInPlant(1e-3), 1e-3, node_ids=[1, 2, 3, 4], priority=0).start()
-    before = {t.name for t in threading.enumerate()}
     try:
         port = build_driver_port(cfg.replace(drivers=config_from_dict(
-            {"drivers": {"valve_node_id_base": 20}}).drivers), "hil", can_interface="virtual",
-            can_channel=emu.channel, modbus_host="127.0.0.1", modbus_port=emu.modbus_port,
-            serial_port=emu.serial_path, stale_s=0.1, priority=0)
-        with pytest.raises(DeviceError, match=r"canopen virtual:\S+ valve front_left \(node 20\): SDO"):
+            {"drivers": {"valve_node_id_base": 20}}).drivers), "hil", can_interface="socketcand",
+            can_channel="can0", can_options={"host": "127.0.0.1", "port": emu.can_port},
+            modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path, stale_s=0.1,
+            priority=0, period_s=1e-3)
+        with pytest.raises(DeviceError, match=r"canopen socketcand:can0 valve front_left \(node 20\): SDO"):
             port.open()
+        assert not port.pids                                    # every I/O process stopped
         port.close()
-        time.sleep(0.1)
-        left = {t.name for t in threading.enumerate()} - before
-        assert not {"modbus-poller", "dta4-poller"} & left, left
     finally:
         emu.stop()
 

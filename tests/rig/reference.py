@@ -26,11 +26,14 @@ class RefSensorCheck(SensorCheck):
         self._last_x = [float("nan")] * n
         self._same_a = [0] * n
         self._same_x = [0] * n
+        self._last_xts = [None] * n
 
-    def check(self, m, t_ns: int) -> str | None:
+    def check(self, m, t_ns: int, xts=None) -> str | None:
+        """xts: the transducer's own time stamps (default the accelerometers': a Measurements has one)."""
         if m.device_fault:
             return f"device fault: {m.device_fault}"
         acc, xs, ts = m.accel_mps2, m.stroke_m, m.sample_t_ns
+        xts = ts if xts is None else xts
         ar = self.accel_range
         xb = self._x_bound                      # min(stroke range, stroke limit): one test in the common case
         oldest = t_ns - self.stale_ns
@@ -51,6 +54,8 @@ class RefSensorCheck(SensorCheck):
                 else:
                     self._same_a[i] = 0
                     self._last_a[i] = a
+            if xts[i] != self._last_xts[i]:     # a new transducer sample
+                self._last_xts[i] = xts[i]
                 if x == self._last_x[i]:
                     self._same_x[i] += 1
                     if self._same_x[i] >= self.stuck_n:

@@ -89,3 +89,28 @@ class Command:
     @property
     def text(self) -> str:
         return "".join(self.lines)
+
+
+class ReadWritePort:
+    """A port that only reads and writes (rig.port.Port), over another port: the loop then reaches it through
+    a block of its own (rig/runtime/measured.py), so a test can change what read() returns."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+        self.n_mounts, self.name = inner.n_mounts, inner.name
+        self.floor_sensors = getattr(inner, "floor_sensors", False)
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def safe_state(self) -> None:
+        self.inner.safe_state()
+
+    def read(self, t_ns):
+        return self.inner.read(t_ns)
+
+    def write(self, t_ns, commands) -> None:
+        self.inner.write(t_ns, commands)

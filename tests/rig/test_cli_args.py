@@ -38,7 +38,7 @@ def test_seconds_nan(capsys, argv, option):
     _one_line_error(capsys, option, "'nan'" if "nan" in argv else "'inf'")
 
 
-@pytest.mark.parametrize("argv", [["chirp", "--duration", "nan", "--out", "x.h5"], ["prove", "--duration", "nan"]])
+@pytest.mark.parametrize("argv", [["chirp", "--duration", "nan", "--record", "x.h5"], ["prove", "--duration", "nan"]])
 def test_duration_nan(tmp_path, monkeypatch, capsys, argv):
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
@@ -46,7 +46,7 @@ def test_duration_nan(tmp_path, monkeypatch, capsys, argv):
     assert not (tmp_path / "x.h5").exists()
 
 
-@pytest.mark.parametrize("argv", [["chirp", "--out", "x.h5"], ["bench", "loop"], ["bench", "sim"], ["hil"]])
+@pytest.mark.parametrize("argv", [["chirp", "--record", "x.h5"], ["bench", "loop"], ["bench", "sim"], ["hil"]])
 @pytest.mark.parametrize("value", ["nan", "0", "-5", "1e9"])
 def test_rate_nan_zero_negative_and_huge(tmp_path, monkeypatch, capsys, argv, value):
     """--rate 0 silently meant 5000 Hz in `chirp` and `bench loop`; `chirp --rate 1e9` hung; nan was a
@@ -61,7 +61,7 @@ def test_rate_nan_zero_negative_and_huge(tmp_path, monkeypatch, capsys, argv, va
 def test_chirp_negative_settle_is_refused(tmp_path, capsys):
     """Was: accepted, and the chirp was cut by the negative settle time (half the chirp recorded)."""
     out = tmp_path / "c.h5"
-    assert main(["chirp", "--settle", "-1", "--duration", "1", "--out", str(out)]) == 2
+    assert main(["chirp", "--settle", "-1", "--duration", "1", "--record", str(out)]) == 2
     _one_line_error(capsys, "--settle", ">= 0 s")
     assert not out.exists()
 
@@ -114,7 +114,7 @@ FILE_OUTPUTS = [
     (["run", "--sim-time", "--seconds", "0.1", "--quiet", "--record"], "--record"),
     (["bench", "loop", "--seconds", "0.1", "--no-realtime", "--record"], "--record"),
     (["hil", "--seconds", "1", "--record"], "--record"),
-    (["chirp", "--duration", "0.5", "--out"], "--out"),
+    (["chirp", "--duration", "0.5", "--record"], "--record"),
     (["model", "--plot"], "--plot"),
 ]
 FOLDER_OUTPUTS = [

@@ -101,7 +101,7 @@ def _rig(*args):
 def test_rig_chirp_levels_and_multisine(tmp_path):
     out = tmp_path / "lv.h5"
     res = _rig("chirp", "--levels", "0.5,1.5,3.0", "--duration", "2", "--f0", "1", "--f1", "50", "--rate", "1000",
-               "--out", out)
+               "--record", out)
     assert res.returncode == 0, res.stderr
     rec = load_recording(out)
     want = ex.multilevel_chirp(1000.0, 2.0, 1.0, 50.0, (0.5, 1.5, 3.0)).cmd_V
@@ -110,14 +110,14 @@ def test_rig_chirp_levels_and_multisine(tmp_path):
     assert rec.meta["chirp"] == "multilevel_chirp" and list(rec.meta["levels_V"]) == [0.5, 1.5, 3.0]
     out2 = tmp_path / "ms.csv"
     res = _rig("chirp", "--multisine", "--period", "1", "--duration", "3", "--f0", "1", "--f1", "50", "--rate", "1000",
-               "--seed", "4", "--csv", "--out", out2)
+               "--seed", "4", "--csv", "--record", out2)
     assert res.returncode == 0, res.stderr
     rec2 = load_recording(out2)
     c = analyse(rec2.valve_cmd_V, rec2.fs_hz)
     assert c.kind == "multisine" and c.period == 1000
-    bad = _rig("chirp", "--levels", "0.5", "--out", tmp_path / "x.h5")
+    bad = _rig("chirp", "--levels", "0.5", "--record", tmp_path / "x.h5")
     assert bad.returncode == 2 and "at least two levels" in bad.stderr and "Traceback" not in bad.stderr
-    bad = _rig("chirp", "--levels", "0.5,nan", "--out", tmp_path / "x.h5")
+    bad = _rig("chirp", "--levels", "0.5,nan", "--record", tmp_path / "x.h5")
     assert bad.returncode == 2 and "expected > 0 V and <= 50 V, got 'nan'" in bad.stderr
 
 

@@ -77,7 +77,7 @@ def test_cli_csv_output_is_the_shared_format(tmp_path, capsys):
     from rig.cli import main
     out = tmp_path / "c.csv.gz"
     assert main(["chirp", "--duration", "0.5", "--f0", "1", "--f1", "20", "--rate", "1000", "--csv",
-                 "--out", str(out)]) == 0
+                 "--record", str(out)]) == 0
     with gzip.open(out, "rt") as f:
         assert f.readline().strip() == "time_s,valve_cmd_V,position_m,accel_mps2"
     rec = load_recording(out)
@@ -93,7 +93,7 @@ def test_cli_csv_output_is_the_shared_format(tmp_path, capsys):
 ])
 def test_cli_bad_arguments_are_one_line(tmp_path, capsys, argv, expect):
     from rig.cli import main
-    assert main(["chirp", "--out", str(tmp_path / "x.h5"), *argv]) == 2
+    assert main(["chirp", "--record", str(tmp_path / "x.h5"), *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and expect in err[0]
 
@@ -105,7 +105,7 @@ def test_stand_effects_from_the_config_reach_the_recording(tmp_path):
     cfg.write_text("[stand]\ndelay_s = 0.002\n")
     out = tmp_path / "d.h5"
     assert main(["chirp", "--config", str(cfg), "--duration", "12", "--f0", "0.2", "--rate", "1000",
-                 "--out", str(out)]) == 0
+                 "--record", str(out)]) == 0
     res = identify(load_recording(out), DESIGN, starts=3)
     assert res.params.w_nv < 0.8 * DESIGN.w_nv
     assert res.fit["residual_rms_m"] > 3 * 2e-8            # and the fit no longer reaches the noise floor

@@ -171,7 +171,7 @@ def test_a_closed_loop_run_recording_is_refused_and_a_chirp_is_not(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(run) in err[0] and "closed-loop recording (recorded by rig run" in err[0], err
     chirp = tmp_path / "chirp.h5"
-    assert main(["chirp", "--duration", "3", "--f1", "20", "--out", str(chirp)]) == 0
+    assert main(["chirp", "--duration", "3", "--f1", "20", "--record", str(chirp)]) == 0
     capsys.readouterr()
     assert main(["identify", str(chirp), "--json", "--starts", "1", "--no-refine"]) == 0
     assert set(json.loads(capsys.readouterr().out)["parameters"]) >= {"K_L", "K_Q", "K_C"}

@@ -1,4 +1,4 @@
-"""Chirp identification as a user runs it (issue 23): `rig chirp --out X` with every default, then
+"""Chirp identification as a user runs it (issue 23): `rig chirp --record X` with every default, then
 `rig identify X`; the CSV variant; under load; and recordings with rows missing, as a real-clock run that
 fell behind leaves them. The console's button with its defaults is in tests/console/test_cli.py."""
 from __future__ import annotations
@@ -71,7 +71,7 @@ def test_default_chirp_then_identify_under_load(tmp_path):
     """The README's workflow with every default (a 100 s chirp at 5 kHz, simulated time) with two CPU-bound
     processes beside it: no row dropped (in simulated time the loop waits for the writer), and identify takes it."""
     with _cpu_hogs(2):
-        res = _ok(_rig("chirp", "--out", "chirp.h5", cwd=tmp_path))
+        res = _ok(_rig("chirp", "--record", "chirp.h5", cwd=tmp_path))
     line = _summary_line(res.stderr)
     assert "500500 samples -> chirp.h5 (hdf5)" in line and line.endswith("overruns 0, dropped rows 0")
     assert "WARNING" not in res.stderr and "next: rig identify chirp.h5" in res.stderr
@@ -85,7 +85,7 @@ def test_default_chirp_then_identify_under_load(tmp_path):
 @pytest.mark.slow
 def test_default_chirp_as_csv_then_identify(tmp_path):
     """The CSV variant: the recording converted, the HDF5 under it removed, identify takes the CSV."""
-    res = _ok(_rig("chirp", "--out", "chirp.csv.gz", "--csv", cwd=tmp_path))
+    res = _ok(_rig("chirp", "--record", "chirp.csv.gz", "--csv", cwd=tmp_path))
     assert "-> chirp.csv.gz (csv)" in _summary_line(res.stderr) and "dropped rows 0" in res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["chirp.csv.gz"]
     _check_identified(_identified(tmp_path / "chirp.csv.gz"))
@@ -97,14 +97,14 @@ def test_a_chirp_that_fails_leaves_nothing_behind(tmp_path):
     cfg = tmp_path / "tight.toml"
     cfg.write_text("[safety]\nstroke_limit_m = 2e-6\n")
     for out, extra in (("f.h5", ()), ("f.csv.gz", ("--csv",))):
-        res = _rig("chirp", "--config", cfg, "--out", out, "--duration", "5", *extra, cwd=tmp_path)
+        res = _rig("chirp", "--config", cfg, "--record", out, "--duration", "5", *extra, cwd=tmp_path)
         assert res.returncode == 2 and "Traceback" not in res.stderr
         last = res.stderr.strip().splitlines()[-1]
         assert last.startswith("rig chirp: error: chirp stopped by a FAULT") and "nothing kept" in last
     assert list(tmp_path.iterdir()) == [cfg]
     kept = tmp_path / "kept.h5"
     kept.write_bytes(b"the user's own file")
-    res = _rig("chirp", "--config", cfg, "--out", kept, "--overwrite", "--duration", "5", cwd=tmp_path)
+    res = _rig("chirp", "--config", cfg, "--record", kept, "--overwrite", "--duration", "5", cwd=tmp_path)
     assert res.returncode == 2 and kept.read_bytes() == b"the user's own file"
 
 
@@ -118,7 +118,7 @@ REALTIME_TOML = "[safety]\nwatchdog_s = 1.0\nlag_limit_s = 10\nmissed_limit = 1.
 def _realtime_chirp(d, seconds: float, out: str) -> list[str]:
     (d / "rt.toml").write_text(REALTIME_TOML)
     return RIG + ["chirp", "--config", str(d / "rt.toml"), "--realtime", "--rate", "1000", "--duration",
-                  str(seconds), "--out", out]
+                  str(seconds), "--record", out]
 
 
 @pytest.fixture(scope="module")

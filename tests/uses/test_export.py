@@ -78,15 +78,15 @@ def test_mat_round_trip(run_rec):
 
 
 def test_csv_round_trip_with_units_and_sidecars(run_rec, tmp_path):
-    out = tmp_path / "run.csv"
-    res = _ok(_rig("export", run_rec, "--to", "csv", "--out", out, "--json"))
+    out = tmp_path / (run_rec.stem + ".csv")
+    res = _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path, "--json"))
     result = json.loads(res.stdout)                                  # only JSON on stdout
-    assert result["files"] == [str(out), str(tmp_path / "run.meta.json"), str(tmp_path / "run.events.csv")]
+    assert result["files"] == [str(out), str(out.with_suffix(".meta.json")), str(out.with_suffix(".events.csv"))]
     datasets, attrs, events = _h5(run_rec)
     with open(out, newline="") as f:
         header = next(csv.reader(f))
     table = np.loadtxt(out, delimiter=",", skiprows=1)
-    meta = json.loads((tmp_path / "run.meta.json").read_text())
+    meta = json.loads(out.with_suffix(".meta.json").read_text())
     cols = meta["columns"]
     assert [c["name"] for c in cols] == header and header[0] == "time_s"
     assert table.shape == (result["rows"], len(header)) == (len(datasets["time_s"][0]), result["columns"])
@@ -99,16 +99,16 @@ def test_csv_round_trip_with_units_and_sidecars(run_rec, tmp_path):
             assert [cols[i]["label"] for i in idx] == labels
     assert "accel_mps2.rear_right" in header and "controller_state.front_left.v" in header
     assert meta["attrs"]["rate_hz"] == attrs["rate_hz"]
-    with open(tmp_path / "run.events.csv", newline="") as f:
+    with open(out.with_suffix(".events.csv"), newline="") as f:
         rows = list(csv.reader(f))
     assert rows[0] == ["time_s", "text"] and [(float(t), x) for t, x in rows[1:]] == events
 
 
 def test_a_chirp_exported_to_mat_is_read_by_rigs_loader(tmp_path):
     rec = tmp_path / "chirp.h5"
-    _ok(_rig("chirp", "--out", rec, "--duration", 2, "--f0", 1, "--f1", 50))
-    _ok(_rig("export", rec, "--to", "mat", "--out", tmp_path / "chirp_for_matlab"))
-    mat = tmp_path / "chirp_for_matlab.mat"                          # the suffix added
+    _ok(_rig("chirp", "--record", rec, "--duration", 2, "--f0", 1, "--f1", 50))
+    _ok(_rig("export", rec, "--to", "mat", "--out", tmp_path / "for_matlab"))
+    mat = tmp_path / "for_matlab" / "chirp.mat"                      # REC's name, in the folder --out
     a, b = load_recording(rec), load_recording(mat)
     assert b.fs_hz == a.fs_hz and np.array_equal(a.position_m, b.position_m)
     assert np.array_equal(a.valve_cmd_V, b.valve_cmd_V) and np.array_equal(a.accel_mps2, b.accel_mps2)
@@ -123,8 +123,8 @@ def test_bad_input_is_one_line(run_rec, tmp_path):
         ((tmp_path / "missing.h5", "--to", "mat"), "missing.h5: no such recording"),
         ((tmp_path / "text.h5", "--to", "csv"), "text.h5: cannot open recording"),
         ((tmp_path / "other.h5", "--to", "csv"), "other.h5: no time_s dataset (expected a recording of rig run"),
-        ((run_rec, "--to", "csv", "--out", tmp_path / "no" / "x.csv"), "folder " + str(tmp_path / "no") + " does not"),
-        ((run_rec, "--to", "mat", "--out", tmp_path / "x.csv"), "expected a file name ending in .mat for --to mat"),
+        ((run_rec, "--to", "csv", "--out", tmp_path / "text.h5"), "text.h5: exists and is not a folder"),
+        ((run_rec, "--to", "mat", "--gzip"), "--gzip: for --to csv only"),
         ((run_rec, "--to", "xls"), "--to: invalid choice: 'xls'"),
     ]
     for args, want in cases:
@@ -132,7 +132,7 @@ def test_bad_input_is_one_line(run_rec, tmp_path):
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 2 and len(lines) == 1 and want in lines[0], (args, res.stderr)
         assert lines[0].startswith("rig export: error: ") and res.stdout == ""
-    _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice.csv"))
-    res = _rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice.csv")
-    assert res.returncode == 2 and "file exists (add --overwrite to replace it)" in res.stderr
-    _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice.csv", "--overwrite"))
+    _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice"))
+    res = _rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice")
+    assert res.returncode == 2 and "(add --overwrite to" in res.stderr
+    _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice", "--overwrite"))

@@ -116,3 +116,21 @@ def test_friction_and_constant_force_in_the_simulator():
     starts = np.array([0, 2500]); X0 = np.array([[0.0, 0.0], [0.5, 0.0]])
     y = run_segments(Ah, Bn, Bo, Gf, Cv, C, np.zeros(5000), m, starts=starts, X0=X0)
     assert y[2499] == 0.0 and y[2500] == 0.5    # the state is set at each segment start
+
+
+def test_a_misspelt_table_is_named_before_the_recording_is_read(tmp_path):
+    """Issue 29: `[signal]` was ignored silently, and the error that followed was about the recording's columns."""
+    from rig.plant.file import load_subject
+    f = tmp_path / "plant.toml"
+    f.write_text('[plant]\nfamily = "mechanical_axis"\ninput_unit = "N"\nmass_kg = 2.0\ndamping_n_s_per_m = 3.0\n'
+                 '[signal]\ncommand = "u"\n')
+    with pytest.raises(ConfigError) as e:
+        load_subject(tmp_path / "missing.csv", f)
+    assert str(e.value) == (f"{f}: [signal]: not a table of a plant file (expected [plant] and [signals]; did you "
+                            f"mean [signals]?)")
+
+
+def test_a_missing_input_unit_is_named_as_such():
+    """Issue 29: a mechanical_axis without input_unit was told about gain_n_per_unit."""
+    with pytest.raises(ConfigError, match=r"\[plant\] input_unit: missing: the command's unit"):
+        parse_plant({"family": "mechanical_axis", "mass_kg": 2.0, "damping_n_s_per_m": 3.0}, "p.toml")

@@ -144,7 +144,7 @@ def test_watchdog_thread_nulls_valve_when_the_loop_hangs():
     hang = threading.Event()
     seen = {}
 
-    def slow_read(t_ns, _orig=port.read):
+    def slow_update(t_ns, _orig=port.update):
         if hang.is_set():
             hang.clear()
             calls = port.safe_calls
@@ -152,7 +152,7 @@ def test_watchdog_thread_nulls_valve_when_the_loop_hangs():
             seen["safe_calls_during_hang"] = port.safe_calls - calls
         return _orig(t_ns)
 
-    port.read = slow_read
+    port.update = slow_update
     loop = Loop(cfg, port, ctrls, clock=clk, rate_hz=1000.0)
     loop.configure()
     loop.activate()

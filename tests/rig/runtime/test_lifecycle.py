@@ -16,15 +16,22 @@ DT = 1.0 / RATE
 
 
 class CountingPort(SimBackend):
-    """The real SimBackend, plus a log of every write (what the valve got, per period)."""
+    """The real SimBackend, plus a log of every set of commands written (what the valve got, per period): by
+    the period's kernel into the exchange block (seen at the port's commit), or by write()."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self.log: list[tuple[int, list[float]]] = []
+        self._logged = 0
 
     def write(self, t_ns, commands):
         super().write(t_ns, commands)
-        self.log.append((t_ns, list(commands.valve_cmd_V)))
+        self.commit(t_ns)
+
+    def commit(self, t_ns):
+        if self.writes != self._logged:
+            self._logged = self.writes
+            self.log.append((t_ns, self.last_written))
 
 
 def make(cfg=None, n=4, kp=2e5, **loop_kw):

@@ -18,6 +18,7 @@ from rig.port import Measurements
 from rig.runtime.safety import CommandLimiter, SensorCheck, check_sensors, limit_commands
 from sim_backend.backend import make_sim_port
 from tests.rig.reference import RefCommandLimiter, RefSensorCheck
+from tests.rig.support import ReadWritePort
 P = 200_000
 CFG = Config(safety=SafetyConfig(stuck_samples=3, saturation_s=3 * P * 1e-9))
 STALE_PERIODS = round(CFG.safety.stale_s * 1e9) // P
@@ -47,7 +48,7 @@ def test_compiled_check_decides_like_the_reference(periods):
         m = Measurements(t, [p[0] for p in period], [p[1] for p in period], [t - p[2] * P for p in period])
         want = ref.check(m, t)
         code = check_sensors(state, lim, np.array(m.accel_mps2), np.array(m.stroke_m),
-                             np.array(m.sample_t_ns, dtype=float), float(t))
+                             np.array(m.sample_t_ns, dtype=float), np.array(m.sample_t_ns, dtype=float), float(t))
         got = chk.reason(code, state, m.accel_mps2, m.stroke_m, m.sample_t_ns, t) if code else None
         assert got == want, (k, period)
         if want is not None:
@@ -100,9 +101,9 @@ def _sim_loop(knobs=()):
 def _run(inject=None):
     loop, port = _sim_loop([inject] if inject else ())
     written = []
-    write = port.write
-    port.write = lambda t, c: (written.append(list(c.valve_cmd_V)), write(t, c))
+    port.commit = lambda t: written.extend([port.last_written] * (port.writes - len(written)))
     port.written = written
+    loop = Loop(loop.cfg, port, loop.ctrls, clock=loop.clock, rate_hz=1 / DT, watchdog_thread=False)
     loop.run(iterations=3000, activate_after_s=0.02)
     return loop, port
 
@@ -181,19 +182,22 @@ def test_full_ring_drops_rows_and_counts_each_once(tmp_path):
 def test_a_malformed_measurement_faults():
     """A driver bug (a sensor value None) is a fault in that period with the valves at null, never a dead
     loop: the kernel's entry takes the values as floats, so the None is a TypeError at the call."""
-    loop, port = _sim_loop()
-    read = port.read
+    sim = _sim_loop()[1]
+    port = ReadWritePort(sim)                     # a port that only reads: its values reach the kernel as given
+    read = sim.read
 
     def bad_read(t_ns):
         m = read(t_ns)
-        if t_ns - port._t0_ns >= int(0.05e9):
+        if t_ns - sim._t0_ns >= int(0.05e9):
             m.accel_mps2 = [m.accel_mps2[0], m.accel_mps2[1], None, m.accel_mps2[3]]
         return m
     port.read = bad_read
+    loop = Loop(Config(), port, make_isolation_controllers(Config(), DT), clock=sim.clock, rate_hz=1 / DT,
+                watchdog_thread=False)
     assert loop.run(iterations=2000, activate_after_s=0.01) == "fault"
     assert "malformed measurement" in loop.lc.fault_reason and "TypeError" in loop.lc.fault_reason
-    assert port.last_written == [0.0] * 4
-    assert abs(loop.fault_t_ns - port._t0_ns - int(0.05e9)) < int(DT * 1e9)
+    assert sim.last_written == [0.0] * 4
+    assert abs(loop.fault_t_ns - sim._t0_ns - int(0.05e9)) < int(DT * 1e9)
 
 
 def test_kernel_writes_the_ring_after_a_first_period_recorded_by_the_loop(tmp_path):

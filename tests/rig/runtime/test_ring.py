@@ -13,6 +13,7 @@ from rig.config import Config
 from rig.runtime.loop import Loop
 from rig.runtime.recorder import Recorder, read_recording
 from sim_backend.backend import make_sim_port
+from tests.rig.support import ReadWritePort
 
 DT = 2e-4
 
@@ -66,7 +67,7 @@ def test_a_port_write_that_fails_is_recorded_with_its_fault_and_no_command(tmp_p
     published, is corrected (fault flag, lifecycle FAULT, null commands) and every period is in the file."""
     cfg = Config()
     clock = SimClock()
-    port = make_sim_port(cfg, DT, clock=clock)
+    port = ReadWritePort(make_sim_port(cfg, DT, clock=clock))       # the loop calls its write
     loop = Loop(cfg, port, make_isolation_controllers(cfg, DT), clock=clock, rate_hz=1 / DT, watchdog_thread=False)
     write, calls = port.write, [0]
 

@@ -1,0 +1,45 @@
+"""`rig hil --bench --json` and `rig bench stalls --json` as a user runs them (short runs): only JSON on stdout,
+the figures' keys and distributions, each device's counts consistent with its rate. Benchmarks print figures;
+nothing here asserts on timing (the machine is shared)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.hil           # the real drivers against the emulated devices, on loopback
+
+DIST = {"p50", "p99", "max", "n"}
+
+
+def test_hil_bench_json_has_the_loop_transports_and_devices():
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--bench", "--seconds", "3", "--json"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    assert set(res) == {"rate_hz", "seconds", "loop", "round_trip_us", "devices"}
+    assert set(res["loop"]["work_us"]) == DIST and set(res["loop"]["wake_latency_us"]) == DIST
+    assert set(res["round_trip_us"]) == {"canopen_sync_to_tpdo", "modbus_read", "serial_frame"}
+    assert all(set(v) == DIST and v["n"] > 0 for v in res["round_trip_us"].values())
+    dev = res["devices"]
+    assert set(dev) == {"valves", "accelerometer module", "transducer amplifier"}
+    rate = res["rate_hz"]
+    # every SYNC a conversion (the module converts on SYNC); the transducer at its own, lower rate
+    assert 0.5 * rate < dev["valves"]["measured_hz"] <= 1.1 * rate
+    assert dev["accelerometer module"]["conversions_hz"] == pytest.approx(dev["valves"]["measured_hz"], rel=0.1)
+    assert 0 < dev["transducer amplifier"]["frames_hz"] <= 1.1 * dev["transducer amplifier"]["rate_hz"]
+    assert dev["accelerometer module"]["age_at_use_us"]["n"] > 0
+    assert dev["accelerometer module"]["delay_periods"] == 1 and dev["transducer amplifier"]["delay_periods"] >= 1
+
+
+def test_bench_stalls_json_side_by_side():
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "stalls", "--seconds", "2", "--json"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    assert set(res["probes"]) == {"loop (SCHED_FIFO)", "loop (normal)", "pty echo", "socket echo"}
+    for name, d in res["probes"].items():
+        assert d["n"] > 100, name                       # 1 kHz loops, an echo every 2 ms, for 2 s
+        assert d["p50_us"] <= d["p99_us"] <= 1e3 * d["max_ms"] + 1e-6, name

@@ -1,0 +1,84 @@
+"""The Python API as a notebook user meets it (issue 29): docs/PYTHON_API.md's example runs as written and
+returns typed results; the CLI's rules hold (a feedback-only recording refused, a session that never
+activates warns); `import rig` loads nothing heavy."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+DOC = REPO / "docs" / "PYTHON_API.md"
+
+
+def _blocks() -> list[str]:
+    return re.findall(r"```python\n(.*?)```", DOC.read_text(), re.S)
+
+
+def test_the_worked_example_runs_as_written_and_returns_typed_results(tmp_path, monkeypatch):
+    from rig.api import IsolationComparison
+    from rig.diagnose.results import Diagnosis, NamedEffect
+    from rig.identify import IdentResult
+    from rig.recordings.recording import Recording
+    from sim_backend.linear import ActuatorParams
+
+    blocks = _blocks()
+    assert len(blocks) == 2, "docs/PYTHON_API.md: the example's two python blocks"
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    for code in blocks:
+        exec(compile(code, str(DOC), "exec"), ns)
+    assert isinstance(ns["rec"], Recording) and ns["rec"].n > 100_000
+    assert isinstance(ns["ident"], IdentResult) and isinstance(ns["ident"].params, ActuatorParams)
+    design = ActuatorParams()
+    assert ns["ident"].params.w_nv == pytest.approx(design.w_nv, rel=0.05)      # Table 1: 524 rad/s
+    assert isinstance(ns["diag"], Diagnosis)
+    assert all(isinstance(e, NamedEffect) for e in ns["diag"].effects)
+    assert ns["diag"].verdict.status == "explained" and not ns["diag"].effects   # the model's own actuator
+    iso = ns["iso"]
+    assert isinstance(iso, IsolationComparison)
+    assert iso.reduction_db["feedback"] > 10 and iso.reduction_db["feedback_feedforward"] > iso.reduction_db["feedback"]
+    assert ns["session"].activated and ns["reason"] == "time"
+    assert (tmp_path / "run.h5").is_file()
+
+
+def test_identify_refuses_a_feedback_only_recording_as_the_cli_does(tmp_path):
+    import rig
+    from rig.cli import main
+    from rig.errors import RigError
+    run = tmp_path / "run.h5"
+    assert main(["run", "--sim-time", "--seconds", "1", "--quiet", "--record", str(run)]) == 0
+    with pytest.raises(RigError, match="closed-loop recording"):
+        rig.identify_actuator(run)
+
+
+def test_a_session_that_never_activates_warns_and_one_that_does_not():
+    from rig.config import load_config
+    from rig.runtime.clock import SimClock
+    from rig.runtime.session import NeverActivated, Session
+    cfg = load_config(None)
+    with Session(cfg, "sim", clock=SimClock()) as s:
+        with pytest.warns(NeverActivated, match="stayed INACTIVE"):
+            s.run(seconds=0.05)
+    assert not s.activated
+    with Session(cfg, "sim", clock=SimClock()) as s:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", NeverActivated)
+            s.run(seconds=0.05, activate_after_s=0.01)
+    assert s.activated
+
+
+def test_import_rig_is_light_and_names_its_api():
+    code = ("import sys, rig; print(sorted(m for m in ('numpy', 'scipy', 'h5py', 'numba') if m in sys.modules)); "
+            "print(rig.__all__); print(callable(rig.identify_actuator))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    heavy, names, callable_ = out.stdout.strip().splitlines()
+    assert heavy == "[]"
+    for name in ("load_recording", "record_chirp", "identify_actuator", "diagnose_recording", "simulate_isolation"):
+        assert name in names
+    assert callable_ == "True"
