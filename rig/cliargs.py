@@ -137,7 +137,8 @@ def output_arg(p: argparse.ArgumentParser, *flags: str, kind: str = "file", suff
 
 def check_outputs(args) -> None:
     """The rule: an output file that exists, or an output folder that is not empty, is refused without
-    --overwrite; a file name that is a folder (or a folder name that is a file) always. RigError, one line."""
+    --overwrite (but a batch's own folder, given to the same batch again: rig/batch/command.py `resumes`); a file
+    name that is a folder (or a folder name that is a file) always. RigError, one line."""
     overwrite = bool(getattr(args, "overwrite", False))
     for option, path, kind in getattr(args, "_outputs", []):
         if kind == "file":
@@ -148,7 +149,8 @@ def check_outputs(args) -> None:
         else:
             if path.exists() and not path.is_dir():
                 raise RigError(f"{option} {path}: exists and is not a folder")
-            if path.is_dir() and not overwrite and any(path.iterdir()):
+            resumes = getattr(args, "resumes", None)      # a batch's folder, run again into: it resumes
+            if path.is_dir() and not overwrite and any(path.iterdir()) and not (resumes and resumes(args, path)):
                 raise RigError(f"{option} {path}: folder is not empty (add --overwrite to write into it)")
 
 

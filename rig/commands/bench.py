@@ -27,6 +27,9 @@
                                                   priority, a pty echo and a socket echo, side by side
                                                   (rig/commands/bench_stalls.py)
   rig bench sim ...                               simulation speed of the plant
+  rig bench batch [--n N] [--json]                a batch of simulated recordings diagnosed one by one, on the
+                                                  local pool, on a Dask LocalCluster, and killed and resumed
+                                                  (rig/commands/bench_batch.py)
   rig bench prototype [--json]                    the prototype's tracking targets on the simulated stand,
                                                   in simulated time (rig/commands/prototype_bench.py)
 
@@ -55,6 +58,7 @@ import os
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -117,6 +121,17 @@ def add_arguments(p) -> None:
     rp.add_argument("--rounds", type=cliargs.count(1, 100), default=3,
                     help="replays of each mode, alternating (default 3; medians are printed)")
     rp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
+    bp = sub.add_parser("batch", help="a batch of recordings: one by one, local pool, Dask LocalCluster, resumed")
+    bp.add_argument("--n", type=cliargs.count(2, 10000), default=40, help="recordings (default 40)")
+    bp.add_argument("--duration", type=cliargs.seconds(ge=5, le=1000), default=12.0, metavar="S",
+                    help="length of each (default 12 s: the shortest the diagnosis makes a claim on)")
+    bp.add_argument("--fs", type=cliargs.rate_hz(le=20000), default=1000.0, metavar="HZ",
+                    help="sample rate (default 1000 Hz)")
+    bp.add_argument("--workers", type=cliargs.count(1, 64), default=2,
+                    help="processes of the pool and of the LocalCluster (default 2)")
+    bp.add_argument("--keep", metavar="DIR", type=Path, default=None,
+                    help="make the recordings and the outputs here and keep them (default: a temporary folder)")
+    bp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
 def _config_arg(p) -> None:
@@ -146,7 +161,11 @@ def run(args) -> int:
         return bench_stalls.run(args)
     if what == "cli":
         return bench_cli.run(args)
-    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, cli or prototype (see rig bench --help)")
+    if what == "batch":
+        from rig.commands import bench_batch
+        return bench_batch.run(args)
+    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, cli, batch or prototype (see rig bench "
+                   "--help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------

@@ -1,33 +1,68 @@
 """`rig diagnose REC --out DIR`: where the recording and the configured model differ, which physics is missing,
-the augmented fit, and the proof it is better (outputs: rig/diagnose/report.py)."""
+the augmented fit, and the proof it is better (outputs: rig/diagnose/report.py).
+
+`rig diagnose REC... --out DIR` (several files, a folder or a glob): a batch (rig/batch/): each recording in
+DIR/<name>/ as above, on --workers processes or a Dask cluster (--scheduler), with DIR/summary.{csv,md,json}
+and the trends of the recordings' effects and parameters over their dates."""
 from __future__ import annotations
 
 import argparse
 import json
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from rig import cliargs
+from rig.batch import command as batch
+from rig.batch.run import Job, file_identity
 from rig.errors import RigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", metavar="REC", type=Path,
+    p.add_argument("recording", metavar="REC", type=Path, nargs="+",
                    help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2), "
-                        "or a run of the four-mount rig (rig run --record, rig hil: docs/RUN_RECORDING.md)")
+                        "or a run of the four-mount rig (rig run --record, rig hil: docs/RUN_RECORDING.md)"
+                        "; several, a folder or a quoted glob ('runs/**/*.h5'): a batch")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                        help="write diagnosis.json, fit.csv, report.md and the PNG plots to DIR (default: the "
-                            "summary only)")
+                            "summary only; a batch needs it: one folder per recording in it, and the summary; run "
+                            "again into it, a batch resumes)")
     p.add_argument("--seed", type=cliargs.seed(), default=0, help="seed of the engine's random choices (default 0)")
-    p.add_argument("--json", action="store_true", help="print only diagnosis.json on stdout")
+    p.add_argument("--json", action="store_true",
+                   help="print only diagnosis.json on stdout (a batch: its summary rows and trends as JSON)")
     p.add_argument("--plant", metavar="FILE", type=Path, default=None,
                    help="plant file (TOML, docs/PLANT.md): the model family and its parameters (default: the eha "
                         "actuator of --config or Table 1), and [signals] naming REC's own columns or variables "
                         "and their units")
+    batch.add_arguments(p)
+
+
+def diagnose_one(plant: Path | None, config: str | None, seed: int, path: str, out: str) -> dict:
+    """A batch's work on one recording (in a worker): diagnose it into out, as `rig diagnose` does; its row."""
+    from rig.batch.rows import diagnosis_row
+    from rig.diagnose import report
+    from rig.diagnose.engine import diagnose
+    from rig.plant.file import load_subject
+
+    subject = load_subject(Path(path), plant, config)
+    diag = diagnose(subject.rec, subject.plant, seed=seed)
+    try:
+        report.write_outputs(Path(out), diag, subject.rec)
+    except OSError as e:
+        raise RigError(f"{out}: cannot write ({e.strerror or e})") from None
+    return diagnosis_row(diag, subject.rec)
 
 
 def run(args) -> int:
+    if batch.wanted(args):
+        options = {"seed": args.seed, "plant": file_identity(args.plant), "config": file_identity(args.config)}
+        return batch.run(Job("diagnose", options, partial(diagnose_one, args.plant, args.config, args.seed)), args)
+    args.recording = args.recording[0]
+    return run_single(args)
+
+
+def run_single(args) -> int:
     from rig.commands import diagnose_rig           # a run of the four-mount rig (issue 28)
     if diagnose_rig.handles(args):
         return diagnose_rig.run(args)

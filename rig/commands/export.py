@@ -53,8 +53,12 @@ def run(args) -> int:
     if args.to == "mat":
         export.write_mat(exp, out)
     else:
-        def progress(done: int, total: int) -> None:
-            if total >= 10 * export.CSV_CHUNK_ROWS:
+        shown = [0]
+
+        def progress(done: int, total: int) -> None:     # every tenth of a long table, and its end
+            tenth = 10 * done // max(total, 1)
+            if total >= 10 * export.CSV_CHUNK_ROWS and (tenth > shown[0] or done == total):
+                shown[0] = tenth
                 print(f"rig export: {done} / {total} rows", file=sys.stderr, flush=True)
         export.write_csv(exp, out, progress)
     cols = exp.columns()

@@ -1,25 +1,33 @@
-"""`rig identify REC [--json] [--out DIR]`: the six actuator parameters from a chirp recording (Eq. 11, Fig. 3)."""
+"""`rig identify REC [--json] [--out DIR]`: the six actuator parameters from a chirp recording (Eq. 11, Fig. 3).
+
+`rig identify REC... --out DIR` (several files, a folder or a glob): a batch (rig/batch/): each recording's
+outputs in DIR/<name>/, on --workers processes or a Dask cluster (--scheduler), with DIR/summary.{csv,md,json}
+and the trends of the identified parameters over the recordings' dates."""
 from __future__ import annotations
 
 import argparse
 import json
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from rig import cliargs
+from rig.batch import command as batch
+from rig.batch.run import Job, file_identity
 from rig.identify import UNITS
 from rig.errors import RigError
 
 
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recording", metavar="REC", type=Path,
-                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; time_s,valve_cmd_V,position_m,accel_mps2)")
+    p.add_argument("recording", metavar="REC", type=Path, nargs="+",
+                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; time_s,valve_cmd_V,position_m,accel_mps2); "
+                        "several, a folder or a quoted glob ('runs/**/*.h5'): a batch (--out needed)")
     p.add_argument("--json", action="store_true",
                    help='print only {"parameters", "std", "fit", ...} as JSON (SI units, w_nv in rad/s)')
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
-                       help="write identified.md (table beside Table 1), identify.json and fig3_bode.png here")
+                       help="write identified.md (table beside Table 1), identify.json and fig3_bode.png here (a "
+                            "batch: one folder per recording in it, and the summary; run again into it, it resumes)")
     cliargs.output_arg(p, "--plot", metavar="FILE", default=None, suffix=".png",
                        help="write the Bode plot of the identified model against the measured FRF (the paper's "
                             "Fig. 3) to FILE (.png added to a name without a suffix)")
@@ -34,6 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "[signals] names REC's own columns or variables and their units")
     p.add_argument("--no-refine", action="store_true",
                    help="skip the time-domain output-error refinement (FRF fit only, as the paper)")
+    batch.add_arguments(p)
 
 
 def table_markdown(res) -> str:
@@ -174,12 +183,48 @@ def _run_plant(args, rec, plant, t0: float) -> int:
     return 0
 
 
-def run(args) -> int:
+def identify_one(plant_path: Path | None, config: str | None, starts: int, seed: int, refine: bool, path: str,
+                 out: str) -> dict:
+    """A batch's work on one recording (in a worker): identify it into out, as `rig identify --out` does; its row."""
+    from rig.batch.rows import identify_plant_row, identify_row
+    from rig.diagnose.refit import identify_plant
     from rig.identify import identify, refuse_feedback_only
     from rig.plant.file import load_subject
 
+    subject = load_subject(Path(path), plant_path, config)
+    rec, plant = subject.rec, subject.plant
+    if plant.family != "eha":
+        res = identify_plant(rec, plant)
+        cliargs.make_out_dir(Path(out))
+        try:
+            (Path(out) / "identify.json").write_text(json.dumps(res, indent=1))
+        except OSError as e:
+            raise RigError(f"{out}: cannot write ({e.strerror or e})") from None
+        return identify_plant_row(res, rec)
+    refuse_feedback_only(rec)
+    res = identify(rec, plant.actuator, starts=starts, seed=seed, refine_time_domain=refine)
+    write_outputs(res, Path(out))
+    return identify_row(res, rec)
+
+
+def run(args) -> int:
     if args.starts < 1:
         raise RigError(f"--starts: expected >= 1, got {args.starts}")
+    if batch.wanted(args):
+        if args.repeat > 1:
+            raise RigError("--repeat: a benchmark of one recording, not of a batch (give one REC)")
+        options = {"starts": args.starts, "seed": args.seed, "refine": not args.no_refine,
+                   "plant": file_identity(args.plant), "config": file_identity(args.config)}
+        work = partial(identify_one, args.plant, args.config, args.starts, args.seed, not args.no_refine)
+        return batch.run(Job("identify", options, work), args)
+    args.recording = args.recording[0]
+    return run_single(args)
+
+
+def run_single(args) -> int:
+    from rig.identify import identify, refuse_feedback_only
+    from rig.plant.file import load_subject
+
     t0 = time.perf_counter()
     subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2
     rec, plant = subject.rec, subject.plant

@@ -33,20 +33,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,
                        help="with --rig: keep each case's recording in DIR")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
+    p.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
+                   help="run the cases on the Dask cluster of this scheduler instead of --workers processes "
+                        "(docs/BATCH.md; --cases: the workers must see the folder at the same path)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                    help="write the table, confusion matrix and score as DIR/proof.md and DIR/proof.json")
     p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
-def run(args) -> int:
-    from rig.config import load_config
-    from rig.diagnose import grading, prove
-    from sim_backend.linear import ActuatorParams
-
-    if args.rig:
-        return prove_rig.run(args)
-    cfg = load_config(args.config) if args.config else None
-    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
+def _check(args) -> bool:
+    """The options' checks; the default duration set. Whether --duration was given."""
     if args.workers < 1:
         raise RigError(f"--workers: expected at least 1, got {args.workers}")
     given = args.duration is not None
@@ -57,10 +53,31 @@ def run(args) -> int:
     if args.habits and args.duration < 20.0:
         raise RigError(f"--duration: with --habits expected at least 20 s (cases are 20 s and longer), "
                        f"got {args.duration:g}")
+    return given
+
+
+def _where(args) -> str:
+    if args.scheduler is None:
+        return f"on {args.workers} processes"
+    from rig.batch.pool import check_address
+    return f"on the Dask cluster at {check_address(args.scheduler)}"
+
+
+def run(args) -> int:
+    if args.rig:                                    # the four-mount rig (issue 28): its own defaults
+        return prove_rig.run(args)
+    from rig.config import load_config
+    from rig.diagnose import grading, prove
+    from sim_backend.linear import ActuatorParams
+
+    cfg = load_config(args.config) if args.config else None
+    p0 = ActuatorParams() if cfg is None else ActuatorParams.from_config(cfg)
+    given = _check(args)
 
     def progress(done: int, total: int, label: str) -> None:
         print(f"[{done}/{total}] diagnosed {label}", file=sys.stderr, flush=True)
 
+    where = _where(args)
     cases = None
     plant = None
     if args.plant is not None:
@@ -75,15 +92,16 @@ def run(args) -> int:
             raise RigError("--plant and --cases: grade a folder against its answers.json, or make cases on the "
                            "plant, not both")
         title = f"rig prove --plant {args.plant} --n {args.n} --seed {args.seed}"
-        print(f"rig prove: {args.n} blind cases from seed {args.seed} on {plant.describe()} on {args.workers} "
-              "processes", file=sys.stderr, flush=True)
-        cases, rows = prove_axis.prove_plant(args.n, args.seed, plant, workers=args.workers, progress=progress)
+        print(f"rig prove: {args.n} blind cases from seed {args.seed} on {plant.describe()} {where}",
+              file=sys.stderr, flush=True)
+        cases, rows = prove_axis.prove_plant(args.n, args.seed, plant, workers=args.workers, progress=progress,
+                                             scheduler=args.scheduler)
     elif args.cases is not None:
         title = f"rig prove --cases {args.cases}"
         n = len(prove.read_answers(args.cases))
-        print(f"rig prove: grading {n} recordings of {args.cases} on {args.workers} processes",
-              file=sys.stderr, flush=True)
-        rows = prove.prove_folder(args.cases, p0, seed=args.seed, workers=args.workers, progress=progress)
+        print(f"rig prove: grading {n} recordings of {args.cases} {where}", file=sys.stderr, flush=True)
+        rows = prove.prove_folder(args.cases, p0, seed=args.seed, workers=args.workers, progress=progress,
+                                  scheduler=args.scheduler)
     else:
         title = f"rig prove --n {args.n} --seed {args.seed}"
         if given:
@@ -92,9 +110,10 @@ def run(args) -> int:
             title += " --habits"
         what = "cases with the habits of real recordings" if args.habits else f"{args.duration:g} s chirps"
         print(f"rig prove: {args.n} blind cases from seed {args.seed} ({what}) "
-              f"on {args.workers} processes", file=sys.stderr, flush=True)
+              f"{where}", file=sys.stderr, flush=True)
         cases, rows = prove.prove_generated(args.n, args.seed, p0, duration_s=args.duration,
-                                            workers=args.workers, progress=progress, habits=args.habits)
+                                            workers=args.workers, progress=progress, habits=args.habits,
+                                            scheduler=args.scheduler)
 
     result = grading.report_json(rows, title, cases)
     if args.out is not None:

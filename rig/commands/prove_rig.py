@@ -70,8 +70,9 @@ def run(args) -> int:
     from rig.diagnose.machine import prove
 
     from rig.errors import RigError
-    if args.cases is not None or args.plant is not None or args.habits:
-        raise RigError("--rig: not with --cases, --plant or --habits (it makes runs of the four-mount rig)")
+    if args.cases is not None or args.plant is not None or args.habits or getattr(args, "scheduler", None):
+        raise RigError("--rig: not with --cases, --plant, --habits or --scheduler (it makes runs of the four-mount "
+                       "rig on --workers processes)")
     if args.duration is None:
         args.duration = 60.0
     if not 5.0 <= args.duration <= 1000.0:

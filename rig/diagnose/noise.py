@@ -128,3 +128,34 @@ def quantisation_step(x: np.ndarray, min_fraction: float = 0.995) -> float:
     k = (x - u[0]) / q
     on = np.abs(k - np.round(k)) < 0.02
     return q if on.mean() >= min_fraction else 0.0
+
+
+@dataclass(frozen=True)
+class Roughness:
+    """What the measured output's own sample-to-sample roughness allows the noise to be: for white noise of rms s
+    the k-th difference has rms s sqrt(C(2k, k)), and a response smooth at the sample rate adds to it, so each
+    order k gives an upper bound; the least of k = 1..MAX_ORDER is kept (the order that took the response out)."""
+    rms: float
+    order: int
+
+
+ROUGHNESS_MAX_ORDER = 5
+
+
+def roughness(y: np.ndarray, mask: np.ndarray | None = None) -> Roughness:
+    """The noise rms the output's own differences allow (mask: the samples to use; a difference counts only where
+    every sample it spans is used)."""
+    y = np.asarray(y, float)
+    ok = np.ones(len(y), bool) if mask is None else np.asarray(mask, bool)
+    best = Roughness(math.inf, 0)
+    for k in range(1, ROUGHNESS_MAX_ORDER + 1):
+        if len(y) <= k + 10:
+            break
+        d = np.diff(y, k)
+        spans = np.convolve(ok.astype(int), np.ones(k + 1, int), "valid") == k + 1
+        if spans.sum() < 10:
+            break
+        s = math.sqrt(float(np.mean(d[spans] ** 2)) / math.comb(2 * k, k))
+        if s < best.rms:
+            best = Roughness(s, k)
+    return best

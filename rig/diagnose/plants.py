@@ -30,15 +30,19 @@ FRICTION_REFINE = 20                # ... and a sub-step where the friction chan
                                     # error F_c h / M would otherwise shift the position by F_c h / c)
 
 
-def at_bounds(bounds_lin: dict, lin: dict, keys) -> dict[str, float]:
-    """The linear parameters (of keys) a fit left within 1 % of their range's width from a bound: name -> that
-    bound."""
+def at_bounds(bounds_lin: dict, lin: dict, keys, log_scale: dict | None = None) -> dict[str, float]:
+    """The linear parameters (of keys) a fit left within 1 % of their range's width from a bound (on a log scale
+    for a parameter fitted on one: 0.1 on 0.001..1000 is not at its lower bound): name -> that bound."""
     out = {}
     for k in keys:
         lo, hi = bounds_lin[k]
-        edge = lo if abs(lin[k] - lo) <= abs(lin[k] - hi) else hi
-        if abs(lin[k] - edge) < 0.01 * (hi - lo):
-            out[k] = edge
+        if log_scale and log_scale.get(k):
+            v, a, b = math.log(lin[k]), math.log(lo), math.log(hi)
+        else:
+            v, a, b = lin[k], lo, hi
+        edge = a if abs(v - a) <= abs(v - b) else b
+        if abs(v - edge) < 0.01 * (b - a):
+            out[k] = lo if edge == a else hi
     return out
 
 
@@ -161,10 +165,12 @@ class AxisModel:
         if fric > 0:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        cmd = self.shaped_command(cmd, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
-        return run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
-                            smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
-                            fine=fine, **kw)   # a new effect's term: run_segments' own keyword
+        rectify, bias = kw.pop("rectify", False), kw.pop("bias", 0.0)
+        cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
+        y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
+                         smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
+                         fine=fine, **kw)   # a new effect's term: run_segments' own keyword
+        return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""
@@ -184,6 +190,9 @@ class AxisModel:
         if self.family != "mechanical_axis":
             return X0
         w = max(2, int(round(STATE_HALF_WINDOW_S * fs)))
+        if self.plant.output == "velocity":      # the sensor reads the velocity: the state it gives, position 0
+            X0[:, 1 if n_state > 1 else 0] = y[np.minimum(starts, len(y) - 1)]
+            return X0
         for i, s in enumerate(starts):
             a, b = max(0, s - w), min(len(y), s + w + 1)
             if b - a < 5:

@@ -38,6 +38,7 @@ class ModelFit:
     dist: tuple | None = None     # (freq, coef_sin, coef_cos)
     coef: np.ndarray | None = None   # sensor-basis coefficients
     state: np.ndarray | None = None  # segment-wise initial states' response (multiple shooting), metres
+    tau: float = 1.0              # correlation time of its held-out residual, samples (1: white; eha: not measured)
 
 
 @dataclass
@@ -91,6 +92,7 @@ class Problem:
         self.use = np.asarray(use, bool)
         n_blocks = _n_blocks(self.plant, self.n, self.fs)
         blk = np.arange(self.n) * n_blocks // self.n
+        self.blk = blk                              # block of each sample (even: fit, odd: held out)
         self.mfit = ((blk % 2) == 0) & self.use
         self.mhold = ((blk % 2) == 1) & self.use
         self.scale = self.plant.scale(self.cmd, self.fs)   # what effects' bounds and starts are relative to
@@ -281,10 +283,10 @@ class Problem:
         """Fitted physics parameters: the linear ones, each effect's keys, the disturbance's frequency + 2."""
         return len(self.lin_keys) + sum(catalogue.get(n).n_free for n in fx)
 
-    def fit(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None, max_iter=20,
-            rtol: float = 1e-5) -> ModelFit:
-        """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
-        keys."""
+    def space(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None):
+        """The fitted coordinates of a model: (names, lo, hi, x0, step, unpack), the free linear keys on a log scale
+        where positive (eha: within LIN_BOUNDS x nominal), the free effect keys as they are; unpack(x) -> (lin,
+        fx)."""
         free_lin = self.lin_keys if free_lin is None else tuple(k for k in free_lin if k in self.lin_keys)
         free_fx = {n: self.spec_keys(n) for n in catalogue.simulated(fx0)} if free_fx is None else free_fx
         eha = self.plant.family == "eha"
@@ -308,7 +310,8 @@ class Problem:
                     continue
                 names.append((n, key)); lo.append(a); hi.append(b)
                 x0.append(fx0[n][key]); scale.append(0.02 * (b - a))
-        x0 = np.clip(np.array(x0), np.array(lo) + 1e-12, np.array(hi) - 1e-12)
+        lo, hi = np.array(lo, float), np.array(hi, float)
+        x0 = np.clip(np.array(x0, float), lo + 1e-12, hi - 1e-12)
 
         def unpack(x):
             lin = dict(lin0); fx = {n: dict(v) for n, v in fx0.items()}
@@ -319,13 +322,20 @@ class Problem:
                 else:
                     fx[grp][key] = float(val)
             return lin, fx
+        return names, lo, hi, x0, np.array(scale) * 1e-3, unpack
+
+    def fit(self, lin0: dict, fx0: dict, free_lin=None, free_fx: dict | None = None, max_iter=20,
+            rtol: float = 1e-5) -> ModelFit:
+        """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
+        keys."""
+        names, lo, hi, x0, step, unpack = self.space(lin0, fx0, free_lin, free_fx)
 
         def fun(x):
             lin, fx = unpack(x)
             return self.residual_fit(lin, fx) / self.noise
 
         if names:
-            x, _ = lm_fit(fun, x0, lo, hi, np.array(scale) * 1e-3, max_iter=max_iter, rtol=rtol)
+            x, _ = lm_fit(fun, x0, lo, hi, step, max_iter=max_iter, rtol=rtol)
             lin, fx = unpack(x)
         else:
             lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
@@ -340,8 +350,12 @@ class Problem:
 
     def evaluate(self, lin: dict, fx: dict, k: int) -> ModelFit:
         r, dist, c, state = self._residual_full(lin, fx)
+        # a plant file's plant: how correlated the held-out residual is (the tests count independent samples);
+        # the eha plant's tests stay as its proofs measured them
+        tau = correlation_time(r, self.mhold, self.n // (2 * int(self.blk[-1] + 1))) \
+            if self.plant.axis_search else 1.0
         return ModelFit(lin=lin, fx=fx, rss_fit=float(np.sum(r[self.mfit] ** 2)), rss_hold=float(np.sum(r[self.mhold] ** 2)),
-                   k=k, dist=dist, coef=c, state=state)
+                   k=k, dist=dist, coef=c, state=state, tau=tau)
 
     def physics(self, f: ModelFit) -> np.ndarray:
         """The physics part of a fitted model (with the disturbance's response and the segment states), metres."""
@@ -359,9 +373,34 @@ class Problem:
 
 # ---- tests -------------------------------------------------------------------------------------------------
 
+def correlation_time(r: np.ndarray, mask: np.ndarray, max_lag: int) -> float:
+    """The integrated correlation time of r on the masked samples, in samples: 1 + 2 sum rho(k) over the lags
+    where the autocorrelation stays positive (at most max_lag). n / tau independent samples carry the information
+    of n correlated ones: a residual full of model error (a real recording's) is far from white."""
+    m = np.asarray(mask, float)
+    x = np.asarray(r, float) * m
+    n = len(x)
+    L = int(max(1, min(max_lag, n // 4, 4000)))
+    nf = 1 << int(math.ceil(math.log2(2 * n)))
+    acf = np.fft.irfft(np.abs(np.fft.rfft(x, nf)) ** 2, nf)[:L + 1]
+    cnt = np.fft.irfft(np.abs(np.fft.rfft(m, nf)) ** 2, nf)[:L + 1]
+    if cnt[0] < 2 or acf[0] <= 0:
+        return 1.0
+    rho = (acf[1:] / np.maximum(cnt[1:], 1.0)) / (acf[0] / cnt[0])
+    neg = np.flatnonzero(rho <= 0.0)
+    upto = int(neg[0]) if len(neg) else len(rho)
+    return float(max(1.0, 1.0 + 2.0 * np.sum(rho[:upto])))
+
+
+def n_eff(n: int, f: ModelFit) -> float:
+    """The independent samples among n of a model's residual (its held-out residual's correlation time)."""
+    return max(2.0, n / max(f.tau, 1.0))
+
+
 def compare(pb: Problem, base: ModelFit, cand: ModelFit) -> dict:
-    """BIC on the fit blocks and a likelihood ratio on the held-out blocks (parameters frozen)."""
-    nf = int(pb.mfit.sum()); nh = int(pb.mhold.sum())
+    """BIC on the fit blocks and a likelihood ratio on the held-out blocks (parameters frozen), each counting the
+    independent samples of the candidate's residual (a plant file's plant; on the eha plant every sample)."""
+    nf = n_eff(int(pb.mfit.sum()), cand); nh = n_eff(int(pb.mhold.sum()), cand)
     dk = max(1, cand.k - base.k)
     dbic = nf * math.log(base.rss_fit / cand.rss_fit) - dk * math.log(nf)
     lr_h = nh * math.log(base.rss_hold / cand.rss_hold)

@@ -10,17 +10,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from rig import excitation as ex
+from rig.batch import pool
 from rig.diagnose import catalogue
 from rig.diagnose.grading import grade
 from rig.diagnose.engine import diagnose
@@ -308,53 +306,31 @@ def read_answers(cases_dir: Path) -> list[tuple[Path, dict, dict | None, float |
     return out
 
 
-def _pool(workers: int):
-    # spawn: no forked numba/BLAS thread state; one BLAS thread per worker so 2 workers fit 2 cores
-    return ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"))
-
-
 def run_jobs(jobs: list[tuple[Callable, tuple, str]], workers: int,
-             progress: Callable[[int, int, str], None] | None = None) -> list[dict]:
-    """Run (fn, args, label) jobs over `workers` processes; rows come back in job order."""
+             progress: Callable[[int, int, str], None] | None = None, *, scheduler: str | None = None) -> list[dict]:
+    """Run (fn, args, label) jobs over `workers` local processes, or on the Dask cluster of `scheduler`
+    (rig.batch.pool); rows come back in job order. A job that raised stops the proof with its exception."""
     rows: list[dict | None] = [None] * len(jobs)
-    if workers <= 1 or len(jobs) == 1:
-        for i, (fn, args, label) in enumerate(jobs):
-            rows[i] = fn(*args)
-            if progress:
-                progress(i + 1, len(jobs), label)
-        return rows  # type: ignore[return-value]
-    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                                             "NUMBA_NUM_THREADS")}
-    os.environ.update({k: "1" for k in saved})
-    try:
-        with _pool(workers) as ex:
-            futs = {ex.submit(fn, *args): (i, label) for i, (fn, args, label) in enumerate(jobs)}
-            done = 0
-            for fut in as_completed(futs):
-                i, label = futs[fut]
-                rows[i] = fut.result()
-                done += 1
-                if progress:
-                    progress(done, len(jobs), label)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    tasks = [(fn, args) for fn, args, _ in jobs]
+    for done, (i, out) in enumerate(pool.run_tasks(tasks, workers=workers, scheduler=scheduler), 1):
+        if isinstance(out, BaseException):
+            raise out
+        rows[i] = out
+        if progress:
+            progress(done, len(jobs), jobs[i][2])
     return rows  # type: ignore[return-value]
 
 
 def prove_generated(n: int, seed: int, p0: ActuatorParams, *, duration_s: float = 100.0, workers: int = 2,
-                    progress=None, habits: bool = False) -> tuple[list[Case], list[dict]]:
+                    progress=None, habits: bool = False, scheduler: str | None = None) -> tuple[list[Case], list[dict]]:
     cases = draw_cases(n, seed, duration_s=duration_s, p0=p0, habits=habits)
     jobs = [(_run_generated, (c, p0.as_dict(), seed), c.name) for c in cases]
-    return cases, run_jobs(jobs, workers, progress)
+    return cases, run_jobs(jobs, workers, progress, scheduler=scheduler)
 
 
 def prove_folder(cases_dir: Path, p0: ActuatorParams, *, seed: int = 0, workers: int = 2,
-                 progress=None) -> list[dict]:
+                 progress=None, scheduler: str | None = None) -> list[dict]:
     entries = read_answers(Path(cases_dir))
     jobs = [(_run_file, (str(path), truth, lin, p0.as_dict(), seed, noise), path.name)
             for path, truth, lin, noise in entries]
-    return run_jobs(jobs, workers, progress)
+    return run_jobs(jobs, workers, progress, scheduler=scheduler)

@@ -179,11 +179,12 @@ def plant_table(plant: Plant) -> dict:
     return t
 
 
-def prove_plant(n: int, seed: int, plant: Plant, *, workers: int = 2, progress=None) -> tuple[list[Case], list[dict]]:
+def prove_plant(n: int, seed: int, plant: Plant, *, workers: int = 2, progress=None,
+                scheduler: str | None = None) -> tuple[list[Case], list[dict]]:
     cases = draw_axis_cases(n, seed, plant)
     table = plant_table(plant)
     jobs = [(_run_axis_case, (c, table, plant.source, seed), c.name) for c in cases]
-    return cases, run_jobs(jobs, workers, progress)
+    return cases, run_jobs(jobs, workers, progress, scheduler=scheduler)
 
 
 def cases_json(cases: list[Case]) -> list[dict]:

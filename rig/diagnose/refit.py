@@ -60,7 +60,7 @@ def identify_plant(rec, plant: Plant, progress=None) -> dict:
            "parameters": pb.plant.public_linear(f.lin), "std": std,
            "start": {k: plant.params[k].value for k in keys},
            "bounds": {k: [plant.params[k].lo, plant.params[k].hi] for k in keys},
-           "at_bounds": list(at_bounds(pb.plant.bounds_lin, f.lin, keys)),
+           "at_bounds": list(at_bounds(pb.plant.bounds_lin, f.lin, keys, pb.plant.log_scale)),
            "fit": {"nrmse": float(np.sqrt(np.sum(r ** 2) / max(np.sum(yc ** 2), 1e-300))),
                    "residual_rms_m": float(np.sqrt(np.mean(r ** 2))), "holdout_residual_rms_m": hold,
                    "n_samples": rec.n, "fs_hz": rec.fs_hz},

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rig.diagnose import catalogue, figures as figures_mod
+from rig.diagnose import catalogue, figures as figures_mod, uncertainty, units
 from rig.diagnose.evidence import signature_line
 from rig.diagnose.problem import MIN_GAIN
 from rig.diagnose.results import MODELS, Diagnosis, Mismatch, NamedEffect, Verdict
@@ -52,7 +52,9 @@ def _plain(x):
 def diagnosis_dict(diag: Diagnosis, rec=None) -> dict:
     """The diagnosis.json document (schema of issue 7, plus groups, refit parameters and noise)."""
     effects = [{"name": e.name, "parameters": dict(e.parameters), "evidence": effect_evidence(e, diag.mismatch),
-                "score": e.score} for e in diag.effects]
+                "score": e.score, "interval_95": {k: list(v) for k, v in e.interval.items()},
+                "share_of_refit_holdout_residual": e.share, "holdout_lr_of_taking_it_out": e.evidence}
+               for e in diag.effects]
     cmd = diag.command
     doc = {"effects": effects, "mismatch": diag.mismatch.as_dict(), "fit": diag.fit.as_dict(),
            "summary": summary(diag), "groups": [list(g) for g in diag.groups],
@@ -60,7 +62,9 @@ def diagnosis_dict(diag: Diagnosis, rec=None) -> dict:
            "candidates": list(diag.candidates),      # every test the engine ran
            "plant": dict(diag.plant), "sensor": diag.sensor.as_dict(),
            "verdict": {"status": diag.verdict.status, "text": verdict_text(diag.verdict),
-                       "suggestions": list(diag.verdict.suggestions)},
+                       "suggestions": list(diag.verdict.suggestions), "rest": list(diag.verdict.rest),
+                       "noise": diag.verdict.noise},
+           "interval_method": uncertainty.METHOD if diag.effects else None,
            "command": {"kind": cmd.kind, "description": cmd.describe(), "band_hz": list(cmd.band_hz),
                        "peak_V": cmd.peak_V, "levels_V": [sg.peak_V for sg in cmd.segments] if cmd.multilevel
                        else None, "period_s": cmd.period / cmd.fs_hz if cmd.period else None}}
@@ -85,12 +89,19 @@ def verdict_text(v: Verdict) -> str:
         if v.named:
             return f"The augmented model explains the recording (residual {v.holdout_over_noise:.2f}x noise)."
         return f"The refit of the linear parameters explains the recording (residual {v.holdout_over_noise:.2f}x noise)."
+    rest = f" The rest lies in {'; '.join(v.rest)}." if v.rest else ""
     if v.status == "not_described":
         return (f"The model does not describe this recording: neither the refit ({v.refit_over_noise:.1f}x noise) "
                 f"nor the catalogue effects ({v.holdout_over_noise:.1f}x noise) bring the residual near the noise, "
                 f"so no effect is named.")
+    if v.status == "incomplete":
+        share = 1.0 - (v.holdout_over_noise / v.refit_over_noise) ** 2 if v.refit_over_noise else 0.0
+        return (f"The model stays incomplete: the effects named each predict the held-out blocks and together "
+                f"remove {100 * share:.0f} % of the refit's held-out residual variance ({v.refit_over_noise:.1f}x "
+                f"-> {v.holdout_over_noise:.1f}x the noise), but something outside the catalogue remains far above "
+                f"the noise." + rest)
     return (f"The augmented model explains the recording only in part: the residual stays "
-            f"{v.holdout_over_noise:.2f}x the noise (something outside the catalogue remains).")
+            f"{v.holdout_over_noise:.2f}x the noise (something outside the catalogue remains)." + rest)
 
 
 def effect_evidence(e: NamedEffect, mismatch: Mismatch) -> str:
@@ -101,23 +112,38 @@ def effect_evidence(e: NamedEffect, mismatch: Mismatch) -> str:
             f"variance cut by {100 * st['holdout_gain']:.1f} % (needs > {100 * MIN_GAIN:.1f} %)")
 
 
+def _with_interval(e, k: str, v: float) -> str:
+    iv = e.interval.get(k)
+    return f"{k}={v:.4g}" + (f" [{iv[0]:.4g}, {iv[1]:.4g}]" if iv else "")
+
+
 def _summary_effects(effects) -> str:
-    return ", ".join(f"{e.name} ({', '.join(f'{k}={v:.4g}' for k, v in e.parameters.items())})" for e in effects)
+    return ", ".join(f"{e.name} ({', '.join(_with_interval(e, k, v) for k, v in e.parameters.items())}"
+                     + (f"; removes {100 * e.share:.2g} % of the refit's held-out residual" if e.share is not None
+                        else "") + ")" for e in effects)
+
+
+def _clip_what(c, unit: str) -> str:
+    """A clip in words: the measured output's flat top at its sensor's range is an output clip, at its level."""
+    if c.channel != "position_m":
+        return f"{c.channel} clipped"
+    lvl = c.high if c.high is not None else c.low
+    return f"output clip at {units.amount(lvl, unit, '.4g')}"
 
 
 def _sensor_summary(s) -> str:
-    parts = [f"offset {s.offset_m * 1e6:.3g} um", f"drift {s.drift_m_per_s * 1e9:.3g} nm/s"] \
+    u = s.unit
+    parts = [f"offset {units.amount(s.offset_m, u)}", f"drift {units.per_second(s.drift_m_per_s, u)}"] \
         if (s.offset_m or s.drift_m_per_s) else []     # none: the segment-wise initial states hold the zero
     if s.wander_terms:
-        parts.append(f"slow wander {s.wander_rms_m * 1e9:.3g} nm rms")
+        parts.append(f"slow wander {units.amount(s.wander_rms_m, u)} rms")
     for l in s.lines:
-        unit = "nm" if l.channel == "position_m" else "mm/s^2"
-        scale = 1e9 if l.channel == "position_m" else 1e3
-        parts.append(f"{l.source} line {l.frequency_hz:.2f} Hz on {l.channel} ({l.amplitude * scale:.3g} {unit})")
+        amp = units.amount(l.amplitude, u) if l.channel == "position_m" else f"{l.amplitude * 1e3:.3g} mm/s^2"
+        parts.append(f"{l.source} line {l.frequency_hz:.2f} Hz on {l.channel} ({amp})")
     if s.quantisation_step_m:
-        parts.append(f"quantisation step {s.quantisation_step_m:.3g} m")
+        parts.append(f"quantisation step {units.amount(s.quantisation_step_m, u)}")
     for c in s.clipped:
-        parts.append(f"{c.channel} clipped ({c.samples} samples)")
+        parts.append(f"{_clip_what(c, u)} ({c.samples} samples)")
     return ", ".join(parts)
 
 
@@ -128,7 +154,8 @@ def summary(diag: Diagnosis) -> str:
     what = _summary_effects(diag.effects) if diag.effects else "none"
     out = (f"{verdict_text(v)} Missing physics: {what}. Held-out residual/noise nominal "
            f"{fit.nominal.residual_over_noise_holdout:.1f}, refit {fit.refit.residual_over_noise_holdout:.1f}, "
-           f"augmented {fit.augmented.residual_over_noise_holdout:.2f} (noise {diag.noise_m:.2g} m). "
+           f"augmented {fit.augmented.residual_over_noise_holdout:.2f} (noise "
+           f"{units.amount(diag.noise_m, diag.sensor.unit, '.2g')}). "
            f"Mismatch vs nominal in {len(mm.bands_hz)} band(s), after refit in {len(mm.after_refit['bands_hz'])}.")
     if diag.groups and diag.effects:
         out += " Confounded: " + "; ".join(" ~ ".join(g) for g in diag.groups) + "."
@@ -170,13 +197,16 @@ def write_fit_csv(path: Path, diag, rec) -> Path:
 _UNITS = catalogue.display_units()      # parameter key -> (scale, unit), from the effects' definitions
 
 
-def format_parameters(prm: dict) -> str:
+def format_parameters(prm: dict, interval: dict | None = None) -> str:
+    """Parameters in their display units; with an interval, each key's 95 % interval after it."""
     out = []
     for k, v in prm.items():
         if isinstance(v, (int, float)) and not isinstance(v, bool):
             scale, unit = _UNITS.get(k, (1.0, ""))
             name = k.rsplit("_", 1)[0] if k in _UNITS and unit else k
-            out.append(f"{name} {v * scale:.4g}{(' ' + unit) if unit else ''}")
+            iv = (interval or {}).get(k)
+            ci = f" (95 %: {iv[0] * scale:.4g} to {iv[1] * scale:.4g})" if iv else ""
+            out.append(f"{name} {v * scale:.4g}{(' ' + unit) if unit else ''}{ci}")
         else:
             out.append(f"{k} {v}")
     return ", ".join(out)
@@ -242,7 +272,7 @@ def describe_uncorrelated(u) -> str:
     lines = u.get("lines") or []
     if not lines:
         return "no spectral line outside the command's response"
-    s = "lines at " + ", ".join(f"{l['frequency_hz']:.2f} Hz ({l['amplitude_m']:.2g} m)" for l in lines)
+    s = "lines at " + ", ".join(f"{l['frequency_hz']:.2f} Hz ({l['amplitude_m']:.2g})" for l in lines)
     frac = u.get("fraction_of_refit_residual_in_lines")
     if isinstance(frac, (int, float)):
         s += f"; {100 * frac:.0f} % of the refit residual power"
@@ -287,7 +317,10 @@ def summary_text(diag: Diagnosis, rec=None) -> str:
         else:
             lines.append("  none: the refit linear model explains the recording")
     for e in diag.effects:
-        lines.append(f"  {e.name}: {format_parameters(e.parameters)} [score {e.score:.4g}]")
+        lines.append(f"  {e.name}: {format_parameters(e.parameters, e.interval)} [score {e.score:.4g}]")
+        if e.share is not None:
+            lines.append(f"    removes {100 * e.share:.3g} % of the refit's held-out residual variance (the others "
+                         f"kept); held-out log-likelihood ratio of taking it out {e.evidence:.0f}")
         lines.append(f"    evidence: {effect_evidence(e, mm)}")
     for g in diag.groups:
         lines.append(f"  confounded (cannot be told apart here): {', '.join(g)}")
@@ -311,15 +344,17 @@ def summary_text(diag: Diagnosis, rec=None) -> str:
 
 def sensor_lines(sensor) -> list[str]:
     """The sensor terms as readable lines (stdout and report.md)."""
-    out = [f"position offset {sensor.offset_m * 1e6:.4g} um at t = 0, drift {sensor.drift_m_per_s * 1e9:.4g} nm/s"
-           + (f", slow wander {sensor.wander_rms_m * 1e9:.3g} nm rms ({sensor.wander_terms} cosines)"
+    u = sensor.unit
+    out = [f"{'position' if u in ('m', 'rad') else 'output'} offset {units.amount(sensor.offset_m, u, '.4g')} at "
+           f"t = 0, drift {units.per_second(sensor.drift_m_per_s, u, '.4g')}"
+           + (f", slow wander {units.amount(sensor.wander_rms_m, u)} rms ({sensor.wander_terms} cosines)"
               if sensor.wander_terms else "")]
     for l in sensor.lines:
-        amp = f"{l.amplitude * 1e9:.3g} nm" if l.channel == "position_m" else f"{l.amplitude:.3g} m/s^2"
+        amp = units.amount(l.amplitude, u) if l.channel == "position_m" else f"{l.amplitude:.3g} m/s^2"
         out.append(f"{l.source} line on {l.channel} at {l.frequency_hz:.3f} Hz, {amp}: {l.evidence}")
     if sensor.quantisation_step_m:
-        out.append(f"position quantised in steps of {sensor.quantisation_step_m:.3g} m (floor "
-                   f"{sensor.quantisation_step_m / math.sqrt(12):.3g} m rms)")
+        out.append(f"output quantised in steps of {units.amount(sensor.quantisation_step_m, u)} (floor "
+                   f"{units.amount(sensor.quantisation_step_m / math.sqrt(12), u)} rms)")
     if sensor.accel_quantisation_step_mps2:
         out.append(f"acceleration quantised in steps of {sensor.accel_quantisation_step_mps2:.3g} m/s^2")
     if sensor.accel_offset_mps2 is not None:
@@ -327,9 +362,7 @@ def sensor_lines(sensor) -> list[str]:
     if sensor.accel is not None and sensor.accel.note:
         out.append(sensor.accel.note)
     for c in sensor.clipped:
-        lvl = c.high if c.high is not None else c.low
-        out.append(f"{c.channel} clipped at {lvl:.4g} ({c.samples} samples from {c.first_s:.3f} s): left out of "
-                   "the fit")
+        out.append(f"{_clip_what(c, u)} ({c.samples} samples from {c.first_s:.4g} s): left out of the fit")
     if sensor.start_transient_s:
         out.append(f"mid-run start: the first {sensor.start_transient_s:g} s are left out (start transient)")
     return out
@@ -352,8 +385,8 @@ def _report_head(diag: Diagnosis, rec) -> list[str]:
     """Title, the recording in one line, the verdict with its suggestions, the command and the notes."""
     verdict = diag.verdict
     out = [f"# Diagnosis of {rec.source}", "",
-           f"{rec.n} samples at {rec.fs_hz:g} Hz ({rec.duration_s:g} s). Position noise estimate: "
-           f"{_figure(diag.noise_m, '.3g')} m rms.", ""]
+           f"{rec.n} samples at {rec.fs_hz:g} Hz ({rec.duration_s:g} s). Noise estimate: "
+           f"{units.amount(diag.noise_m, diag.sensor.unit)} rms, {verdict.noise or 'from the residual'}.", ""]
     out += [f"**Verdict ({verdict.status.replace('_', ' ')}):** {verdict_text(verdict)}", ""]
     out += [f"- {sg}" for sg in verdict.suggestions] + ([""] if verdict.suggestions else [])
     out += [f"Command: {diag.command.describe()}.", ""]
@@ -373,10 +406,14 @@ def _report_effects(diag: Diagnosis) -> list[str]:
     out = ["", "## Physics left out by the linear model", ""]
     verdict = diag.verdict
     if diag.effects:
-        out += ["| effect | parameters | score | evidence |", "|---|---|---|---|"]
+        out += ["Ranked by evidence (the held-out log-likelihood ratio of taking each out); intervals: "
+                f"{uncertainty.METHOD}.", "",
+                "| effect | parameters (95 % interval) | share of the refit's held-out residual | score | evidence |",
+                "|---|---|---|---|---|"]
         for e in diag.effects:
-            out.append(f"| {e.name} | {format_parameters(e.parameters)} | {_figure(e.score, '.4g')} | "
-                       f"{effect_evidence(e, diag.mismatch).replace('|', '/')} |")
+            share = f"{100 * e.share:.3g} %" if e.share is not None else "-"
+            out.append(f"| {e.name} | {format_parameters(e.parameters, e.interval)} | {share} | "
+                       f"{_figure(e.score, '.4g')} | {effect_evidence(e, diag.mismatch).replace('|', '/')} |")
     else:
         if verdict.status != "explained":
             out.append(f"None named. {verdict_text(verdict)}")
@@ -411,7 +448,8 @@ def _report_sensor_and_evidence(diag, evidence) -> list[str]:
 def _report_fit(diag) -> list[str]:
     """The three models' fit figures and the refit linear parameters."""
     out = ["", "## Fit", "",
-           "| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms (m) | residual / noise "
+           f"| model | NRMSE | NRMSE fit segment | NRMSE held-out | residual rms ({units.name(diag.sensor.unit)}) "
+           "| residual / noise "
            "| residual / noise held-out |", "|---|---|---|---|---|---|---|"]
     for m in MODELS:
         f = diag.fit.model(m)

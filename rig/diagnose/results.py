@@ -31,6 +31,9 @@ class NamedEffect:
     score: float
     stats: dict
     line_evidence: str = ""
+    interval: dict = field(default_factory=dict)    # key -> (low, high): 95 % (rig.diagnose.uncertainty)
+    share: float | None = None      # of the refit's held-out residual variance it removes, the others kept
+    evidence: float | None = None   # held-out log-likelihood ratio of taking it out (the effects' order)
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,7 @@ class Mismatch:
     worst_windows: dict             # model -> the worst time windows
     chirp_band_hz: list
     notes: tuple[str, ...]          # what the diagnosis did with the recording (mid-run start, clipping, ...)
+    regimes_augmented: dict = field(default_factory=dict)   # the augmented residual by command level, velocity
     harmonics: dict | None = None   # a sweep's harmonics
     multisine_lines: dict | None = None     # a multisine's unexcited lines
     not_claimed: tuple[NamedEffect, ...] = ()   # effects fitted but not named (the model does not describe it)
@@ -85,7 +89,8 @@ class Mismatch:
         if self.multisine_lines is not None:
             d["multisine_lines"] = self.multisine_lines
         d.update(bands_hz=self.bands_hz, windows_s=self.windows_s, after_refit=self.after_refit,
-                 after_augmented=self.after_augmented, regimes=self.regimes, worst_windows=self.worst_windows,
+                 after_augmented=self.after_augmented, regimes=self.regimes,
+                 regimes_augmented=self.regimes_augmented, worst_windows=self.worst_windows,
                  chirp_band_hz=self.chirp_band_hz)
         if self.not_claimed:
             d["not_claimed"] = [{"name": e.name, "parameters": e.parameters} for e in self.not_claimed]
@@ -95,15 +100,19 @@ class Mismatch:
 
 @dataclass(frozen=True)
 class Verdict:
-    """status: explained | partly | not_described | no_claim. The figures it rests on: the augmented and refit
-    models' held-out residual over the noise; named: effects were named (explained by them, not by the refit);
-    no_claim: why the recording allows no claim; suggestions: what the evidence suggests (one sentence each)."""
+    """status: explained | partly | incomplete | not_described | no_claim. The figures it rests on: the augmented
+    and refit models' held-out residual over the noise; named: effects were named (explained by them, not by the
+    refit); no_claim: why the recording allows no claim; suggestions: what the evidence suggests (one sentence
+    each); rest: where the residual the model leaves lies (bands, windows, regimes), when it is above the noise;
+    noise: how the noise the verdict rests on was found."""
     status: str
     holdout_over_noise: float = 0.0
     refit_over_noise: float = 0.0
     named: bool = False
     no_claim: str = ""
     suggestions: tuple[str, ...] = ()
+    rest: tuple[str, ...] = ()
+    noise: str = ""
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from rig.diagnose import catalogue, locate
-from rig.diagnose.problem import ModelFit, Problem, compare
+from rig.diagnose.problem import ModelFit, Problem, compare, n_eff
 
 MAX_EFFECTS = 2
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
@@ -88,7 +88,8 @@ def _fit_candidate(pb: Problem, name: str, lins: list[dict], fx_base: dict, band
         # that is already competitive
         st = pb.evaluate(lin0, fx0, k=0)
         if st.rss_fit > skip_above:
-            return ModelFit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=pb.n_params(fx0), coef=st.coef, state=st.state)
+            return ModelFit(lin=lin0, fx=fx0, rss_fit=st.rss_fit, rss_hold=st.rss_hold, k=pb.n_params(fx0), coef=st.coef,
+                            state=st.state, tau=st.tau)
     if slow and second:   # on a slow model: the effects with the gain and lag; the polish frees all
         return pb.fit(lin0, fx0, free_lin=pb.plant.slow_second_lin, max_iter=6,
                       rtol=SLOW_RTOL)
@@ -123,7 +124,7 @@ def _active(pb: Problem, f: ModelFit, name: str) -> bool:
         return True
     without = {k: v for k, v in f.fx.items() if k != name}
     r, _, _ = pb.residual(f.lin, without)
-    nh = int(pb.mhold.sum())
+    nh = n_eff(int(pb.mhold.sum()), f)
     rss_wo = float(np.sum(r[pb.mhold] ** 2))
     return nh * math.log(max(rss_wo, 1e-300) / max(f.rss_hold, 1e-300)) > len(pb.spec_keys(name)) * math.log(nh)
 
@@ -183,7 +184,7 @@ def select(pb: Problem, refit: ModelFit, nominal_lin: dict, band, lines: list, *
         if not ok:
             break
         name, f, st = ok[0]
-        nh = int(pb.mhold.sum())
+        nh = n_eff(int(pb.mhold.sum()), f)
         conf = [n_ for n_, g, s in ok[1:] if nh * math.log(g.rss_hold / f.rss_hold) < math.log(nh)]
         if conf:
             R.groups.append([name] + conf)
@@ -246,7 +247,8 @@ def pairs(pb: Problem, sel: Selection, say: Callable[[str], None]) -> tuple[Sele
     for _, a, b, f in sorted(fits, key=lambda x: x[0]):
         stats = {}
         for x, other in ((a, b), (b, a)):
-            if not _active(pb, f, x):
+            check = catalogue.get(x).check
+            if not _active(pb, f, x) or (check is not None and not check(pb, f, x)):
                 break
             slow = catalogue.get(other).slow
             alone = pb.fit(f.lin, {other: dict(f.fx[other])}, max_iter=6 if slow else 10,
@@ -307,6 +309,8 @@ def _round(R: _Search, screen: list[str], harmonic_now: bool, at_noise: bool, ex
             st = {**st, "passed": False, "inactive": True}
         if st["passed"] and getattr(pb.plant, "axis_search", False) and _at_edge(pb, f, name):
             st = {**st, "passed": False, "at_edge": True}
+        if st["passed"] and effect.check is not None and not effect.check(pb, f, name):
+            st = {**st, "passed": False, "not_in_the_data": True}
         R.tried.append({"effects": chosen + [name], "rss_fit": f.rss_fit, "rss_holdout": f.rss_hold, **st})
         results.append((name, f, st))
     return results

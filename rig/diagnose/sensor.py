@@ -83,6 +83,7 @@ class SensorTerms:
     clipped: list[Clip] = field(default_factory=list)
     start_transient_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    unit: str = "m"                   # the measured output's unit (a plant file's [signals] output: any)
 
     def as_dict(self) -> dict:
         pos = [l for l in self.lines if l.channel == "position_m"]
@@ -97,6 +98,8 @@ class SensorTerms:
              "clipped": [c.as_dict() for c in self.clipped],
              "start_transient_s": self.start_transient_s,
              "notes": list(self.notes)}
+        if self.unit != "m":                # the _m keys then hold the output in its own unit
+            d["output_unit"] = self.unit
         if self.accel is not None:
             d["accelerometer"] = {"usable": self.accel.usable, "gain": abs(self.accel.gain),
                                   "phase_deg": math.degrees(np.angle(self.accel.gain)),

@@ -49,6 +49,7 @@ class Prepared:
     band: tuple[float, float]           # the band the command excites
     no_claim: str
     pb: Problem
+    rough: noise_mod.Roughness          # what the output's own roughness allows the noise to be
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,37 @@ def floor(pb: Problem, r: np.ndarray, cmd_info: command_mod.Command) -> noise_mo
     if cmd_info.kind in ("noise", "steps") and not _feedback(pb):
         return noise_mod.floor(r * pb.use, pb.fs, pb.use, cmd=pb.cmd)
     return noise_mod.floor(r, pb.fs, pb.use)
+
+
+def capped_noise(pb: Problem, rough: noise_mod.Roughness, q: float) -> float:
+    """A plant file's plant: the noise never above what the measured output's own roughness allows (a residual
+    floor that model error fills everywhere -- a closed loop's moves, a plant far from its model -- had put an
+    encoder resolving micrometres at 0.25 mm), nor below the converter step's q/sqrt(12). The eha plant keeps the
+    estimator its proofs measured (docs/DIAGNOSIS.md)."""
+    if pb.plant.family == "eha" or not math.isfinite(rough.rms):
+        return pb.noise
+    return max(min(pb.noise, rough.rms), q / math.sqrt(12.0) if q else 0.0) or pb.noise
+
+
+def noise_how(T: "Settled") -> str:
+    """How the noise the verdict rests on was found, in words."""
+    P, R = T.screened.fitted.prep, T.screened.fitted
+    pb, kind = T.pb, P.cmd_info.kind
+    if kind == "multisine":
+        how = "the residual minus its mean period (what repeats is the response)"
+    elif kind in ("noise", "steps") and not _feedback(pb):
+        how = "the part of the residual not coherent with the command"
+    else:
+        how = "the time median of the residual's short-time spectra" + (
+            " (closed loop: the part coherent with the command is the noise fed back)" if _feedback(pb) else "")
+    q_floor = R.q / math.sqrt(12.0) if R.q else 0.0
+    if pb.plant.family != "eha" and P.rough.rms <= pb.noise * (1 + 1e-9) and P.rough.rms > q_floor:
+        return (f"from the measured output's own roughness (its differences of order {P.rough.order}, which white "
+                f"noise of {P.rough.rms:.3g} would give; a smooth response adds to them): the residual's floor, "
+                f"{how}, is {T.floor_aug.rms_m:.3g} and holds model error, which the recording contradicts")
+    if q_floor and abs(pb.noise - q_floor) <= 1e-9 * q_floor:
+        return f"from the converter's step {R.q:.3g}: its floor q/sqrt(12) = {q_floor:.3g} rms"
+    return f"from {how}"
 
 
 def _feedback(pb: Problem) -> bool:
@@ -182,7 +214,7 @@ def prepare(rec, p0, say: Callable[[str], None]) -> Prepared:
                  loop=loop)
     return Prepared(rec=rec, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=tuple(notes), use=use,
                     clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, band=band,
-                    no_claim=no_claim_reason(rec, cmd_info), pb=pb)
+                    no_claim=no_claim_reason(rec, cmd_info), pb=pb, rough=noise_mod.roughness(pos, use))
 
 
 def refit(P: Prepared, say: Callable[[str], None]) -> Refitted:
@@ -226,6 +258,7 @@ def refit(P: Prepared, say: Callable[[str], None]) -> Refitted:
     q_acc = noise_mod.quantisation_step(P.acc) if np.ptp(P.acc) > 0 else 0.0
     if q > 0:
         pb = pb.with_(noise=max(pb.noise, q / math.sqrt(12.0)))
+    pb = pb.with_(noise=capped_noise(pb, P.rough, q))
     lines = tuple({"frequency_hz": l.frequency_hz, "amplitude_m": l.amplitude, "accel_ratio": l.accel_ratio,
                    "evidence": l.evidence} for l in sorted(force_lines, key=lambda l: -l.amplitude))
     return Refitted(prep=P, pb=pb, nom=nom, refit=fit_, check=check, acc_clip=acc_clip, acc_use=acc_use,
@@ -290,6 +323,7 @@ def settle(S: Screened, sel: Selection, prev: Settled | None = None) -> Settled:
     y_aug = pb.series(sel.current)
     floor_aug = floor(pb, pb.y - y_aug, P.cmd_info)
     pb = pb.with_(noise=min(pb.noise, max(floor_aug.rms_m, R.q / math.sqrt(12.0) if R.q else 0.0)) or pb.noise)
+    pb = pb.with_(noise=capped_noise(pb, P.rough, R.q))
     return Settled(S, sel, pb, nom, refit_, pickup, y_nom, y_ref, y_aug, pb.y - y_ref, floor_aug)
 
 
@@ -331,6 +365,7 @@ def locate_mismatch(T: Settled) -> Located:
         "after_refit": {"bands_hz": locate.mismatch_bands(frf, "refit"), "windows_s": wins_r},
         "after_augmented": {"bands_hz": locate.mismatch_bands(frf, "augmented")},
         "regimes": locate.regimes(pb.cmd, pb.y - B @ T.refit.coef, T.r_ref, P.fs, pb.noise, use),
+        "regimes_augmented": locate.regimes(pb.cmd, pb.y - B @ aug.coef, pb.y - T.y_aug, P.fs, pb.noise, use),
         "worst_windows": {"nominal": worst, "refit": worst_r, "augmented": worst_a},
         "chirp_band_hz": [float(P.band[0]), float(P.band[1])],
     }

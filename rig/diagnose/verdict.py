@@ -1,7 +1,8 @@
-"""The verdict (docs/DIAGNOSIS.md, "Odd recordings and their answers"): does the augmented model describe the
-recording (explained, partly, not described), or does the recording allow no claim at all; and what the evidence
-suggests when the model does not describe it (a different plant or units, closed-loop data, a rate too low). The
-sentences of the verdict itself are the report's (rig.diagnose.report.verdict_text)."""
+"""The verdict (docs/DIAGNOSIS.md, "Odd recordings and their answers", "A verdict for real data"): does the
+augmented model describe the recording (explained, partly), does it stay incomplete far above the noise with the
+effects that passed every held-out test named, does it not describe it at all, or does the recording allow no claim;
+and what the evidence suggests when the model does not describe it (a different plant or units, closed-loop data,
+a rate too low). The sentences of the verdict itself are the report's (rig.diagnose.report.verdict_text)."""
 from __future__ import annotations
 
 import math
@@ -13,7 +14,8 @@ from rig.diagnose.results import Fit, Verdict
 
 MIN_CLAIM_S = 5.0                  # shorter recordings get no claim
 VERDICT_AT_NOISE = 1.15            # augmented residual / noise: "explains the recording"
-VERDICT_NOT_DESCRIBED = 3.0        # above: the model does not describe the recording, nothing is named
+VERDICT_NOT_DESCRIBED = 3.0        # above: the model stays incomplete (the effects that passed named), or does not
+                                   # describe the recording at all (nothing passed, or the refit says another plant)
 
 
 def no_claim_reason(rec, cmd_info: command_mod.Command) -> str:
@@ -33,7 +35,7 @@ def file_bound_hints(pb, refit) -> list[str]:
     """A plant file's free parameters the refit left at a bound of their range. A bound of zero reached is the data
     asking for no such term (a pure integrator has no den[-1]), not a different plant: said so."""
     hints = []
-    for k, edge in at_bounds(pb.plant.bounds_lin, refit.lin, pb.lin_keys).items():
+    for k, edge in at_bounds(pb.plant.bounds_lin, refit.lin, pb.lin_keys, pb.plant.log_scale).items():
         lo, hi = pb.plant.bounds_lin[k]
         v = refit.lin[k]
         if edge == 0.0:
@@ -80,5 +82,20 @@ def verdict(pb: Problem, no_claim: str, named: bool, fit: Fit, refit: ModelFit, 
         sugg.append(check.note[0].upper() + check.note[1:] + ".")
     if pb.fs < 500.0 and pb.plant.family == "eha":
         sugg.append(f"The recording is sampled at {pb.fs:g} Hz, too slowly for the valve's dynamics.")
-    status = "not_described" if over > VERDICT_NOT_DESCRIBED else "partly"
+    if over <= VERDICT_NOT_DESCRIBED:
+        status = "partly"
+    else:
+        # far above the noise the effects that passed every held-out test are still named (the model stays
+        # incomplete), unless the refit says the plant is another one: its differences are no findings
+        status = "incomplete" if named and not _other_plant(pb, refit) else "not_described"
     return Verdict(status, over, over_ref, named, suggestions=tuple(sugg))
+
+
+def _other_plant(pb: Problem, refit: ModelFit) -> bool:
+    """The refit pushed a linear parameter to the edge of its range (the paper's 0.7-1.4 x, a plant file's bounds;
+    a bound of zero is the data asking for no such term, not another plant)."""
+    if pb.plant.family == "eha":
+        return any(min(abs(math.log(refit.lin[k] / pb.nominal[k]) - math.log(b)) for b in LIN_BOUNDS) < 0.02
+                   for k in pb.lin_keys)
+    return any(edge != 0.0 for edge in at_bounds(pb.plant.bounds_lin, refit.lin, pb.lin_keys,
+                                                  pb.plant.log_scale).values())

@@ -33,6 +33,9 @@ from sim_backend.linear import ActuatorParams
 
 AXIS_KEYS = {"mass_kg": True, "damping_n_s_per_m": True, "stiffness_n_per_m": False, "gain_n_per_unit": False}
 COMMON_KEYS = ("family", "input_unit")
+AXIS_OUTPUTS = ("position", "velocity")          # what a mechanical axis's sensor reads
+# the recording's measured output (rig.recordings: its kind) each plant can be held against
+OUTPUT_KINDS = {"eha": ("length",), "position": ("length", "angle"), "velocity": ("velocity", "angular velocity")}
 
 
 def _param(where: str, key: str, raw, *, positive: bool = False) -> Param:
@@ -98,6 +101,10 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
                               "K_L, K_C, K_Q, w_nv, zeta within 0.7-1.4 x these)")
         return eha_plant(base.with_(**{k: p.value for k, p in vals.items()}), source)
     if family == "mechanical_axis":
+        output = rest.pop("output", "position")
+        if output not in AXIS_OUTPUTS:
+            raise ConfigError(f"{where} output: {output!r} (expected one of {', '.join(AXIS_OUTPUTS)}: what the "
+                              "sensor reads)")
         unknown = set(rest) - set(AXIS_KEYS)
         if unknown:
             raise ConfigError(f"{where} {sorted(unknown)[0]}: not a parameter of mechanical_axis (expected "
@@ -119,7 +126,7 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
             raise ConfigError(f"{where} stiffness_n_per_m: expected >= 0")
         if unit == "N" and (params["gain_n_per_unit"].free or params["gain_n_per_unit"].value != 1.0):
             raise ConfigError(f"{where} gain_n_per_unit: the command is a force (input_unit N), so the gain is 1")
-        return Plant(family, params, unit, source)
+        return Plant(family, params, unit, source, output=output)
     # transfer_function
     unknown = set(rest) - {"num", "den"}
     if unknown:
@@ -192,5 +199,12 @@ def load_subject(recording, plant_path=None, config_path=None) -> Subject:
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
         raise ConfigError(f"{plant_path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's "
                           f"input is {what}")
+    kinds = OUTPUT_KINDS.get("eha" if plant.family == "eha" else plant.output) \
+        if plant.family != "transfer_function" else None          # a transfer function's output is anything
+    if kinds is not None and rec.output_kind not in kinds:
+        what = ("the piston position" if plant.family == "eha" else
+                f"the axis's {plant.output} (output = {plant.output!r} in [plant])")
+        raise ConfigError(f"{plant_path}: [signals] the measured output is in {rec.output_unit} ({rec.output_kind}), "
+                          f"but the {plant.family} plant's output is {what}")
     check_plausible(rec)
     return Subject(rec, plant, plant.describe() if plant_path is not None else plant.source)

@@ -50,6 +50,7 @@ class Plant:
     source: str = "<default>"
     actuator: ActuatorParams | None = None          # eha: the nominal actuator
     order: tuple[int, int] = (0, 0)                  # transfer_function: (len(num), len(den))
+    output: str = "position"                         # mechanical_axis: the sensor reads its position or velocity
 
     # ---- parameters
     @property
@@ -74,7 +75,7 @@ class Plant:
         against the frame."""
         if self.family == "mechanical_axis":
             return axis_state_space(v["mass_kg"], v["damping_n_s_per_m"], v.get("stiffness_n_per_m", 0.0),
-                                    v["gain_n_per_unit"], base)
+                                    v["gain_n_per_unit"], base, self.output)
         if self.family == "transfer_function":
             nn, nd = self.order
             num = [v[f"num{i}"] for i in range(nn)]
@@ -108,15 +109,19 @@ class Plant:
         return f"{self.family} (input {self.input_unit}): " + ", ".join(parts)
 
 
-def axis_state_space(M: float, c: float, k: float, gain: float, base: tuple[float, float, float] | None = None):
+def axis_state_space(M: float, c: float, k: float, gain: float, base: tuple[float, float, float] | None = None,
+                     output: str = "position"):
     """M x'' = gain u + F_load - c x' - k x. States x, v [, x_b, v_b]. On a base (mass m_b, its mode at f_b with
     damping zeta_b when the carriage is held): the drive and the axis's damping and stiffness act between carriage
-    and base, the encoder reads x - x_b."""
+    and base, the encoder reads x - x_b. output "velocity": the sensor reads the velocity (a tachometer, a motor's
+    speed); without a spring or a base the position is then no state at all (M v' = gain u + F_load - c v)."""
+    if output == "velocity" and base is None and k == 0.0:
+        return (np.array([[-c / M]]), np.array([gain / M]), np.array([1.0 / M]), np.array([1.0]), np.array([1.0]))
     if base is None:
         A = np.array([[0.0, 1.0], [-k / M, -c / M]])
         B = np.array([0.0, gain / M])
         Bf = np.array([0.0, 1.0 / M])
-        return A, B, Bf, np.array([1.0, 0.0]), np.array([0.0, 1.0])
+        return A, B, Bf, np.array([1.0, 0.0] if output != "velocity" else [0.0, 1.0]), np.array([0.0, 1.0])
     fb, zb, mb = base
     wb = 2 * math.pi * fb
     kb, cb = mb * wb * wb, 2 * zb * wb * mb
@@ -127,7 +132,8 @@ def axis_state_space(M: float, c: float, k: float, gain: float, base: tuple[floa
     A[3] = [k / mb, c / mb, -(k + kb) / mb, -(c + cb) / mb]
     B = np.array([0.0, gain / M, 0.0, -gain / mb])
     Bf = np.array([0.0, 1.0 / M, 0.0, -1.0 / mb])              # friction and load forces act between the two
-    return A, B, Bf, np.array([1.0, 0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0, -1.0])
+    Cv = np.array([0.0, 1.0, 0.0, -1.0])
+    return A, B, Bf, (Cv if output == "velocity" else np.array([1.0, 0.0, -1.0, 0.0])), Cv
 
 
 def eha_plant(p0: ActuatorParams | None = None, source: str = "<default>") -> Plant:

@@ -6,9 +6,11 @@ position's noise and such fits are biased (Ljung, System Identification, ch. 13)
 - the data say so: an ARX model (position from its own past and the past command) leaves the innovations e(t);
   in open loop they never reach the command, in closed loop the command a few samples later reacts to them.
   The test looks at the correlation of e(t) with the prewhitened command at lags 0..20 ms after t, against its
-  spread at far lags (an empirical null that holds for any noise colour). Lag 0 counts because the recording
-  format samples the position before the command of the same instant acts (zero-order hold): a position can
-  never answer the command of its own sample, but a controller's command does answer that position.
+  spread at far lags (an empirical null that holds for any noise colour). Lag 0 counts in rig's own formats, which
+  sample the position before the command of the same instant acts (zero-order hold): a position can never answer
+  the command of its own sample, but a controller's command does answer that position. Another lab's file (a plant
+  file's signal map) may sample the output after the command of its instant acted (a slow process sampled every
+  few seconds answers within the sample): there lag 0 proves nothing, and only later lags count.
 """
 from __future__ import annotations
 
@@ -88,7 +90,8 @@ def check(cmd_V: np.ndarray, position_m: np.ndarray, fs: float, meta: dict | Non
     far = int(max(4 * K, 0.2 * fs))
     if m < 2 * (far + 4 * K):
         return LoopEvidence(False, None, "too short to test for feedback")
-    near = max(abs(corr(k)) for k in range(0, K + 1))
+    first = 1 if "signal_map" in meta else 0        # another lab's sample convention: lag 0 is ambiguous
+    near = max(abs(corr(k)) for k in range(first, K + 1))
     null = np.std([corr(k) for k in list(range(far, far + 4 * K)) + list(range(-far - 4 * K, -far))])
     stat = float(near / max(null, 1e-12))
     if stat > THRESHOLD:

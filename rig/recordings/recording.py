@@ -40,6 +40,10 @@ class Recording:
     # then holds the command in that unit. accel_present False: the file has no accelerometer (accel zeros)
     command_unit: str = "V"
     accel_present: bool = True
+    # the measured output: a position in m (rad on a rotary axis), or what a plant file's [signals] output maps
+    # (a speed, a voltage, a pressure, a sensor's own units "1"), held in position_m in its SI unit
+    output_unit: str = "m"
+    output_kind: str = "length"
     # what the reader did about rows missing from the file (one line: gaps bridged, or the stretch it kept);
     # "" when the file's time base was whole
     gaps: str = ""
@@ -195,6 +199,7 @@ def validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] |
 PLAUSIBLE_ABS = {"valve_cmd_V": 1e4, "position_m": 1e3, "accel_mps2": 1e6}
 # another rig's command (a plant file's signal map), by its unit: a press's force reaches MN
 PLAUSIBLE_COMMAND = {"V": 1e4, "N": 1e8, "A": 1e4, "N m": 1e7}
+PLAUSIBLE_OUTPUT = 1e10
 
 
 def check_plausible(rec: Recording) -> None:
@@ -203,6 +208,8 @@ def check_plausible(rec: Recording) -> None:
         a = getattr(rec, name)
         if name == "valve_cmd_V":
             lim = PLAUSIBLE_COMMAND.get(rec.command_unit, lim)
+        elif name == "position_m" and rec.output_unit not in ("m", "rad"):
+            lim = PLAUSIBLE_OUTPUT          # another quantity (a pressure in Pa reaches 1e8)
         bad = np.abs(a) > lim
         if bad.any():
             k = int(np.argmax(bad))

@@ -26,7 +26,10 @@ from rig.recordings.recording import UNIFORM_TOL, Recording, validated
 from rig.recordings.rigformat import load_recording
 
 SIGNALS = ("time", "command", "position", "acceleration", "reference")
-KEYS = SIGNALS + ("format", "sample_rate_hz", "closed_loop", "start_s", "stop_s", "csv")
+# the measured output is `position` (a length or an angle), or `output` for any other quantity a sensor gives (a
+# speed, a voltage, a pressure, a sensor's own units): one of the two
+OUTPUT_KEYS = ("position", "output")
+KEYS = SIGNALS + ("output", "format", "sample_rate_hz", "closed_loop", "start_s", "stop_s", "csv")
 SIGNAL_KEYS = ("name", "column", "scale", "unit")
 CSV_KEYS = ("delimiter", "skip_rows", "header", "comment")
 SCALE_RANGE = (1e-12, 1e12)          # |scale|: beyond it a unit is wrong, not a sensor
@@ -44,13 +47,22 @@ UNITS = {
     "Nm": ("torque", 1.0), "N m": ("torque", 1.0), "mNm": ("torque", 1e-3),
     "m/s^2": ("acceleration", 1.0), "mm/s^2": ("acceleration", 1e-3), "g": ("acceleration", 9.80665),
     "rad/s^2": ("angular acceleration", 1.0), "deg/s^2": ("angular acceleration", math.pi / 180),
+    "m/s": ("velocity", 1.0), "mm/s": ("velocity", 1e-3),
+    "rad/s": ("angular velocity", 1.0), "deg/s": ("angular velocity", math.pi / 180),
+    "rpm": ("angular velocity", 2 * math.pi / 60),
+    "Pa": ("pressure", 1.0), "kPa": ("pressure", 1e3), "MPa": ("pressure", 1e6), "bar": ("pressure", 1e5),
+    "1": ("sensor units", 1.0),
 }
 SI_UNIT = {"time": "s", "length": "m", "angle": "rad", "voltage": "V", "force": "N", "current": "A",
-           "torque": "N m", "acceleration": "m/s^2", "angular acceleration": "rad/s^2"}
+           "torque": "N m", "acceleration": "m/s^2", "angular acceleration": "rad/s^2", "velocity": "m/s",
+           "angular velocity": "rad/s", "pressure": "Pa", "sensor units": "1"}
 KINDS = {"time": ("time",), "command": ("voltage", "force", "current", "torque"), "position": ("length", "angle"),
-         "reference": ("length", "angle"), "acceleration": ("acceleration", "angular acceleration")}
+         "reference": ("length", "angle"), "acceleration": ("acceleration", "angular acceleration"),
+         "output": ("length", "angle", "velocity", "angular velocity", "voltage", "current", "pressure",
+                    "sensor units")}
 ACCEL_OF = {"length": "acceleration", "angle": "angular acceleration"}
-DEFAULT_UNIT = {"time": "s", "command": "V", "position": "m", "reference": "m", "acceleration": "m/s^2"}
+DEFAULT_UNIT = {"time": "s", "command": "V", "position": "m", "reference": "m", "acceleration": "m/s^2",
+                "output": "1"}
 _INDEXED = re.compile(r"^(?P<name>.+?)\s*\[\s*:\s*,\s*(?P<col>\d+)\s*\]$")      # data[:, 2]
 
 
@@ -126,14 +138,25 @@ class SignalMap:
         """Check a `[signals]` table; every problem is one ConfigError line naming `source` and the key."""
         where = f"{source}: [signals]"
         _check_keys(table, KEYS, f"{where}:", "a table")
-        for key in ("command", "position"):
-            if key not in table:
-                raise ConfigError(f"{where}: {key} missing (the column or variable holding the plant's {key})")
-        pos = _signal("position", table["position"], where, DEFAULT_UNIT["position"])
+        if "command" not in table:
+            raise ConfigError(f"{where}: command missing (the column or variable holding the plant's command)")
+        given = [k for k in OUTPUT_KEYS if k in table]
+        if len(given) != 1:
+            raise ConfigError(f"{where}: " + ("position and output both given (the measured output is one of them: "
+                                             "position for a length or an angle, output for any other quantity)"
+                                             if given else "position missing (the column or variable holding the "
+                                             "measured position; or output = ... for another quantity: a speed, "
+                                             "a voltage, a pressure)"))
+        out_key = given[0]
+        pos = _signal(out_key, table[out_key], where, DEFAULT_UNIT[out_key])
+        if pos.kind not in ACCEL_OF and any(k in table for k in ("reference", "acceleration")):
+            k = next(k for k in ("reference", "acceleration") if k in table)
+            raise ConfigError(f"{where} {k}: given with an output in {pos.unit} ({pos.kind}); a {k} goes with a "
+                              f"position (a length or an angle)")
         # a rotary axis (position in rad or deg): its reference and acceleration are angular too
-        want = {"reference": pos.kind, "acceleration": ACCEL_OF[pos.kind]}
-        sig = {k: pos if k == "position" else _signal(k, table[k], where, SI_UNIT.get(want.get(k), DEFAULT_UNIT[k]))
-               for k in SIGNALS if k in table}
+        want = {"reference": pos.kind, "acceleration": ACCEL_OF.get(pos.kind)}
+        sig = {k: pos if k == out_key else _signal(k, table[k], where, SI_UNIT.get(want.get(k), DEFAULT_UNIT[k]))
+               for k in SIGNALS + ("output",) if k in table}
         for key, kind in want.items():
             if key in sig and sig[key].kind != kind:
                 raise ConfigError(f"{where} {key}.unit = {sig[key].unit!r}: a unit of {sig[key].kind}, but the "
@@ -158,7 +181,7 @@ class SignalMap:
                        for k in ("start_s", "stop_s"))
         if start is not None and stop is not None and not stop > start:
             raise ConfigError(f"{where} stop_s = {stop:g}: expected > start_s = {start:g}")
-        return cls(source=source, command=sig["command"], position=sig["position"], time=sig.get("time"),
+        return cls(source=source, command=sig["command"], position=pos, time=sig.get("time"),
                    acceleration=sig.get("acceleration"), reference=sig.get("reference"), sample_rate_hz=fs,
                    format=fmt, closed_loop=closed.strip(), start_s=start, stop_s=stop,
                    csv=_csv_options(table.get("csv", {}), where))
@@ -361,16 +384,16 @@ def load_mapped(path, smap: SignalMap) -> Recording:
         got = _read_mat(raw, source, smap)
     else:
         got = _read_hdf5(path, source, smap, matlab=fmt == "mat73")
+    by_key = {s.key: s for s in smap.signals}
     for key, a in got.items():
         if a.dtype.kind not in "iuf" and a.dtype != np.bool_:
-            sig = getattr(smap, key)
-            raise RecordingError(f"{source}: {sig.label()} is not numeric (dtype {a.dtype})")
-    si = {key: np.asarray(a, dtype=float) * getattr(smap, key).factor for key, a in got.items()}
+            raise RecordingError(f"{source}: {by_key[key].label()} is not numeric (dtype {a.dtype})")
+    si = {key: np.asarray(a, dtype=float) * by_key[key].factor for key, a in got.items()}
     n = si["command"].shape[0]
     time_label = (smap.time.label() if smap.time else
                   f"the time base of [signals] sample_rate_hz = {smap.sample_rate_hz:g}")
     cols = {"time_s": si["time"] if smap.time else np.arange(n) / smap.sample_rate_hz,
-            "valve_cmd_V": si["command"], "position_m": si["position"],
+            "valve_cmd_V": si["command"], "position_m": si[smap.position.key],
             "accel_mps2": si.get("acceleration", np.zeros(n))}
     if smap.reference:
         cols["reference"] = si["reference"]
@@ -386,6 +409,8 @@ def load_mapped(path, smap: SignalMap) -> Recording:
         raise RecordingError(f"{source}: {smap.time.label()} gives {rec.fs_hz:.6g} Hz but [signals] sample_rate_hz "
                              f"= {smap.sample_rate_hz:g} in {smap.source}: inconsistent (leave one out)")
     rec.command_unit = smap.command.si_unit
+    rec.output_unit = smap.position.si_unit
+    rec.output_kind = smap.position.kind
     rec.accel_present = smap.acceleration is not None
     rec.reference_m = ref
     rec.closed_loop = smap.closed_loop or (f"a loop following the reference {smap.reference.where()} "

@@ -87,6 +87,9 @@ class Effect:
     in_band     its first parameter is a frequency told apart only inside the excited band
     edge_test   pinned at the edge of its range it is not named (three parameters spent on nothing)
     costly_start refined only when its start already rivals the best candidate
+    derived     (fitted parameters, sample rate) -> values the report adds in other words (a delay in samples)
+    check       (problem, fit, name) -> does the fitted effect show in the data the way the physics says it must
+                (beyond the held-out tests: a sensor reading |y| reads its floor where y changes sign)
     """
     name: str
     short: str
@@ -107,6 +110,8 @@ class Effect:
     in_band: bool = False
     edge_test: bool = False
     costly_start: bool = False
+    derived: Callable[[dict, float], dict] | None = None
+    check: Callable[[Any, Any, str], bool] | None = None
 
     def keys(self, u: str = "V") -> tuple[str, ...]:
         """The fitted parameters' keys for a plant whose input is in unit u."""

@@ -104,3 +104,29 @@ def test_a_stand_mode_at_the_edge_of_its_range_is_not_a_finding():
     assert not _at_edge(pb, fit(60.0, 0.05, hi_m), "coulomb_friction")         # only the stand mode
     eha = Problem(np.sin(np.arange(n) / 50.0), np.zeros(n), 1000.0, ActuatorParams(), np.ones(n, bool))
     assert pb.plant.axis_search and not eha.plant.axis_search
+
+
+def test_velocity_output_axis_names_a_deadband_and_a_dead_time_in_samples():
+    """A geared DC motor as its documentation has it: a voltage staircase in, the speed out at 100 Hz (a plant
+    file's `output = "velocity"`), a dead zone of +-3.5 V and a dead time of 3 samples as a sampled model counts
+    it (2 samples of delay plus the hold's one). Made by the diagnosis's own model of the axis: the plumbing of a
+    speed output end to end, not the physics of the search."""
+    from rig.diagnose.plants import model_for
+    fs = 100.0
+    rng = np.random.default_rng(3)
+    u = np.repeat(rng.uniform(-10, 10, 60), 150)
+    plant = parse_plant({"family": "mechanical_axis", "input_unit": "V", "output": "velocity",
+                         "mass_kg": {"value": 0.05, "min": 0.001, "max": 10.0},
+                         "damping_n_s_per_m": {"value": 0.1, "min": 0.001, "max": 100.0}, "gain_n_per_unit": 0.01},
+                        "dc.toml")
+    y = model_for(plant).simulate({"mass_kg": 0.02, "damping_n_s_per_m": 0.05}, u, fs,
+                                  {"input_deadband": {"width_V": 3.5}, "transport_delay": {"delay_s": 0.02}})
+    y = y + rng.normal(0, 0.002 * np.ptp(y), len(y))
+    rec = Recording.from_signals(u, y, None, fs_hz=fs, source="dcmotor")
+    rec.command_unit, rec.accel_present, rec.output_unit, rec.output_kind = "V", False, "m/s", "velocity"
+    d = diagnose(rec, plant)
+    named = {e.name: e.parameters for e in d.effects}
+    assert set(named) == {"input_deadband", "transport_delay"}, summary(d)
+    assert abs(named["input_deadband"]["width_V"] / 3.5 - 1) < 0.05
+    assert abs(named["transport_delay"]["dead_time_samples"] - 3.0) < 0.25
+    assert "m/s" in summary(d) and d.verdict.status == "explained"

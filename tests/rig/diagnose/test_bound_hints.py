@@ -13,8 +13,15 @@ def test_at_bounds_names_the_parameters_within_one_percent_of_a_bound_and_which_
     assert at_bounds(BOUNDS, {**lin, "den1": 0.6}, ["den1"]) == {}          # 1.2 % of the width away
 
 
+def test_at_bounds_on_a_log_scale_measures_the_distance_there():
+    wide = {"num0": (1e-3, 1e3)}
+    assert at_bounds(wide, {"num0": 0.1}, ["num0"]) == {"num0": 1e-3}          # linear: 1e-4 of the width away
+    assert at_bounds(wide, {"num0": 0.1}, ["num0"], {"num0": True}) == {}       # log: a third of the way up
+    assert at_bounds(wide, {"num0": 1.05e-3}, ["num0"], {"num0": True}) == {"num0": 1e-3}
+
+
 def _hints(lin):
-    pb = SimpleNamespace(plant=SimpleNamespace(bounds_lin=BOUNDS), lin_keys=tuple(BOUNDS))
+    pb = SimpleNamespace(plant=SimpleNamespace(bounds_lin=BOUNDS, log_scale={}), lin_keys=tuple(BOUNDS))
     return _file_bound_hints(pb, SimpleNamespace(lin=lin))
 
 

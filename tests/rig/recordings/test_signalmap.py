@@ -323,21 +323,26 @@ def test_any_garbage_file_is_a_recording_or_one_recording_line(tmp_path, raw, pr
 
 # ---- the shipped examples ------------------------------------------------------------------------------
 
+def _sig(smap: SignalMap, key: str):
+    """The map's signal of a [signals] key (`output`, any other measured quantity, is held as its position)."""
+    return getattr(smap, "position" if key == "output" else key)
+
+
 def _write_for(smap: SignalMap, path: Path, truth: dict[str, np.ndarray]) -> None:
     """A data file laid out as smap describes, holding truth (SI) in the file's own names and units."""
     cols = {s.key: truth[s.key] / s.factor for s in smap.signals}
     if smap.format == "csv":
-        keys = sorted(cols, key=lambda k: getattr(smap, k).column if getattr(smap, k).column is not None else 0)
+        keys = sorted(cols, key=lambda k: _sig(smap, k).column if _sig(smap, k).column is not None else 0)
         d = {None: ",", "whitespace": " "}.get(smap.csv.delimiter, smap.csv.delimiter)
-        head = [] if smap.csv.header is False else [d.join(getattr(smap, k).name for k in keys)]
+        head = [] if smap.csv.header is False else [d.join(_sig(smap, k).name for k in keys)]
         rows = [d.join(f"{cols[k][i]:.12g}" for k in keys) for i in range(N)]
         path.write_text("preamble\n" * smap.csv.skip_rows + "\n".join(head + rows) + "\n")
     elif smap.format == "mat":
-        scipy.io.savemat(path, {getattr(smap, k).name: a for k, a in cols.items()})
+        scipy.io.savemat(path, {_sig(smap, k).name: a for k, a in cols.items()})
     else:
         with h5py.File(path, "w") as f:
             for k, a in cols.items():
-                f[getattr(smap, k).name] = a
+                f[_sig(smap, k).name] = a
 
 
 @pytest.mark.parametrize("example", EXAMPLES, ids=[p.stem for p in EXAMPLES])
@@ -349,6 +354,7 @@ def test_shipped_example_loads_a_file_laid_out_as_it_says(tmp_path, example):
     truth = {"time": t, "command": u, "position": x, "acceleration": a, "reference": r}
     if smap.position.kind == "angle":
         truth["position"] = x * 20
+    truth["output"] = truth["position"]                 # another quantity (a voltage, a speed): any series
     data = tmp_path / f"data.{ {'csv': 'csv', 'mat': 'mat', 'hdf5': 'h5'}[smap.format] }"
     _write_for(smap, data, truth)
     rec = load_mapped(data, smap)

@@ -1,0 +1,66 @@
+"""Every command of the README runs as written, in order, from a folder of its own (issue 29): each `$ rig ...`
+line of a ```console block, and the ```python block. The lines shown after a command are its output's shape:
+each must appear in what the command printed (stdout or stderr), numbers aside. A command that fails, or whose
+output changes shape, fails this test."""
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.paths import REPO
+
+README = REPO / "README.md"
+NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+
+
+def _shape(line: str) -> str:
+    """A line with every number as # (and the console's random token) and runs of spaces as one: the shape the
+    README promises."""
+    return " ".join(NUMBER.sub("#", re.sub(r"token=\w+", "token=#", line)).split())
+
+
+def _steps() -> list[tuple[str, list[str]]]:
+    """(command, output lines shown after it) of every ```console block, in order."""
+    steps: list[tuple[str, list[str]]] = []
+    for block in re.findall(r"```console\n(.*?)```", README.read_text(), re.S):
+        for line in block.splitlines():
+            if line.startswith("$ "):
+                steps.append((line[2:], []))
+            elif line.strip():
+                steps[-1][1].append(line)
+    return steps
+
+
+def test_the_readme_is_a_front_page():
+    text = README.read_text()
+    assert len(text.splitlines()) <= 200
+    assert "make demo" in text and "make test" in text and ".venv/bin/rig" in text
+
+
+@pytest.mark.slow
+def test_every_readme_command_runs_as_written(tmp_path):
+    for name in ("docs", "drivers"):                 # the README's paths are relative to the repository
+        (tmp_path / name).symlink_to(REPO / name)
+    env = {**os.environ, "MPLBACKEND": "Agg", "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    steps = _steps()
+    assert len(steps) >= 10
+    for command, shown in steps:
+        argv = shlex.split(command)
+        assert argv[0] == "rig", command
+        out = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+        printed = out.stdout + out.stderr
+        assert out.returncode == 0, f"$ {command}\n{printed[-3000:]}"
+        got = {_shape(line) for line in printed.splitlines()}
+        for line in shown:
+            assert _shape(line) in got, f"$ {command}\nexpected a line shaped like\n  {line}\nin\n{printed[-3000:]}"
+    code = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+    assert len(code) == 1
+    out = subprocess.run([sys.executable, "-c", code[0]], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=900)
+    assert out.returncode == 0 and "ActuatorParams(" in out.stdout, out.stderr[-3000:]
