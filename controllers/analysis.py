@@ -54,13 +54,14 @@ class DiscreteRig:
     ~1.5 Hz)."""
 
     def __init__(self, cfg, dt: float, f_hz: np.ndarray | None = None, ground: str | None = "continuous", *,
-                 modal=None, valve_gain=None):
+                 modal=None, valve_gain=None, mounts=None):
         """modal: a ModalModel instead of the configured one (perturbed_modal); valve_gain: per-mount factors on
-        the valve input (an actuator's gain off its model); ground=None skips the ground responses."""
+        the valve input (an actuator's gain off its model); mounts: per-mount factors on the actuators'
+        parameters (rig_state_space); ground=None skips the ground responses."""
         self.cfg = cfg
         self.dt = dt
         self.ground = ground
-        self.ss = rig_state_space(cfg, modal)
+        self.ss = rig_state_space(cfg, modal, mounts)
         if valve_gain is not None:
             g = np.ones(self.ss.B.shape[1])
             g[0:4] = valve_gain

@@ -155,6 +155,10 @@ class VibrationConfig:
     rms_m: float = _f(3e-6, "m", ge=0, le=1e-2)           # 10 mm rms is an earthquake, not a shop floor
     spectrum: str = _f("velocity_flat", "", choices=("velocity_flat", "displacement_flat"))
     seed: int = _f(1, "", ge=0, le=SEED_MAX)
+    # a floor that rocks as well as heaves (simulated rig): a component of its own, of this rms at the mounts,
+    # the front mounts against the rear ("pitch") or the left against the right ("roll"), same band and spectrum
+    rocking_rms_m: float = _f(0.0, "m", ge=0, le=1e-2)
+    rocking_axis: str = _f("pitch", "", choices=("pitch", "roll"))
 
 
 @dataclass(frozen=True)
@@ -347,6 +351,32 @@ class SupervisorConfig:
 
 
 @dataclass(frozen=True)
+class RigErrorConfig:
+    """The simulated four-mount rig as it really is, off the model (1 / 0 / empty = as modelled): what a
+    physical rig may hide from its model (issue 28) and what the diagnosis of a run recording names (rig
+    diagnose on a `rig run --record` file). Simulated plants only; the controllers keep the configured model.
+    Machine: factors on each flexible mode's frequency and damping (modal model order; empty: all 1) and a mode
+    the model lacks (extra_mode_hz > 0, its shape at the four mounts in the modal model's unit). Mounts: factors
+    on each mount's membrane stiffness K_L and viscous coefficient C (Eq. 7). Sensors: each mount's
+    accelerometer, stroke transducer and floor accelerometer sensitivity as a factor (negative: wired with the
+    sign reversed). Valves: each actuator's transport delay, spool deadband (overlap, Eq. 1's x_v) and null
+    offset (a constant added to the command before the valve amplifier)."""
+    mode_frequency_factor: tuple[float, ...] = _f((), "", gt=0.2, le=5.0)
+    mode_damping_factor: tuple[float, ...] = _f((), "", gt=0.05, le=20.0)
+    extra_mode_hz: float = _f(0.0, "Hz", ge=0, le=2000, nyquist=False)      # 0: none
+    extra_mode_damping: float = _f(0.03, "", gt=0, lt=1)
+    extra_mode_shape: tuple[float, ...] = _f((0.0, 0.0, 0.0, 0.0), "", ge=-10, le=10, n=len(MOUNTS))
+    mount_stiffness_factor: tuple[float, ...] = _f((1.0,) * len(MOUNTS), "", gt=0.05, le=20, n=len(MOUNTS))
+    mount_damping_factor: tuple[float, ...] = _f((1.0,) * len(MOUNTS), "", ge=0, le=1e4, n=len(MOUNTS))
+    accel_gain: tuple[float, ...] = _f((1.0,) * len(MOUNTS), "", ge=-10, le=10, n=len(MOUNTS))
+    stroke_gain: tuple[float, ...] = _f((1.0,) * len(MOUNTS), "", ge=-10, le=10, n=len(MOUNTS))
+    floor_gain: tuple[float, ...] = _f((1.0,) * len(MOUNTS), "", ge=-10, le=10, n=len(MOUNTS))
+    valve_delay_s: tuple[float, ...] = _f((0.0,) * len(MOUNTS), "s", ge=0, le=0.1, n=len(MOUNTS))
+    valve_deadband_ma: tuple[float, ...] = _f((0.0,) * len(MOUNTS), "mA", ge=0, le=100, n=len(MOUNTS))
+    valve_null_V: tuple[float, ...] = _f((0.0,) * len(MOUNTS), "V", ge=-10, le=10, n=len(MOUNTS))
+
+
+@dataclass(frozen=True)
 class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     valve: ValveConfig = field(default_factory=ValveConfig)
@@ -363,6 +393,7 @@ class Config:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     plant_error: PlantErrorConfig = field(default_factory=PlantErrorConfig)
+    rig_error: RigErrorConfig = field(default_factory=RigErrorConfig)
     layout: LayoutConfig = field(default_factory=LayoutConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     source: str = "<defaults: Table 1>"        # where it came from, for messages
@@ -465,6 +496,7 @@ def _check_cross(cfg: Config) -> None:
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= actuator.stroke_m "
                           f"({cfg.actuator.stroke_m} m), got {cfg.safety.stroke_limit_m}")
     _check_sensors(cfg)
+    _check_rig_error(cfg)
     if cfg.safety.stroke_limit_m > cfg.safety.stroke_range_m:      # a limit the transducer cannot see
         raise ConfigError(f"{cfg.source}: safety.stroke_limit_m: expected <= safety.stroke_range_m "
                           f"({cfg.safety.stroke_range_m} m), got {cfg.safety.stroke_limit_m}")
@@ -490,6 +522,16 @@ def _check_sensors(cfg: Config) -> None:
         raise ConfigError(f"{cfg.source}: sensors.floor_range_mps2: expected <= 10 V / floor_V_per_mps2 "
                           f"({10.0 / s.floor_V_per_mps2:g} m/s^2, the module's input range), "
                           f"got {s.floor_range_mps2}")
+
+
+def _check_rig_error(cfg: Config) -> None:
+    """A sensor of zero sensitivity reads nothing: a gain is at least 0.05 in size (either sign)."""
+    e = cfg.rig_error
+    for key in ("accel_gain", "stroke_gain", "floor_gain"):
+        g = getattr(e, key)
+        if any(abs(x) < 0.05 for x in g):
+            raise ConfigError(f"{cfg.source}: rig_error.{key}: expected a sensitivity factor of size >= 0.05 "
+                              f"(negative: sign reversed), got {list(g)}")
 
 
 def _check_layout(cfg: Config) -> None:

@@ -35,6 +35,7 @@ class ModalModel:
     phi_tool: np.ndarray       # (n_modes, 3)   X, Y, Z at the tool point
     mass_kg: float
     source: str
+    shape_unit_scale: float = 1.0   # the file's shape unit in SI (1/sqrt(t): 1/sqrt(1000)), for shapes given like it
 
     @property
     def n_rigid(self) -> int:
@@ -48,11 +49,39 @@ class ModalModel:
         den = -w ** 2 + 2j * self.zeta * w * self.w_n + self.w_n ** 2
         return np.sum(resp * exc / den, axis=1)
 
+    @property
+    def flexible_names(self) -> tuple[str, ...]:
+        return tuple(n for n, w in zip(self.names, self.w_n) if w > 0)
+
+    def altered(self, frequency_factor=(), damping_factor=(), extra_mode=None) -> "ModalModel":
+        """The machine as it really is, off its model: each flexible mode's frequency and damping ratio times
+        a factor (flexible modes in order; empty: unchanged), and optionally a mode the model lacks,
+        extra_mode = (frequency_hz, damping_ratio, shape at the four mounts in SI), seen at the mounts only
+        (its table and tool values are not known: zero). Rigid-body modes are left alone."""
+        flex = np.flatnonzero(self.w_n > 0)
+        w, z = self.w_n.copy(), self.zeta.copy()
+        for key, f, arr in (("frequency", frequency_factor, w), ("damping", damping_factor, z)):
+            f = np.asarray(f, dtype=float)
+            if f.size and f.size != flex.size:
+                raise ValueError(f"{f.size} {key} factors for {flex.size} flexible modes ({', '.join(self.flexible_names)})")
+            if f.size:
+                arr[flex] *= f
+        names, pm, pt, pq = self.names, self.phi_mounts, self.phi_table, self.phi_tool
+        if extra_mode is not None:
+            hz, zeta, shape = extra_mode
+            names = names + (f"extra mode at {hz:.4g} Hz",)
+            w = np.append(w, 2 * math.pi * hz)
+            z = np.append(z, zeta)
+            pm = np.vstack([pm, np.asarray(shape, dtype=float)[None, :]])
+            pt = np.vstack([pt, np.zeros((1, 3))])
+            pq = np.vstack([pq, np.zeros((1, 3))])
+        return ModalModel(tuple(names), w, z, pm, pt, pq, self.mass_kg, self.source, self.shape_unit_scale)
+
     def flexible_only(self) -> "ModalModel":
         keep = self.w_n > 0
         return ModalModel(tuple(n for n, k in zip(self.names, keep) if k), self.w_n[keep], self.zeta[keep],
                           self.phi_mounts[keep], self.phi_table[keep], self.phi_tool[keep], self.mass_kg,
-                          self.source)
+                          self.source, self.shape_unit_scale)
 
 
 def _vec(data, key, n, where):
@@ -131,7 +160,7 @@ def load_modal_model(path: str | Path | None = None, *, mass_kg: float | None = 
         phi_t.append(_vec(md, "table", 3, w) * scale)
         phi_q.append(_vec(md, "tool", 3, w) * scale)
     return ModalModel(tuple(names), np.array(w_n), np.array(zeta), np.array(phi_m), np.array(phi_t),
-                      np.array(phi_q), m, where)
+                      np.array(phi_q), m, where, scale)
 
 
 def modal_model_from_config(cfg: Config) -> ModalModel:

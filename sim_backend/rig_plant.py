@@ -26,6 +26,7 @@ import scipy.signal
 from rig.config import MOUNTS, Config
 from sim_backend.linear import ActuatorParams, discretize_zoh, discretize_zoh_foh
 from sim_backend.machine import ModalModel, modal_model_from_config
+from sim_backend.rig_error import ROCKING_PATTERNS, RigDeviation
 
 OUTPUTS = tuple([f"accel_{m}" for m in MOUNTS] + [f"stroke_{m}" for m in MOUNTS] + [f"x_{m}" for m in MOUNTS]
                 + ["table_x", "table_y", "table_z", "tool_x", "tool_y", "tool_z"]
@@ -63,10 +64,21 @@ class RigStateSpace:
         return H[:, :, 0:4], H[:, :, 4:8] + jw * H[:, :, 8:12]
 
 
-def rig_state_space(cfg: Config, modal: ModalModel | None = None) -> RigStateSpace:
-    """Continuous-time state space of the coupled four-mount rig (see module docstring)."""
+def state_index(n_modes: int) -> dict[str, int]:
+    """First state of each group in rig_state_space: q, q', x_v, x_v', P_L (four each for the valves and
+    chambers, mount order)."""
+    n = n_modes
+    return {"q": 0, "qd": n, "x_v": 2 * n, "v_v": 2 * n + 4, "P_L": 2 * n + 8}
+
+
+def rig_state_space(cfg: Config, modal: ModalModel | None = None, mounts: dict | None = None) -> RigStateSpace:
+    """Continuous-time state space of the coupled four-mount rig (see module docstring). mounts: per-mount
+    factors on the actuator's parameters, {"K_L": (4,), "C": (4,), ...} (sim_backend/rig_error.py MOUNT_KEYS;
+    None: the four actuators alike)."""
     mm = modal or modal_model_from_config(cfg)
     p = ActuatorParams.from_config(cfg)
+    per = {k: np.full(4, float(getattr(p, k))) * np.asarray((mounts or {}).get(k, 1.0), dtype=float)
+           for k in ("K_L", "C", "K_Q", "K_C", "w_nv", "zeta")}
     n = len(mm.w_n)
     Phi = mm.phi_mounts                                  # (n, 4)
     Mq = np.eye(n) + p.M * Phi @ Phi.T
@@ -75,22 +87,24 @@ def rig_state_space(cfg: Config, modal: ModalModel | None = None) -> RigStateSpa
     iq, iqd, ixv, ivv, ipl = 0, n, 2 * n, 2 * n + 4, 2 * n + 8
     A = np.zeros((ns, ns))
     B = np.zeros((ns, 12))
+    K, Cm = np.diag(per["K_L"]), np.diag(per["C"])
     # machine: q'' = Mi (Phi f - 2 zeta W q' - W^2 q)
     A[iq:iq + n, iqd:iqd + n] = np.eye(n)
-    A[iqd:iqd + n, iq:iq + n] = Mi @ (-np.diag(mm.w_n ** 2) - p.K_L * Phi @ Phi.T)
-    A[iqd:iqd + n, iqd:iqd + n] = Mi @ (-np.diag(2 * mm.zeta * mm.w_n) - p.C * Phi @ Phi.T)
+    A[iqd:iqd + n, iq:iq + n] = Mi @ (-np.diag(mm.w_n ** 2) - Phi @ K @ Phi.T)
+    A[iqd:iqd + n, iqd:iqd + n] = Mi @ (-np.diag(2 * mm.zeta * mm.w_n) - Phi @ Cm @ Phi.T)
     A[iqd:iqd + n, ipl:ipl + 4] = Mi @ Phi * p.A_p
-    B[iqd:iqd + n, 4:8] = Mi @ Phi * p.K_L
-    B[iqd:iqd + n, 8:12] = Mi @ Phi * p.C
+    B[iqd:iqd + n, 4:8] = Mi @ Phi @ K
+    B[iqd:iqd + n, 8:12] = Mi @ Phi @ Cm
     # valve, Eq. 1 (x_v in mA-equivalent)
+    w_nv = per["w_nv"]
     A[ixv:ixv + 4, ivv:ivv + 4] = np.eye(4)
-    A[ivv:ivv + 4, ixv:ixv + 4] = -p.w_nv ** 2 * np.eye(4)
-    A[ivv:ivv + 4, ivv:ivv + 4] = -2 * p.zeta * p.w_nv * np.eye(4)
-    B[ivv:ivv + 4, 0:4] = p.w_nv ** 2 * p.K_v * np.eye(4)
+    A[ivv:ivv + 4, ixv:ixv + 4] = -np.diag(w_nv ** 2)
+    A[ivv:ivv + 4, ivv:ivv + 4] = -np.diag(2 * per["zeta"] * w_nv)
+    B[ivv:ivv + 4, 0:4] = np.diag(w_nv ** 2) * p.K_v
     # chambers, Eqs. 3 and 6
     g = 4 * p.beta / p.V_t
-    A[ipl:ipl + 4, ixv:ixv + 4] = g * p.K_Q * np.eye(4)
-    A[ipl:ipl + 4, ipl:ipl + 4] = -g * p.K_C * np.eye(4)
+    A[ipl:ipl + 4, ixv:ixv + 4] = g * np.diag(per["K_Q"])
+    A[ipl:ipl + 4, ipl:ipl + 4] = -g * np.diag(per["K_C"])
     A[ipl:ipl + 4, iqd:iqd + n] = -g * p.A_p * Phi.T
     B[ipl:ipl + 4, 8:12] = g * p.A_p * np.eye(4)
     # outputs
@@ -166,12 +180,24 @@ class FloorMotion:
     rocks. Velocity is the derivative of the band-limited displacement (central difference)."""
 
     def __init__(self, dt: float, band_hz=(1.0, 50.0), rms_m: float = 10e-6, seed: int = 1, rho: float = 0.5,
-                 block: int = 256, spectrum: str = "velocity_flat", n_mounts: int = 4):
+                 block: int = 256, spectrum: str = "velocity_flat", n_mounts: int = 4, rocking_rms_m: float = 0.0,
+                 rocking_pattern=None):
         self.dt = dt
         self.n = n = int(n_mounts)
         self.rms_m = rms_m
         self.rho = rho
         self.rng = np.random.default_rng(seed)
+        # rocking: a component of its own (same band and spectrum) with a +-1 pattern over the mounts, from a
+        # generator of its own, so a floor without it draws exactly the sequence it drew before
+        self.rocking_rms_m = float(rocking_rms_m)
+        self.rocking = None
+        if self.rocking_rms_m > 0:
+            pat = np.asarray(rocking_pattern if rocking_pattern is not None else ROCKING_PATTERNS["pitch"], float)
+            if pat.shape != (n,):
+                raise ValueError(f"rocking pattern: expected {n} values (one per mount), got {pat.shape}")
+            self.rocking = pat
+            self._rock_rng = np.random.default_rng([seed, 0x40C4])
+            self._rock_zi = None
         sos = scipy.signal.butter(4, band_hz, btype="bandpass", fs=1.0 / dt, output="sos")
         if spectrum == "velocity_flat":
             sos = np.vstack([sos, scipy.signal.butter(1, band_hz[0], fs=1.0 / dt, output="sos")])
@@ -179,6 +205,8 @@ class FloorMotion:
             raise ValueError(f"floor spectrum {spectrum!r}: expected velocity_flat or displacement_flat")
         self.sos = sos
         self.zi = np.zeros((n + 1, self.sos.shape[0], 2))     # the mounts + common component
+        if self.rocking is not None:
+            self._rock_zi = np.zeros((1, self.sos.shape[0], 2))
         # noise gain of the filter, so rms_m is the displacement rms at every mount
         w, h = scipy.signal.sosfreqz(self.sos, worN=1 << 15, fs=1.0 / dt)
         self.gain = math.sqrt(np.mean(np.abs(h) ** 2))
@@ -190,6 +218,9 @@ class FloorMotion:
     @classmethod
     def from_config(cls, cfg: Config, dt: float, **kw) -> "FloorMotion":
         v = cfg.vibration
+        if v.rocking_rms_m > 0 and kw.get("n_mounts", 4) == 4:
+            kw.setdefault("rocking_rms_m", v.rocking_rms_m)
+            kw.setdefault("rocking_pattern", ROCKING_PATTERNS[v.rocking_axis])
         return cls(dt, band_hz=(v.band_lo_hz, v.band_hi_hz), rms_m=v.rms_m, seed=v.seed,
                    spectrum=v.spectrum, **kw)
 
@@ -202,6 +233,10 @@ class FloorMotion:
         _sosfilt_rows(self.sos, white, self.zi, out)
         out *= self.rms_m / self.gain
         x = (math.sqrt(1 - self.rho) * out[:n] + math.sqrt(self.rho) * out[n]).T
+        if self.rocking is not None:
+            rock = np.empty((1, self.block))
+            _sosfilt_rows(self.sos, self._rock_rng.standard_normal((1, self.block)), self._rock_zi, rock)
+            x = x + (rock[0] * (self.rocking_rms_m / self.gain))[:, None] * self.rocking[None, :]
         self._x = np.concatenate([self._x[self._i:], x])
         self._i = 0
 
@@ -241,7 +276,11 @@ class RigPlant:
     After `step(valve_cmd_V)` the attributes hold the values at the new instant: accel_mps2 and stroke_m
     (with sensor noise), floor_accel_mps2 (the floor accelerometers, [sensors] floor_accel, with their own
     noise), and the true table_m / tool_m (Y), spool and floor_m for evaluation. The actuators are the
-    configured ones with [plant_error] applied (plant_config)."""
+    configured ones with [plant_error] applied (plant_config); the machine, the mounts, the sensors and the
+    valves carry [rig_error]'s deviations (sim_backend/rig_error.py). With a valve delay or deadband the step
+    takes the general path (_advance_general: each valve's command delayed exactly, fractions of a period
+    included; a deadband valve's spool computed first and its flow fed to the chamber, interpolated
+    linearly over the period); otherwise one matrix-vector product (_advance)."""
 
     n_mounts = 4
     BLOCK = 256                     # periods of floor and sensor noise drawn at once (a refill costs ~20 us)
@@ -254,15 +293,24 @@ class RigPlant:
                  floor_noise_mps2: float | None = None):
         self.cfg = cfg
         self.dt = dt
-        self.ss = rig_state_space(plant_config(cfg), modal)
-        self.Ad, Bu, G0, G1 = discretize_foh_ground(self.ss, dt)
-        self.Bd = np.ascontiguousarray(np.hstack([Bu, G0, G1]))      # inputs: u[k], g[k], g[k+1]
+        modal = modal or modal_model_from_config(cfg)
+        self.dev = dev = RigDeviation.from_config(cfg, modal)
+        self.ss = rig_state_space(plant_config(cfg), dev.modal(modal), dev.mount_factors())
         self.C = np.ascontiguousarray(self.ss.C)
         self.D = np.ascontiguousarray(self.ss.D)
-        self.x = np.zeros(self.Ad.shape[0])
+        self.x = np.zeros(self.ss.A.shape[0])
         self._xn = np.zeros_like(self.x)
-        self.w = np.zeros(12)
         self.y = np.zeros(len(OUTPUTS))
+        self._null = dev.valve_null_V.tolist() if dev.null_offsets else None
+        self._gains = (dev.accel_gain.tolist() + dev.stroke_gain.tolist()) if dev.sensor_gains else None
+        self._floor_gain = dev.floor_gain if np.any(dev.floor_gain != 1) else None
+        self.general = dev.delays or dev.deadbands
+        if self.general:
+            self._general_matrices(dev, dt)
+        else:
+            self.Ad, Bu, G0, G1 = discretize_foh_ground(self.ss, dt)
+            self.Bd = np.ascontiguousarray(np.hstack([Bu, G0, G1]))      # inputs: u[k], g[k], g[k+1]
+            self.w = np.zeros(12)
         self.floor = floor
         self.rng = np.random.default_rng(seed)
         if accel_noise_mps2 is None:                  # white noise of that density, sampled at 1/dt
@@ -280,9 +328,52 @@ class RigPlant:
         self.k = 0
         self._next = None
         self._refill()
-        _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, 0, 0.0, 0.0,
-                 0.0, 0.0, self.y, False)
+        self._advance([0.0] * 4, False)
         self._publish()
+
+    def _general_matrices(self, dev: RigDeviation, dt: float) -> None:
+        """The general step's matrices: each valve's command split over the period by its delay
+        tau = (d + phi) dt (u[k-d-1] for phi dt, then u[k-d]: columns E and F of the exact hold), the floor
+        interpolated linearly (G0, G1), and for a deadband valve its chamber fed from the spool input instead
+        of the spool state (its flow, interpolated linearly over the period like the floor)."""
+        A = self.ss.A.copy()
+        idx = state_index(len(self.ss.modal.w_n))
+        spools = np.flatnonzero(dev.valve_deadband_ma > 0)
+        Bs = np.zeros((A.shape[0], len(spools)))
+        for j, i in enumerate(spools):
+            r, c = idx["P_L"] + i, idx["x_v"] + i
+            Bs[r, j], A[r, c] = A[r, c], 0.0
+        Bu = self.ss.B[:, 0:4]
+        Ad, Bud, G0, G1 = discretize_zoh_foh(A, Bu, np.hstack([self.ss.B[:, 4:12], Bs]), dt)
+        steps = dev.valve_delay_s / dt
+        self._delay = np.floor(steps + 1e-9).astype(int)
+        F = np.empty_like(Bud)
+        for i in range(4):
+            phi = steps[i] - self._delay[i]
+            F[:, i] = discretize_zoh(A, Bu[:, i:i + 1], (1.0 - phi) * dt)[1][:, 0] if phi > 1e-9 else Bud[:, i]
+        self.Ad = Ad
+        self._Bab = np.ascontiguousarray(np.hstack([Bud - F, F]))      # u[k-d-1], u[k-d]
+        self._G0, self._G1 = np.ascontiguousarray(G0), np.ascontiguousarray(G1)
+        self._Dg = np.ascontiguousarray(self.ss.D[:, 4:12])
+        self._sp_rows = np.ascontiguousarray(idx["x_v"] + spools)
+        self._sp_width = np.ascontiguousarray(dev.valve_deadband_ma[spools].astype(float))
+        self._gs = np.zeros(8 + len(spools))                          # floor and spool inputs at t_k
+        self._uab = np.zeros(8)
+        self._hist = [[0.0] * 4 for _ in range(int(self._delay.max()) + 2)]   # commands, newest first
+
+    def _advance(self, cmd, advance: bool = True) -> None:
+        if not self.general:
+            _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, self._gi,
+                     cmd[0], cmd[1], cmd[2], cmd[3], self.y, advance)
+            return
+        if advance:
+            h = self._hist
+            h.insert(0, list(cmd))
+            h.pop()
+            for i, d in enumerate(self._delay):
+                self._uab[i], self._uab[4 + i] = h[d + 1][i], h[d][i]
+        _advance_general(self.Ad, self._Bab, self._G0, self._G1, self.C, self._Dg, self.x, self._xn, self._uab,
+                         self._gs, self._g, self._nz, self._gi, self._sp_rows, self._sp_width, self.y, advance)
 
     def _draw(self):
         g = self.floor.next_block(self.BLOCK) if self.floor is not None else np.zeros((self.BLOCK, 12))
@@ -292,6 +383,8 @@ class RigPlant:
             fa = self._floor_rng.standard_normal((self.BLOCK, 4)) * self.floor_noise_mps2
             if g.shape[1] >= 12:
                 fa += g[:, 8:12]
+            if self._floor_gain is not None:
+                fa *= self._floor_gain
             fa = fa.tolist()
         return g, nz, fa
 
@@ -308,12 +401,14 @@ class RigPlant:
 
     def _publish(self):
         y = self.y.tolist()
+        if self._gains is not None:                      # the sensors' sensitivities (sign included)
+            y[0:8] = [g * v for g, v in zip(self._gains, y[0:8])]
         self.accel_mps2 = y[0:4]
         self.stroke_m = y[4:8]
         self.table_m = y[I_TABLE + 1]
         self.tool_m = y[I_TOOL + 1]
         self.spool = y[I_SPOOL:I_SPOOL + 4]
-        self.floor_m = self.w[4:8].tolist()
+        self.floor_m = (self._gs[0:4] if self.general else self.w[4:8]).tolist()
         if self._fa is not None:
             self.floor_accel_mps2 = self._fa[self._gi]
 
@@ -322,8 +417,9 @@ class RigPlant:
         self._gi += 1
         if self._gi >= self.BLOCK:
             self._refill()                                  # w[4:12] still holds the ground at t_k
-        _advance(self.Ad, self.Bd, self.C, self.D, self.x, self._xn, self.w, self._g, self._nz, self._gi,
-                 valve_cmd_V[0], valve_cmd_V[1], valve_cmd_V[2], valve_cmd_V[3], self.y, True)
+        if self._null is not None:                          # the amplifiers' null offsets
+            valve_cmd_V = [u + u0 for u, u0 in zip(valve_cmd_V, self._null)]
+        self._advance(valve_cmd_V)
         self.k += 1
         self.t_s = self.k * self.dt
         self._publish()
@@ -373,6 +469,54 @@ def _advance(Ad, Bd, C, D, x, xn, w, G, NZ, gi, u0, u1, u2, u3, y, advance):
             acc += C[i, j] * x[j]
         for j in range(12):
             acc += D[i, j] * w[j]
+        y[i] = acc
+    for i in range(8):
+        y[i] += NZ[gi, i]
+
+
+@numba.njit(cache=True)
+def _advance_general(Ad, Bab, G0, G1, C, Dg, x, xn, uab, gs, G, NZ, gi, sp_rows, sp_width, y, advance):
+    """_advance with each valve's command split over the period (uab = u[k-d-1], u[k-d] per mount: Bab) and
+    the deadband valves' spool inputs: their spool at t_k+1 first (the valve states depend on the commands
+    alone), through the overlap, then the whole state. gs holds the floor (8) and the spool inputs at t_k."""
+    ns = x.shape[0]
+    nl = sp_rows.shape[0]
+    if advance:
+        sp = np.empty(nl)
+        for j in range(nl):
+            r = sp_rows[j]
+            acc = 0.0
+            for c in range(ns):
+                acc += Ad[r, c] * x[c]
+            for c in range(8):
+                acc += Bab[r, c] * uab[c]
+            over = abs(acc) - sp_width[j]
+            sp[j] = (over if acc > 0 else -over) if over > 0 else 0.0
+        for i in range(ns):
+            acc = 0.0
+            for c in range(ns):
+                acc += Ad[i, c] * x[c]
+            for c in range(8):
+                acc += Bab[i, c] * uab[c]
+            for c in range(8 + nl):
+                acc += G0[i, c] * gs[c]
+            for c in range(8):
+                acc += G1[i, c] * G[gi, c]
+            for j in range(nl):
+                acc += G1[i, 8 + j] * sp[j]
+            xn[i] = acc
+        for i in range(ns):
+            x[i] = xn[i]
+        for j in range(nl):
+            gs[8 + j] = sp[j]
+    for c in range(8):
+        gs[c] = G[gi, c]
+    for i in range(C.shape[0]):
+        acc = 0.0
+        for j in range(ns):
+            acc += C[i, j] * x[j]
+        for j in range(8):
+            acc += Dg[i, j] * gs[j]
         y[i] = acc
     for i in range(8):
         y[i] += NZ[gi, i]

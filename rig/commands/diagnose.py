@@ -21,7 +21,8 @@ from rig.errors import RigError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", metavar="REC", type=Path, nargs="+",
-                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2)"
+                   help="chirp recording (CSV, CSV.gz, HDF5 or .mat; columns time_s,valve_cmd_V,position_m,accel_mps2), "
+                        "or a run of the four-mount rig (rig run --record, rig hil: docs/RUN_RECORDING.md)"
                         "; several, a folder or a quoted glob ('runs/**/*.h5'): a batch")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                        help="write diagnosis.json, fit.csv, report.md and the PNG plots to DIR (default: the "
@@ -62,6 +63,9 @@ def run(args) -> int:
 
 
 def run_single(args) -> int:
+    from rig.commands import diagnose_rig           # a run of the four-mount rig (issue 28)
+    if diagnose_rig.handles(args):
+        return diagnose_rig.run(args)
     from rig.plant.file import load_subject
 
     subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2

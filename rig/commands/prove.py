@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from rig import cliargs
+from rig.commands import prove_rig
 from rig.errors import RigError
 
 
@@ -25,6 +26,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", metavar="FILE", type=Path, default=None,
                    help="plant file (TOML, docs/PLANT.md): make the blind cases on its mechanical axis (friction, "
                         "deadband, delay, constant force, saturation; encoder terms; open and closed loop)")
+    p.add_argument("--rig", action="store_true",
+                   help="blind proof on the four-mount rig: closed-loop runs (isolation off, feedback, feedforward; "
+                        "floor accelerometers or not) hiding machine-level effects, recorded as rig run --record "
+                        "does and diagnosed (default --duration 60 s)")
+    cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,
+                       help="with --rig: keep each case's recording in DIR")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
                    help="run the cases on the Dask cluster of this scheduler instead of --workers processes "
@@ -57,6 +64,8 @@ def _where(args) -> str:
 
 
 def run(args) -> int:
+    if args.rig:                                    # the four-mount rig (issue 28): its own defaults
+        return prove_rig.run(args)
     from rig.config import load_config
     from rig.diagnose import grading, prove
     from sim_backend.linear import ActuatorParams

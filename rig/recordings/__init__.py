@@ -6,4 +6,6 @@
   signalmap.py   a plant file's [signals]: another lab's file read as it is, in SI units; load_recording_for,
                  what the commands call
   closedloop.py  was the recording made in closed loop (the command computed from the measurement)?
+  runfile.py     a run of the four-mount rig (rig run --record, rig hil; docs/RUN_RECORDING.md): its four mounts'
+                 channels, the floor's when measured, the isolation modes
 """

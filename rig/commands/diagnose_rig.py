@@ -1,0 +1,80 @@
+"""`rig diagnose RUN.h5 [--out DIR]` on a run of the four-mount rig (`rig run --record`, `rig hil`; the layout of
+docs/RUN_RECORDING.md): where the rig differs from its model, per mount, sensor and band, which machine-level
+physics explains it, the fit it gives, the transmissibilities measured against predicted and the margins on the
+diagnosed rig (rig/diagnose/machine/; docs/DIAGNOSIS.md, "Runs of the four-mount rig").
+
+The model is the configured rig (--config; default Table 1 and Table 2 with the assumed geometry of
+docs/MODEL.md) and its isolation controllers: give the config the run was made with.
+"""
+from __future__ import annotations
+
+import os
+
+# hundreds of small matrix products: BLAS threads only contend for them on the shared 2-core machine (set
+# before numpy loads: this module is imported before any of them)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+from rig.errors import RigError  # noqa: E402
+
+
+def handles(args) -> bool:
+    """Whether REC is a run of the four-mount rig (and no plant file asks for another family)."""
+    from rig.recordings.runfile import is_run_recording
+    return args.plant is None and args.recording.is_file() and is_run_recording(args.recording)
+
+
+def run(args) -> int:
+    import numpy as np
+
+    from rig.config import load_config
+    from rig.diagnose.machine import report
+    from rig.diagnose.machine.result import diagnose_rig
+    from rig.recordings.runfile import read_run
+    from rig.diagnose.machine.series import replay_series
+
+    cfg = load_config(args.config) if args.config else load_config(None)
+    if cfg.layout.plant != "machine":
+        raise RigError(f"{cfg.source}: [layout] plant = {cfg.layout.plant!r}: a run of the four-mount rig is "
+                       "diagnosed against the machine's model (--config of the run, or none for Table 1 and 2)")
+    t0 = time.perf_counter()
+
+    def progress(msg: str) -> None:
+        print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    rec = read_run(args.recording)                      # RecordingError: one line naming file and dataset
+    if rec.gaps:
+        progress(f"note: {rec.gaps}")
+    progress(f"diagnosing {rec.source}: {rec.n} rows at {rec.fs_hz:g} Hz, the four-mount rig against "
+             f"{cfg.source}")
+    diag = diagnose_rig(rec, cfg, progress=progress)
+    paths = {}
+    if args.out is not None:
+        progress("writing outputs (and the replay as time series)")
+        th = {k: np.asarray(v) for k, v in diag.theta.items()}
+        try:
+            series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
+            paths = report.write_outputs(args.out, diag, series)
+        except OSError as e:
+            raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    progress(f"done in {time.perf_counter() - t0:.1f} s")
+    if args.json:
+        print(json.dumps(report.diagnosis_dict(diag), indent=1))
+    else:
+        print(report.console_text(diag))
+        print("written: " + ", ".join(str(p) for p in paths.values()) if paths else
+              "(add --out DIR for diagnosis.json, report.md, replay.csv and the plots)")
+    return 0
+
+
+def _base(cfg, rec):
+    from rig.diagnose.machine.rigmodel import Base
+    return Base.of(cfg, 1.0 / rec.fs_hz)
+
+
+def _nominal(cfg, rec):
+    from rig.diagnose.machine.engine import nominal_theta
+    return nominal_theta(_base(cfg, rec))
