@@ -175,7 +175,9 @@ def select(pb: Problem, refit: ModelFit, nominal_lin: dict, band, lines: list, *
     for step in range(MAX_EFFECTS):
         over = math.sqrt(R.current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
         explained = EXPLAINED_SLOW if catalogue.slow_in(R.current.fx) else EXPLAINED
-        R.say(f"round {step + 1}: held-out residual {over:.3f} x noise")
+        # the search's own scale (its weights, the first noise estimate): the summary's residual/noise comes after
+        # the final noise estimate, so the two figures are not the same number and the line does not pretend so
+        R.say(f"round {step + 1}: searching for an effect (held-out residual on the search's scale {over:.3g})")
         results = _round(R, screen, harmonic_now, stop_at_noise and over < explained, explained, round1)
         if not R.chosen:
             round1 = {n_: dict(g.fx[n_]) for n_, g, _ in results if n_ in g.fx}
