@@ -26,8 +26,9 @@ def test_prototype_tracks_through_the_drivers(run):
     out, rec = run
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)                       # only JSON on stdout
-    assert set(res) == {"transports", "faults", "overruns", "iterations", "samples_recorded", "tracking",
+    assert set(res) == {"transports", "harm", "faults", "overruns", "iterations", "samples_recorded", "tracking",
                         "isolation_reduction_db", "recording"}
+    assert res["harm"] is None                        # the do-no-harm supervisor let the run be
     assert res["faults"] == 0
     tr = res["tracking"]
     assert tr["request"] == "track sine:amp=10um,freq=5"

@@ -70,7 +70,8 @@ def test_missing_device_at_start_up_is_one_line_naming_it_and_keeps_the_recordin
     rec = tmp_path / "precious.h5"
     rec.write_bytes(b"sixteen megabytes of yesterday's run")
     out = subprocess.run(RIG + ["run", "--config", str(cfg), "--seconds", "1", "--record", str(rec), "--overwrite",
-                                "--no-realtime", "--quiet"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+                                "--no-realtime", "--quiet", "--uncommissioned"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
     assert out.returncode == 2, out.stderr
     lines = out.stderr.strip().splitlines()
     assert "Traceback" not in out.stderr
