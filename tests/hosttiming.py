@@ -8,6 +8,7 @@ normal-priority kernel worker (`rig bench stalls`)."""
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -38,3 +39,17 @@ def skip_unless_on_time(out) -> None:
     if worst > LATE_BOUND:
         pytest.skip(f"host timing, not judged: {100 * worst:.0f} % of a mode's periods late (bound "
                     f"{100 * LATE_BOUND:.0f} %)")
+
+
+def skip_unless_text_on_time(text: str) -> None:
+    """The same judgement from what a real-clock command printed: its FAULT line, the late periods `rig hil`
+    meters, or the missed deadlines of `rig run`'s stop line."""
+    line = host_line(text)
+    if line:
+        pytest.skip(f"host timing, not judged: {line[:400]}")
+    for ln in text.splitlines():
+        if ln.startswith("late periods") or "missed deadlines" in ln:
+            pcts = [float(x) for x in re.findall(r"([0-9.]+) %", ln)]
+            bound = 100 * LATE_BOUND if ln.startswith("late periods") else 10 * LATE_BOUND
+            if pcts and max(pcts) > bound:
+                pytest.skip(f"host timing, not judged: {ln.strip()[:400]}")

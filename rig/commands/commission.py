@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.playback import SignalPlayback
-from rig import commissioning
+from rig import cliargs, commissioning
 from rig.backends import default_config
 from rig.chirp import chirp_samples
 from rig.config import hil_run_config, layout_mounts, load_config
@@ -41,7 +41,9 @@ EXIT_FINDINGS = 4
 
 def add_arguments(p) -> None:
     p.add_argument("--backend", choices=("hil", "sim", "hardware"), default="hil")
-    p.add_argument("--out", required=True, help="folder for the report, the calibration file and the plots")
+    cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
+                       help="folder for the report, the calibration file and the plots (default: "
+                            "commission-<date>-<time> in the current folder)")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
 
 
@@ -57,7 +59,7 @@ def run(args) -> int:
     n_lead, n_slot = int(round(LEAD_S / dt)), int(round(slot_s / dt))
     # the playback starts at activation (after QUIET_S): mount j's chirp in its own slot, the others at null
     ctrls = [SignalPlayback([0.0] * (j * n_slot + n_lead) + chirp, dt, name=m) for j, m in enumerate(names)]
-    out = Path(args.out)
+    out = Path(args.out) if args.out is not None else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
     out.mkdir(parents=True, exist_ok=True)
     rec_path = out / "commissioning.h5"
     total = QUIET_S + len(names) * slot_s
