@@ -44,7 +44,7 @@ def add_arguments(p) -> None:
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,
                        help="folder for the report, the calibration file and the plots (default: "
                             "commission-<date>-<time> in the current folder)")
-    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    p.add_argument("--json", action="store_true", help="print only the report as JSON on stdout")
 
 
 def run(args) -> int:

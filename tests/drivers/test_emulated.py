@@ -114,7 +114,8 @@ def test_every_conversion_once_in_order(port):
     end = time.monotonic() + 2.0
     while seen < target and time.monotonic() < end:
         seen += port.read(time.monotonic_ns()).new_samples
-        assert seen <= port.rig.steps - steps0 + 1, (seen, port.rig.steps - steps0)
+        # (the plant's step count is published after its conversion: a block in flight at the start counts too)
+        assert seen <= port.rig.steps - steps0 + 16, (seen, port.rig.steps - steps0)
         time.sleep(0.002)
     assert seen >= target, (seen, target)
 
