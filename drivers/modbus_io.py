@@ -186,6 +186,11 @@ class AnalogIO(IODevice):
         c16 = regs[0] if self.fifo else regs[REG_COUNT]    # entry 0: the newest conversion
         if c16 == self._c16:
             return False                            # no new conversion yet
+        back = (self._c16 - c16) & 0xFFFF
+        if self._c16 >= 0 and back < 0x8000:        # older than one already taken: never published as new
+            self.errors += 1
+            self.last_error = f"a reply {back} conversions older than the newest taken: ignored"
+            return False
         self.last_error = ""
         self.asked_ns = 0
         self.sample_ns = t1

@@ -23,6 +23,7 @@ import time
 from rig.errors import DeviceError
 from rig.runtime import exchange as ex
 from rig.runtime.clock import MonotonicClock
+from rig.runtime.rt import freeze_heap
 
 log = logging.getLogger("rig.drivers")
 
@@ -116,6 +117,7 @@ def main() -> int:
         return 1
     stop = threading.Event()
     threading.Thread(target=_watch_stdin, args=(stop,), daemon=True).start()
+    freeze_heap()
     dev.beat()                           # alive from now (the set-up took its time: the loop may start at once)
     _say("ready")
     try:

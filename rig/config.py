@@ -105,6 +105,10 @@ class LoopConfig:
     # /dev/cpu_dma_latency, as cyclictest does); -1 leaves it alone. 0 keeps idle CPUs out of halt, which
     # shortens the wake-up tail of a sleeping loop (README: loop timing)
     cpu_latency_us: int = _f(0, "us", ge=-1, le=1000000)
+    # idle CPUs kept polling while the loop runs (one SCHED_IDLE poller per CPU), where the PM QoS request above
+    # cannot keep them out of halt: auto = when no cpuidle driver honours it (many virtual machines);
+    # docs/REALTIME.md
+    idle_poll: str = _f("auto", "", choices=("auto", "on", "off"))
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,8 @@
   rig bench stalls [--seconds N] [--json]         where stalls come from: an empty loop at real-time and at normal
                                                   priority, a pty echo and a socket echo, side by side
                                                   (rig/commands/bench_stalls.py)
+  rig bench idle-poll [--rounds R] [--seconds N]  `rig hil` with idle CPUs kept polling and without, alternating
+                                                  (rig/commands/bench_idle_poll.py)
   rig bench sim ...                               simulation speed of the plant
   rig bench batch [--n N] [--json]                a batch of simulated recordings diagnosed one by one, on the
                                                   local pool, on a Dask LocalCluster, and killed and resumed
@@ -63,7 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from rig import cliargs
-from rig.commands import bench_cli, bench_stalls
+from rig.commands import bench_cli, bench_idle_poll, bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
@@ -112,6 +114,9 @@ def add_arguments(p) -> None:
                                        "echoes side by side")
     _config_arg(st)
     bench_stalls.add_arguments(st)
+    ip = sub.add_parser("idle-poll", help="rig hil with idle CPUs kept polling and without, alternating runs")
+    _config_arg(ip)
+    bench_idle_poll.add_arguments(ip)
     cp = sub.add_parser("cli", help="the command line's --help time against a bare interpreter start")
     bench_cli.add_arguments(cp)
     rp = sub.add_parser("recorder", help="recording writer: CPU time and size per hour, compressed or not")
@@ -161,11 +166,13 @@ def run(args) -> int:
         return bench_stalls.run(args)
     if what == "cli":
         return bench_cli.run(args)
+    if what == "idle-poll":
+        return bench_idle_poll.run(args)
     if what == "batch":
         from rig.commands import bench_batch
         return bench_batch.run(args)
-    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, cli, batch or prototype (see rig bench "
-                   "--help)")
+    raise RigError("bench: expected a benchmark: loop, sim, recorder, stalls, idle-poll, cli, batch or prototype (see "
+                   "rig bench --help)")
 
 
 # ---- rig bench sim (owner: the plant engineer) ---------------------------------------------------------

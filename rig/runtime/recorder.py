@@ -305,6 +305,7 @@ class _Column:
         self.start = 0                 # first row of the chunk in buf
         self.fill = 0                  # rows of it filled
         self.compress = compress
+        self.extent = dset.shape[0]    # the dataset's rows (kept here: h5py's shape asks the library each time)
 
     def append(self, block: np.ndarray) -> None:
         i, n = 0, len(block)
@@ -398,8 +399,9 @@ class _Writer:
         for c, d, w in zip(self.channels, self.dsets, self.cols):
             # the extent covers the complete chunks only until close: a kill -9 then leaves no row unwritten
             done = total - (total % w.cr)
-            if done != d.shape[0]:
+            if done != w.extent:
                 d.resize((done,) if c.width == 1 else (done, c.width))
+                w.extent = done
             w.append(rows[:, col] if c.width == 1 else rows[:, col:col + c.width])
             col += c.width
         self.rows = total

@@ -139,7 +139,8 @@ class Session:
             if self.realtime:
                 # process-wide part first: mlockall and a GC pass hold up every thread (a driver thread stalled
                 # for >100 ms when done after the port was opened); the port's threads then start locked
-                pre = enter_realtime(priority=0, cpu=None, cpu_latency_us=self.cfg.loop.cpu_latency_us)
+                pre = enter_realtime(priority=0, cpu=None, cpu_latency_us=self.cfg.loop.cpu_latency_us,
+                                     idle_poll=self.cfg.loop.idle_poll)
                 stack.callback(leave_realtime, pre)
             self.loop.configure()
             if self._status:

@@ -45,3 +45,16 @@ def test_bench_stalls_json_side_by_side():
     for name, d in res["probes"].items():
         assert d["n"] > 100, name                       # 1 kHz loops, an echo every 2 ms, for 2 s
         assert d["p50_us"] <= d["p99_us"] <= 1e3 * d["max_ms"] + 1e-6, name
+
+
+def test_bench_idle_poll_json_runs_both_settings_alternately():
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "idle-poll", "--rounds", "1", "--seconds", "3",
+                          "--json"], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    assert set(res) == {"config", "rate_hz", "seconds", "rounds", "cpuidle_driver", "runs", "median_late"}
+    assert [len(res["runs"][k]) for k in ("on", "off")] == [1, 1]
+    for run in res["runs"]["on"] + res["runs"]["off"]:
+        assert set(run) == {"late", "faults", "fault_reason", "feedback_db", "feedforward_db", "lockstep_db"}
+        assert set(run["late"]) == {"off", "feedback", "feedback_feedforward"}
+        assert all(v is None or 0.0 <= v <= 1.0 for v in run["late"].values())
