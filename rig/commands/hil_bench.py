@@ -10,8 +10,11 @@ at the HIL rate, printed as distributions:
               second, their misses (SYNCs with the period before's commands, conversions lost from the FIFO,
               requests without a new frame), the age of the conversion and of the transducer sample when the
               loop used them (p50/p99/max)
+  cpu         each process's CPU time per loop period (all its threads, from /proc/PID/task/*/schedstat): the
+              loop's, each I/O process's, each emulated device's; their sum as CPUs kept busy, against the
+              CPUs there are. Above about two thirds of them the processes of one period wait for each other.
 
---json prints {"rate_hz", "seconds", "loop": {...}, "round_trip_us": {...}, "devices": {...}} only.
+--json prints {"rate_hz", "seconds", "loop": {...}, "round_trip_us": {...}, "devices": {...}, "cpu": {...}} only.
 """
 from __future__ import annotations
 
@@ -53,15 +56,60 @@ def pct(a) -> dict:
             "max": round(float(a.max()), 1), "n": int(a.size)}
 
 
+def cpu_ns(pid: int) -> int | None:
+    """CPU time of a process so far (ns, all its threads), or None where the kernel does not say."""
+    import glob
+    total, seen = 0, False
+    for f in glob.glob(f"/proc/{pid}/task/*/schedstat"):
+        try:
+            with open(f) as fh:
+                total += int(fh.read().split()[0])
+            seen = True
+        except (OSError, ValueError, IndexError):
+            pass
+    return total if seen else None
+
+
+def _processes(port) -> dict[str, int]:
+    """The run's processes by name: the loop's, the I/O processes, the emulated devices."""
+    import os
+    out = {"loop's process": os.getpid()}
+    out.update({f"I/O: {k}": v for k, v in port.pids.items()})
+    rig = getattr(port, "rig", None)
+    for what in ("plant", "modbus", "serial"):
+        try:
+            out[f"emulated {what}"] = rig.device_pid(what)
+        except (AttributeError, StopIteration):
+            pass
+    return out
+
+
+def cpu_figures(before: dict, after: dict, periods: int, wall_s: float) -> dict:
+    """Per process: us of CPU per loop period and the share of one CPU; their sum as CPUs busy."""
+    import os
+    per = {}
+    for name, (pid, c0) in before.items():
+        c1 = after.get(name)
+        if c0 is None or c1 is None or periods <= 0 or wall_s <= 0:
+            continue
+        per[name] = {"us_per_period": round((c1 - c0) * 1e-3 / periods, 1),
+                     "cpu_share": round((c1 - c0) * 1e-9 / wall_s, 3)}
+    return {"processes": per, "cpus_busy": round(sum(v["cpu_share"] for v in per.values()), 2),
+            "cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()}
+
+
 def measure(cfg, seconds: float, realtime: bool = True) -> dict:
     """The figures of one run (see the module doc)."""
     rate = cfg.loop.rate_hz
     with Session(cfg, "hil", controllers=lambda c, dt: [_Off(dt) for _ in layout_mounts(c)],
                  keep_timing=int(seconds * rate) + 16, realtime=realtime, rate_check=False) as s:
         port, loop = s.port, s.loop
-        c0, t0 = port.counts(), s.clock.now_ns()
+        procs = _processes(port)
+        cpu0 = {k: (pid, cpu_ns(pid)) for k, pid in procs.items()}
+        c0, t0, i0 = port.counts(), s.clock.now_ns(), loop.iterations
         s.run(seconds=seconds, activate_after_s=min(0.05, seconds / 10))
         wall = (s.clock.now_ns() - t0) * 1e-9
+        cpu = cpu_figures(cpu0, {k: cpu_ns(pid) for k, pid in procs.items()}, loop.iterations - i0, wall)
         counts = {k: (v[0] - c0[k][0], v[1] - c0[k][1]) for k, v in port.counts().items()}
         n = min(loop.iterations, loop.keep)
         work = np.frombuffer(loop.compute_ns, dtype=np.int64)[:n] * 1e-3
@@ -71,7 +119,7 @@ def measure(cfg, seconds: float, realtime: bool = True) -> dict:
         fault = loop.lc.fault_reason
     d = cfg.drivers
     delays = channel_delays(cfg, rate)
-    return {"rate_hz": rate, "seconds": seconds, "fault": fault,
+    return {"rate_hz": rate, "seconds": seconds, "fault": fault, "cpu": cpu,
             "loop": {"work_us": pct(work), "wake_latency_us": pct(wake), "periods": int(n),
                      "missed_deadline_fraction": round(loop.missed_deadline_fraction, 5)},
             "round_trip_us": rtt,
@@ -93,7 +141,7 @@ def measure(cfg, seconds: float, realtime: bool = True) -> dict:
 def run(cfg, seconds: float, as_json: bool) -> int:
     res = measure(cfg, seconds, realtime=cfg.loop.realtime)
     if as_json:
-        print(json.dumps({k: res[k] for k in ("rate_hz", "seconds", "loop", "round_trip_us", "devices")}))
+        print(json.dumps({k: res[k] for k in ("rate_hz", "seconds", "loop", "round_trip_us", "devices", "cpu")}))
         return 1 if res["fault"] else 0
     lp = res["loop"]
 
@@ -109,6 +157,10 @@ def run(cfg, seconds: float, as_json: bool) -> int:
     print("devices:")
     for name, v in res["devices"].items():
         print(f"  {name}: " + ", ".join(f"{k} {dist(x) if isinstance(x, dict) else x}" for k, x in v.items()))
+    cpu = res["cpu"]
+    print(f"CPU per loop period (us) and share of one CPU: {cpu['cpus_busy']:g} of {cpu['cpus']} CPUs busy")
+    for name, v in sorted(cpu["processes"].items(), key=lambda kv: -kv[1]["us_per_period"]):
+        print(f"  {name:28s}  {v['us_per_period']:8.1f} us  {100 * v['cpu_share']:5.1f} %")
     if res["fault"]:
         print(f"rig hil --bench: FAULT: {res['fault']}", file=sys.stderr)
     return 1 if res["fault"] else 0
