@@ -19,7 +19,12 @@ def test_hil_bench_json_has_the_loop_transports_and_devices():
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)
-    assert set(res) == {"rate_hz", "seconds", "loop", "round_trip_us", "devices"}
+    assert set(res) == {"rate_hz", "seconds", "loop", "round_trip_us", "devices", "cpu"}
+    cpu = res["cpu"]       # every process of the run, its CPU per period; their sum within the CPUs there are
+    assert {"loop's process", "emulated plant", "emulated modbus", "emulated serial"} <= set(cpu["processes"])
+    assert sum(k.startswith("I/O: ") for k in cpu["processes"]) == 3
+    assert all(v["us_per_period"] > 0 and 0 < v["cpu_share"] <= 1.05 for v in cpu["processes"].values())
+    assert 0 < cpu["cpus_busy"] <= 1.05 * cpu["cpus"]
     assert set(res["loop"]["work_us"]) == DIST and set(res["loop"]["wake_latency_us"]) == DIST
     assert set(res["round_trip_us"]) == {"canopen_sync_to_tpdo", "modbus_read", "serial_frame"}
     assert all(set(v) == DIST and v["n"] > 0 for v in res["round_trip_us"].values())
