@@ -310,11 +310,15 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
         if step + 1 < MAX_EFFECTS:
             # the refit again beside what is chosen: a strong effect at one mount drives the common parameters
             # to their bounds before it is named (a valve's delay took K_L to x0.5), and the next round's
-            # candidates would be judged on what they make up for there rather than on their own evidence
+            # candidates would be judged on what they make up for there rather than on their own evidence. It
+            # starts from the model's values: a factor the unnamed effect drove onto its bound barely moves from
+            # there (the trust region's steps shrink with the distance to a bound; the modes' common damping
+            # left at x2 let every mode-like candidate of the next round win by freeing it)
             slots = list(refit_slots(ctx.base.dt, ctx.valves_driven)) + [s for t in chosen for s in t.instance.slots]
-            th = fit(ctx.rp, th, tuple(slots), ctx.sp.fit, U_of=u_of(ctx), max_nfev=20).th
+            th = fit(ctx.rp, refit_from_model(th, ctx.base), tuple(slots), ctx.sp.fit, U_of=u_of(ctx)).th
             reweigh(ctx, th)
-            say("  refit beside it: " + ", ".join(f"{k} x{v:.3f}" for k, v in zip(ACT_KEYS, th["act"])))
+            say("  refit beside it: " + ", ".join(f"{k} x{v:.3f}" for k, v in zip(ACT_KEYS, th["act"]))
+                + f", modal damping x{th['modal_zeta'][0]:.2f}, latency {1e3 * th['latency_s'][0]:.3f} ms")
     return Selection(ctx, nominal_theta(ctx.base), th_refit, th, chosen, tried, screened_all)
 
 
@@ -350,6 +354,16 @@ def polish(sel: Selection, progress=None) -> Selection:
             t.tests = tests
     sel.th_final = th
     return sel
+
+
+def refit_from_model(th: dict, base: Base) -> dict:
+    """theta with the refit's parameters (the actuators' common factors, the modes' common damping, the
+    latency) back at the model's values, the effects' kept."""
+    out = copy_theta(th)
+    ref = nominal_theta(base)
+    for k in ("act", "modal_zeta", "latency_s"):
+        out[k] = ref[k].copy()
+    return out
 
 
 def without_effect(th: dict, inst: fx.Instance, base: Base) -> dict:
