@@ -71,7 +71,7 @@ def _out(args) -> Path:
     return args.out
 
 
-def run(job: Job, args) -> int:
+def run_job(job: Job, args) -> int:
     """Run the batch the arguments name; print its summary (or its JSON); exit status 1 if any recording failed."""
     out = _out(args)
     paths = inputs.expand(args.recording, exclude=out)

@@ -55,17 +55,19 @@ def diagnose_one(plant: Path | None, config: str | None, seed: int, path: str, o
 
 
 def run(args) -> int:
+    """The route of REC, chosen here once: a batch, a run of the four-mount rig, or a recording against its plant."""
     if batch.wanted(args):
         options = {"seed": args.seed, "plant": file_identity(args.plant), "config": file_identity(args.config)}
-        return batch.run(Job("diagnose", options, partial(diagnose_one, args.plant, args.config, args.seed)), args)
+        return batch.run_job(Job("diagnose", options, partial(diagnose_one, args.plant, args.config, args.seed)), args)
     args.recording = args.recording[0]
-    return run_single(args)
-
-
-def run_single(args) -> int:
-    from rig.commands import diagnose_rig           # a run of the four-mount rig (issue 28)
-    if diagnose_rig.handles(args):
+    from rig.recordings.runfile import is_run_recording
+    if args.plant is None and args.recording.is_file() and is_run_recording(args.recording):
+        from rig.commands import diagnose_rig       # a run of the four-mount rig (no plant file asks for another)
         return diagnose_rig.run(args)
+    return _one(args)
+
+
+def _one(args) -> int:
     from rig.plant.file import load_subject
 
     subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2

@@ -21,12 +21,6 @@ import time  # noqa: E402
 from rig.errors import RigError  # noqa: E402
 
 
-def handles(args) -> bool:
-    """Whether REC is a run of the four-mount rig (and no plant file asks for another family)."""
-    from rig.recordings.runfile import is_run_recording
-    return args.plant is None and args.recording.is_file() and is_run_recording(args.recording)
-
-
 def run(args) -> int:
     import numpy as np
 

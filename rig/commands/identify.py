@@ -216,7 +216,7 @@ def run(args) -> int:
         options = {"starts": args.starts, "seed": args.seed, "refine": not args.no_refine,
                    "plant": file_identity(args.plant), "config": file_identity(args.config)}
         work = partial(identify_one, args.plant, args.config, args.starts, args.seed, not args.no_refine)
-        return batch.run(Job("identify", options, work), args)
+        return batch.run_job(Job("identify", options, work), args)
     args.recording = args.recording[0]
     return run_single(args)
 
