@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from rig.diagnose import command as command_mod
 from rig.diagnose.plants import at_bounds
 from rig.diagnose.problem import LIN_BOUNDS, ModelFit, Problem
@@ -82,6 +84,12 @@ def verdict(pb: Problem, no_claim: str, named: bool, fit: Fit, refit: ModelFit, 
         sugg.append(check.note[0].upper() + check.note[1:] + ".")
     if pb.fs < 500.0 and pb.plant.family == "eha":
         sugg.append(f"The recording is sampled at {pb.fs:g} Hz, too slowly for the valve's dynamics.")
+    lag = alignment_lag(pb)
+    if lag:
+        sugg.append(f"The position fits the nominal model best shifted by {abs(lag)} sample{'s' * (abs(lag) > 1)} "
+                    f"({abs(lag) / pb.fs * 1e3:.3g} ms): the position leads the command by that, which no plant "
+                    "does. Check the time alignment of the logged columns (the position stamped early, or the "
+                    "command late) before reading the effects.")
     if over <= VERDICT_NOT_DESCRIBED:
         status = "partly"
     else:
@@ -89,6 +97,37 @@ def verdict(pb: Problem, no_claim: str, named: bool, fit: Fit, refit: ModelFit, 
         # incomplete), unless the refit says the plant is another one: its differences are no findings
         status = "incomplete" if named and not _other_plant(pb, refit) else "not_described"
     return Verdict(status, over, over_ref, named, suggestions=tuple(sugg))
+
+
+MAX_LAG = 3                        # samples of misalignment looked for
+LAG_GAIN = 0.7                     # a shift must cut the refit's residual rms below this share of the unshifted
+
+
+def alignment_lag(pb: Problem) -> int:
+    """The lead k < 0 (|k| <= MAX_LAG, samples) of the recorded position against the nominal model's response to the
+    recorded command (y[i] against model[i - k], each shift with its own least-squares gain and offset) that cuts
+    the residual rms below LAG_GAIN of the unshifted one; 0 when none does. The nominal model, not the refit: a
+    refit bends its parameters (a valve's bandwidth to the edge of its range) to absorb a shift. A logger that
+    stamps the position a sample early (k = -1) leaves a residual of the motion's derivative that no physics in
+    the catalogue removes."""
+    try:
+        yhat = pb.model(pb.nominal, {})
+    except Exception:              # noqa: BLE001 - a hint only: a model that cannot be evaluated gives none
+        return 0
+    y, n = pb.y, len(pb.y)
+    if n <= 4 * MAX_LAG or not np.all(np.isfinite(yhat)):
+        return 0
+    core = slice(MAX_LAG, n - MAX_LAG)
+
+    def rms(k: int) -> float:
+        m = yhat[MAX_LAG - k:n - MAX_LAG - k]
+        A = np.column_stack([m, np.ones_like(m), np.linspace(-1.0, 1.0, m.size)])
+        coef, *_ = np.linalg.lstsq(A, y[core], rcond=None)
+        return float(np.sqrt(np.mean((y[core] - A @ coef) ** 2)))
+    r0 = rms(0)
+    best = min((k for k in range(-MAX_LAG, MAX_LAG + 1) if k), key=rms)
+    # only a lead is said: a position cannot answer a command before it came; a lag may be the plant's own delay
+    return best if best < 0 and r0 > 0 and rms(best) < LAG_GAIN * r0 else 0
 
 
 def _other_plant(pb: Problem, refit: ModelFit) -> bool:

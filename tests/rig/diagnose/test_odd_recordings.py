@@ -172,3 +172,21 @@ def test_diagnose_of_closed_loop_other_plant_says_why(tmp_path):
 
 # A `rig run` recording of the four-mount rig now goes to the machine diagnosis (issue 28), which replays its
 # closed loop's inputs: tests/rig/diagnose/machine/test_diagnose_cli.py runs it as a user does.
+
+
+@pytest.mark.slow
+def test_position_logged_a_sample_early_gets_a_time_alignment_hint(tmp_path):
+    rec = _chirp(12.0)
+    early = np.r_[rec.position_m[1:], rec.position_m[-1]]           # each position stamped one sample early
+    paths = {"early": _save(tmp_path, "early.csv", rec.valve_cmd_V, early, rec.accel_mps2, rec.fs_hz),
+             "aligned": _save(tmp_path, "aligned.csv", rec.valve_cmd_V, rec.position_m, rec.accel_mps2, rec.fs_hz)}
+    hints = {}
+    for name, path in paths.items():
+        res = _rig("diagnose", path, "--out", tmp_path / name)
+        _no_traceback(res)
+        assert res.returncode == 0, res.stderr
+        doc = json.loads((tmp_path / name / "diagnosis.json").read_text())
+        hints[name] = [s for s in doc["verdict"]["suggestions"] if "time alignment" in s]
+    assert len(hints["early"]) == 1 and "shifted by 1 sample (1 ms)" in hints["early"][0]
+    assert "leads the command" in hints["early"][0]
+    assert hints["aligned"] == []
