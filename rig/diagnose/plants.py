@@ -172,7 +172,7 @@ class AxisModel:
                          smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
                          fine=fine, **kw)   # a new effect's term: run_segments' own keyword
         if gap > 0:                         # the sensor on the load, behind the gear's play
-            y = play(y, gap, starts)
+            y = play(y, gap)
         return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:

@@ -306,15 +306,9 @@ def run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, *, friction_n: float = 0.0, s
 
 
 @numba.njit(cache=True, nogil=True)
-def _play(x, half, starts, out):
-    seg = 0
+def _play(x, half, out):
     yo = x[0] if x.shape[0] else 0.0
     for k in range(x.shape[0]):
-        if seg < starts.shape[0] and k == starts[seg]:
-            # a segment starts against the side the drive moves towards (centred when it is at rest)
-            d = x[k + 1] - x[k] if k + 1 < x.shape[0] else 0.0
-            yo = x[k] - (half if d > 0.0 else -half if d < 0.0 else 0.0)
-            seg += 1
         if x[k] - yo > half:
             yo = x[k] - half
         elif x[k] - yo < -half:
@@ -322,14 +316,14 @@ def _play(x, half, starts, out):
         out[k] = yo
 
 
-def play(x, width: float, starts=None) -> np.ndarray:
+def play(x, width: float) -> np.ndarray:
     """The backlash operator on a drive's position x: the load stays where it is until the drive has crossed the
-    play of `width` (total), then is pushed by its near side (centred at the start; at a segment start pushed
-    the way the drive moves)."""
+    play of `width` (total), then is pushed by its near side (centred at the start). The load is no state of the
+    drive's model: where that model's state is set again (a segment's start) the load stays where it was, inside
+    the play of the drive's new position."""
     x = np.ascontiguousarray(x, dtype=float)
-    st = np.zeros(0, np.int64) if starts is None else np.ascontiguousarray(starts, dtype=np.int64)
     out = np.empty(len(x))
-    _play(x, 0.5 * float(width), st, out)
+    _play(x, 0.5 * float(width), out)
     return out
 
 

@@ -4,6 +4,8 @@ the carriage's guides, a screw's nut). It sits on a Coulomb level: it is fitted 
 coulomb_friction entry, whose force_n is F_c."""
 from dataclasses import dataclass
 
+import numpy as np
+
 from rig.diagnose.catalogue.effect import Draw, Effect, Evidence, Param
 from rig.diagnose.starts import Grid
 
@@ -34,7 +36,7 @@ EFFECT = Effect(
     # the breakaway above zero (its lower edge: no breakaway) and the Stribeck velocity from a lubricated
     # guide's fraction of a mm/s to a fifth of a metre per second (beyond it: a Coulomb level)
     bounds=lambda s: [(1e-4 * s.peak_force_n, 2.0 * s.peak_force_n), (2e-4, 0.2)],
-    start=_OnCoulomb(lambda s, slow, coarse: s.peak_force_n * (
+    start=_OnCoulomb(lambda s, slow, coarse: s.peak_force_n * np.array(
         [0.02, 0.08] if (coarse or slow) else [0.01, 0.03, 0.08, 0.2]),
         lambda s: [{"stribeck_velocity_m_per_s": v} for v in STRIBECK_VELOCITIES_M_PER_S]),
     slow=True, nonlinear=True, costly_start=True, edge_test=True, check=_on_coulomb,
