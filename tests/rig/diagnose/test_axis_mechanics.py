@@ -20,10 +20,10 @@ PLANT = {"family": "mechanical_axis", "input_unit": "N", "mass_kg": {"value": 25
 PEAK_N = 40.0
 
 
-def _diagnosed(**mechanics):
+def _diagnosed(duration_s: float = 20.0, **mechanics):
     """An open-loop axis of 20 kg under a 40 N band-noise force, an encoder of 0.1 um, diagnosed."""
     ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, **mechanics)
-    u = band_noise(1000.0, 20.0, 0.3, 30.0, PEAK_N, seed=5).cmd_V
+    u = band_noise(1000.0, duration_s, 0.3, 30.0, PEAK_N, seed=5).cmd_V
     cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(step_m=1e-7, noise_m=2e-7, offset_m=3e-4, seed=2))
     rec = Recording.from_signals(cmd, pos, None, fs_hz=1000.0, source="axis")
     rec.command_unit = "N"
@@ -64,7 +64,7 @@ def test_backlash_is_named_with_its_width():
 
 @pytest.mark.slow
 def test_stribeck_friction_is_named_above_its_coulomb_level():
-    d, named = _diagnosed(coulomb_n=0.1 * PEAK_N, stribeck_n=0.1 * PEAK_N, stribeck_m_per_s=5e-3)
+    d, named = _diagnosed(12.0, coulomb_n=0.1 * PEAK_N, stribeck_n=0.1 * PEAK_N, stribeck_m_per_s=5e-3)
     assert {"coulomb_friction", "stribeck_friction"} <= set(named), summary(d)
     assert abs(named["coulomb_friction"]["force_n"] / (0.1 * PEAK_N) - 1) < 0.25, summary(d)
     assert abs(named["stribeck_friction"]["breakaway_n"] / (0.1 * PEAK_N) - 1) < 0.5, summary(d)
