@@ -1,10 +1,14 @@
 """A single electro-mechanical axis as recorded (the physics other rigs' recordings come from), for the proof of
 the diagnosis on plant files (rig prove --plant, the EMPS-like worked example in docs/PLANT.md).
 
-    M x'' = g u_d(t - tau) - c x' - k x - F_c sgn(x') + F_0      (carriage; u_d: the command after the drive's
+    M x'' = g u_d(t - tau) - c x' - k x - F_f(x') + F_0        (carriage; u_d: the command after the drive's
                                                                    saturation and deadband)
-Coulomb friction here is the real thing, not the diagnosis's smooth tanh: the carriage sticks while the applied
-force stays within +-F_c (Karnopp's stick band), which the diagnosis must still recognise. Integrated with small
+    F_f(v) = (F_c + F_s exp(-(v / v_S)^2)) sgn(v)                 (Coulomb, with Stribeck's breakaway F_s above
+                                                                   it fading over the Stribeck velocity v_S)
+Friction here is the real thing, not the diagnosis's smooth tanh: the carriage sticks while the applied force
+stays within +-(F_c + F_s) (Karnopp's stick band), which the diagnosis must still recognise. With backlash the
+encoder reads the load, driven by the carriage through a gear's play of width b (the load's inertia small: it
+stays where it is until the carriage crosses the play). Integrated with small
 fixed sub-steps (100 per sample by default: the linear part exact over each, the friction force held); the command is held over each sample and delayed
 by tau (the switch inside a sample at the right sub-step).
 
@@ -37,6 +41,9 @@ class Axis:
     deadband: float = 0.0              # command half-width without drive output; 0: none
     base: tuple[float, float, float] | None = None    # (frequency_hz, damping_ratio, mass_kg) of a compliant base
     disturbance: tuple[float, float, float] | None = None   # (frequency_hz, force_n, phase_rad) on the carriage
+    stribeck_n: float = 0.0            # breakaway force above coulomb_n, fading over stribeck_m_per_s
+    stribeck_m_per_s: float = 1e-2
+    backlash_m: float = 0.0            # play between the carriage and the load the encoder reads (total width)
 
 
 @dataclass(frozen=True)
@@ -61,6 +68,9 @@ def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, 
                offset, x_out, u_out):
     g, Fc, F0, tau, sat, dead = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     c, k = prm[6], prm[7]
+    Fs, vS, half = prm[8], prm[9], 0.5 * prm[10]
+    Ftop = Fc + Fs                   # the breakaway force (the stick band)
+    load = 0.0; engaged = False
     T = 1.0 / fs; h = T / n_sub
     m = int(math.floor(tau / T + 1e-9)); fr = tau - m * T
     n = Ad.shape[0]
@@ -72,6 +82,14 @@ def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, 
         xr = 0.0
         for i in range(n):
             xr += Cx[i] * s[i]
+        if half > 0.0:                       # the load behind the play (centred at the start)
+            if not engaged:
+                load = xr; engaged = True
+            if xr - load > half:
+                load = xr - half
+            elif xr - load < -half:
+                load = xr + half
+            xr = load
         xm = xr + offset + sens_noise[kk]
         if step > 0.0:
             xm = step * math.floor(xm / step + 0.5)
@@ -104,25 +122,26 @@ def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, 
                 xr += Cx[i] * s[i]
             Fext = g * ud + F0 + Fd
             Ff = 0.0
-            if Fc > 0.0:
+            if Ftop > 0.0:
                 Fa = Fext - c * vr - k * xr          # what acts on the carriage besides friction
-                if abs(vr) < vstick and abs(Fa) <= Fc:
+                if abs(vr) < vstick and abs(Fa) <= Ftop:
                     Ff = -Fa                         # stuck (Karnopp): friction holds the rest
                     for i in range(n):               # and the relative velocity is zero
                         s[i] -= Cv[i] * vr * (1.0 if Cv[i] != 0.0 else 0.0) * (1.0 if i == 1 else 0.0)
                 else:
                     sg = vr if abs(vr) >= vstick else Fa
-                    Ff = -Fc if sg > 0 else Fc
+                    lev = Fc + (Fs * math.exp(-(vr / vS) ** 2) if Fs > 0.0 else 0.0)
+                    Ff = -lev if sg > 0 else lev
             for i in range(n):
                 acc = Gd[i] * (Fext + Ff)
                 for q in range(n):
                     acc += Ad[i, q] * s[q]
                 sn[i] = acc
-            if Fc > 0.0:
+            if Ftop > 0.0:
                 vn = 0.0
                 for i in range(n):
                     vn += Cv[i] * sn[i]
-                if vr * vn < 0.0 and abs(Fext - c * 0.0 - k * xr) <= Fc:
+                if vr * vn < 0.0 and abs(Fext - c * 0.0 - k * xr) <= Ftop:
                     for i in range(n):               # a reversal inside the stick band: the carriage stops
                         if i == 1:
                             sn[i] -= vn
@@ -159,7 +178,7 @@ def simulate_axis(ax: Axis, fs: float, *, command=None, reference=None, loop: Lo
     src = np.ascontiguousarray(reference if closed else command, dtype=float)
     N = len(src)
     prm = np.array([ax.gain_n_per_unit, ax.coulomb_n, ax.constant_force_n, ax.delay_s, ax.saturation, ax.deadband,
-                    ax.damping_n_s_per_m, ax.stiffness_n_per_m])
+                    ax.damping_n_s_per_m, ax.stiffness_n_per_m, ax.stribeck_n, ax.stribeck_m_per_s, ax.backlash_m])
     Ad, Gd, Cx, Cv = _exact_substep(ax, 1.0 / (fs * n_sub))
     dist = np.array(ax.disturbance if ax.disturbance else (0.0, 0.0, 0.0), float)
     noise = np.random.default_rng(sensor.seed).normal(0.0, sensor.noise_m, N) if sensor.noise_m > 0 else np.zeros(N)

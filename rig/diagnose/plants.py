@@ -18,7 +18,7 @@ import numpy as np
 from rig.diagnose import catalogue
 from rig.diagnose.models import force_response as eha_force_response, sim_linear, sim_reduced
 from rig.plant.model import Plant, eha_plant
-from rig.plant.zoh import discretise, free_response, phi, run_segments, substeps
+from rig.plant.zoh import discretise, free_response, phi, play, run_segments, substeps
 from sim_backend.linear import ActuatorParams
 
 FRICTION_SMOOTHING_M_PER_S = 1e-7   # v_s of F_c tanh(v / v_s), solved implicitly: the carriage sticks while the
@@ -60,7 +60,7 @@ class EhaModel:
     def __init__(self, plant: Plant):
         self.plant = plant
         self.p0: ActuatorParams = plant.actuator
-        self.effects = catalogue.for_plant(self.family, self.has_load)
+        self.effects = catalogue.for_plant(self.family, self.has_load, plant.output)
         self.nominal = {k: getattr(self.p0, k) for k in self.lin_keys}
         self.bounds_lin = {k: (v * self.LIN_BOUNDS[0], v * self.LIN_BOUNDS[1]) for k, v in self.nominal.items()}
         self.log_scale = {k: True for k in self.lin_keys}
@@ -104,7 +104,7 @@ class AxisModel:
         self.family = plant.family
         self.input_unit = plant.input_unit
         self.has_load = plant.has_force
-        self.effects = catalogue.for_plant(self.family, self.has_load)
+        self.effects = catalogue.for_plant(self.family, self.has_load, plant.output)
         self.lin_keys = plant.free
         vals = plant.values()
         self.fixed = {k: v for k, v in vals.items() if k not in self.lin_keys}
@@ -158,18 +158,21 @@ class AxisModel:
         kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
         A, B, Bf, C, Cv = self.plant.state_space(self.values(lin), kw.pop("base", None))
         delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
-        n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if fric > 0 else 1
+        sliding = fric > 0 or kw.get("stribeck_n", 0.0) > 0          # a friction force to solve for
+        n_sub = max(1, int(math.ceil(SUB_HZ / fs))) if sliding else 1
         Ah, Bnew, Bold, m = substeps(A, B, 1.0 / fs, n_sub, delay)
-        Gf = phi(A, Bf, 1.0 / (fs * n_sub))[1] if (fric > 0 or f0 != 0) else np.zeros(len(B))
+        Gf = phi(A, Bf, 1.0 / (fs * n_sub))[1] if (sliding or f0 != 0) else np.zeros(len(B))
         fine = None
-        if fric > 0:
+        if sliding:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        rectify, bias = kw.pop("rectify", False), kw.pop("bias", 0.0)
+        rectify, bias, gap = kw.pop("rectify", False), kw.pop("bias", 0.0), kw.pop("backlash_m", 0.0)
         cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
         y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
                          smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
                          fine=fine, **kw)   # a new effect's term: run_segments' own keyword
+        if gap > 0:                         # the sensor on the load, behind the gear's play
+            y = play(y, gap)
         return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:

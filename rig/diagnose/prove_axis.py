@@ -51,11 +51,14 @@ class DrawContext:
 
 
 def _names(names: list[str]) -> list[str]:
-    """Effects drawn together with one they are not drawn with give way to their `instead`."""
+    """Effects drawn together with one they are not drawn with give way to their `instead`; an effect that needs
+    another (its `with_`) brings it."""
     for n in list(names):
         d = catalogue.get(n).draws["axis"]
         if n in names and any(o in names for o in d.not_with):
             names = [x for x in names if x != n] + [d.instead] * (d.instead not in names)
+    for n in list(names):
+        names += [w for w in catalogue.get(n).draws["axis"].with_ if w not in names]
     return names
 
 

@@ -38,14 +38,22 @@ def grid_best(pb, lins: list[dict], fx_base: dict, name: str, key: str, grid) ->
 @dataclass(frozen=True)
 class Grid:
     """values(scale, slow, coarse) -> start values of the first parameter; slow: a slow effect is already in the
-    model; coarse: nothing calls for a nonlinearity (a short grid)."""
+    model; coarse: nothing calls for a nonlinearity (a short grid). rest(scale) -> start values of the other
+    parameters ({key: value} each), the grid tried at each (an effect of more than one parameter)."""
     values: Callable[[Scale, bool, bool], Sequence[float]]
+    rest: Callable[[Scale], Sequence[dict]] | None = None
 
     def initial(self, pb, name: str, lins: list[dict], fx_base: dict, band, lines, y_clean, slow: bool,
                 coarse: bool):
         grid = self.values(pb.scale, slow, coarse)
-        lin, fx, _ = grid_best(pb, lins, fx_base, name, pb.spec_keys(name)[0], grid)
-        return lin, fx
+        best = None
+        for other in (self.rest(pb.scale) if self.rest else [{}]):
+            base = {n: dict(v) for n, v in fx_base.items()}
+            base.setdefault(name, {}).update(other)
+            found = grid_best(pb, lins, base, name, pb.spec_keys(name)[0], grid)
+            if best is None or found[2] < best[2]:
+                best = found
+        return best[0], best[1]
 
 
 def _frf_ratio(pb, yhat: np.ndarray, y_clean: np.ndarray, f_lo: float, f_hi: float):

@@ -15,6 +15,7 @@ every plant family use these).
                         it sticks), a sub-step where the friction changes regime redone in shorter ones, and the
                         state reset at given samples (multiple shooting, docs/PLANT.md)
   friction_velocity     the one implicit friction solve (also the actuator's reduced model's)
+  play(...)             the backlash (play) operator: what a load driven through a gear's play of a given width reads
 The sample convention everywhere: y_k is read before u_k acts (converter pair at the same instant).
 """
 from __future__ import annotations
@@ -166,29 +167,33 @@ def run(Ad, G0, G1, Cm, u, m, out) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def friction_velocity(c0, c1, fric, vs, guess, atol, rtol):
-    """The velocity v solving c0 - c1 v - fric tanh(v / vs) = 0 (monotone in v): a sub-step's end velocity with
-    Coulomb friction held at its end value (implicit, stiff for a small vs). Newton from `guess` (else from the
-    slip or the stick solution), bracketed by the roots of the saturated tanh. The one friction solve of every
-    simulator (rig.diagnose.models for the actuator, run_segments here)."""
-    lo = (c0 - fric) / c1; hi = (c0 + fric) / c1
+def friction_velocity(c0, c1, fric, vs, guess, atol, rtol, sx=0.0, vst=1.0):
+    """The velocity v solving c0 - c1 v - F(v) = 0, F(v) = (fric + sx exp(-(v / vst)^2)) tanh(v / vs): a sub-step's
+    end velocity with the friction force held at its end value (implicit, stiff for a small vs). sx > 0: Stribeck's
+    breakaway above the Coulomb level fric, fading over the Stribeck velocity vst (F no longer monotone: the root
+    stays bracketed). Newton from `guess` (else from the slip or the stick solution), bracketed by the roots of the
+    saturated friction. The one friction solve of every simulator (rig.diagnose.models for the actuator,
+    run_segments here)."""
+    top = fric + sx
+    lo = (c0 - top) / c1; hi = (c0 + top) / c1
     vv = guess
     if vv <= lo or vv >= hi:
-        if abs(c0) > fric:
+        if abs(c0) > top:
             vv = (c0 - fric * (1.0 if c0 > 0 else -1.0)) / c1
         else:
-            vv = c0 / (c1 + fric / vs)
+            vv = c0 / (c1 + top / vs)
         if vv <= lo or vv >= hi:
             vv = 0.5 * (lo + hi)
     for it in range(60):
         th = math.tanh(vv / vs)
-        f = c0 - c1 * vv - fric * th
+        ex = sx * math.exp(-(vv / vst) ** 2) if sx > 0.0 else 0.0
+        f = c0 - c1 * vv - (fric + ex) * th
         if f > 0.0:
             lo = vv
         else:
             hi = vv
-        df = -c1 - fric * (1.0 - th * th) / vs
-        vn = vv - f / df
+        df = -c1 - (fric + ex) * (1.0 - th * th) / vs + ex * 2.0 * vv / (vst * vst) * th
+        vn = vv - f / df if df < 0.0 else 0.5 * (lo + hi)
         if vn <= lo or vn >= hi:
             vn = 0.5 * (lo + hi)
         if abs(vn - vv) < atol + rtol * abs(vv):
@@ -211,7 +216,7 @@ def _regime(v, vs):
 
 
 @numba.njit(cache=True, nogil=True)
-def _substep(Ah, bn, bo, Gf, Cv, x, a, b, f0, fric, vs, xn):
+def _substep(Ah, bn, bo, Gf, Cv, x, a, b, f0, fric, vs, sx, vst, xn):
     """One sub-step: the linear part exact, then the friction force held at its end value (implicit); returns
     the end velocity. xn is written."""
     n = Ah.shape[0]
@@ -223,7 +228,7 @@ def _substep(Ah, bn, bo, Gf, Cv, x, a, b, f0, fric, vs, xn):
     z = 0.0
     for i in range(n):
         z += Cv[i] * xn[i]
-    if fric <= 0.0:
+    if fric <= 0.0 and sx <= 0.0:
         return z
     gv = 0.0
     for i in range(n):
@@ -231,18 +236,19 @@ def _substep(Ah, bn, bo, Gf, Cv, x, a, b, f0, fric, vs, xn):
     v0 = 0.0
     for i in range(n):
         v0 += Cv[i] * x[i]
-    # friction held over the sub-step at the end velocity v: v + gv fric tanh(v / vs) = z
-    v = friction_velocity(z, 1.0, gv * fric, vs, v0, 1e-13, 1e-9)
-    F = -fric * math.tanh(v / vs)
+    # friction held over the sub-step at the end velocity v: v + gv F(v) = z
+    v = friction_velocity(z, 1.0, gv * fric, vs, v0, 1e-13, 1e-9, gv * sx, vst)
+    F = -(fric + (sx * math.exp(-(v / vst) ** 2) if sx > 0.0 else 0.0)) * math.tanh(v / vs)
     for i in range(n):
         xn[i] += Gf[i] * F
     return v
 
 
 @numba.njit(cache=True, nogil=True)
-def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, Ahf, Bnewf, Boldf, Gff, out):
+def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, sx, vst, f0, starts, X0, Ahf, Bnewf, Boldf, Gff,
+                  out):
     n = Ah.shape[0]; N = u.shape[0]; n_sub = Bnew.shape[0]
-    K = Bnewf.shape[0] // n_sub if fric > 0.0 else 0
+    K = Bnewf.shape[0] // n_sub if (fric > 0.0 or sx > 0.0) else 0
     x = np.zeros(n); xn = np.zeros(n); xm = np.zeros(n); xk = np.zeros(n)
     seg = 0
     nseg = starts.shape[0]
@@ -261,14 +267,14 @@ def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, Ah
             v0 = 0.0
             for i in range(n):
                 v0 += Cv[i] * x[i]
-            v1 = _substep(Ah, Bnew[j], Bold[j], Gf, Cv, x, a, b, f0, fric, vs, xn)
+            v1 = _substep(Ah, Bnew[j], Bold[j], Gf, Cv, x, a, b, f0, fric, vs, sx, vst, xn)
             if K > 1 and _regime(v0, vs) != _regime(v1, vs):
                 # the motion reverses, sticks or breaks away inside this sub-step: the friction force changes
                 # within it, so the sub-step is redone in K short ones (the event's time to h / K)
                 for i in range(n):
                     xm[i] = x[i]
                 for q in range(K):
-                    _substep(Ahf, Bnewf[j * K + q], Boldf[j * K + q], Gff, Cv, xm, a, b, f0, fric, vs, xk)
+                    _substep(Ahf, Bnewf[j * K + q], Boldf[j * K + q], Gff, Cv, xm, a, b, f0, fric, vs, sx, vst, xk)
                     for i in range(n):
                         xm[i] = xk[i]
                 for i in range(n):
@@ -278,11 +284,13 @@ def _run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, fric, vs, f0, starts, X0, Ah
 
 
 def run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, *, friction_n: float = 0.0, smoothing_m_per_s: float = 1e-4,
-                 force_n: float = 0.0, starts=None, X0=None, fine=None) -> np.ndarray:
+                 force_n: float = 0.0, stribeck_n: float = 0.0, stribeck_m_per_s: float = 1.0, starts=None,
+                 X0=None, fine=None) -> np.ndarray:
     """Output samples of the sub-stepped model (substeps()) with a load-force channel Gf (sub-step integral of
     the force input), the velocity row Cv and the output row Cy; the state set to X0[s] at sample starts[s].
     fine = (Ah, Bnew, Bold, Gf) of K times shorter sub-steps (substeps(..., K n_sub, ...)): a sub-step in which
-    friction changes regime (a reversal, sticking, breakaway) is redone on them."""
+    friction changes regime (a reversal, sticking, breakaway) is redone on them. stribeck_n: the breakaway force
+    above friction_n, fading as exp(-(v / stribeck_m_per_s)^2) (Stribeck)."""
     u = np.ascontiguousarray(u, dtype=float)
     st = np.zeros(0, np.int64) if starts is None else np.ascontiguousarray(starts, dtype=np.int64)
     x0 = np.zeros((len(st), Ah.shape[0])) if X0 is None else np.ascontiguousarray(X0, dtype=float)
@@ -293,7 +301,29 @@ def run_segments(Ah, Bnew, Bold, Gf, Cv, Cy, u, m, *, friction_n: float = 0.0, s
     _run_segments(np.ascontiguousarray(Ah), np.ascontiguousarray(Bnew), np.ascontiguousarray(Bold),
                   np.ascontiguousarray(Gf, dtype=float), np.ascontiguousarray(Cv, dtype=float),
                   np.ascontiguousarray(Cy, dtype=float), u, int(m), float(friction_n), float(smoothing_m_per_s),
-                  float(force_n), st, x0, Ahf, Bnf, Bof, Gff, out)
+                  float(stribeck_n), float(stribeck_m_per_s), float(force_n), st, x0, Ahf, Bnf, Bof, Gff, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _play(x, half, out):
+    yo = x[0] if x.shape[0] else 0.0
+    for k in range(x.shape[0]):
+        if x[k] - yo > half:
+            yo = x[k] - half
+        elif x[k] - yo < -half:
+            yo = x[k] + half
+        out[k] = yo
+
+
+def play(x, width: float) -> np.ndarray:
+    """The backlash operator on a drive's position x: the load stays where it is until the drive has crossed the
+    play of `width` (total), then is pushed by its near side (centred at the start). The load is no state of the
+    drive's model: where that model's state is set again (a segment's start) the load stays where it was, inside
+    the play of the drive's new position."""
+    x = np.ascontiguousarray(x, dtype=float)
+    out = np.empty(len(x))
+    _play(x, 0.5 * float(width), out)
     return out
 
 

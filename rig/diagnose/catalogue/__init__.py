@@ -41,9 +41,10 @@ def get(name: str) -> Effect:
         raise ValueError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})") from None
 
 
-def for_plant(family: str, has_load: bool) -> dict[str, Effect]:
-    """The effects that apply to a plant family, in the search's order."""
-    return {n: e for n, e in EFFECTS.items() if e.applies_to(family, has_load)}
+def for_plant(family: str, has_load: bool, output: str = "position") -> dict[str, Effect]:
+    """The effects that apply to a plant family (with a load or not, its sensor reading `output`), in the search's
+    order."""
+    return {n: e for n, e in EFFECTS.items() if e.applies_to(family, has_load, output)}
 
 
 def for_proof(proof: str) -> tuple[str, ...]:

@@ -56,13 +56,15 @@ class Draw:
     """How a blind proof draws the effect. `rank`: its place in that proof's catalogue (the cases' random draws
     follow it). `draw(rng, ctx) -> (parameters, simulator-only extras)`; ctx holds what the proof knows (see
     rig/diagnose/prove.py and prove_axis.py). `apart_from_pickup`: a line drawn away from the sensor's pickup
-    lines; `not_with`/`instead`: drawn together with one of not_with it gives way to `instead`; `loop_scaled`: in
+    lines; `not_with`/`instead`: drawn together with one of not_with it gives way to `instead`; `with_`: always drawn
+    together with these (a breakaway above a Coulomb level needs that level); `loop_scaled`: in
     closed loop its first parameter is drawn again against the peak command the loop asks for."""
     rank: int
     draw: Callable[[Any, Any], tuple[dict, dict]]
     apart_from_pickup: bool = False
     not_with: tuple[str, ...] = ()
     instead: str | None = None
+    with_: tuple[str, ...] = ()
     loop_scaled: bool = False
 
 
@@ -72,7 +74,8 @@ class Effect:
 
     order       its place in the search (the candidates of a round are tried in this order)
     families    the plant families it applies to (rig/plant/model.py FAMILIES); needs_load: only where the
-                model has a load for a force to act on
+                model has a load for a force to act on; outputs: only on a plant whose sensor reads one of these
+                (rig/plant/model.py Plant.output; empty: any)
     params      the fitted parameters, in order; reported: what the report adds (computed by the engine)
     meaning     one line for people, given the plant's family and whether it has a load
     bounds      Scale -> [(lo, hi)] per fitted parameter (physical: wider than any plausible rig)
@@ -104,6 +107,7 @@ class Effect:
     draws: Mapping[str, Draw] = field(default_factory=dict)
     reported: tuple[Param, ...] = ()
     needs_load: bool = False
+    outputs: tuple[str, ...] = ()
     slow: bool = False
     nonlinear: bool = False
     projected: bool = False
@@ -122,5 +126,6 @@ class Effect:
         """Fitted physics parameters it adds (a projected line: its frequency, amplitude and phase)."""
         return len(self.params) + (2 if self.projected else 0)
 
-    def applies_to(self, family: str, has_load: bool) -> bool:
-        return family in self.families and (has_load or not self.needs_load)
+    def applies_to(self, family: str, has_load: bool, output: str = "position") -> bool:
+        return family in self.families and (has_load or not self.needs_load) and \
+            (not self.outputs or output in self.outputs)

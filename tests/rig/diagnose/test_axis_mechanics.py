@@ -1,0 +1,77 @@
+"""The mechanics real axes have (issue 26): Stribeck friction and backlash, each one catalogue entry. A simulated
+recording with the effect (sim_backend.axis: stick-slip with a breakaway, a load behind a gear's play) names it;
+the same recording without it does not."""
+import numpy as np
+import pytest
+
+from rig.diagnose import catalogue
+from rig.diagnose.engine import diagnose
+from rig.diagnose.prove_axis import _names, draw_axis_cases
+from rig.diagnose.report import summary
+from rig.excitation import band_noise
+from rig.plant.file import load_plant, parse_plant
+from rig.plant.zoh import play
+from rig.recordings.recording import Recording
+from sim_backend.axis import Axis, Sensor, simulate_axis
+from tests.paths import REPO
+
+PLANT = {"family": "mechanical_axis", "input_unit": "N", "mass_kg": {"value": 25.0, "min": 5.0, "max": 100.0},
+         "damping_n_s_per_m": {"value": 50.0, "min": 5.0, "max": 500.0}}
+PEAK_N = 40.0
+
+
+def _diagnosed(duration_s: float = 20.0, **mechanics):
+    """An open-loop axis of 20 kg under a 40 N band-noise force, an encoder of 0.1 um, diagnosed."""
+    ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, **mechanics)
+    u = band_noise(1000.0, duration_s, 0.3, 30.0, PEAK_N, seed=5).cmd_V
+    cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(step_m=1e-7, noise_m=2e-7, offset_m=3e-4, seed=2))
+    rec = Recording.from_signals(cmd, pos, None, fs_hz=1000.0, source="axis")
+    rec.command_unit = "N"
+    rec.accel_present = False
+    d = diagnose(rec, parse_plant(PLANT, "axis.toml"))
+    return d, {e.name: e.parameters for e in d.effects}
+
+
+def test_play_operator_by_hand():
+    x = np.array([0.0, 1.0, 2.0, 1.5, 1.0, 0.5, 1.0])
+    # width 1: the load follows 0.5 behind; on reversal at 2.0 it stays at 1.5 until the drive is 0.5 below it
+    assert np.allclose(play(x, 1.0), [0.0, 0.5, 1.5, 1.5, 1.5, 1.0, 1.0])
+    assert np.allclose(play(x, 0.0), x)
+
+
+def test_backlash_applies_to_a_position_sensor_only():
+    assert "backlash" in catalogue.for_plant("mechanical_axis", True, "position")
+    assert "backlash" not in catalogue.for_plant("mechanical_axis", True, "velocity")
+    assert "backlash" not in catalogue.for_plant("eha", True) and "stribeck_friction" not in \
+        catalogue.for_plant("eha", True)
+
+
+def test_a_stribeck_draw_brings_its_coulomb_level():
+    assert set(_names(["stribeck_friction"])) == {"stribeck_friction", "coulomb_friction"}
+    plant = load_plant(REPO / "docs" / "examples" / "emps_axis.toml")
+    cases = draw_axis_cases(40, 3, plant)
+    with_stribeck = [c for c in cases if "stribeck_friction" in c.effects]
+    assert with_stribeck and all("coulomb_friction" in c.effects for c in with_stribeck)
+    assert any("backlash" in c.effects for c in cases)
+
+
+@pytest.mark.slow
+def test_backlash_is_named_with_its_width():
+    d, named = _diagnosed(backlash_m=5e-4)
+    assert "backlash" in named, summary(d)
+    assert abs(named["backlash"]["width_m"] / 5e-4 - 1) < 0.1, summary(d)
+
+
+@pytest.mark.slow
+def test_stribeck_friction_is_named_above_its_coulomb_level():
+    d, named = _diagnosed(12.0, coulomb_n=0.1 * PEAK_N, stribeck_n=0.1 * PEAK_N, stribeck_m_per_s=5e-3)
+    assert {"coulomb_friction", "stribeck_friction"} <= set(named), summary(d)
+    assert abs(named["coulomb_friction"]["force_n"] / (0.1 * PEAK_N) - 1) < 0.25, summary(d)
+    assert abs(named["stribeck_friction"]["breakaway_n"] / (0.1 * PEAK_N) - 1) < 0.5, summary(d)
+
+
+@pytest.mark.slow
+def test_coulomb_friction_alone_is_not_called_stribeck_nor_backlash():
+    d, named = _diagnosed(coulomb_n=0.1 * PEAK_N)
+    assert "coulomb_friction" in named, summary(d)
+    assert "stribeck_friction" not in named and "backlash" not in named, summary(d)
