@@ -38,13 +38,20 @@ def load_recording(path, *, plant=None, config=None) -> Recording:
 
 
 def record_chirp(path, *, seconds: float = 100.0, amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
-                 config=None, seed: int | None = None) -> Recording:
+                 config=None, seed: int | None = None, overwrite: bool = False) -> Recording:
     """A chirp on the simulated actuator on its stand in simulated time, as `rig chirp --record PATH` (the same
     defaults: 0.1-100 Hz, 2 V, 100 s); the recording written to path and returned. Nothing is kept if the run
-    fails."""
+    fails. A file already at path is refused (RigError) unless overwrite=True, as the command refuses it
+    without --overwrite."""
     from rig.chirp import run_chirp
     from rig.config import load_config
+    from rig.errors import RigError
     from rig.recordings.rigformat import load_recording as _load
+    p = Path(path)
+    if p.is_dir():
+        raise RigError(f"record_chirp: {p}: is a folder, expected a file name")
+    if p.exists() and not overwrite:
+        raise RigError(f"record_chirp: {p}: file exists (pass overwrite=True to replace it)")
     run_chirp(load_config(config), amplitude_V=amplitude_V, f0_hz=f0_hz, f1_hz=f1_hz, duration_s=seconds,
               out=Path(path), seed=seed)
     return _load(path)

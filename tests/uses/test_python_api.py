@@ -44,6 +44,14 @@ def test_the_worked_example_runs_as_written_and_returns_typed_results(tmp_path, 
     assert iso.reduction_db["feedback"] > 10 and iso.reduction_db["feedback_feedforward"] > iso.reduction_db["feedback"]
     assert ns["session"].activated and ns["reason"] == "time"
     assert (tmp_path / "run.h5").is_file()
+    # the example run again: the recording it made is not replaced without overwrite=True, as the CLI's rule
+    import rig
+    from rig.errors import RigError
+    made = (tmp_path / "chirp30.h5").stat()
+    with pytest.raises(RigError, match=r"chirp30\.h5: file exists \(pass overwrite=True"):
+        rig.record_chirp("chirp30.h5", seconds=30)
+    after = (tmp_path / "chirp30.h5").stat()
+    assert (after.st_mtime_ns, after.st_size) == (made.st_mtime_ns, made.st_size)
 
 
 def test_identify_refuses_a_feedback_only_recording_as_the_cli_does(tmp_path):
