@@ -87,6 +87,7 @@ def test_default_chirp_as_csv_then_identify(tmp_path):
     """The CSV variant: the recording converted, the HDF5 under it removed, identify takes the CSV."""
     res = _ok(_rig("chirp", "--record", "chirp.csv.gz", "--csv", cwd=tmp_path))
     assert "-> chirp.csv.gz (csv)" in _summary_line(res.stderr) and "dropped rows 0" in res.stderr
+    assert "do-no-harm" not in res.stderr          # nothing isolates in a chirp: no supervisor line to puzzle over
     assert sorted(p.name for p in tmp_path.iterdir()) == ["chirp.csv.gz"]
     _check_identified(_identified(tmp_path / "chirp.csv.gz"))
 
