@@ -44,6 +44,20 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def unrecognized(parser: argparse.ArgumentParser, command: str | None, extra: list[str]) -> str:
+    """One line for arguments no option takes, named by the command they were given to, with the nearest
+    option where one is close."""
+    import difflib
+    prog = f"rig {command}" if command else "rig"
+    sub = next((a.choices[command] for a in parser._actions
+                if isinstance(a, argparse._SubParsersAction) and command in a.choices), parser) if command else parser
+    options = [o for a in sub._actions for o in a.option_strings]
+    near = next((difflib.get_close_matches(x.split("=")[0], options, n=1, cutoff=0.7) for x in extra
+                 if x.startswith("-")), [])
+    hint = f"; did you mean {near[0]}?" if near else ""
+    return f"{prog}: error: unrecognized arguments: {' '.join(extra)}{hint} (see {prog} --help)"
+
+
 def main(argv: list[str] | None = None) -> int:
     hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal (rig/runtime/signals.py)
     argv = sys.argv[1:] if argv is None else argv
@@ -51,9 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     only = next((a for a in argv if a in COMMANDS), None)
     parser = build_parser(only)
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
     except SystemExit as e:                  # a bad argument (one line printed) or --help: the exit status
         return e.code if isinstance(e.code, int) else 2
+    if extra:
+        print(unrecognized(parser, args.command, extra), file=sys.stderr)
+        return 2
     if not args.command:
         parser.print_help()
         return 2

@@ -210,3 +210,15 @@ def test_lengths_take_their_units_and_numbers_their_options_unit():
     assert [hz(x) for x in ("100", "100Hz", "100 hz", " 2.5Hz ")] == [100.0, 100.0, 100.0, 2.5]
     with pytest.raises(Exception, match="expected > 0 Hz"):
         hz("100V")
+
+
+def test_an_unknown_option_is_named_by_its_command_with_the_nearest_option(capsys):
+    from rig.cli import main
+    assert main(["chirp", "--record", "x.h5", "--secnds", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("rig chirp: error: unrecognized arguments: --secnds 1; did you mean --seconds? "
+                   "(see rig chirp --help)")
+    assert main(["hil", "--frobnicate"]) == 2
+    assert capsys.readouterr().err.strip() == "rig hil: error: unrecognized arguments: --frobnicate (see rig hil --help)"
+    assert main(["--frobnicate"]) == 2
+    assert capsys.readouterr().err.strip() == "rig: error: unrecognized arguments: --frobnicate (see rig --help)"
