@@ -109,7 +109,8 @@ def add_arguments(p) -> None:
     p.add_argument("--no-realtime", action="store_true", help="do not try SCHED_FIFO/affinity/mlockall")
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
-    p.add_argument("--quiet", action="store_true", help="no status line")
+    p.add_argument("--quiet", action="store_true",
+                   help="no live status line (the lifecycle lines, warnings and results still print)")
     p.add_argument("--force", action="store_true",
                    help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
                         "faults a limit cycle)")
@@ -377,7 +378,7 @@ def _vc_summary(path, png=None, name: str | None = None) -> None:
     except RecordingError as e:
         log.info("no VC report%s: %s", f" (no {png})" if png else "", str(e).replace(str(path), name or str(path)))
         return
-    log.info("%s%s", report.summary(rep), "" if png else f" (curves: rig report {path} --plot FILE)")
+    print(f"rig run: {report.summary(rep)}" + ("" if png else f" (curves: rig report {path} --plot FILE)"))  # a figure
     if png:
         report.plot(png, rep)
         log.info("plot: %s", png)

@@ -256,3 +256,13 @@ def test_drill_refuses_words_of_no_case(capsys, words, backend, as_json):
 def test_no_command_or_unknown_ones(capsys, argv):
     assert main(argv) in (0, 2)
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_rig_run_prints_its_vc_figure_on_stdout_and_the_lifecycle_on_stderr(tmp_path):
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--sim-time", "--seconds", "6", "--quiet",
+                          "--record", str(tmp_path / "r.h5")], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().startswith("rig run: VC class, machine at its mounts") and "VC class" not in out.stderr
+    assert "lifecycle: activate -> ACTIVE" in out.stderr
