@@ -73,8 +73,9 @@ def fit_markdown(res) -> str:
     out.append("")
     if "warning" in f:
         out.append(f"WARNING: {f['warning']}.")
+    minima = f"{f['distinct_minima']} distinct {'minimum' if f['distinct_minima'] == 1 else 'minima'}"
     out.append(f"FRF band used: {f['band_hz'][0]:.3g}-{f['band_hz'][1]:.3g} Hz ({f['n_frf_bins']} bins, coherence >= "
-               f"{f['coherence_min']:.3f}); {f['starts']} starts, {f['distinct_minima']} distinct minimum(a); "
+               f"{f['coherence_min']:.3f}); {f['starts']} starts, {minima}; "
                f"time-domain refinement: {'yes' if f['refined_time_domain'] else 'no'}.")
     return "\n".join(out)
 
