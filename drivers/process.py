@@ -106,6 +106,7 @@ def main() -> int:
     if kind is None:
         _say(f"error unknown device kind {spec['kind']!r}")
         return 2
+    freeze_heap()                        # the libraries' heap, before the device's set-up starts its timers
     try:
         dev = kind(spec, block)
         dev.open()
@@ -117,7 +118,6 @@ def main() -> int:
         return 1
     stop = threading.Event()
     threading.Thread(target=_watch_stdin, args=(stop,), daemon=True).start()
-    freeze_heap()
     dev.beat()                           # alive from now (the set-up took its time: the loop may start at once)
     _say("ready")
     try:

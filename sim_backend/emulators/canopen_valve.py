@@ -30,7 +30,7 @@ import sys
 import time
 
 from drivers.protocol import valve408 as v4
-from rig.runtime.rt import freeze_heap, raise_priority
+from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 # per-node fault knobs
@@ -339,7 +339,6 @@ def serve(arr, announce, spec_path: str, priority: int = 0) -> None:
     os.unlink(spec_path)
     server = PlantServer(arr, spec["plant"], spec["dt"], spec["node_ids"], spec["w_spool"], spec["max_V"],
                          spec["floor_sensors"], spec["trace_steps"])
-    freeze_heap()
     raise_priority(priority)                 # (after the set-up: at SCHED_FIFO it would hold the others off)
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.bind(("127.0.0.1", 0))

@@ -11,11 +11,13 @@ The device serves until its stdin closes (the parent closed the pipe or died) or
 """
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import sys
 import threading
 
+from rig.runtime.rt import freeze_heap
 from sim_backend.emulators.shared import SharedFile
 
 
@@ -46,6 +48,13 @@ class _Announce:
 def main(argv: list[str]) -> int:
     kind, path = argv[0], argv[1]
     state = SharedFile(path)
+    if kind in ("modbus", "serial", "plant"):
+        # this child's libraries loaded first, then the heap frozen (rig.runtime.rt.freeze_heap): a full
+        # collection while serving then walks only what serving made
+        importlib.import_module({"modbus": "sim_backend.emulators.modbus_server",
+                                 "serial": "sim_backend.emulators.serial_device",
+                                 "plant": "sim_backend.emulators.canopen_valve"}[kind])
+        freeze_heap()
     if kind == "modbus":
         from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only
         floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))

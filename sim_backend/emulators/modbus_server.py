@@ -29,7 +29,7 @@ import time
 
 from drivers.protocol.modbus_map import (FIFO_WIDTH, N_AI, N_REGS, REG_AI, REG_AO, REG_AO_SAFE, REG_COUNT,
                                         REG_FIFO, REG_STATUS, REG_WDOG, volts_to_raw)
-from rig.runtime.rt import freeze_heap, raise_priority
+from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 1, 2, 3, 4
@@ -162,7 +162,6 @@ def serve(arr, port_conn, sensitivity_V_per_mps2: float, priority: int = 0, host
     srv.bind((host, 0))
     srv.listen(4)
     port_conn.send(srv.getsockname()[1])
-    freeze_heap()
     raise_priority(priority)
     parent = os.getppid()
     conns: dict[socket.socket, bytearray] = {}

@@ -13,7 +13,7 @@ import time
 import tty
 
 from drivers.protocol import dta as proto
-from rig.runtime.rt import freeze_heap, raise_priority
+from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
 
 
@@ -70,7 +70,6 @@ class Amplifier:
 def serve(arr, path_conn, seed: int = 0, priority: int = 0) -> None:
     """Process entry: open a pty pair, send the slave path on path_conn, answer until the parent goes away
     or sends anything on path_conn."""
-    freeze_heap()
     raise_priority(priority)
     master, slave = os.openpty()
     tty.setraw(slave)                   # no echo, no line editing before the driver configures it
