@@ -89,7 +89,7 @@ def test_cli_csv_output_is_the_shared_format(tmp_path, capsys):
 @pytest.mark.parametrize("argv, expect", [
     (["--amplitude", "50"], "--amplitude: expected 0 < V <= safety.valve_limit_V"),
     (["--f1", "800", "--rate", "1000"], "--f0/--f1: expected 0 <= f0 < f1 < rate/2"),
-    (["--duration", "0"], "--duration: expected > 0 s"),
+    (["--duration", "0"], "--duration/--seconds: expected > 0 s"),
 ])
 def test_cli_bad_arguments_are_one_line(tmp_path, capsys, argv, expect):
     from rig.cli import main
