@@ -34,14 +34,6 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
-def _driver() -> str:
-    try:
-        with open(idle_poll.CPUIDLE_DRIVER) as f:
-            return f.read().strip() or "none"
-    except OSError:
-        return "none (no cpuidle)"
-
-
 def _one(cfg, seconds: float, setting: str) -> dict:
     from rig.commands.hil import run_hil          # lazy: the drivers' stack only when the bench runs
     cfg = cfg.replace(loop=dataclasses.replace(cfg.loop, idle_poll=setting))
@@ -65,7 +57,7 @@ def run(args) -> int:
     say = (lambda m: None) if args.json else (lambda m: print(f"rig bench idle-poll: {m}", file=sys.stderr))
     runs: dict[str, list] = {"on": [], "off": []}
     say(f"{cfg.source} at {cfg.loop.rate_hz:g} Hz, {args.rounds} rounds of {args.seconds:g} s with idle CPUs polling "
-        f"and not (cpuidle driver: {_driver()})")
+        f"and not (cpuidle driver: {idle_poll.driver()})")
     for r in range(args.rounds):
         for setting in (("on", "off") if r % 2 == 0 else ("off", "on")):
             one = _one(cfg, args.seconds, setting)
@@ -73,7 +65,7 @@ def run(args) -> int:
             say(f"round {r + 1}, idle_poll {setting}: " + _line(one))
     med = {k: _median([_worst(x) for x in v]) for k, v in runs.items()}
     out = {"config": str(cfg.source), "rate_hz": cfg.loop.rate_hz, "seconds": args.seconds, "rounds": args.rounds,
-           "cpuidle_driver": _driver(), "runs": runs, "median_late": med}
+           "cpuidle_driver": idle_poll.driver(), "runs": runs, "median_late": med}
     if args.json:
         print(json.dumps(out, indent=1))
         return 0

@@ -32,7 +32,7 @@ while True:
     for _ in range(200):
         pass
     t1 = now()
-    if t1 - t > SLEEP_AFTER_S:
+    if t1 - t > STARVED_S:
         time.sleep(SLEEP_S)
         t1 = now()
     t, k = t1, k + 1
@@ -41,13 +41,18 @@ while True:
 """
 
 
-def halts_regardless(driver_file: str = CPUIDLE_DRIVER) -> bool:
-    """True when no cpuidle driver honours a PM QoS request (the idle CPUs halt whatever is asked)."""
+def driver(driver_file: str = CPUIDLE_DRIVER) -> str:
+    """The cpuidle driver's name: "none" where there is none (or no cpuidle at all)."""
     try:
         with open(driver_file) as f:
-            return f.read().strip() in ("", "none")
+            return f.read().strip() or "none"
     except OSError:
-        return True
+        return "none"
+
+
+def halts_regardless(driver_file: str = CPUIDLE_DRIVER) -> bool:
+    """True when no cpuidle driver honours a PM QoS request (the idle CPUs halt whatever is asked)."""
+    return driver(driver_file) == "none"
 
 
 def wanted(mode: str, driver_file: str = CPUIDLE_DRIVER) -> bool:
@@ -67,7 +72,7 @@ class IdlePollers:
         for cpu in cpus:
             try:
                 p = subprocess.Popen([sys.executable, "-S", "-c",
-                                      _POLLER.replace("SLEEP_AFTER_S", repr(STARVED_S)).replace("SLEEP_S", repr(SLEEP_S))], stdin=subprocess.DEVNULL,
+                                      _POLLER.replace("STARVED_S", repr(STARVED_S)).replace("SLEEP_S", repr(SLEEP_S))], stdin=subprocess.DEVNULL,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, close_fds=True)
             except OSError as e:
                 self.note = f"idle pollers not started ({e})"
