@@ -89,7 +89,7 @@ def test_a_run_that_never_switched_isolation_off_says_so_and_plots_every_band(tm
     r = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--record", str(rec), "--sim-time", "--seconds", "3.6",
                         "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "(no isolation-off stretch to compare with)" in r.stderr          # the run's own VC line
+    assert "(no isolation-off stretch to compare with)" in r.stdout          # the run's own VC line (stdout: the result)
     r = subprocess.run([sys.executable, "-m", "rig.cli", "report", str(rec), "--out", str(out)], cwd=REPO,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
