@@ -8,12 +8,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from rig import cliargs
 from rig.backends import BACKENDS
-from rig.chirp import run_chirp
 from rig.config import load_config
 from rig.errors import RigError
 
@@ -72,6 +69,10 @@ def level_list(text: str) -> list[float]:
 
 
 def run(args) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from rig.chirp import run_chirp          # heavy (numba, scipy): after the arguments are checked
     cfg = load_config(args.config)
     backend = args.backend or cfg.backend.name
     if args.realtime and backend != "sim":
