@@ -44,7 +44,7 @@ def run(args) -> int:
     from rig.compare import LABELS, compare, demo_config     # heavy (numba, scipy): after the arguments are checked
     cfg, plant = demo_config(args.config, rms_um=args.rms_um, model_error_pct=args.model_error, log=_log)
     v = cfg.vibration
-    _log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms (seed {v.seed}); loop "
+    _log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms under each mount (seed {v.seed}); loop "
          f"{cfg.loop.rate_hz:g} Hz in simulated time; three runs over the same floor: {', '.join(LABELS.values())}, "
          f"{args.settle:g} s + {args.seconds:g} s each")
     res, traces = compare(cfg, seconds=args.seconds, settle_s=args.settle, log=_log)
@@ -68,8 +68,9 @@ def _log(text: str) -> None:
 
 def _print(res: dict, v) -> None:
     from rig.compare import LABELS, MODES
-    print(f"rig demo: floor {res['floor_rms_um']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz), the same "
-          f"realisation in all three runs: reductions are like with like")
+    print(f"rig demo: floor {res['floor_rms_um']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz) as the table "
+          f"feels it (the mean of the four mounts' floor, each {v.rms_m * 1e6:g} um rms), the same realisation in all "
+          f"three runs: reductions are like with like")
     p = res["plant"]
     if p["model_error_pct"]:
         fac = ", ".join(f"{k} {100 * (x - 1):+.0f} %" for k, x in p["factors"].items())
