@@ -283,10 +283,13 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
         rows[m] = out
         figs[m] = {"dc_gain_vs_model": g, "null_V": float(null[j]) if judged[j] else None,
                    "moves": names[mount_of[j]], "stroke_per_V_m": D[:, j].tolist()}
-    moved = D @ np.array([rows[m]["null_V"] for m in names])   # the strokes' offsets the corrected nulls make
+    # the strokes' offsets: o over the whole recording (the quiet stretch's own mean reads the twist's sway, and
+    # a calibration taking that off leaves it as an apparent null in the next commissioning), less the part the
+    # corrected nulls make: the transducer's own offset is what is left
+    left = o + D @ np.array([rows[m]["null_V"] for m in names])
     for i, ch in enumerate(names):
         if "offset_m" in cal.get("stroke", {}).get(ch, {}):
-            cal["stroke"][ch]["offset_m"] += float(moved[i])     # the transducer's own offset is what is left
+            cal["stroke"][ch]["offset_m"] = float(left[i])
     return {"verdicts": verdicts, "findings": findings, "calibration": rows, "valves": figs}
 
 
