@@ -249,9 +249,10 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     null = -np.linalg.solve(D, o_valves)
     gains = []
     for j in range(n):
-        row = cal.get("stroke", {}).get(names[stroke_of[j]], {})
-        k = float(row.get("sign", 1.0)) * float(row.get("scale", 1.0))       # the transducer's own correction
-        gains.append(float(D[stroke_of[j], j] * k / dc_gain_m_per_V))
+        # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
+        # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
+        k = float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0))
+        gains.append(float(abs(D[stroke_of[j], j]) * k / dc_gain_m_per_V))
     # the correction is against the valves that are ok: the table takes a share of each mount's stroke that the
     # one-actuator model has not (0.92 wired right), the same for every mount
     ok = [g for g in gains if abs(g - 1) <= GAIN_TOL]
