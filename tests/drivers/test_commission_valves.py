@@ -161,3 +161,14 @@ def test_the_valves_conversion_sends_each_mounts_command_to_the_node_that_moves_
                                      {"valve": {"rear_left": {"mount": "rear_right"}}}, MOUNTS)
     with pytest.raises(ConfigError, match=r"calibration \[valve.stand\]: expected a mount"):
         conversion.calibrated_valves(conversion.channels(range(4), [1.0] * 4), {"valve": {"stand": {}}}, MOUNTS)
+
+
+def test_two_valves_on_one_node_is_one_line(tmp_path):
+    from rig.backends import _valve_node_ids
+    from rig.config import load_config
+    cfg = tmp_path / "twice.toml"
+    cfg.write_text("[hil]\nvalve_node_id = [1, 1, 3, 4]\n")
+    with pytest.raises(ConfigError, match=r"twice.toml: hil.valve_node_id: expected 4 different node numbers"):
+        _valve_node_ids(load_config(cfg))
+    cfg.write_text("[hil]\nvalve_node_id = [2, 1, 3, 4]\n[drivers]\nvalve_node_id_base = 5\n")
+    assert _valve_node_ids(load_config(cfg)) == [6, 5, 7, 8]          # the numbers shift with the base
