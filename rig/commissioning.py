@@ -267,7 +267,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
             if j == min(_cycle(mount_of, j)):            # one line per exchange
                 findings.append("valve nodes swapped: " + ", ".join(
                     f"the command for {names[i]} moves {names[mount_of[i]]}" for i in _cycle(mount_of, j)) +
-                    " (its stroke and its accelerometer answer it)")
+                    " (its stroke and accelerometer answer it)")
         if not GAIN_FIX[0] <= g <= GAIN_FIX[1]:
             v = "refused"
             findings.append(f"{node}: DC gain {g:+.2f} x the model's, beyond what calibration corrects")
