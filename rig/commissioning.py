@@ -244,9 +244,14 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
         D[:, j] = (hi - lo) / du
     w = t >= t[quiet].min()
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
-    judged = [abs(o[stroke_of[j]]) <= NULL_MAX_V * abs(D[stroke_of[j], j]) for j in range(n)]
-    o_valves = np.array([o[i] if judged[stroke_of.index(i)] else 0.0 for i in range(n)])
-    null = -np.linalg.solve(D, o_valves)
+    own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
+    seen = own > DEAD_RMS_RATIO * np.median(own)          # its transducer answers it: the valve can be judged
+    judged = [bool(seen[j] and abs(o[stroke_of[j]]) <= NULL_MAX_V * own[j]) for j in range(n)]
+    null = np.full(n, math.nan)
+    idx = [j for j in range(n) if judged[j]]
+    if idx:                              # the judged valves' nulls from their own channels (the others unknown)
+        rows_x = [stroke_of[j] for j in idx]
+        null[idx] = -np.linalg.solve(D[np.ix_(rows_x, idx)], o[rows_x])
     gains = []
     for j in range(n):
         # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
@@ -268,7 +273,10 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
                 findings.append("valve nodes swapped: " + ", ".join(
                     f"the command for {names[i]} moves {names[mount_of[i]]}" for i in _cycle(mount_of, j)) +
                     " (its stroke and accelerometer answer it)")
-        if not GAIN_FIX[0] <= g <= GAIN_FIX[1]:
+        if not seen[j]:
+            v = "unchecked"
+            findings.append(f"{node}: not judged (its mount's transducer does not answer it)")
+        elif not GAIN_FIX[0] <= g <= GAIN_FIX[1]:
             v = "refused"
             findings.append(f"{node}: DC gain {g:+.2f} x the model's, beyond what calibration corrects")
         elif abs(g - 1) > GAIN_TOL:
@@ -287,7 +295,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     # the strokes' offsets: o over the whole recording (the quiet stretch's own mean reads the twist's sway, and
     # a calibration taking that off leaves it as an apparent null in the next commissioning), less the part the
     # corrected nulls make: the transducer's own offset is what is left
-    left = o + D @ np.array([rows[m]["null_V"] for m in names])
+    left = o + D @ np.array([rows[m]["null_V"] for m in names])        # (a valve not judged: 0, as it was)
     for i, ch in enumerate(names):
         if "offset_m" in cal.get("stroke", {}).get(ch, {}):
             cal["stroke"][ch]["offset_m"] = float(left[i])

@@ -137,6 +137,16 @@ def test_gains_are_ok_corrected_or_refused_and_a_transducers_own_offset_is_no_nu
     assert all(abs(res["valves"][m]["null_V"]) < commissioning.NULL_TOL_V for m in MOUNTS[1:])
 
 
+def test_a_dead_transducer_leaves_its_valve_unchecked_and_the_others_judged():
+    D = D_RIG.copy()
+    D[2, :] = 0.0                                      # rear_left's transducer reads nothing of any valve
+    res, _ = _checks(D, [0.3, 0.0, 0.0, 0.0])
+    assert res["verdicts"]["valve:rear_left"] == "unchecked" and res["valves"]["rear_left"]["null_V"] is None
+    assert res["verdicts"]["valve:front_left"] == "corrected"
+    assert res["valves"]["front_left"]["null_V"] == pytest.approx(0.3, abs=0.02)
+    assert [res["verdicts"][f"valve:{m}"] for m in ("front_right", "rear_right")] == ["ok", "ok"]
+
+
 def test_swapped_nodes_are_one_slip_not_two_sensor_swaps():
     assert commissioning.valve_map([1, 0, 2, 3], [1, 0, 2, 3]) == [1, 0, 2, 3]      # a node swap
     assert commissioning.valve_map([1, 0, 2, 3], [0, 1, 2, 3]) == [0, 1, 2, 3]      # transducers swapped only
