@@ -219,6 +219,20 @@ def _held(t, sig, t0: float, hold_s: float):
     return sig[sl].mean(axis=0)
 
 
+def _step_matrix(t, x, cmd, steps) -> np.ndarray:
+    """D[stroke channel i, valve j]: the stroke per volt of valve j's held steps (+A then -A, one valve after the
+    other from steps = (start s, hold s, null s between))."""
+    t_s, hold_s, gap_s = steps
+    n = cmd.shape[1]
+    D = np.zeros((x.shape[1], n))
+    for j in range(n):
+        t0 = t_s + j * (2 * hold_s + gap_s)
+        hi, lo = _held(t, x, t0, hold_s), _held(t, x, t0 + hold_s, hold_s)
+        du = _held(t, cmd[:, j], t0, hold_s) - _held(t, cmd[:, j], t0 + hold_s, hold_s)
+        D[:, j] = (hi - lo) / du
+    return D
+
+
 def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) -> dict:
     """Each valve's DC gain, null offset and node, from its held steps (+A then -A, `steps` = start, hold, null
     after) and the quiet stretch at null.
@@ -235,13 +249,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     it as its own offset (that valve's null is not judged). The stroke's calibrated offset keeps only the part
     the corrected nulls do not explain."""
     n = len(names)
-    t_s, hold_s, gap_s = steps
-    D = np.zeros((n, n))
-    for j in range(n):
-        t0 = t_s + j * (2 * hold_s + gap_s)
-        hi, lo = _held(t, x, t0, hold_s), _held(t, x, t0 + hold_s, hold_s)
-        du = _held(t, cmd[:, j], t0, hold_s) - _held(t, cmd[:, j], t0 + hold_s, hold_s)
-        D[:, j] = (hi - lo) / du
+    D = _step_matrix(t, x, cmd, steps)
     w = t >= t[quiet].min()
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
     own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
