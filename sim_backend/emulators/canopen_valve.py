@@ -16,6 +16,10 @@ step's conversion (the Modbus module and the amplifier, processes of their own, 
 are latched, and each node answers with its synchronous TPDO (status word, spool actual value, sample
 counter), the four in one TCP write. Without SYNC (the loop not started, held up, stopped) the plant keeps
 pace with the wall clock on the commands it has.
+
+Wiring faults of the valves ([hil] valve_null_V, valve_gain, valve_node_id; drivers/devicemaps/
+hil_wiring_faults.md): the plant's input from valve i is gain_i x (its setpoint - null_i), and each mount's node
+answers to the number it was given (two exchanged: the driver's command for one mount moves the other).
 """
 from __future__ import annotations
 
