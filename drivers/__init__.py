@@ -57,8 +57,8 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
               "interface": can_interface, "channel": can_channel, "bus": dict(can_options or {}),
               "bitrate": d.can_bitrate, "node_ids": [d.valve_node_id_base + i for i in range(n)], "names": names,
               "max_V": cfg.valve.max_V, "stale_s": stale_s, "silent_s": silent, "sync_offset_s": d.sync_offset_s,
-              "sync_wait_s": d.sync_wait_s,
-              "channels": conversion.to_dict(conversion.channels(range(n), [1.0] * n)), **common}
+              "sync_wait_s": d.sync_wait_s, **common}
+    v_chs = conversion.channels(range(n), [1.0] * n)
     accel = {"kind": "analog", "device": ANALOG, "name": f"modbus_tcp {modbus_host}:{modbus_port}",
              "host": modbus_host, "port": modbus_port, "unit": d.modbus_unit,
              "names": names + [f"floor {m}" for m in names][:len(floor)], "timeout_s": d.modbus_timeout_s,
@@ -72,6 +72,8 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
         cal = conversion.read_calibration(calibration_path(cfg))
         a_chs = conversion.calibrated(a_chs[:n], cal, "accel", names, "mps2") + a_chs[n:]
         x_chs = conversion.calibrated(x_chs, cal, "stroke", names, "m")
+        v_chs = conversion.calibrated_valves(v_chs, cal, names)
+    valves["channels"] = conversion.to_dict(v_chs)
     accel["channels"] = conversion.to_dict(a_chs)
     stroke = {"kind": "transducer", "device": TRANSDUCER, "name": f"serial DTA-4 {serial_port}",
               "port": serial_port, "baud": d.serial_baud, "names": names,

@@ -224,7 +224,7 @@ class ValveIO(IODevice):
         cmd = self._cmd.tolist()                   # Python floats: numpy scalars cost more per operation
         with self._burst:
             for i, (c, msg) in enumerate(zip(self.chs, self._rpdo)):
-                v = 0.0 if null else c.gain * cmd[c.source] + c.offset
+                v = c.offset if null else c.gain * cmd[c.source] + c.offset   # null: the valve's own (calibrated)
                 struct.pack_into("<Hh", msg.data, 0, cw, v4.volts_to_setpoint(v, mx))
                 send(msg)
             now = time.monotonic_ns()

@@ -65,3 +65,24 @@ def calibrated(chs, cal: dict, kind: str, names, offset_unit: str):
         off = float(row.get(f"offset_{offset_unit}", 0.0))
         out[m] = Channel(src.source, src.gain * k, k * (src.offset - off))
     return tuple(out)
+
+
+def calibrated_valves(chs, cal: dict, names):
+    """The valves' channels (chs[i]: the valve on node valve_node_id_base + i, configured for mount names[i])
+    through the calibration's [valve.<mount as configured>] table: `mount` the mount that node's valve moves
+    (swapped CAN nodes: the node carries that mount's command), `null_V` the command at which its spool
+    centres, `gain` its flow gain over the model's. setpoint = command / gain + null: the valve then answers the
+    loop's command as the model has it; its null is also what the port's safe state sends."""
+    rows = cal.get("valve", {})
+    out = list(chs)
+    for m, row in rows.items():
+        moves, g = row.get("mount", m), float(row.get("gain", 1.0))
+        if m not in names or moves not in names or not g > 0:
+            raise ConfigError(f"calibration [valve.{m}]: expected a mount of {', '.join(names)}, the mount its "
+                              f"valve moves and a gain > 0")
+        c = chs[names.index(m)]
+        out[names.index(m)] = Channel(names.index(moves), c.gain / g, c.offset + float(row.get("null_V", 0.0)))
+    if sorted(c.source for c in out) != list(range(len(out))):
+        raise ConfigError(f"calibration [valve]: expected each mount moved by one valve, got "
+                          f"{', '.join(f'{m} -> {names[c.source]}' for m, c in zip(names, out))}")
+    return tuple(out)

@@ -98,9 +98,9 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     d = cfg.drivers
     prio = cfg.hil.device_priority if priority is None else priority
     emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
-                      node_ids=[d.valve_node_id_base + i for i in range(len(layout_mounts(cfg)))], priority=prio,
+                      node_ids=_valve_node_ids(cfg), priority=prio,
                       floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels,
-                      trace_s=trace_s, ai_faults=_ai_faults(cfg.hil)).start()
+                      trace_s=trace_s, ai_faults=_ai_faults(cfg.hil), valve_faults=_valve_faults(cfg)).start()
     try:
         stale = stale_s if stale_s is not None else cfg.hil.stale_s
         port = build_driver_port(cfg, "hil", can_interface="socketcand", can_channel="can0",
@@ -114,6 +114,24 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
         raise
     port.rig = emu
     return port
+
+
+def _valve_node_ids(cfg) -> list[int]:
+    """The CAN node each emulated mount's valve answers to ([hil] valve_node_id, shifted with [drivers]
+    valve_node_id_base): as documented base + mount index."""
+    n, base = len(layout_mounts(cfg)), cfg.drivers.valve_node_id_base
+    ids = [base - 1 + k for k in cfg.hil.valve_node_id[:n]]
+    if len(set(ids)) != n:
+        raise ConfigError(f"{cfg.source}: hil.valve_node_id: expected {n} different node numbers, got "
+                          f"{list(cfg.hil.valve_node_id[:n])}")
+    return ids
+
+
+def _valve_faults(cfg):
+    """The emulated valves' null offsets and gain factors ([hil] valve_null_V, valve_gain), None when right."""
+    n, h = len(layout_mounts(cfg)), cfg.hil
+    faults = (list(h.valve_null_V[:n]), list(h.valve_gain[:n]))
+    return None if faults == ([0.0] * n, [1.0] * n) else faults
 
 
 def _ai_faults(hil):

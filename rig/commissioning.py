@@ -18,6 +18,7 @@ SCALE_FIX), refused (dead, or a scale nobody should correct).
 """
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -29,6 +30,14 @@ SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible tabl
                                # stroke: 1.0-1.2 measured on a rig wired right; a g range is 0.10, inverted -1)
 SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
 DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
+# the valves (valve_checks): a null beyond NULL_TOL_V is named and corrected (0.5 % of a +-10 V valve's range: wired
+# right the quiet stroke reads about 0.01 V's worth); an apparent null beyond NULL_MAX_V is no valve's but its
+# transducer's own offset; the DC gain within 1 +- GAIN_TOL of the model's is ok (wired right 0.92: the table takes
+# part of a mount's stroke), within GAIN_FIX corrected, beyond it refused (a broken valve, not a wiring slip)
+NULL_TOL_V = 0.05
+NULL_MAX_V = 2.0
+GAIN_TOL = 0.25
+GAIN_FIX = (0.33, 3.0)
 
 
 def _band(x, fs):
@@ -65,8 +74,9 @@ def channel_map(R: np.ndarray) -> list[int]:
 
 
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
-            dc_gain_m_per_V: float) -> dict:
-    """The checks of one commissioning recording (rig.runtime.recorder.read_recording's dict)."""
+            dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None) -> dict:
+    """The checks of one commissioning recording (rig.runtime.recorder.read_recording's dict). steps: the valves'
+    held steps after the chirps (start s, hold s, null s after each valve's pair: valve_checks), if recorded."""
     n = len(names)
     t = np.asarray(rec["time_s"]).ravel()
     acc = np.asarray(rec["accel_mps2"], dtype=float).reshape(len(t), -1)[:, :n]
@@ -93,6 +103,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
         R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
     stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
+    mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
     scale, gain = {}, {}
     for j, m in enumerate(names):
         sl, xs, ac = slots[j], stroke_of[j], accel_of[j]
@@ -111,23 +122,31 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
         h = pxy[low] / np.maximum(pxx[low], 1e-300)
         gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
-    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
-    cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
+    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of)
+    cal = {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
                                           "scale": correction(scale[m]),
                                           "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
                      for j, m in enumerate(names)},
-           "stroke": {names[stroke_of[j]]: {"mount": m, "sign": 1.0 if gain[m] >= 0 else -1.0,
+           "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0,
                                             "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
                       for j, m in enumerate(names)}}
+    valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) \
+        if steps is not None else None
+    if valves is not None:
+        verdicts.update(valves.pop("verdicts"))
+        findings += valves.pop("findings")
+        cal["valve"] = valves.pop("calibration")
+        valves = valves["valves"]
     return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
             "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
-            "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
+            "valves": valves, "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
             "all_ok": all(v == "ok" for v in verdicts.values())}
 
 
-def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tuple[dict, list]:
-    """Per channel ok / corrected / refused, and the findings in words."""
+def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of=None) -> tuple[dict, list]:
+    """Per channel ok / corrected / refused, and the findings in words (mount_of: the mount each valve moves)."""
+    mount_of = list(range(len(names))) if mount_of is None else mount_of
     med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
     med_x = np.median([R_x[stroke_of[j], j] for j in range(len(names))])
     verdicts, findings = {}, []
@@ -139,7 +158,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
             v = "refused"
             findings.append(f"accelerometer of {m}: no answer to its valve (dead or unwired)")
         else:
-            if ac != j:
+            if ac != mount_of[j]:
                 v = "corrected"
                 findings.append(f"accelerometers swapped: valve {m} is answered by the channel mapped to {names[ac]}")
             s = scale[m]
@@ -160,7 +179,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
         if R_x[xs, j] < DEAD_RMS_RATIO * med_x:
             v = "refused"
             findings.append(f"transducer of {m}: no answer to its valve")
-        elif xs != j:
+        elif xs != mount_of[j]:
             v = "corrected"
             findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
         if gain[m] < 0:
@@ -168,6 +187,127 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
             findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
     return verdicts, findings
+
+
+def valve_map(stroke_of, accel_of) -> list[int]:
+    """The mount each valve's command moves. Valve j answered by stroke channel stroke_of[j] and accelerometer
+    channel accel_of[j]: when both show the same exchange, the valves' CAN nodes are swapped (one slip), not a
+    transducer pair and an accelerometer pair (two). The valve map v with the fewest channels moved over the
+    three maps (the valves' v, the sensors' stroke_of and accel_of after it), the identity first."""
+    n = len(stroke_of)
+    best, cost = list(range(n)), n + 1
+    for v in itertools.permutations(range(n)):
+        c = sum(v[j] != j for j in range(n)) + sum(stroke_of[j] != v[j] for j in range(n)) + \
+            sum(accel_of[j] != v[j] for j in range(n))
+        if c < cost:
+            best, cost = list(v), c
+    return best
+
+
+def _cycle(perm, j: int) -> list[int]:
+    """The indices of perm's cycle through j, from j."""
+    out = [j]
+    while perm[out[-1]] != j:
+        out.append(perm[out[-1]])
+    return out
+
+
+def _held(t, sig, t0: float, hold_s: float):
+    """The mean of sig over the settled part of a hold [t0, t0 + hold_s] (its first third left out: the
+    actuator's lag corner, K_C K_L / A_p^2 of Eq. 9, and the table's slower sway settle there)."""
+    sl = (t > t0 + hold_s / 3) & (t < t0 + hold_s - 0.02)
+    return sig[sl].mean(axis=0)
+
+
+def _step_matrix(t, x, cmd, steps) -> np.ndarray:
+    """D[stroke channel i, valve j]: the stroke per volt of valve j's held steps (+A then -A, one valve after the
+    other from steps = (start s, hold s, null s between))."""
+    t_s, hold_s, gap_s = steps
+    n = cmd.shape[1]
+    D = np.zeros((x.shape[1], n))
+    for j in range(n):
+        t0 = t_s + j * (2 * hold_s + gap_s)
+        hi, lo = _held(t, x, t0, hold_s), _held(t, x, t0 + hold_s, hold_s)
+        du = _held(t, cmd[:, j], t0, hold_s) - _held(t, cmd[:, j], t0 + hold_s, hold_s)
+        D[:, j] = (hi - lo) / du
+    return D
+
+
+def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) -> dict:
+    """Each valve's DC gain, null offset and node, from its held steps (+A then -A, `steps` = start, hold, null
+    after) and the quiet stretch at null.
+
+    The actuator with its load spring is a lag at DC (Eq. 9: x_p/v = G_dc / (1 + s / (K_C K_L / A_p^2))): a
+    spool centred at null_V moves the stroke by -G_dc null_V and holds it there (it does not drift). So:
+      D[i, j]  = d(stroke channel i) / d(command j) over the held steps  -> valve j's DC gain over the model's
+      o        = the stroke channels' offsets at zero command = -D null + (the transducers' own offsets): the
+                 mean over the whole recording from the quiet stretch on, less D times the commands' mean (a linear
+                 system's mean answer is its DC gain times the input's mean); the quiet stretch alone (1.2 s) reads
+                 the floor's slow sway of the table's twist (85 nm, 0.035 V, on the emulated rig), 15 s a quarter
+    The transducers are taken to read 0 at the actuator's spring centre (their zero as installed): null = -D^-1 o,
+    the table's coupling of the mounts included. A channel whose offset no null within NULL_MAX_V explains keeps
+    it as its own offset (that valve's null is not judged). The stroke's calibrated offset keeps only the part
+    the corrected nulls do not explain."""
+    n = len(names)
+    D = _step_matrix(t, x, cmd, steps)
+    w = t >= t[quiet].min()
+    o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
+    own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
+    seen = own > DEAD_RMS_RATIO * np.median(own)          # its transducer answers it: the valve can be judged
+    judged = [bool(seen[j] and abs(o[stroke_of[j]]) <= NULL_MAX_V * own[j]) for j in range(n)]
+    null = np.full(n, math.nan)
+    idx = [j for j in range(n) if judged[j]]
+    if idx:                              # the judged valves' nulls from their own channels (the others unknown)
+        rows_x = [stroke_of[j] for j in idx]
+        null[idx] = -np.linalg.solve(D[np.ix_(rows_x, idx)], o[rows_x])
+    gains = []
+    for j in range(n):
+        # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
+        # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
+        k = float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0))
+        gains.append(float(abs(D[stroke_of[j], j]) * k / dc_gain_m_per_V))
+    # the correction is against the valves that are ok: the table takes a share of each mount's stroke that the
+    # one-actuator model has not (0.92 wired right), the same for every mount
+    ok = [g for g in gains if abs(g - 1) <= GAIN_TOL]
+    g_ref = float(np.median(ok)) if ok else 1.0
+    verdicts, findings, rows, figs = {}, [], {}, {}
+    for j, m in enumerate(names):
+        xs, g = stroke_of[j], gains[j]
+        node = f"valve {m}"
+        v, out = "ok", {"mount": names[mount_of[j]], "null_V": 0.0, "gain": 1.0}
+        if mount_of[j] != j:
+            v = "corrected"
+            if j == min(_cycle(mount_of, j)):            # one line per exchange
+                findings.append("valve nodes swapped: " + ", ".join(
+                    f"the command for {names[i]} moves {names[mount_of[i]]}" for i in _cycle(mount_of, j)) +
+                    " (its stroke and accelerometer answer it)")
+        if not seen[j]:
+            v = "unchecked"
+            findings.append(f"{node}: not judged (its mount's transducer does not answer it)")
+        elif not GAIN_FIX[0] <= g <= GAIN_FIX[1]:
+            v = "refused"
+            findings.append(f"{node}: DC gain {g:+.2f} x the model's, beyond what calibration corrects")
+        elif abs(g - 1) > GAIN_TOL:
+            v = "corrected" if v == "ok" else v
+            out["gain"] = g / g_ref
+            findings.append(f"{node}: DC gain {g:.2f} x the model's ({g / g_ref:.2f} x the valves that are ok)")
+        if judged[j] and abs(null[j]) > NULL_TOL_V:
+            v = "corrected" if v == "ok" else v
+            out["null_V"] = float(null[j])
+            findings.append(f"{node}: null offset {null[j]:+.3f} V (its spool centres there: at zero command the "
+                            f"stroke sits {-D[xs, j] * null[j] * 1e6:+.2f} um off)")
+        verdicts[f"valve:{m}"] = v
+        rows[m] = out
+        figs[m] = {"dc_gain_vs_model": g, "null_V": float(null[j]) if judged[j] else None,
+                   "moves": names[mount_of[j]], "stroke_per_V_m": D[:, j].tolist()}
+    # the strokes' offsets: o over the whole recording (the quiet stretch's own mean reads the twist's sway, and
+    # a calibration taking that off leaves it as an apparent null in the next commissioning), less the part the
+    # corrected nulls make: the transducer's own offset is what is left
+    left = o + D @ np.array([rows[m]["null_V"] for m in names])        # (a valve not judged: 0, as it was)
+    for i, ch in enumerate(names):
+        if "offset_m" in cal.get("stroke", {}).get(ch, {}):
+            cal["stroke"][ch]["offset_m"] = float(left[i])
+    return {"verdicts": verdicts, "findings": findings, "calibration": rows, "valves": figs}
 
 
 def text(res: dict) -> str:
@@ -181,6 +321,10 @@ def text(res: dict) -> str:
                      f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command at "
                      f"{BAND_HZ[0]:g}-{2 * BAND_HZ[0]:g} Hz {res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
                      f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
+    for m, v in (res.get("valves") or {}).items():
+        null = "not judged (its transducer's own offset)" if v["null_V"] is None else f"{v['null_V']:+.3f} V"
+        lines.append(f"{m}: valve {res['verdicts'][f'valve:{m}']} (DC gain {v['dc_gain_vs_model']:.2f} x the model's, "
+                     f"null {null}, moves {v['moves']})")
     lines += [f"  {f}" for f in res["findings"]] or ["  every channel ok"]
     return "\n".join(lines)
 

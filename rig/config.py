@@ -231,6 +231,13 @@ class HilConfig:
     ai_source: tuple[int, ...] = _f((0, 1, 2, 3, 4, 5, 6, 7), "", ge=0, le=7, n=8)
     ai_factor: tuple[float, ...] = _f((1.0,) * 8, "", ge=-100, le=100, n=8)
     ai_offset_mps2: tuple[float, ...] = _f((0.0,) * 8, "m/s^2", ge=-100, le=100, n=8)
+    # per valve (MOUNTS order; a layout of fewer mounts takes the first): the command at which its spool centres
+    # (a null offset), a factor on its flow gain K_Q, and the CAN node number it answers to with [drivers]
+    # valve_node_id_base = 1 (the numbers shift with the base): two exchanged = swapped CAN nodes, the driver's
+    # command for one mount moves the other
+    valve_null_V: tuple[float, ...] = _f((0.0,) * 4, "V", ge=-10, le=10, n=4)
+    valve_gain: tuple[float, ...] = _f((1.0,) * 4, "", gt=0, le=100, n=4)
+    valve_node_id: tuple[int, ...] = _f((1, 2, 3, 4), "", ge=1, le=124, n=4)
 
 
 @dataclass(frozen=True)

@@ -5,8 +5,10 @@ null (each channel's noise floor and offset), then per mount a bounded chirp (AM
 the stroke a few um, far inside +-50 % of [safety] stroke_limit_m), the safety rules on. rig/commissioning.py then
 names, per channel: alive, noise, offset; which transducer and which accelerometer answer which valve (the response
 matrix, a swap named); each accelerometer's sign and scale against the second derivative of its own mount's
-stroke; each valve's gain against the model's DC gain. Out: DIR/report.txt, report.json, commissioning.toml (per
-channel mount, sign, scale, offset), one PNG per mount, and the recording. Exit 0 when every channel is ok, 4 when
+stroke; then each valve held at +-STEP_V for HOLD_S each: its DC gain against the model's, its null offset
+(rig/commissioning.py valve_checks) and which mount it moves (swapped CAN nodes). Out: DIR/report.txt, report.json,
+commissioning.toml (per channel mount, sign, scale, offset; per valve the mount it moves, null, gain), one PNG
+per mount, and the recording. Exit 0 when every channel is ok, 4 when
 a channel needs the calibration file or is refused, 1 after a fault.
 Rehearse wiring faults on the emulated rig: drivers/devicemaps/hil_wiring_faults.md.
 """
@@ -32,6 +34,7 @@ LEAD_S = 0.2                   # null before and after each mount's chirp
 CHIRP_S = 2.0
 F0_HZ, F1_HZ = 2.0, 40.0
 AMPLITUDE_V = 2.0
+STEP_V, HOLD_S = 2.0, 0.6      # then one valve at a time held at +STEP_V and -STEP_V (its DC gain and null offset)
 EXIT_FINDINGS = 4
 
 
@@ -59,14 +62,23 @@ def run(args) -> int:
     chirp = chirp_samples(AMPLITUDE_V, F0_HZ, F1_HZ, CHIRP_S, dt)
     n_lead, n_slot = int(round(LEAD_S / dt)), int(round(slot_s / dt))
     # the playback starts at activation (after QUIET_S): mount j's chirp in its own slot, the others at null
-    ctrls = [SignalPlayback([0.0] * (j * n_slot + n_lead) + chirp, dt, name=m) for j, m in enumerate(names)]
+    n_hold, n_step = int(round(HOLD_S / dt)), int(round((2 * HOLD_S + LEAD_S) / dt))
+    pad = [0.0] * (len(names) * n_slot)                 # the chirps' slots, then each valve's held steps
+    ctrls = [SignalPlayback(([0.0] * (j * n_slot + n_lead) + chirp + pad)[:len(pad)] + [0.0] * (j * n_step + n_lead) +
+                            [STEP_V] * n_hold + [-STEP_V] * n_hold, dt, name=m) for j, m in enumerate(names)]
     out = Path(args.out) if args.out is not None else Path(time.strftime("commission-%Y%m%d-%H%M%S"))
     out.mkdir(parents=True, exist_ok=True)
     rec_path = out / "commissioning.h5"
-    total = QUIET_S + len(names) * slot_s
+    total = QUIET_S + len(names) * (slot_s + 2 * HOLD_S + LEAD_S) + LEAD_S
     if not args.json:
         print(f"rig commission: {args.backend}, {len(names)} mounts at {rate:g} Hz: {QUIET_S:g} s at null, then one "
-              f"valve at a time a {AMPLITUDE_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {CHIRP_S:g} s ({total:.1f} s)",
+              f"valve at a time a {AMPLITUDE_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {CHIRP_S:g} s, then held at "
+              f"+-{STEP_V:g} V for {HOLD_S:g} s each ({total:.1f} s)",
+              file=sys.stderr)
+    through = cfg.drivers.calibration if args.backend != "sim" else ""     # (the drivers apply it; sim has none)
+    if through:
+        print(f"rig commission: through the calibration {through} ([drivers] calibration): a check of it; what this "
+              f"run writes is relative to it, not a calibration in its place (commission without it for that)",
               file=sys.stderr)
     clock = SimClock() if args.backend == "sim" else MonotonicClock()
     with Session(cfg, args.backend, controllers=ctrls, clock=clock, rate_hz=rate, isolation=True, names=names,
@@ -80,10 +92,12 @@ def run(args) -> int:
         raise RigError(f"commission: the run faulted ({fault}): nothing judged")
     rec = read_recording(rec_path)
     res = commissioning.analyse(rec, names, rate, QUIET_S, slot_s, LEAD_S,
-                                ActuatorParams.from_config(cfg).dc_gain_m_per_V)
+                                ActuatorParams.from_config(cfg).dc_gain_m_per_V,
+                                steps=(QUIET_S + len(names) * slot_s + LEAD_S, HOLD_S, LEAD_S))
     peak = float(np.abs(np.asarray(rec["stroke_m"])).max())
     res["peak_stroke_m"] = float(peak)
     res["stroke_limit_m"] = cfg.safety.stroke_limit_m
+    res["through_calibration"] = through or None
     (out / "report.txt").write_text(commissioning.text(res) + "\n")
     (out / "report.json").write_text(json.dumps(res, indent=1))
     (out / "commissioning.toml").write_text(commissioning.calibration_toml(res, str(rec_path)))

@@ -16,6 +16,10 @@ step's conversion (the Modbus module and the amplifier, processes of their own, 
 are latched, and each node answers with its synchronous TPDO (status word, spool actual value, sample
 counter), the four in one TCP write. Without SYNC (the loop not started, held up, stopped) the plant keeps
 pace with the wall clock on the commands it has.
+
+Wiring faults of the valves ([hil] valve_null_V, valve_gain, valve_node_id; drivers/devicemaps/
+hil_wiring_faults.md): the plant's input from valve i is gain_i x (its setpoint - null_i), and each mount's node
+answers to the number it was given (two exchanged: the driver's command for one mount moves the other).
 """
 from __future__ import annotations
 
@@ -228,7 +232,7 @@ class PlantServer:
     shared.py) written at each step, the fault knobs and the metering read from it."""
 
     def __init__(self, arr, plant, dt: float, node_ids, w_spool: float, max_V: float, floor_sensors: bool,
-                 trace_steps: int) -> None:
+                 trace_steps: int, valve_faults=None) -> None:
         self.arr, self.plant, self.dt = arr, plant, dt
         self.max_V = max_V
         self.floor_sensors = floor_sensors
@@ -237,7 +241,13 @@ class PlantServer:
         self.net = _network(self._send)
         self.nodes = [ValveNode(self.net, nid, w_spool) for nid in node_ids]
         self.net.subscribe(0x80, self._sync)
-        self.cmd = [0.0] * len(self.nodes)
+        n = len(self.nodes)
+        # the valves' wiring faults ([hil] valve_null_V, valve_gain): the flow of valve i follows
+        # gain_i * (setpoint - null_i), its spool centred at null_i (Eq. 1: x_v = K_v v; the flow K_Q x_v)
+        null, gain = valve_faults if valve_faults is not None else ([0.0] * n, [1.0] * n)
+        self.null_V, self.gain = [float(v) for v in null[:n]], [float(g) for g in gain[:n]]
+        self.setpoint_V = [0.0] * n                    # what the valves were sent (latched at SYNC)
+        self.cmd = [-g * v0 for v0, g in zip(self.null_V, self.gain)]   # the plant's input, the faults applied
         self.steps = 0
         self._t0: float | None = None
         self._publish()
@@ -251,8 +261,9 @@ class PlantServer:
             n.mode = VALVE_MODES[int(self.arr[sh.VALVE_MODE + i])]
             n.on_sync(self.dt)
         self._advance(time.monotonic(), sync=True)          # the step ending now, on the commands held
-        self.cmd = [v4.setpoint_to_volts(n.setpoint if v4.state_of(n.statusword) == "ACTIVE" else 0, self.max_V)
-                    for n in self.nodes]                      # latched for the next step
+        self.setpoint_V = [v4.setpoint_to_volts(n.setpoint if v4.state_of(n.statusword) == "ACTIVE" else 0, self.max_V)
+                           for n in self.nodes]               # latched for the next step
+        self.cmd = [g * (v - v0) for v, v0, g in zip(self.setpoint_V, self.null_V, self.gain)]
         self.arr[sh.SYNCS] += 1.0
         for n in self.nodes:
             t = n.tpdo()
@@ -277,7 +288,7 @@ class PlantServer:
 
     def _publish(self) -> None:
         p = self.plant
-        self.arr[sh.LAST_CMD:sh.LAST_CMD + len(self.cmd)] = self.cmd
+        self.arr[sh.LAST_CMD:sh.LAST_CMD + len(self.cmd)] = self.setpoint_V
         sh.publish(self.arr, float(getattr(p, "t_s", 0.0)), p.accel_mps2, p.stroke_m, self.steps,
                    p.floor_accel_mps2 if self.floor_sensors else None)
 
@@ -338,7 +349,7 @@ def serve(arr, announce, spec_path: str, priority: int = 0) -> None:
         spec = pickle.load(f)
     os.unlink(spec_path)
     server = PlantServer(arr, spec["plant"], spec["dt"], spec["node_ids"], spec["w_spool"], spec["max_V"],
-                         spec["floor_sensors"], spec["trace_steps"])
+                         spec["floor_sensors"], spec["trace_steps"], spec.get("valve_faults"))
     raise_priority(priority)                 # (after the set-up: at SCHED_FIFO it would hold the others off)
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.bind(("127.0.0.1", 0))

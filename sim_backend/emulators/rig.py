@@ -32,7 +32,7 @@ class EmulatedRig:
     def __init__(self, plant, dt: float, *, max_V: float = 10.0, w_spool: float = 524.0,
                  accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), start_timeout_s: float = 60.0,
                  priority: int = 0, floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7),
-                 trace_s: float = 0.0, ai_faults=None):
+                 trace_s: float = 0.0, ai_faults=None, valve_faults=None):
         self.plant = plant
         self.dt = float(dt)
         self.max_V = max_V
@@ -42,6 +42,7 @@ class EmulatedRig:
         self.floor_V_per_mps2, self.floor_channels = floor_V_per_mps2, tuple(floor_channels)
         self.floor_sensors = bool(getattr(plant, "floor_sensors", False))
         self.ai_faults = ai_faults          # wiring faults of the module's channels: (sources, factors, offsets)
+        self.valve_faults = valve_faults    # the valves' (null offsets V, gain factors), mount order; None: right
         self.node_ids = list(node_ids)
         self.start_timeout_s = start_timeout_s
         self.priority = priority              # SCHED_FIFO of the device processes (0 = normal)
@@ -60,7 +61,7 @@ class EmulatedRig:
             with os.fdopen(fd, "wb") as f:
                 pickle.dump({"plant": self.plant, "dt": self.dt, "node_ids": self.node_ids, "w_spool": self.w_spool,
                              "max_V": self.max_V, "floor_sensors": self.floor_sensors,
-                             "trace_steps": self.state.trace_steps}, f)
+                             "trace_steps": self.state.trace_steps, "valve_faults": self.valve_faults}, f)
             self.can_port = int(self._spawn("plant", spec, str(self.priority)))
             wiring = [json.dumps([list(f) for f in self.ai_faults])] if self.ai_faults is not None else []
             self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority),
