@@ -73,12 +73,8 @@ def run(args) -> int:
     if args.rig:                                    # the four-mount rig (issue 28): its own defaults
         return prove_rig.run(args)
     if args.commission:                             # the wiring checks (issue 27), on the emulated rig
-        import time
-
-        from rig.backends import default_config
         from rig.commands import prove_commission
-        out = args.out if args.out is not None else Path(time.strftime("prove-commission-%Y%m%d-%H%M%S"))
-        return prove_commission.run(args, Path(args.config) if args.config else default_config("hil"), out)
+        return prove_commission.run(args)
     from rig.config import load_config
     from rig.diagnose import grading, prove
     from sim_backend.linear import ActuatorParams

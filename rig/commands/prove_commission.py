@@ -119,9 +119,13 @@ def commission(config: Path, out: Path, timeout_s: float = 600.0) -> tuple[dict 
     return json.loads(r.stdout), wall, ""
 
 
-def run(args, base_config: Path, folder: Path) -> int:
-    """The proof: args.n drawn cases and args.clean clean ones from args.seed; the table on stdout and in
-    folder/proof.md, the rows in folder/proof.json."""
+def run(args) -> int:
+    """The proof: args.n drawn cases and args.clean clean ones from args.seed, on --config (default the HIL
+    design); the table on stdout and in --out/proof.md (default prove-commission-<date>-<time>), the rows in
+    proof.json."""
+    from rig.backends import default_config
+    base_config = Path(args.config) if args.config else default_config("hil")
+    folder = args.out if args.out is not None else Path(time.strftime("prove-commission-%Y%m%d-%H%M%S"))
     rng = random.Random(args.seed)
     cases = [("clean", Wiring(), [], set()) for _ in range(args.clean)]
     for i in range(args.n):
