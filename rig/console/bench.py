@@ -56,7 +56,7 @@ def add_arguments(p) -> None:
 
 
 def bench_console(args, cfg, rate: float, clock) -> int:
-    from rig.runtime.session import Session
+    from rig.runtime.session import Session      # lazy: `rig bench --help` loads no numba
     why = browser.missing()
     if why:
         raise RigError(f"--console: a browser is needed: {why}")
@@ -157,7 +157,7 @@ def _block_none(session, block_s: float) -> dict:
 
 def _block_console(session, cfg, serve: str, block_s: float, drv: "_Driver") -> dict:
     loop = session.loop
-    from rig.console.link import Console
+    from rig.console.link import Console         # lazy: `rig bench --help` loads no numba
     with Console(cfg, "sim", port=0, serve=serve, log_level=None) as console:
         console.attach(session)
         try:
