@@ -258,7 +258,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
                 v = "corrected"
                 findings.append(f"accelerometers swapped: valve {m} is answered by the channel mapped to {names[ac]}")
             s = scale[m]
-            if s < 0:
+            if s < 0 and abs(s) >= SCALE_FIX[0]:         # a dead channel's sign is its noise's
                 v = "corrected"
                 findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
             a = abs(s)
