@@ -18,7 +18,8 @@ SCALE_FIX, a transducer's unit slip, an offset), refused (dead, noisy, or a scal
 unchecked (an accelerometer whose mount's transducer is dead: nothing to hold its sign and scale against).
 The sensors' own checks (sensor_findings): alive, offset and noise floor at null, each channel's noise floor
 (above NOISE_HZ, where the table barely moves and a sensor's white noise shows) against the median of the
-others of its kind, and a transducer's unit slip (its stroke/command a power of 1000 off the model's DC gain).
+others of its kind, and a transducer's range or unit slip (stroke_unit: its accelerometer a power of ten off its
+x'', and its stroke/command moved the other way against the other mounts').
 """
 from __future__ import annotations
 
@@ -234,11 +235,13 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
 
 def _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names) -> None:
     """A refused or unchecked channel's measured scale is no calibration (a dead one's would multiply its noise):
-    it keeps scale 1."""
+    it keeps scale 1, and an unchecked one its sign."""
     for kind, of in (("accel", accel_of), ("stroke", stroke_of)):
         for j, m in enumerate(names):
             if verdicts[f"{kind}:{m}"] in ("refused", "unchecked"):
                 cal[kind][names[of[j]]]["scale"] = 1.0
+            if verdicts[f"{kind}:{m}"] == "unchecked":
+                cal[kind][names[of[j]]]["sign"] = 1.0
 
 
 def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tuple[dict, list]:
