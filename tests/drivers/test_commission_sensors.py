@@ -6,6 +6,8 @@ it cannot (dead, noisy) stays refused. A channel dead at a constant stops commis
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import tomllib
 
 import pytest
@@ -15,6 +17,7 @@ from tests.drivers.test_commission import _commission
 from rig.commands.commission import EXIT_FINDINGS
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.commissioning import stroke_unit
+from rig.runtime.supervisor import EXIT_HARM
 from sim_backend.emulators import shared as sh
 from sim_backend.emulators.modbus_server import MAX_DELAY_STEPS, Module
 
@@ -131,3 +134,15 @@ def test_the_module_delays_its_signal_by_fractional_conversions():
     with pytest.raises(ValueError, match="module delay"):
         Module(arr, 2.0, delay_steps=MAX_DELAY_STEPS + 1)
     assert MAX_DELAY_STEPS < sh.FIFO_SLOTS
+
+
+@pytest.mark.hil
+def test_a_late_module_makes_isolation_harm_and_the_supervisor_says_so(tmp_path):
+    # [hil] extra_delay_s: the analog module's signal 20 ms late (10 conversions at 500 Hz), the loop's feedback
+    # with it: isolation makes the table worse, and `rig hil` says so and switches it off
+    cfg = _miswired(tmp_path, "late", "extra_delay_s = 0.02\n")
+    run = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(cfg), "--seconds", "10", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == EXIT_HARM, run.stderr[-3000:]
+    figs = json.loads(run.stdout)
+    assert "do-no-harm: isolation made the table worse" in figs["harm"] and figs["isolation_reduction_db"] < 0
