@@ -34,6 +34,8 @@ SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible tabl
                                # stroke: 1.0-1.2 measured on a rig wired right; a g range is 0.10, inverted -1)
 SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
 DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
+STROKE_DEAD_RATIO = 0.02       # the same for a transducer: one whose range is a decade off answers 0.1 of the
+                               # others' (a range slip, stroke_unit), a dead one its own noise (< 0.002 measured)
 NOISE_HZ = 100.0               # noise floor: a channel's rms at null above this (or 0.3 fs, the lower)
 NOISY_RATIO = 3.0              # a noise floor above this x the median of the others of its kind: noisy (refused:
                                # no calibration takes noise out, and the loop would feed it to the valves; channels
@@ -105,9 +107,11 @@ def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
     return out
 
 
-def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings) -> None:
+def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings) -> set:
     """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
-    offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration)."""
+    offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration).
+    Returns {(kind:channel, fault)} of what it named."""
+    named = set()
     carries = {"accel": {names[a]: m for a, m in zip(accel_of, names)},
                "stroke": {names[x]: m for x, m in zip(stroke_of, names)}, "floor": {m: m for m in names}}
     what = {"accel": "accelerometer", "stroke": "transducer", "floor": "floor accelerometer"}
@@ -126,6 +130,7 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
             if not row["alive"]:
                 worse(key, "refused")
                 findings.append(f"{name}: dead (constant at null)")
+                named.add((f"{kind}:{ch}", "dead"))
                 continue
             others = [r[f"noise_floor_{unit}"] for c, r in rows.items() if c != ch and r["alive"]]
             nf = row[f"noise_floor_{unit}"]
@@ -133,21 +138,54 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 worse(key, "refused")
                 findings.append(f"{name}: noisy, noise floor {nf * shown[0]:.3g} {shown[1]} rms above "
                                 f"{NOISE_HZ:g} Hz, {nf / float(np.median(others)):.1f} x the others'")
+                named.add((f"{kind}:{ch}", "noisy"))
             off = row[f"offset_{unit}"]
             if abs(off) > OFFSET_RATIO * row[f"noise_rms_{unit}"]:
                 worse(key, "corrected")
                 findings.append(f"{name}: offset {off * shown[0]:+.4g} {shown[1]} at null (taken off by the "
                                 f"calibration)")
+                named.add((f"{kind}:{ch}", "offset"))
     for j, m in enumerate(names):
         if units[m] != 1.0:
             worse(f"stroke:{m}", "corrected")
             findings.append(f"transducer of {m} (channel mapped to {names[stroke_of[j]]}): reads {1 / units[m]:g} x "
                             f"its stroke (stroke/command {gain_raw[m]:+.3g} x the model's DC gain, the accelerometer "
                             f"{units[m]:g} x its x''): a range or unit slip, scale {units[m]:g} in the calibration")
+            named.add((f"stroke:{names[stroke_of[j]]}", "scale"))
         if m in dead_x:
             worse(f"accel:{m}", "unchecked")
             findings.append(f"accelerometer on {m}: sign and scale not checked (its mount's transducer answers "
                             f"nothing)")
+    return named
+
+
+def sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named) -> list[dict]:
+    """The sensors' faults, one {channel: "<kind>:<channel as mapped>", kind} each (swap, sign, scale, offset, dead,
+    noisy), from the response matrix's results and sensor_findings' `named`. A swap is a sensor's only when the
+    other sensor of the mount does not answer the same other valve: both moving together is the valve's wiring."""
+    out = set(named)
+    for j, m in enumerate(names):
+        ac, xs = accel_of[j], stroke_of[j]
+        valve_moved = ac == xs != j
+        a, ch = abs(scale[m]), f"accel:{names[ac]}"
+        if verdicts[f"accel:{m}"] != "unchecked" and (ch, "dead") not in out:
+            if a < SCALE_FIX[0]:                     # no answer: its sign and its place are its noise's
+                out.add((ch, "dead"))
+            else:
+                if scale[m] < 0:
+                    out.add((ch, "sign"))
+                if abs(a - 1) > SCALE_TOL:
+                    out.add((ch, "scale"))
+        if ac != j and not valve_moved and (ch, "dead") not in out:
+            out.add((ch, "swap"))
+        if m in dead_x:
+            out.add((f"stroke:{names[xs]}", "dead"))
+            continue
+        if xs != j and not valve_moved:
+            out.add((f"stroke:{names[xs]}", "swap"))
+        if gain[m] < 0:
+            out.add((f"stroke:{names[xs]}", "sign"))
+    return [{"channel": c, "kind": k} for c, k in sorted(out)]
 
 
 def channel_map(R: np.ndarray) -> list[int]:
@@ -209,14 +247,15 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
     med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
-    dead_x = {m for j, m in enumerate(names) if R_x[stroke_of[j], j] < DEAD_RMS_RATIO * med_x
+    dead_x = {m for j, m in enumerate(names) if R_x[stroke_of[j], j] < STROKE_DEAD_RATIO * med_x
               or not channels["stroke"][names[stroke_of[j]]]["alive"]}
     units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
     for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
         gain[m] *= units[m]
         scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
-    sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings)
+    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings)
+    faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
     cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
                                           "scale": correction(scale[m]),
@@ -229,7 +268,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
             "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
-            "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
+            "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal, "band_hz": list(BAND_HZ),
             "all_ok": all(v == "ok" for v in verdicts.values())}
 
 
@@ -276,7 +315,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
                     findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects{dead}")
         verdicts[f"accel:{m}"] = v
         v = "ok"
-        if R_x[xs, j] < DEAD_RMS_RATIO * med_x:
+        if R_x[xs, j] < STROKE_DEAD_RATIO * med_x:
             v = "refused"
             findings.append(f"transducer of {m}: no answer to its valve")
         elif xs != j:
