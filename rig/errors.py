@@ -15,3 +15,6 @@ class RecordingError(RigError):
 
 class DeviceError(RigError):
     """A device that does not answer or reports a fault: the message names the device."""
+
+
+EXIT_HARM = 3          # a command's exit status when the do-no-harm supervisor switched isolation off

@@ -72,8 +72,6 @@ from rig.console import bench as console_bench
 from rig.errors import RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.rt import cpu_steal_ms, enter_realtime, leave_realtime
-from rig.runtime.session import Session
-from sim_backend.bench import bench_sim as run_bench
 
 log = logging.getLogger("rig.bench")
 
@@ -186,6 +184,7 @@ def add_sim_arguments(p) -> None:
 
 
 def bench_sim(args) -> int:
+    from sim_backend.bench import bench_sim as run_bench
     if args.seconds <= 0 or args.rate <= 0 or args.repeats < 1:
         raise RigError("bench sim: expected --seconds > 0, --rate > 0 and --repeats >= 1")
     cfg = load_config(getattr(args, "config", None))
@@ -229,6 +228,7 @@ def bench_recorder(args) -> int:
 
 # ---- rig bench loop --------------------------------------------------------------------------------------
 def bench_loop(args) -> int:
+    from rig.runtime.session import Session
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
     cfg = load_config(getattr(args, "config", None))
@@ -299,6 +299,7 @@ def bench_loop(args) -> int:
 def _feedforward_ab(cfg, args, rate: float) -> int:
     """Feedback only and feedback + feedforward, alternating runs (AB BA AB ...), recording on, each run its
     own session; pooled compute and wake-up figures per path and their difference."""
+    from rig.runtime.session import Session
     import dataclasses
     if not 1 <= args.rounds <= 100:              # (--rounds is shared with --console: rig/console/bench.py)
         raise RigError(f"--rounds: expected 1 to 100, got {args.rounds}")
@@ -443,6 +444,7 @@ PROTOTYPE_BENCH_MODE = "track sine:amp=10um,freq=5"
 def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
     """One timed run on the simulated backend (cfg's layout; mode: the stand's operating mode), recording to a
     temporary file: the loop figures."""
+    from rig.runtime.session import Session
     fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
     os.close(fd)
     realtime = cfg.loop.realtime and not args.no_realtime
@@ -538,6 +540,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     rounds, PMPM... in odd ones), each block a run of its session on a BlockClock; per round, each layout's
     compute and wake-up figures pooled over its blocks (less the first BLOCK_SETTLE periods of each), so the shared
     host's noise falls on both alike."""
+    from rig.runtime.session import Session
     rounds, block_s = args.rounds, args.block_s
     if not 1 <= rounds <= 100 or not 0.05 <= block_s <= 60:
         raise RigError(f"--rounds/--block-s: expected 1..100 rounds of 0.05..60 s blocks, got {rounds}, {block_s}")
@@ -712,6 +715,7 @@ def _print_both(out: dict, as_json: bool) -> None:
 def _kernel_us(cfg, mode) -> float:
     """The compiled period's own cost on the layout's controllers after a short run in simulated time: the
     least of five means over 20000 back-to-back calls with the last measurement (ACTIVE, no recorder)."""
+    from rig.runtime.session import Session
     from rig.runtime.clock import SimClock
     from rig.runtime.kernel import MODE_ACTIVE
     from rig.runtime.measured import MeasuredBlock

@@ -8,12 +8,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from rig import cliargs
 from rig.backends import BACKENDS
-from rig.chirp import run_chirp
 from rig.config import load_config
 from rig.errors import RigError
 
@@ -42,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="mount whose valve is chirped (hil/hardware; a name of the config's layout)")
     p.add_argument("--settle", type=cliargs.seconds(ge=0, le=3600), default=0.05, metavar="S",
                    help="seconds INACTIVE (valve at null, sensors checked) before the chirp (default 0.05)")
+    p.add_argument("--uncommissioned", action="store_true",
+                   help="hardware: chirp without a calibration from `rig commission` (docs/COMMISSIONING.md)")
     p.add_argument("--realtime", action="store_true", help="sim backend: pace on the wall clock (default: "
                    "simulated time, as fast as possible)")
     p.add_argument("--seed", type=cliargs.seed(), default=None,
@@ -72,10 +71,17 @@ def level_list(text: str) -> list[float]:
 
 
 def run(args) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from rig.chirp import run_chirp          # heavy (numba, scipy): after the arguments are checked
     cfg = load_config(args.config)
     backend = args.backend or cfg.backend.name
     if args.realtime and backend != "sim":
         raise RigError("--realtime: only for --backend sim (hil and hardware always run in real time)")
+    if backend == "hardware" and not args.uncommissioned:
+        from rig.commands.run import check_commissioned     # no uncommissioned hardware: the rule of rig run
+        check_commissioned(cfg)
     bar = Progress(TextColumn("chirp"), BarColumn(), TextColumn("{task.completed:6.1f}/{task.total:.1f} s"),
                    TimeRemainingColumn(), console=Console(stderr=True), redirect_stdout=False)
     task = None

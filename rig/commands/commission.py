@@ -20,16 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.playback import SignalPlayback
-from rig import cliargs, commissioning
+from rig import cliargs
 from rig.backends import default_config
-from rig.chirp import chirp_samples
 from rig.config import hil_run_config, layout_mounts, load_config
 from rig.errors import RigError
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.runtime.recorder import read_recording
-from rig.runtime.session import Session
-from sim_backend.linear import ActuatorParams
 
 CONFIG_HELP = "TOML configuration (default: drivers/devicemaps/hil.toml)"
 QUIET_S = 1.5
@@ -49,6 +45,11 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from controllers.playback import SignalPlayback        # heavy (numba, scipy): after the arguments are checked
+    from rig import commissioning
+    from rig.chirp import chirp_samples
+    from rig.runtime.session import Session
+    from sim_backend.linear import ActuatorParams
     cfg = load_config(args.config if args.config else default_config("hil"))
     rate = cfg.hil.rate_hz
     if args.backend == "hil":

@@ -19,12 +19,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import numpy as np
-import scipy.signal
 
+import numpy as np
 from controllers.vibration_criteria import plot_vc
 from rig import cliargs
-from rig.compare import LABELS, MODES, compare, demo_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,9 +41,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from rig.compare import LABELS, compare, demo_config     # heavy (numba, scipy): after the arguments are checked
     cfg, plant = demo_config(args.config, rms_um=args.rms_um, model_error_pct=args.model_error, log=_log)
     v = cfg.vibration
-    _log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms (seed {v.seed}); loop "
+    _log(f"floor vibration {v.band_lo_hz:g}-{v.band_hi_hz:g} Hz, {v.rms_m * 1e6:g} um rms under each mount (seed {v.seed}); loop "
          f"{cfg.loop.rate_hz:g} Hz in simulated time; three runs over the same floor: {', '.join(LABELS.values())}, "
          f"{args.settle:g} s + {args.seconds:g} s each")
     res, traces = compare(cfg, seconds=args.seconds, settle_s=args.settle, log=_log)
@@ -68,8 +67,10 @@ def _log(text: str) -> None:
 
 
 def _print(res: dict, v) -> None:
-    print(f"rig demo: floor {res['floor_rms_um']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz), the same "
-          f"realisation in all three runs: reductions are like with like")
+    from rig.compare import LABELS, MODES
+    print(f"rig demo: floor {res['floor_rms_um']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz) as the table "
+          f"feels it (the mean of the four mounts' floor, each {v.rms_m * 1e6:g} um rms), the same realisation in all "
+          f"three runs: reductions are like with like")
     p = res["plant"]
     if p["model_error_pct"]:
         fac = ", ".join(f"{k} {100 * (x - 1):+.0f} %" for k, x in p["factors"].items())
@@ -100,6 +101,8 @@ def _print(res: dict, v) -> None:
 
 def _plot(path, dt, traces, sl, res):
     import matplotlib
+    import scipy.signal
+    from rig.compare import LABELS, MODES
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fs = 1.0 / dt

@@ -34,8 +34,6 @@ from rig.runtime.clock import MonotonicClock
 from rig.config import hil_run_config, load_config
 from rig.errors import ConfigError, RigError
 from rig.runtime.recorder import read_recording
-from controllers.isolation import make_isolation_controllers
-from rig.runtime.session import Session, check_stable
 
 T_SIM = 0.5          # knob time on the simulated backend (activation at 0.05 s)
 T_HIL = 1.0          # on the emulated devices (activation at 0.05 s, drivers settled)
@@ -109,6 +107,8 @@ def _config(backend: str, given: str | None, tweak: str):
 def drill_case(case: Case, backend: str, *, config: str | None = None, realtime: bool = True,
                folder: Path) -> dict:
     """One case on a fresh session; the figures of what happened."""
+    from controllers.isolation import make_isolation_controllers
+    from rig.runtime.session import Session, check_stable
     cfg = _config(backend, config, case.tweak)
     at = T_SIM if backend == "sim" else T_HIL
     spec = f"{case.spec}@{at:g}" if case.spec else ""

@@ -46,20 +46,14 @@ import time
 
 import numpy as np
 
-from rig import cliargs, operated
+from rig import cliargs
 from rig.runtime import inject
-from rig.runtime.supervisor import EXIT_HARM
-from rig.backends import default_config, make_port
-from rig.commands import hil_bench
-from rig.commands.hil_lockstep import BAND_HZ, lockstep, phase_rms, reductions
+from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
-from rig.errors import RecordingError, RigError
+from rig.errors import EXIT_HARM, RecordingError, RigError
 from rig.runtime.gate import ISOLATION_MODES
-from rig.port import Commands
 from rig.runtime.recorder import read_recording
-from rig.runtime.rt import raise_priority
-from rig.runtime.session import Session
 
 log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
@@ -154,6 +148,7 @@ def run(args) -> int:
     for inj in injections:
         inject.check(inj, "hil")
     if args.bench:
+        from rig.commands import hil_bench
         return hil_bench.run(cfg, seconds if args.seconds is not None else hil_bench.SECONDS, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     if not args.json:
@@ -188,6 +183,7 @@ def run(args) -> int:
             if mode not in res["table_rms_m"]:
                 continue
             red, sim = out[key], ls.get(mode)
+            from rig.commands.hil_lockstep import BAND_HZ
             print(f"reduction of table motion ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz), {mode.replace('_', ' + ')}: "
                   f"{'n/a' if red is None else f'{red:.1f} dB'} through the drivers, "
                   f"{'n/a' if sim is None else f'{sim:.1f} dB'} in lockstep"
@@ -223,6 +219,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             compare: bool = True) -> dict:
     """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more); compare:
     also the same run in lockstep simulated time (rig/commands/hil_lockstep.py)."""
+    from rig.commands.hil_lockstep import lockstep, phase_rms, reductions
+    from rig.runtime.session import Session
     rate = cfg.loop.rate_hz
     if record is None:
         record = time.strftime("hil-%Y%m%d-%H%M%S.h5")
@@ -311,6 +309,8 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
                       quiet: bool = False) -> dict:
     """The prototype through the drivers on the emulated stand: hold, track PROTOTYPE_SINE, isolate (a third
     each, [hil] settle_s of each not metered). Returns the figures (tracking per segment, true load motion)."""
+    from rig import operated
+    from rig.runtime.session import Session
     if record is None:
         record = time.strftime("hil-prototype-%Y%m%d-%H%M%S.h5")
     q = seconds / 3
@@ -365,6 +365,7 @@ def _prototype(cfg, seconds: float, args) -> int:
     if args.json:
         print(json.dumps(out))
         return code
+    from rig import operated
     print(operated.figures_text(res["segments"]))
     tr = res["tracking"]
     red = res["isolation_reduction_db"]

@@ -15,7 +15,6 @@ from pathlib import Path
 from rig import cliargs
 from rig.batch import command as batch
 from rig.batch.run import Job, file_identity
-from rig.identify import UNITS
 from rig.errors import RigError
 
 
@@ -47,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def table_markdown(res) -> str:
     """The identified parameters beside Table 1 (the design values the fit started from)."""
+    from rig.identify import UNITS
     from sim_backend.linear import IDENTIFIED
     lines = ["| parameter | unit | Table 1 (design) | identified | 1-sigma | change | note |",
              "|---|---|---|---|---|---|---|"]
@@ -223,11 +223,11 @@ def run(args) -> int:
 
 
 def run_single(args) -> int:
-    from rig.identify import identify, refuse_feedback_only
     from rig.plant.file import load_subject
 
     t0 = time.perf_counter()
     subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2
+    from rig.identify import identify, refuse_feedback_only            # heavy (numba): once the input is read
     rec, plant = subject.rec, subject.plant
     if rec.gaps:
         print(f"note: {rec.gaps}", file=sys.stderr)

@@ -30,6 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="blind proof on the four-mount rig: closed-loop runs (isolation off, feedback, feedforward; "
                         "floor accelerometers or not) hiding machine-level effects, recorded as rig run --record "
                         "does and diagnosed (default --duration 60 s)")
+    p.add_argument("--commission", action="store_true",
+                   help="blind proof of rig commission on the emulated rig: each case wires it wrong in two or three "
+                        "ways from drivers/devicemaps/hil_wiring_faults.md and grades what commissioning names "
+                        "(real time: about 20 s a case; --config: the HIL configuration, default hil.toml)")
+    p.add_argument("--clean", type=cliargs.count(0, 1000), default=10, metavar="N",
+                   help="with --commission: also N rigs wired right, none of which may be flagged (default 10)")
     cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,
                        help="with --rig: keep each case's recording in DIR")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
@@ -66,6 +72,13 @@ def _where(args) -> str:
 def run(args) -> int:
     if args.rig:                                    # the four-mount rig (issue 28): its own defaults
         return prove_rig.run(args)
+    if args.commission:                             # the wiring checks (issue 27), on the emulated rig
+        import time
+
+        from rig.backends import default_config
+        from rig.commands import prove_commission
+        out = args.out if args.out is not None else Path(time.strftime("prove-commission-%Y%m%d-%H%M%S"))
+        return prove_commission.run(args, Path(args.config) if args.config else default_config("hil"), out)
     from rig.config import load_config
     from rig.diagnose import grading, prove
     from sim_backend.linear import ActuatorParams

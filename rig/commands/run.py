@@ -67,7 +67,7 @@ from rig.runtime import inject
 from rig.backends import BACKENDS, default_config
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
-from rig.errors import RecordingError, RigError
+from rig.errors import EXIT_HARM, RecordingError, RigError
 
 if TYPE_CHECKING:
     from rig.runtime.session import Session
@@ -357,7 +357,6 @@ class _RunPlan:
             return 1                          # the reason was logged once, when it happened
         if loop.harm:                         # logged when it happened; said again beside the stop line
             log.error("%s", loop.harm)
-            from rig.runtime.supervisor import EXIT_HARM
             return EXIT_HARM
         return 0
 

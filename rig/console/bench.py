@@ -32,10 +32,8 @@ import urllib.request
 import numpy as np
 
 from rig.console import browser
-from rig.console.link import Console
 from rig.errors import RigError
 from rig.runtime.lifecycle import State
-from rig.runtime.session import Session
 
 TOGGLE_S = 0.5
 SETTLE_S = 1.0                  # after the page has connected, before the block's periods count
@@ -58,6 +56,7 @@ def add_arguments(p) -> None:
 
 
 def bench_console(args, cfg, rate: float, clock) -> int:
+    from rig.runtime.session import Session
     why = browser.missing()
     if why:
         raise RigError(f"--console: a browser is needed: {why}")
@@ -158,6 +157,7 @@ def _block_none(session, block_s: float) -> dict:
 
 def _block_console(session, cfg, serve: str, block_s: float, drv: "_Driver") -> dict:
     loop = session.loop
+    from rig.console.link import Console
     with Console(cfg, "sim", port=0, serve=serve, log_level=None) as console:
         console.attach(session)
         try:

@@ -17,7 +17,7 @@ import numpy as np
 
 from rig.diagnose import catalogue
 from rig.diagnose.models import force_response as eha_force_response, sim_linear, sim_reduced
-from rig.plant.model import Plant, eha_plant
+from rig.plant.model import EHA_REFIT_BOUNDS, EHA_REFIT_KEYS, Plant, eha_plant
 from rig.plant.zoh import discretise, free_response, phi, play, run_segments, substeps
 from sim_backend.linear import ActuatorParams
 
@@ -49,8 +49,8 @@ def at_bounds(bounds_lin: dict, lin: dict, keys, log_scale: dict | None = None) 
 class EhaModel:
     """The paper's actuator (the default plant): exactly the engine's behaviour before plant files."""
     family = "eha"
-    lin_keys = ("K_L", "K_C", "K_Q", "w_nv", "zeta")
-    LIN_BOUNDS = (0.7, 1.4)            # x nominal: physically bounded refit (recordings move them +-15 %)
+    lin_keys = EHA_REFIT_KEYS
+    LIN_BOUNDS = EHA_REFIT_BOUNDS      # x nominal: physically bounded refit
     segmented = False
     input_unit = "V"
     has_load = True

@@ -12,7 +12,7 @@ Every parameter has a start value and is either fixed or free within bounds (`Pa
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.signal
@@ -21,6 +21,10 @@ from sim_backend.linear import ActuatorParams
 
 FAMILIES = ("eha", "mechanical_axis", "transfer_function")
 INPUT_UNITS = ("V", "N", "A")
+# the eha parameters the diagnosis refits (within these factors of the plant file's values: recordings move them
+# +-15 %); the others (M, A_p, V_t, K_v, beta) stay as given
+EHA_REFIT_KEYS = ("K_L", "K_C", "K_Q", "w_nv", "zeta")
+EHA_REFIT_BOUNDS = (0.7, 1.4)
 
 
 @dataclass(frozen=True)
@@ -105,7 +109,9 @@ class Plant:
     def describe(self) -> str:
         parts = []
         for k, p in self.params.items():
-            parts.append(f"{k}={p.value:.4g}" + (f" [{p.lo:.3g}, {p.hi:.3g}]" if p.free else " (fixed)"))
+            refit = self.family == "eha" and k in EHA_REFIT_KEYS
+            parts.append(f"{k}={p.value:.4g}" + (f" [{p.lo:.3g}, {p.hi:.3g}]" if p.free else
+                                                  " (refit from here)" if refit else " (fixed)"))
         return f"{self.family} (input {self.input_unit}): " + ", ".join(parts)
 
 

@@ -30,7 +30,6 @@ from scipy import signal
 
 from rig.runtime.exchange import A_NEWEST, A_SLOTS, H_ACAP, H_ACCEL, H_AWIDTH, SLOT_COUNTER
 
-EXIT_HARM = 3                     # a command's exit status when the supervisor switched isolation off
 LOOK_S = 0.1                      # the loop's watch: a look at least every tenth of a second
 PASSIVE, ISOLATING, SETTLING = 0, 1, 2
 

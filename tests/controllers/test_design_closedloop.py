@@ -172,6 +172,8 @@ def test_rig_demo_runs_through_the_loop(tmp_path, capsys):
     assert main(["demo", "--seconds", "1", "--settle", "0.2", "--model-error", "0", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "table Y rms" in out and "VC class, table" in out and "the same realisation in all three runs" in out
+    # the two floor levels said apart: the table's (measured) against each mount's (configured)
+    assert "as the table feels it (the mean of the four mounts' floor, each 3 um rms)" in out, out
     res = json.loads((tmp_path / "demo.json").read_text())
     assert res["valve_rms_V"]["off"] < 0.1 < res["valve_rms_V"]["feedback"]     # centring only, then isolating
     assert res["feedforward_rms_V"]["feedback"] == 0.0 < res["feedforward_rms_V"]["feedback_feedforward"]

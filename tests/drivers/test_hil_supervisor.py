@@ -13,7 +13,7 @@ import pytest
 
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.runtime.recorder import read_recording
-from rig.runtime.supervisor import EXIT_HARM
+from rig.errors import EXIT_HARM
 
 pytestmark = pytest.mark.hil
 

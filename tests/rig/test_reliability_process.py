@@ -236,3 +236,10 @@ def test_uncommissioned_hardware_is_refused_in_one_line(tmp_path):
     os.utime(cal, None)
     out = rig(*args)                                                  # past the rule: the devices' own error
     assert "not commissioned" not in out.stderr and "Traceback" not in out.stderr and out.returncode != 0
+    # a chirp drives the hardware's valve too: the same rule (and its own --uncommissioned)
+    os.utime(cal, (time.time() - 60, time.time() - 60))
+    chirp = ("chirp", "--backend", "hardware", "--config", str(cfg), "--seconds", "1", "--record",
+             str(tmp_path / "c.h5"))
+    assert f"its calibration {cal} is older than {cfg}" in one_error_line(rig(*chirp))
+    out = rig(*chirp, "--uncommissioned")                             # past the rule: the devices' own error
+    assert "not commissioned" not in out.stderr and "Traceback" not in out.stderr and out.returncode != 0

@@ -78,6 +78,29 @@ def test_rig_help_imports_no_command_and_nothing_heavy():
         assert name in out.stdout
 
 
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_a_refusal_comes_before_the_heavy_imports(name, tmp_path):
+    """A command's options are checked before its work's libraries load: a missing input file, an existing
+    output folder or a misspelt option is refused at once, not after seconds of imports (numba, scipy, ...)."""
+    code = ("import sys\nfrom rig.cli import build_parser\n"
+            f"build_parser({name!r})\n"
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba', 'control', 'matplotlib'))\n"
+            "print('HEAVY', heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert "HEAVY []" in out.stdout, (name, out.stdout[-2000:], out.stderr[-2000:])
+
+
+def test_a_missing_recording_is_refused_before_any_work(tmp_path):
+    """`rig identify` of a file that is not there: one line naming it, and the identification's compiled code
+    (numba) never loaded: the refusal is immediate."""
+    code = ("import sys\nfrom rig.cli import main\n"
+            f"code = main(['identify', {str(tmp_path / 'nothere.h5')!r}])\n"
+            "print('CODE', code, sorted(m for m in sys.modules if m.split('.')[0] == 'numba'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert "CODE 2 []" in out.stdout, (out.stdout, out.stderr)
+    assert out.stderr.strip() == f"rig identify: error: {tmp_path / 'nothere.h5'}: no such file", out.stderr
+
+
 def test_json_prints_only_json_on_stdout():
     out = subprocess.run([sys.executable, "-m", "rig.cli", "model", "--json"], capture_output=True, text=True,
                          timeout=300, cwd=REPO)

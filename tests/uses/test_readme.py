@@ -1,7 +1,7 @@
 """Every command of the README runs as written, in order, from a folder of its own (issue 29): each `$ rig ...`
-line of a ```console block, and the ```python block. The lines shown after a command are its output's shape:
-each must appear in what the command printed (stdout or stderr), numbers aside. A command that fails, or whose
-output changes shape, fails this test."""
+line of a ```console block, and the ```python block. The lines shown after a command (`…` marks lines left
+out) are its output's shape: each must appear in what the command printed (stdout or stderr), numbers aside.
+A command that fails, or whose output changes shape, fails this test."""
 from __future__ import annotations
 
 import os
@@ -33,7 +33,7 @@ def _steps() -> list[tuple[str, list[str]]]:
         for line in block.splitlines():
             if line.startswith("$ "):
                 steps.append((line[2:], []))
-            elif line.strip():
+            elif line.strip() and line.strip() != "…":      # `…`: lines of the output left out
                 steps[-1][1].append(line)
     return steps
 

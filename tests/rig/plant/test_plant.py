@@ -134,3 +134,14 @@ def test_a_missing_input_unit_is_named_as_such():
     """Issue 29: a mechanical_axis without input_unit was told about gain_n_per_unit."""
     with pytest.raises(ConfigError, match=r"\[plant\] input_unit: missing: the command's unit"):
         parse_plant({"family": "mechanical_axis", "mass_kg": 2.0, "damping_n_s_per_m": 3.0}, "p.toml")
+
+
+def test_an_eha_plant_file_says_which_values_the_diagnosis_refits():
+    """The README's plant file gives every eha value as a number: the ones the diagnosis refits read "refit from
+    here", the others "(fixed)" (a newcomer read all eleven as fixed just before "refit of the linear
+    parameters")."""
+    from rig.plant.model import EHA_REFIT_KEYS
+    text = load_plant(REPO / "docs" / "examples" / "spreadsheet_csv.toml").describe()
+    parts = dict(p.split("=", 1) for p in text.split(": ", 1)[1].split(", "))
+    assert {k for k, v in parts.items() if v.endswith("(refit from here)")} == set(EHA_REFIT_KEYS), text
+    assert {k for k, v in parts.items() if v.endswith("(fixed)")} == {"M", "A_p", "C", "V_t", "K_v", "beta"}, text
