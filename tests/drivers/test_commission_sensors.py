@@ -17,7 +17,7 @@ from tests.drivers.test_commission import _commission
 from rig.commands.commission import EXIT_FINDINGS
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.commissioning import stroke_unit
-from rig.runtime.supervisor import EXIT_HARM
+from rig.errors import EXIT_HARM
 from sim_backend.emulators import shared as sh
 from sim_backend.emulators.modbus_server import MAX_DELAY_STEPS, Module
 
@@ -45,6 +45,11 @@ def _commission_twice(tmp_path, keys: str):
     return first, json.loads(run.stdout)
 
 
+def _faults(res) -> set:
+    """What one commissioning named, {(channel, kind)} (as `rig prove --commission` grades it)."""
+    return {(f["channel"], f["kind"]) for f in res["faults"]}
+
+
 @pytest.mark.hil
 def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
     # front_left's transducer ranged a decade off (reads 0.1 x), front_right's accelerometer dead (unwired: the
@@ -60,6 +65,8 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
                                  f"accel:{FR}": "refused", f"stroke:{FR}": "ok",
                                  f"accel:{RL}": "refused", f"stroke:{RL}": "corrected",
                                  f"accel:{RR}": "corrected", f"stroke:{RR}": "refused"}
+    assert _faults(first) == {(f"stroke:{FL}", "scale"), (f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"),
+                              (f"stroke:{RL}", "offset"), (f"stroke:{RR}", "noisy"), (f"accel:{RR}", "offset")}
     text = first["text"]
     assert f"transducer of {FL} (channel mapped to {FL}): reads 0.1 x its stroke" in text
     assert f"accelerometer on {FR}: scale" in text and "(dead or unwired)" in text
@@ -72,6 +79,7 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
     assert cal["accel"][RR]["offset_mps2"] == pytest.approx(0.5, abs=0.02)
     assert cal["accel"][FR]["scale"] == 1.0                        # a dead channel's scale is no calibration
     # the calibration applied: the slip and the offsets read right; the dead and noisy channels stay refused
+    assert _faults(second) == {(f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"), (f"stroke:{RR}", "noisy")}
     assert second["verdicts"] == {**first["verdicts"], f"stroke:{FL}": "ok", f"stroke:{RL}": "ok",
                                   f"accel:{RR}": "ok"}
     others = [abs(second["valve_gain_vs_model"][m]) for m in (FR, RL)]
@@ -92,6 +100,9 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
                                  f"accel:{FR}": "ok", f"stroke:{FR}": "corrected",
                                  f"accel:{RL}": "ok", f"stroke:{RL}": "corrected",
                                  f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused"}
+    assert _faults(first) == {(f"stroke:{FL}", "swap"), (f"stroke:{FR}", "swap"), (f"stroke:{RL}", "sign"),
+                              (f"stroke:{RR}", "dead")}
+    assert _faults(second) == {(f"stroke:{RR}", "dead")}
     text = first["text"]
     assert f"transducers swapped: valve {FL} is answered by the channel mapped to {FR}" in text
     assert f"stroke of {RL}: sign inverted" in text and f"transducer of {RR}: no answer to its valve" in text
