@@ -107,10 +107,13 @@ def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
     return out
 
 
-def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings) -> set:
+def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings,
+                    fix=None) -> set:
     """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
-    offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration).
+    offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration);
+    its noise floor is compared as calibrated (fix: {kind: {channel: its scale}}: a range a decade up is not noisy).
     Returns {(kind:channel, fault)} of what it named."""
+    fix = fix or {}
     named = set()
     carries = {"accel": {names[a]: m for a, m in zip(accel_of, names)},
                "stroke": {names[x]: m for x, m in zip(stroke_of, names)}, "floor": {m: m for m in names}}
@@ -132,8 +135,9 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 findings.append(f"{name}: dead (constant at null)")
                 named.add((f"{kind}:{ch}", "dead"))
                 continue
-            others = [r[f"noise_floor_{unit}"] for c, r in rows.items() if c != ch and r["alive"]]
-            nf = row[f"noise_floor_{unit}"]
+            floors = {c: r[f"noise_floor_{unit}"] * abs(fix.get(kind, {}).get(c, 1.0)) for c, r in rows.items()}
+            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]]
+            nf = floors[ch]
             if others and nf > NOISY_RATIO * float(np.median(others)):
                 worse(key, "refused")
                 findings.append(f"{name}: noisy, noise floor {nf * shown[0]:.3g} {shown[1]} rms above "
@@ -254,7 +258,10 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         gain[m] *= units[m]
         scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels)
-    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings)
+    fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
+                     else 1.0 for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
+    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix)
     faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
     cal = {"accel": {names[accel_of[j]]: {"mount": m, "sign": 1.0 if scale[m] >= 0 else -1.0,
