@@ -328,7 +328,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels) -> tu
         elif xs != j:
             v = "corrected"
             findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
-        if gain[m] < 0:
+        if gain[m] < 0 and v != "refused":             # a dead transducer's sign is its noise's
             v = "corrected"
             findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
