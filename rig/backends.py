@@ -100,7 +100,8 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     emu = EmulatedRig(plant, dt, max_V=cfg.valve.max_V, w_spool=cfg.valve.w_nv, accel_V_per_mps2=d.accel_V_per_mps2,
                       node_ids=_valve_node_ids(cfg), priority=prio,
                       floor_V_per_mps2=cfg.sensors.floor_V_per_mps2, floor_channels=cfg.sensors.floor_channels,
-                      trace_s=trace_s, ai_faults=_ai_faults(cfg.hil), valve_faults=_valve_faults(cfg)).start()
+                      trace_s=trace_s, ai_faults=_ai_faults(cfg.hil), dt_faults=_dt_faults(cfg.hil),
+                      extra_delay_s=cfg.hil.extra_delay_s, valve_faults=_valve_faults(cfg)).start()
     try:
         stale = stale_s if stale_s is not None else cfg.hil.stale_s
         port = build_driver_port(cfg, "hil", can_interface="socketcand", can_channel="can0",
@@ -136,5 +137,11 @@ def _valve_faults(cfg):
 
 def _ai_faults(hil):
     """The emulated module's wiring faults ([hil] ai_*), None when it is wired as documented."""
-    faults = (hil.ai_source, hil.ai_factor, hil.ai_offset_mps2)
-    return None if faults == (tuple(range(8)), (1.0,) * 8, (0.0,) * 8) else faults
+    faults = (hil.ai_source, hil.ai_factor, hil.ai_offset_mps2, hil.ai_noise_mps2)
+    return None if faults == (tuple(range(8)), (1.0,) * 8, (0.0,) * 8, (0.0,) * 8) else faults
+
+
+def _dt_faults(hil):
+    """The emulated amplifier's wiring faults ([hil] dt_*), None when it is wired as documented."""
+    faults = (hil.dt_source, hil.dt_factor, hil.dt_offset_m, hil.dt_noise_m)
+    return None if faults == (tuple(range(4)), (1.0,) * 4, (0.0,) * 4, (0.0,) * 4) else faults

@@ -14,7 +14,12 @@ where the transducer's second derivative and the accelerometers are both above t
                     DC gain (the actuator's lag corner lies far above it)
 
 Verdicts per channel: ok, corrected (the calibration file puts it right: a swap, a sign, a scale within
-SCALE_FIX), refused (dead, or a scale nobody should correct).
+SCALE_FIX, a transducer's unit slip, an offset), refused (dead, noisy, or a scale nobody should correct),
+unchecked (an accelerometer whose mount's transducer is dead: nothing to hold its sign and scale against).
+The sensors' own checks (sensor_findings): alive, offset and noise floor at null, each channel's noise floor
+(above NOISE_HZ, where the table barely moves and a sensor's white noise shows) against the median of the
+others of its kind, and a transducer's range or unit slip (stroke_unit: its accelerometer a power of ten off its
+x'', and its stroke/command moved the other way against the other mounts').
 """
 from __future__ import annotations
 
@@ -38,6 +43,13 @@ NULL_TOL_V = 0.05
 NULL_MAX_V = 2.0
 GAIN_TOL = 0.25
 GAIN_FIX = (0.33, 3.0)
+STROKE_DEAD_RATIO = 0.02       # the same for a transducer: one whose range is a decade off answers 0.1 of the
+                               # others' (a range slip, stroke_unit), a dead one its own noise (< 0.002 measured)
+NOISE_HZ = 100.0               # noise floor: a channel's rms at null above this (or 0.3 fs, the lower)
+NOISY_RATIO = 3.0              # a noise floor above this x the median of the others of its kind: noisy (refused:
+                               # no calibration takes noise out, and the loop would feed it to the valves; channels
+                               # wired right lie within a few % of each other)
+OFFSET_RATIO = 5.0             # an offset at null above this x the channel's rms there: named (and taken off)
 
 
 def _band(x, fs):
@@ -59,6 +71,134 @@ def correction(scale: float) -> float:
         if abs(a * f - 1) <= SCALE_TOL:
             return f
     return 1.0 / a
+
+
+def stroke_unit(gain_vs_model: float, accel_scale: float, gain_ref: float = 1.0) -> float:
+    """The factor that puts a transducer's range or unit slip right (a range a decade off: 10 or 0.1; mm read as
+    um: 1e3 ...), else 1. A transducer reading k x its stroke shows twice: its accelerometer's scale against its x''
+    reads 1/k, and its stroke/command k x the rig's (gain_ref: the other mounts' median over the model's DC gain).
+    The first gives the power of ten; the second must have moved more than half way towards it: an accelerometer's
+    own g range moves the first only, a valve's own gain the second only."""
+    g, a = abs(gain_vs_model) / abs(gain_ref), abs(accel_scale)
+    if not (g > 0 and a > 0 and math.isfinite(g) and math.isfinite(a)):
+        return 1.0
+    decades = round(math.log10(a))            # the accelerometer against x'': 10^decades = 1/k
+    if decades == 0 or -math.log10(g) * decades < 0.5 * decades ** 2:
+        return 1.0
+    return 10.0 ** decades
+
+
+def _gain_ref(gain: dict, m: str, dead: set) -> float:
+    """The rig's stroke/command over the model's, from the mounts other than m (their median; 1 alone)."""
+    others = [abs(g) for k, g in gain.items() if k != m and k not in dead and g]
+    return float(np.median(others)) if others else 1.0
+
+
+def noise_floor(x: np.ndarray, fs: float) -> np.ndarray:
+    """Each column's rms above NOISE_HZ (or 0.3 fs): the sensor's own noise, where the table barely moves."""
+    sos = signal.butter(4, min(NOISE_HZ, 0.3 * fs), btype="highpass", fs=fs, output="sos")
+    return np.sqrt((signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0) ** 2).mean(axis=0))
+
+
+def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
+    """Each channel at null: offset, rms, noise floor, alive (accel, stroke; floor where the floor accelerometers
+    are fitted). Keyed by the mount each channel is mapped to."""
+    kinds = {"accel": (acc, "mps2"), "stroke": (x, "m")}
+    if floor is not None:
+        kinds["floor"] = (floor, "mps2")
+    out = {}
+    for kind, (v, unit) in kinds.items():
+        q = v[quiet]
+        nf = noise_floor(q, fs)
+        out[kind] = {m: {f"offset_{unit}": float(q[:, i].mean()), f"noise_rms_{unit}": float(q[:, i].std()),
+                         f"noise_floor_{unit}": float(nf[i]), "alive": bool(q[:, i].std() > 0)}
+                     for i, m in enumerate(names)}
+    return out
+
+
+def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings,
+                    fix=None) -> set:
+    """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
+    offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration);
+    its noise floor is compared as calibrated (fix: {kind: {channel: its scale}}: a range a decade up is not noisy).
+    Returns {(kind:channel, fault)} of what it named."""
+    fix = fix or {}
+    named = set()
+    carries = {"accel": {names[a]: m for a, m in zip(accel_of, names)},
+               "stroke": {names[x]: m for x, m in zip(stroke_of, names)}, "floor": {m: m for m in names}}
+    what = {"accel": "accelerometer", "stroke": "transducer", "floor": "floor accelerometer"}
+    rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
+
+    def worse(key, v):
+        if rank[v] > rank[verdicts.get(key, "ok")]:
+            verdicts[key] = v
+
+    for kind, rows in channels.items():
+        unit = "m" if kind == "stroke" else "mps2"
+        shown = (1e6, "um") if kind == "stroke" else (1e3, "mm/s^2")
+        for ch, row in rows.items():
+            key = f"{kind}:{carries[kind][ch]}"
+            name = f"{what[kind]} channel mapped to {ch}"
+            if not row["alive"]:
+                worse(key, "refused")
+                findings.append(f"{name}: dead (constant at null)")
+                named.add((f"{kind}:{ch}", "dead"))
+                continue
+            floors = {c: r[f"noise_floor_{unit}"] * abs(fix.get(kind, {}).get(c, 1.0)) for c, r in rows.items()}
+            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]]
+            nf = floors[ch]
+            if others and nf > NOISY_RATIO * float(np.median(others)):
+                worse(key, "refused")
+                findings.append(f"{name}: noisy, noise floor {nf * shown[0]:.3g} {shown[1]} rms above "
+                                f"{NOISE_HZ:g} Hz, {nf / float(np.median(others)):.1f} x the others'")
+                named.add((f"{kind}:{ch}", "noisy"))
+            off = row[f"offset_{unit}"]
+            if abs(off) > OFFSET_RATIO * row[f"noise_rms_{unit}"]:
+                worse(key, "corrected")
+                findings.append(f"{name}: offset {off * shown[0]:+.4g} {shown[1]} at null (taken off by the "
+                                f"calibration)")
+                named.add((f"{kind}:{ch}", "offset"))
+    for j, m in enumerate(names):
+        if units[m] != 1.0:
+            worse(f"stroke:{m}", "corrected")
+            findings.append(f"transducer of {m} (channel mapped to {names[stroke_of[j]]}): reads {1 / units[m]:g} x "
+                            f"its stroke (stroke/command {gain_raw[m]:+.3g} x the model's DC gain, the accelerometer "
+                            f"{units[m]:g} x its x''): a range or unit slip, scale {units[m]:g} in the calibration")
+            named.add((f"stroke:{names[stroke_of[j]]}", "scale"))
+        if m in dead_x:
+            worse(f"accel:{m}", "unchecked")
+            findings.append(f"accelerometer on {m}: sign and scale not checked (its mount's transducer answers "
+                            f"nothing)")
+    return named
+
+
+def sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named) -> list[dict]:
+    """The sensors' faults, one {channel: "<kind>:<channel as mapped>", kind} each (swap, sign, scale, offset, dead,
+    noisy), from the response matrix's results and sensor_findings' `named`. A swap is a sensor's only when the
+    other sensor of the mount does not answer the same other valve: both moving together is the valve's wiring."""
+    out = set(named)
+    for j, m in enumerate(names):
+        ac, xs = accel_of[j], stroke_of[j]
+        valve_moved = ac == xs != j
+        a, ch = abs(scale[m]), f"accel:{names[ac]}"
+        if verdicts[f"accel:{m}"] != "unchecked" and (ch, "dead") not in out:
+            if a < SCALE_FIX[0]:                     # no answer: its sign and its place are its noise's
+                out.add((ch, "dead"))
+            else:
+                if scale[m] < 0:
+                    out.add((ch, "sign"))
+                if abs(a - 1) > SCALE_TOL:
+                    out.add((ch, "scale"))
+        if ac != j and not valve_moved and (ch, "dead") not in out:
+            out.add((ch, "swap"))
+        if m in dead_x:
+            out.add((f"stroke:{names[xs]}", "dead"))
+            continue
+        if xs != j and not valve_moved:
+            out.add((f"stroke:{names[xs]}", "swap"))
+        if gain[m] < 0:
+            out.add((f"stroke:{names[xs]}", "sign"))
+    return [{"channel": c, "kind": k} for c, k in sorted(out)]
 
 
 def channel_map(R: np.ndarray) -> list[int]:
@@ -85,12 +225,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     floor = rec.get("floor_accel_mps2")
     rel = acc - np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else acc
     quiet = (t > 0.2 * quiet_s) & (t < quiet_s)
-    channels = {"accel": {}, "stroke": {}}
-    for i, m in enumerate(names):
-        channels["accel"][m] = {"offset_mps2": float(acc[quiet, i].mean()), "noise_rms_mps2": float(acc[quiet, i].std()),
-                                "alive": bool(acc[quiet, i].std() > 0)}
-        channels["stroke"][m] = {"offset_m": float(x[quiet, i].mean()), "noise_rms_m": float(x[quiet, i].std()),
-                                 "alive": bool(x[quiet, i].std() > 0)}
+    channels = quiet_channels(acc, x, np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n]
+                              if floor is not None else None, quiet, fs, names)
     rb, xb, cb = _band(rel, fs), _band(x, fs), _band(cmd, fs)
     w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
     xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
@@ -122,26 +258,55 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
         h = pxy[low] / np.maximum(pxx[low], 1e-300)
         gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
+    # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
+    # against it are judged through its correction; a dead transducer holds no accelerometer to anything
+    gain_raw, scale_raw = dict(gain), dict(scale)
+    med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
+    dead_x = {m for j, m in enumerate(names) if R_x[stroke_of[j], j] < STROKE_DEAD_RATIO * med_x
+              or not channels["stroke"][names[stroke_of[j]]]["alive"]}
+    units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
+    for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
+        gain[m] *= units[m]
+        scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of)
+    fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
+                     else 1.0 for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
+    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix)
+    faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
+    scale.update({m: scale_raw[m] for m in dead_x})
     cal = {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
                                           "scale": correction(scale[m]),
                                           "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
                      for j, m in enumerate(names)},
-           "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0,
+           "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m],
                                             "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
                       for j, m in enumerate(names)}}
+    _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names)
     valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) \
         if steps is not None else None
     if valves is not None:
         verdicts.update(valves.pop("verdicts"))
         findings += valves.pop("findings")
+        faults = sorted(faults + valves.pop("faults"), key=lambda f: (f["channel"], f["kind"]))
         cal["valve"] = valves.pop("calibration")
         valves = valves["valves"]
     return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
             "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
-            "valves": valves, "verdicts": verdicts, "findings": findings, "calibration": cal, "band_hz": list(BAND_HZ),
-            "all_ok": all(v == "ok" for v in verdicts.values())}
+            "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
+            "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values())}
+
+
+def _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names) -> None:
+    """A refused or unchecked channel's measured scale is no calibration (a dead one's would multiply its noise):
+    it keeps scale 1, and an unchecked one its sign."""
+    for kind, of in (("accel", accel_of), ("stroke", stroke_of)):
+        for j, m in enumerate(names):
+            if verdicts[f"{kind}:{m}"] in ("refused", "unchecked"):
+                cal[kind][names[of[j]]]["scale"] = 1.0
+            if verdicts[f"{kind}:{m}"] == "unchecked":
+                cal[kind][names[of[j]]]["sign"] = 1.0
 
 
 def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of=None) -> tuple[dict, list]:
@@ -162,7 +327,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
                 v = "corrected"
                 findings.append(f"accelerometers swapped: valve {m} is answered by the channel mapped to {names[ac]}")
             s = scale[m]
-            if s < 0:
+            if s < 0 and abs(s) >= SCALE_FIX[0]:         # a dead channel's sign is its noise's
                 v = "corrected"
                 findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
             a = abs(s)
@@ -173,16 +338,17 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
                     findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x''{hint}")
                 else:
                     v = "refused"
-                    findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects")
+                    dead = " (dead or unwired)" if a < SCALE_FIX[0] else ""
+                    findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects{dead}")
         verdicts[f"accel:{m}"] = v
         v = "ok"
-        if R_x[xs, j] < DEAD_RMS_RATIO * med_x:
+        if R_x[xs, j] < STROKE_DEAD_RATIO * med_x:
             v = "refused"
             findings.append(f"transducer of {m}: no answer to its valve")
         elif xs != mount_of[j]:
             v = "corrected"
             findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
-        if gain[m] < 0:
+        if gain[m] < 0 and v != "refused":             # a dead transducer's sign is its noise's
             v = "corrected"
             findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
@@ -270,13 +436,14 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     # one-actuator model has not (0.92 wired right), the same for every mount
     ok = [g for g in gains if abs(g - 1) <= GAIN_TOL]
     g_ref = float(np.median(ok)) if ok else 1.0
-    verdicts, findings, rows, figs = {}, [], {}, {}
+    verdicts, findings, faults, rows, figs = {}, [], [], {}, {}
     for j, m in enumerate(names):
         xs, g = stroke_of[j], gains[j]
         node = f"valve {m}"
         v, out = "ok", {"mount": names[mount_of[j]], "null_V": 0.0, "gain": 1.0}
         if mount_of[j] != j:
             v = "corrected"
+            faults.append({"channel": f"valve:{m}", "kind": "swap"})
             if j == min(_cycle(mount_of, j)):            # one line per exchange
                 findings.append("valve nodes swapped: " + ", ".join(
                     f"the command for {names[i]} moves {names[mount_of[i]]}" for i in _cycle(mount_of, j)) +
@@ -286,13 +453,16 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
             findings.append(f"{node}: not judged (its mount's transducer does not answer it)")
         elif not GAIN_FIX[0] <= g <= GAIN_FIX[1]:
             v = "refused"
+            faults.append({"channel": f"valve:{m}", "kind": "gain"})
             findings.append(f"{node}: DC gain {g:+.2f} x the model's, beyond what calibration corrects")
         elif abs(g - 1) > GAIN_TOL:
             v = "corrected" if v == "ok" else v
+            faults.append({"channel": f"valve:{m}", "kind": "gain"})
             out["gain"] = g / g_ref
             findings.append(f"{node}: DC gain {g:.2f} x the model's ({g / g_ref:.2f} x the valves that are ok)")
         if judged[j] and abs(null[j]) > NULL_TOL_V:
             v = "corrected" if v == "ok" else v
+            faults.append({"channel": f"valve:{m}", "kind": "null"})
             out["null_V"] = float(null[j])
             findings.append(f"{node}: null offset {null[j]:+.3f} V (its spool centres there: at zero command the "
                             f"stroke sits {-D[xs, j] * null[j] * 1e6:+.2f} um off)")
@@ -307,7 +477,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     for i, ch in enumerate(names):
         if "offset_m" in cal.get("stroke", {}).get(ch, {}):
             cal["stroke"][ch]["offset_m"] = float(left[i])
-    return {"verdicts": verdicts, "findings": findings, "calibration": rows, "valves": figs}
+    return {"verdicts": verdicts, "findings": findings, "faults": faults, "calibration": rows, "valves": figs}
 
 
 def text(res: dict) -> str:

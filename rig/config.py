@@ -231,6 +231,16 @@ class HilConfig:
     ai_source: tuple[int, ...] = _f((0, 1, 2, 3, 4, 5, 6, 7), "", ge=0, le=7, n=8)
     ai_factor: tuple[float, ...] = _f((1.0,) * 8, "", ge=-100, le=100, n=8)
     ai_offset_mps2: tuple[float, ...] = _f((0.0,) * 8, "m/s^2", ge=-100, le=100, n=8)
+    # the sensors' other faults (same table): extra white noise per AI channel (a dead one: ai_factor 0); per
+    # channel of the emulated transducer amplifier (mount order) the mount's stroke it carries (a swap), a factor
+    # (-1 inverted, 1e-3 a channel ranged in mm read as um, 0 dead), an offset and extra white noise; and a delay
+    # of the analog module's signal (the loop's feedback in its band: a slow module's filter, a supervisor's case)
+    ai_noise_mps2: tuple[float, ...] = _f((0.0,) * 8, "m/s^2", ge=0, le=100, n=8)
+    dt_source: tuple[int, ...] = _f((0, 1, 2, 3), "", ge=0, le=3, n=4)
+    dt_factor: tuple[float, ...] = _f((1.0,) * 4, "", ge=-1e4, le=1e4, n=4)
+    dt_offset_m: tuple[float, ...] = _f((0.0,) * 4, "m", ge=-2e-3, le=2e-3, n=4)
+    dt_noise_m: tuple[float, ...] = _f((0.0,) * 4, "m", ge=0, le=1e-3, n=4)
+    extra_delay_s: float = _f(0.0, "s", ge=0, le=0.02)
     # per valve (MOUNTS order; a layout of fewer mounts takes the first): the command at which its spool centres
     # (a null offset), a factor on its flow gain K_Q, and the CAN node number it answers to with [drivers]
     # valve_node_id_base = 1 (the numbers shift with the base): two exchanged = swapped CAN nodes, the driver's

@@ -1,10 +1,12 @@
 """Entry point of an emulated device process: `python -m sim_backend.emulators.device KIND STATE_FILE ...`.
 
-  modbus STATE_FILE V_PER_MPS2 PRIORITY [FLOOR_V_PER_MPS2 FLOOR_CHANNELS [FAULTS]]
+  modbus STATE_FILE V_PER_MPS2 PRIORITY [FLOOR_V_PER_MPS2 FLOOR_CHANNELS [FAULTS [DELAY_STEPS]]]
                                           prints `PORT <n>` once listening on 127.0.0.1:<n>
                                           (FLOOR_CHANNELS: comma-separated AI channels, MOUNTS order;
-                                          FAULTS: wiring faults, JSON [sources, factors, offsets])
-  serial STATE_FILE PRIORITY              prints `PATH <pty>` once the pty pair is open
+                                          FAULTS: wiring faults, JSON [sources, factors, offsets, noise] or
+                                          null; DELAY_STEPS: conversions the signal lags, fractional)
+  serial STATE_FILE PRIORITY [FAULTS]     prints `PATH <pty>` once the pty pair is open (FAULTS: JSON
+                                          [sources, factors, offsets_m, noise_m] or null)
   plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a socketcand gateway; prints
                                           `PORT <n>` once listening on 127.0.0.1:<n> (SPEC_FILE: pickled)
 The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
@@ -59,11 +61,13 @@ def main(argv: list[str]) -> int:
         from sim_backend.emulators import modbus_server          # lazy: this child serves Modbus only
         floor = (float(argv[4]), tuple(int(c) for c in argv[5].split(","))) if len(argv) > 5 else (2.0, (4, 5, 6, 7))
         faults = json.loads(argv[6]) if len(argv) > 6 else None
+        delay = float(argv[7]) if len(argv) > 7 else 0.0
         modbus_server.serve(state.arr, _Announce("PORT"), float(argv[2]), int(argv[3]), floor_V_per_mps2=floor[0],
-                            floor_channels=floor[1], faults=faults)
+                            floor_channels=floor[1], faults=faults, delay_steps=delay)
     elif kind == "serial":
         from sim_backend.emulators import serial_device          # lazy: this child serves the pty only
-        serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]))
+        serial_device.serve(state.arr, _Announce("PATH"), 0, int(argv[2]),
+                            faults=json.loads(argv[3]) if len(argv) > 3 else None)
     elif kind == "plant":
         from sim_backend.emulators import canopen_valve          # lazy: this child runs canopen and the plant
         canopen_valve.serve(state.arr, _Announce("PORT"), argv[2], int(argv[3]))

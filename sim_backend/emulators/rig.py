@@ -24,7 +24,7 @@ import tempfile
 
 import numpy as np
 
-from rig.errors import DeviceError
+from rig.errors import ConfigError, DeviceError
 from sim_backend.emulators import shared as sh
 
 
@@ -32,7 +32,8 @@ class EmulatedRig:
     def __init__(self, plant, dt: float, *, max_V: float = 10.0, w_spool: float = 524.0,
                  accel_V_per_mps2: float = 2.0, node_ids=(1, 2, 3, 4), start_timeout_s: float = 60.0,
                  priority: int = 0, floor_V_per_mps2: float = 2.0, floor_channels=(4, 5, 6, 7),
-                 trace_s: float = 0.0, ai_faults=None, valve_faults=None):
+                 trace_s: float = 0.0, ai_faults=None, dt_faults=None, extra_delay_s: float = 0.0,
+                 valve_faults=None):
         self.plant = plant
         self.dt = float(dt)
         self.max_V = max_V
@@ -41,8 +42,14 @@ class EmulatedRig:
         # floor accelerometers: wired to the module when the plant has them (RigPlant.floor_sensors)
         self.floor_V_per_mps2, self.floor_channels = floor_V_per_mps2, tuple(floor_channels)
         self.floor_sensors = bool(getattr(plant, "floor_sensors", False))
-        self.ai_faults = ai_faults          # wiring faults of the module's channels: (sources, factors, offsets)
+        self.ai_faults = ai_faults          # wiring faults of the module's channels: (sources, factors, offsets, noise)
+        self.dt_faults = dt_faults          # the amplifier's: (sources, factors, offsets_m, noise_m)
         self.valve_faults = valve_faults    # the valves' (null offsets V, gain factors), mount order; None: right
+        self.extra_delay_s = float(extra_delay_s)     # the module's signal lags the plant by this much
+        from sim_backend.emulators.modbus_server import MAX_DELAY_STEPS     # lazy: the limit only
+        if extra_delay_s / self.dt > MAX_DELAY_STEPS:
+            raise ConfigError(f"[hil] extra_delay_s = {extra_delay_s:g} s: at most {MAX_DELAY_STEPS} conversions of "
+                              f"{self.dt:g} s ({MAX_DELAY_STEPS * self.dt:g} s) at this rate")
         self.node_ids = list(node_ids)
         self.start_timeout_s = start_timeout_s
         self.priority = priority              # SCHED_FIFO of the device processes (0 = normal)
@@ -63,11 +70,12 @@ class EmulatedRig:
                              "max_V": self.max_V, "floor_sensors": self.floor_sensors,
                              "trace_steps": self.state.trace_steps, "valve_faults": self.valve_faults}, f)
             self.can_port = int(self._spawn("plant", spec, str(self.priority)))
-            wiring = [json.dumps([list(f) for f in self.ai_faults])] if self.ai_faults is not None else []
+            wiring = json.dumps([list(f) for f in self.ai_faults] if self.ai_faults is not None else None)
             self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority),
                                                str(self.floor_V_per_mps2), ",".join(map(str, self.floor_channels)),
-                                               *wiring))
-            self.serial_path = self._spawn("serial", str(self.priority))
+                                               wiring, repr(self.extra_delay_s / self.dt)))
+            self.serial_path = self._spawn("serial", str(self.priority),
+                                           json.dumps([list(f) for f in self.dt_faults] if self.dt_faults else None))
             self.state.unlink()                 # every device has it mapped: nothing is left behind on a crash
         except BaseException:
             self.stop()

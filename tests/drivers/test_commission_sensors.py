@@ -1,0 +1,159 @@
+"""`rig commission` on the emulated rig (real drivers: Modbus TCP on 127.0.0.1, the DTA-4 on a real pty) with the
+sensors' wiring faults of [hil] (drivers/devicemaps/hil_wiring_faults.md), several on different mounts in one run:
+each named on its channel; what calibration corrects (a transducer's range slip, swap, sign, offsets) reads right
+when the written commissioning.toml is applied (commissioning the same miswired rig again: those channels ok); what
+it cannot (dead, noisy) stays refused. A channel dead at a constant stops commissioning at once, naming it."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from tests.drivers.test_commission import _commission
+
+from rig.commands.commission import EXIT_FINDINGS
+from rig.commands.hil import HIL_DEFAULT_CONFIG
+from rig.commissioning import stroke_unit
+from rig.errors import EXIT_HARM
+from sim_backend.emulators import shared as sh
+from sim_backend.emulators.modbus_server import MAX_DELAY_STEPS, Module
+
+FL, FR, RL, RR = "front_left", "front_right", "rear_left", "rear_right"
+
+
+def _miswired(tmp_path, name, keys: str):
+    cfg = tmp_path / f"{name}.toml"
+    cfg.write_text(HIL_DEFAULT_CONFIG.read_text().replace("[hil]\n", "[hil]\n" + keys, 1))
+    return cfg
+
+
+def _commission_twice(tmp_path, keys: str):
+    """Commission the miswired rig, then the same rig through the calibration it wrote: (first, second) results."""
+    cfg = _miswired(tmp_path, "miswired", keys)
+    run, out = _commission(tmp_path / "first", "--config", str(cfg))
+    assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
+    first = json.loads(run.stdout)
+    first["text"] = (out / "report.txt").read_text()
+    first["toml"] = tomllib.loads((out / "commissioning.toml").read_text())
+    fixed = tmp_path / "calibrated.toml"
+    fixed.write_text(cfg.read_text() + f'\n[drivers]\ncalibration = "{out / "commissioning.toml"}"\n')
+    run, _ = _commission(tmp_path / "second", "--config", str(fixed))
+    assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
+    return first, json.loads(run.stdout)
+
+
+def _faults(res) -> set:
+    """What one commissioning named, {(channel, kind)} (as `rig prove --commission` grades it)."""
+    return {(f["channel"], f["kind"]) for f in res["faults"]}
+
+
+@pytest.mark.hil
+def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
+    # front_left's transducer ranged a decade off (reads 0.1 x), front_right's accelerometer dead (unwired: the
+    # module's own noise only), rear_left's accelerometer noisy and its transducer 50 um off, rear_right's
+    # transducer noisy and its accelerometer 0.5 m/s^2 off
+    first, second = _commission_twice(tmp_path, "dt_factor = [0.1, 1.0, 1.0, 1.0]\n"
+                                                "ai_factor = [1.0, 0.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n"
+                                                "ai_noise_mps2 = [0.0, 0.002, 0.02, 0.0, 0.0, 0.0, 0.0, 0.0]\n"
+                                                "dt_offset_m = [0.0, 0.0, 50e-6, 0.0]\n"
+                                                "dt_noise_m = [0.0, 0.0, 0.0, 2e-7]\n"
+                                                "ai_offset_mps2 = [0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0]\n")
+    assert first["verdicts"] == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
+                                 f"accel:{FR}": "refused", f"stroke:{FR}": "ok",
+                                 f"accel:{RL}": "refused", f"stroke:{RL}": "corrected",
+                                 f"accel:{RR}": "corrected", f"stroke:{RR}": "refused"}
+    assert _faults(first) == {(f"stroke:{FL}", "scale"), (f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"),
+                              (f"stroke:{RL}", "offset"), (f"stroke:{RR}", "noisy"), (f"accel:{RR}", "offset")}
+    text = first["text"]
+    assert f"transducer of {FL} (channel mapped to {FL}): reads 0.1 x its stroke" in text
+    assert f"accelerometer on {FR}: scale" in text and "(dead or unwired)" in text
+    assert f"accelerometer channel mapped to {RL}: noisy" in text
+    assert f"transducer channel mapped to {RR}: noisy" in text
+    assert f"transducer channel mapped to {RL}: offset +" in text
+    assert f"accelerometer channel mapped to {RR}: offset +" in text
+    cal = first["toml"]
+    assert cal["stroke"][FL]["scale"] == 10.0 and cal["stroke"][RL]["offset_m"] == pytest.approx(50e-6, abs=2e-6)
+    assert cal["accel"][RR]["offset_mps2"] == pytest.approx(0.5, abs=0.02)
+    assert cal["accel"][FR]["scale"] == 1.0                        # a dead channel's scale is no calibration
+    # the calibration applied: the slip and the offsets read right; the dead and noisy channels stay refused
+    assert _faults(second) == {(f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"), (f"stroke:{RR}", "noisy")}
+    assert second["verdicts"] == {**first["verdicts"], f"stroke:{FL}": "ok", f"stroke:{RL}": "ok",
+                                  f"accel:{RR}": "ok"}
+    others = [abs(second["valve_gain_vs_model"][m]) for m in (FR, RL)]
+    assert min(others) / 2 < abs(second["valve_gain_vs_model"][FL]) < 2 * max(others)
+    assert abs(second["accel_scale"][FL]) == pytest.approx(1.0, abs=0.35)
+    assert abs(second["channels"]["stroke"][RL]["offset_m"]) < 1e-6
+    assert abs(second["channels"]["accel"][RR]["offset_mps2"]) < 0.02
+
+
+@pytest.mark.hil
+def test_swapped_inverted_and_dead_transducers(tmp_path):
+    # front_left and front_right's transducers swapped, rear_left's inverted, rear_right's dead (the amplifier's
+    # own few nm of noise only)
+    first, second = _commission_twice(tmp_path, "dt_source = [1, 0, 2, 3]\ndt_factor = [1.0, 1.0, -1.0, 0.0]\n"
+                                                "dt_noise_m = [0.0, 0.0, 0.0, 5e-9]\n")
+    assert first["stroke_of_valve"][:2] == [FR, FL]
+    assert first["verdicts"] == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
+                                 f"accel:{FR}": "ok", f"stroke:{FR}": "corrected",
+                                 f"accel:{RL}": "ok", f"stroke:{RL}": "corrected",
+                                 f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused"}
+    assert _faults(first) == {(f"stroke:{FL}", "swap"), (f"stroke:{FR}", "swap"), (f"stroke:{RL}", "sign"),
+                              (f"stroke:{RR}", "dead")}
+    assert _faults(second) == {(f"stroke:{RR}", "dead")}
+    text = first["text"]
+    assert f"transducers swapped: valve {FL} is answered by the channel mapped to {FR}" in text
+    assert f"stroke of {RL}: sign inverted" in text and f"transducer of {RR}: no answer to its valve" in text
+    assert f"accelerometer on {RL}" not in text                # judged against its stroke as calibrated
+    cal = first["toml"]
+    assert cal["stroke"][FR]["mount"] == FL and cal["stroke"][RL]["sign"] == -1.0
+    assert second["verdicts"] == {**{k: "ok" for k in first["verdicts"]}, f"accel:{RR}": "unchecked",
+                                  f"stroke:{RR}": "refused"}
+    assert second["stroke_of_valve"][:3] == [FL, FR, RL] and second["valve_gain_vs_model"][RL] > 0
+
+
+@pytest.mark.hil
+@pytest.mark.parametrize("keys, line", [
+    ("ai_factor = [1.0, 0.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n", f"{FR}: accelerometer stuck"),
+    ("dt_factor = [1.0, 1.0, 1.0, 0.0]\n", f"{RR}: displacement transducer stuck"),
+    ("dt_factor = [1e-3, 1.0, 1.0, 1.0]\n", f"{FL}: displacement transducer stuck"),   # mm read as um: 0 at null
+])
+def test_a_channel_dead_at_a_constant_stops_commissioning_naming_it(tmp_path, keys, line):
+    run, out = _commission(tmp_path, "--config", str(_miswired(tmp_path, "dead", keys)))
+    assert run.returncode not in (0, EXIT_FINDINGS) and run.stdout == ""
+    assert line in run.stderr and "nothing judged" in run.stderr and not (out / "commissioning.toml").exists()
+
+
+def test_a_range_slip_is_told_from_a_g_range_and_a_valve_gain():
+    assert stroke_unit(0.04, 10.0, 0.4) == 10.0           # the transducer reads 0.1 x: both moved
+    assert stroke_unit(400.0, 1e-3, 0.4) == pytest.approx(1e-3)   # um read as mm
+    assert stroke_unit(0.4, 0.102, 0.4) == 1.0            # an accelerometer's g range: the gain did not move
+    assert stroke_unit(0.04, 1.0, 0.4) == 1.0             # a valve's own gain: the accelerometer did not move
+    assert stroke_unit(0.0, 0.0, 0.4) == 1.0              # dead: nothing to correct
+
+
+def test_the_module_delays_its_signal_by_fractional_conversions():
+    arr = sh.new_shared()
+    for k in range(1, 20):
+        sh.publish(arr, k * 1e-3, [0.1 * k, 0.0, 0.0, 0.0], [0.0] * 4, floor_mps2=[0.0] * 4)
+    now, late = Module(arr, 2.0), Module(arr, 2.0, delay_steps=2.5)
+    lsb = 20.0 / 65535 / 2.0                              # m/s^2 per count at 2 V per m/s^2
+    step = (now.read(0, 1)[0] - late.read(0, 1)[0]) * lsb / 0.1
+    assert step == pytest.approx(2.5, abs=0.02) and late.read(8, 1) == now.read(8, 1)   # same conversion counter
+    with pytest.raises(ValueError, match="module delay"):
+        Module(arr, 2.0, delay_steps=MAX_DELAY_STEPS + 1)
+    assert MAX_DELAY_STEPS < sh.FIFO_SLOTS
+
+
+@pytest.mark.hil
+def test_a_late_module_makes_isolation_harm_and_the_supervisor_says_so(tmp_path):
+    # [hil] extra_delay_s: the analog module's signal 20 ms late (10 conversions at 500 Hz), the loop's feedback
+    # with it: isolation makes the table worse, and `rig hil` says so and switches it off
+    cfg = _miswired(tmp_path, "late", "extra_delay_s = 0.02\n")
+    run = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(cfg), "--seconds", "10", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == EXIT_HARM, run.stderr[-3000:]
+    figs = json.loads(run.stdout)
+    assert "do-no-harm: isolation made the table worse" in figs["harm"] and figs["isolation_reduction_db"] < 0
