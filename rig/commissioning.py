@@ -117,7 +117,7 @@ def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
 
 
 def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings,
-                    fix=None) -> set:
+                    fix=None, null_window_m: float = 0.0) -> set:
     """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
     offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration);
     its noise floor is compared as calibrated (fix: {kind: {channel: its scale}}: a range a decade up is not noisy).
@@ -153,7 +153,10 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                                 f"{NOISE_HZ:g} Hz, {nf / float(np.median(others)):.1f} x the others'")
                 named.add((f"{kind}:{ch}", "noisy"))
             off = row[f"offset_{unit}"]
-            if abs(off) > OFFSET_RATIO * row[f"noise_rms_{unit}"]:
+            # a stroke offset a valve's null explains (within NULL_MAX_V of the DC gain) is the valve's to name
+            # (valve_checks): one owner for each offset
+            least = null_window_m if kind == "stroke" else 0.0
+            if abs(off) > max(OFFSET_RATIO * row[f"noise_rms_{unit}"], least):
                 worse(key, "corrected")
                 findings.append(f"{name}: offset {off * shown[0]:+.4g} {shown[1]} at null (taken off by the "
                                 f"calibration)")
@@ -240,24 +243,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
     stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
     mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
-    scale, gain = {}, {}
-    for j, m in enumerate(names):
-        sl, xs, ac = slots[j], stroke_of[j], accel_of[j]
-        d2 = xdd[sl, xs]
-        # H1 = S(x'', a) / S(x'', x'') over the band: its size unbiased by the accelerometer's own noise and by
-        # the transducer's later sample (a delay turns its phase, not its size); its sign from the real part
-        nps = min(256, int(sl.sum()))
-        f, pxa = signal.csd(d2, rb[sl, ac], fs=fs, nperseg=nps)
-        _, pxx2 = signal.welch(d2, fs=fs, nperseg=nps)
-        band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1])
-        h1 = pxa[band].sum() / max(pxx2[band].sum(), 1e-300)
-        scale[m] = float(abs(h1) * (1.0 if h1.real >= 0 else -1.0))
-        # stroke over command at the low end of the band: the cross spectrum's ratio (the model's DC gain there)
-        f, pxy = signal.csd(cb[sl, j], xb[sl, xs], fs=fs, nperseg=min(256, int(sl.sum())))
-        _, pxx = signal.welch(cb[sl, j], fs=fs, nperseg=min(256, int(sl.sum())))
-        low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
-        h = pxy[low] / np.maximum(pxx[low], 1e-300)
-        gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
+    scale, gain = _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
     # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
@@ -272,7 +258,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
                      else 1.0 for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
-    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix)
+    named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix,
+                            null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0)
     faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
     cal = {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
@@ -296,6 +283,30 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
             "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
             "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values())}
+
+
+def _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V) -> tuple[dict, dict]:
+    """Per valve's slot: its accelerometer's scale against its stroke's x'' and its stroke over its command at the
+    band's low end, over the model's DC gain."""
+    scale, gain = {}, {}
+    for j, m in enumerate(names):
+        sl, xs, ac = slots[j], stroke_of[j], accel_of[j]
+        d2 = xdd[sl, xs]
+        # H1 = S(x'', a) / S(x'', x'') over the band: its size unbiased by the accelerometer's own noise and by
+        # the transducer's later sample (a delay turns its phase, not its size); its sign from the real part
+        nps = min(256, int(sl.sum()))
+        f, pxa = signal.csd(d2, rb[sl, ac], fs=fs, nperseg=nps)
+        _, pxx2 = signal.welch(d2, fs=fs, nperseg=nps)
+        band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1])
+        h1 = pxa[band].sum() / max(pxx2[band].sum(), 1e-300)
+        scale[m] = float(abs(h1) * (1.0 if h1.real >= 0 else -1.0))
+        # stroke over command at the low end of the band: the cross spectrum's ratio (the model's DC gain there)
+        f, pxy = signal.csd(cb[sl, j], xb[sl, xs], fs=fs, nperseg=min(256, int(sl.sum())))
+        _, pxx = signal.welch(cb[sl, j], fs=fs, nperseg=min(256, int(sl.sum())))
+        low = (f >= BAND_HZ[0]) & (f <= 2 * BAND_HZ[0])
+        h = pxy[low] / np.maximum(pxx[low], 1e-300)
+        gain[m] = float(np.real(h.mean()) / dc_gain_m_per_V) if low.any() else math.nan
+    return scale, gain
 
 
 def _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names) -> None:
