@@ -244,6 +244,13 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
     mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
     scale, gain = _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
+    if steps is not None:
+        # the stroke's sign from the valves' held steps (DC): the chirp's ratio at 3-6 Hz lies near the actuator's
+        # corner (7.4 Hz, Eq. 9) behind the transducer's delay, and its real part's sign drowns in a loaded host's
+        # jitter (read -6.1 for a channel the steps put at +0.90)
+        D = _step_matrix(t, x, cmd, steps)
+        for j, m in enumerate(names):
+            gain[m] = abs(gain[m]) * (1.0 if D[stroke_of[j], j] >= 0 else -1.0)
     # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
