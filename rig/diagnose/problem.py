@@ -63,8 +63,9 @@ class Shooting:
 
 SHOOT_BLOCK_S = 0.5                # block length of a segmented plant (a segment: a fit and a held-out block)
 SHOOT_GN_STEPS = 2                 # Gauss-Newton steps on the segment states of a model nonlinear in them: slow
-SHOOT_GN_PLAY_STEPS = 40           # ... with a play (the load answers a drive's state only outside the play, so each
-                                   # step corrects a part; ~4 ms a step on 12 s at 1 kHz without friction)
+SHOOT_GN_PLAY_STEPS = 40           # ... a fast one with a play (the load answers a drive's state only outside the play,
+                                   # so each step corrects a part; ~4 ms a step on 12 s at 1 kHz). Friction beside a
+                                   # play keeps SHOOT_GN_STEPS: each of its steps is a friction simulation
 SHOOT_GN_SETTLED = 0.1             # the steps stop once no segment's start moves by more than this share of the noise
 
 
@@ -238,7 +239,7 @@ class Problem:
         # Gauss-Newton steps on the segment states, the correction the projection finds from
         # the data's start applied to the simulation itself; the projection then corrects what is left
         O = self.free_response(lin, fx)
-        partial = any(catalogue.get(k).state_nonlinear for k in fx)
+        partial = any(catalogue.get(k).state_nonlinear for k in fx) and not catalogue.slow_in(fx)
         for _ in range(SHOOT_GN_PLAY_STEPS if partial else SHOOT_GN_STEPS):
             _, _, _, _, dX = self._project_shooting(self.y - y, None, O, states=True)
             if np.max(np.abs(dX @ O[0]), initial=0.0) < SHOOT_GN_SETTLED * self.noise:

@@ -80,7 +80,7 @@ def test_coulomb_friction_alone_is_not_called_stribeck_nor_backlash():
 def test_a_play_refines_the_segment_states_so_a_friction_of_0_n_adds_nothing():
     """A recording through a play, evaluated as the search evaluates a model (multiple shooting: each segment
     started from the data): the true play leaves the held-out residual near the noise, and a Coulomb friction of
-    0 N beside it changes nothing. Before, only a slow (friction) model's segment states were refined, so a
+    0 N beside it gains nothing (it may lose: friction beside a play keeps the slow models' two steps). Before, only a slow (friction) model's segment states were refined, so a
     friction of 0 N "removed" most of the play model's held-out residual and was named (rig prove --plant
     emps_axis.toml seed 1, a10: coulomb_friction 0 N beside a 0.69 mm play)."""
     from rig.diagnose.problem import Problem
@@ -96,4 +96,4 @@ def test_a_play_refines_the_segment_states_so_a_friction_of_0_n_adds_nothing():
     with_zero = pb.evaluate(lin, {"backlash": {"width_m": width_m}, "coulomb_friction": {"force_n": 0.0}}, k=2)
     held_out_rms = np.sqrt(play_only.rss_hold / pb.mhold.sum())
     assert held_out_rms < 3.0 * noise_m, held_out_rms / noise_m
-    assert abs(with_zero.rss_hold / play_only.rss_hold - 1.0) < 0.02, with_zero.rss_hold / play_only.rss_hold
+    assert with_zero.rss_hold > 0.98 * play_only.rss_hold, with_zero.rss_hold / play_only.rss_hold
