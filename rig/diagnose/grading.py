@@ -132,6 +132,7 @@ def score(rows: list[dict]) -> dict:
                 "worst": max(errs) if errs else None}
     ron = [_resid(r) for r in rows if _resid(r) is not None]
     times = [r["elapsed_s"] for r in rows]
+    cpu = [r["cpu_s"] for r in rows if r.get("cpu_s") is not None]
     at2k = [r for r in rows if (r.get("duration_s") or 0) >= 50.0 and r.get("fs_hz") == 2000.0]
     per100 = [r["elapsed_s"] * 100.0 / r["duration_s"] for r in at2k]     # the issue's budget: 100 s at 2 kHz
     cpu100 = [r["cpu_s"] * 100.0 / r["duration_s"] for r in at2k if r.get("cpu_s") is not None]
@@ -148,6 +149,10 @@ def score(rows: list[dict]) -> dict:
         "seconds_per_case": {"mean": float(np.mean(times)) if times else None,
                              "median": float(np.median(times)) if times else None,
                              "max": float(np.max(times)) if times else None},
+        # CPU time of the case's process (its simulator threads counted): the speed targets' measure, which a
+        # loaded machine's wall time is not
+        "cpu_seconds_per_case": {"median": float(np.median(cpu)) if cpu else None,
+                                 "max": float(np.max(cpu)) if cpu else None, "n": len(cpu)},
         "seconds_per_100s_at_2khz": {"median": float(np.median(per100)) if per100 else None,
                                      "max": float(np.max(per100)) if per100 else None,
                                      "n": len(per100),
@@ -240,6 +245,7 @@ def confusion_markdown(m: dict[str, dict[str, int]]) -> str:
 def score_text(s: dict) -> str:
     d, f, r = s["delays"], s["frequencies"], s["residual_within_1.3_noise"]
     sp, sp100 = s["seconds_per_case"], s.get("seconds_per_100s_at_2khz") or {}
+    cpu = s.get("cpu_seconds_per_case") or {}
     out = [
         f"score: {s['right']}/{s['cases']} named right ({100 * s['fraction_right']:.0f} %, target 95 %); "
         f"invented on clean cases: {s['invented_on_clean']}/{s['clean_cases']} (target 0)",
@@ -247,7 +253,9 @@ def score_text(s: dict) -> str:
         f"frequencies within 5 %: {f['within']}/{f['n']} (worst {_fmt(f['worst'] and 100 * f['worst'], '.1f')} %)",
         f"augmented residual <= 1.3 x noise: {r['within']}/{r['n']} (worst {_fmt(r['worst'], '.2f')}); "
         f"diagnosis time per case: median {_fmt(sp.get('median'), '.1f')} s, mean {_fmt(sp['mean'], '.1f')} s, "
-        f"max {_fmt(sp['max'], '.1f')} s" + (f"; per 100 s at 2 kHz ({sp100['n']} cases): median "
+        f"max {_fmt(sp['max'], '.1f')} s" + (f" wall, CPU median {_fmt(cpu['median'], '.1f')} s, max "
+                                            f"{_fmt(cpu['max'], '.1f')} s" if cpu.get("n") else "")
+        + (f"; per 100 s at 2 kHz ({sp100['n']} cases): median "
                                             f"{_fmt(sp100.get('median'), '.1f')} s, max {_fmt(sp100.get('max'), '.1f')} s "
                                             f"wall, CPU median {_fmt(sp100.get('cpu_median'), '.1f')} s, max "
                                             f"{_fmt(sp100.get('cpu_max'), '.1f')} s" if sp100.get("n") else ""),

@@ -167,6 +167,11 @@ class AxisModel:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
         rectify, bias, gap = kw.pop("rectify", False), kw.pop("bias", 0.0), kw.pop("backlash_m", 0.0)
+        if gap > 0 and X0 is not None:
+            # the states read from the data are the load's: a load that moves is pushed by the drive's near side,
+            # half the play ahead of it (a load at rest: the drive somewhere inside the play, centred)
+            X0 = np.array(X0, dtype=float)
+            X0[:, 0] += 0.5 * gap * np.sign(X0[:, 1])
         cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
         y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
                          smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,

@@ -15,7 +15,7 @@ from rig.plant.model import INPUT_UNITS
 from sim_backend.actuator import Effects
 
 __all__ = ["Draw", "Effect", "Evidence", "Param", "Scale", "EFFECTS", "get", "for_plant", "for_proof",
-           "simulated", "projected", "slow_in", "fast", "line_frequency", "terms", "display_units", "short",
+           "simulated", "projected", "slow_in", "state_nonlinear_in", "fast", "line_frequency", "terms", "display_units", "short",
            "stand_effects"]
 
 
@@ -65,6 +65,11 @@ def projected(fx: dict) -> str | None:
 def slow_in(fx) -> bool:
     """A slow (reduced nonlinear) effect among fx's names."""
     return any(get(k).slow for k in fx)
+
+
+def state_nonlinear_in(fx) -> bool:
+    """An effect among fx's names whose response is not linear in a segment's initial state."""
+    return any(get(k).has_state_nonlinearity for k in fx)
 
 
 def terms(simulator: str, fx: dict, u: str = "V") -> dict:

@@ -93,6 +93,9 @@ class Effect:
     derived     (fitted parameters, sample rate) -> values the report adds in other words (a delay in samples)
     check       (problem, fit, name) -> does the fitted effect show in the data the way the physics says it must
                 (beyond the held-out tests: a sensor reading |y| reads its floor where y changes sign)
+    state_nonlinear  its reading answers a segment's initial state only in part (a play's load does not move
+                while the drive is inside the play): under multiple shooting the segment states are refined by
+                Gauss-Newton steps, as for every slow effect (the sticking of friction), until they settle
     """
     name: str
     short: str
@@ -116,6 +119,7 @@ class Effect:
     costly_start: bool = False
     derived: Callable[[dict, float], dict] | None = None
     check: Callable[[Any, Any, str], bool] | None = None
+    state_nonlinear: bool = False
 
     def keys(self, u: str = "V") -> tuple[str, ...]:
         """The fitted parameters' keys for a plant whose input is in unit u."""
@@ -125,6 +129,12 @@ class Effect:
     def n_free(self) -> int:
         """Fitted physics parameters it adds (a projected line: its frequency, amplitude and phase)."""
         return len(self.params) + (2 if self.projected else 0)
+
+    @property
+    def has_state_nonlinearity(self) -> bool:
+        """Its response is not linear in a segment's initial state: a slow model's (friction sticks, a spool's
+        deadband) or one declared so (a play)."""
+        return self.slow or self.state_nonlinear
 
     def applies_to(self, family: str, has_load: bool, output: str = "position") -> bool:
         return family in self.families and (has_load or not self.needs_load) and \

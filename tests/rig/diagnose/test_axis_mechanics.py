@@ -75,3 +75,25 @@ def test_coulomb_friction_alone_is_not_called_stribeck_nor_backlash():
     d, named = _diagnosed(coulomb_n=0.1 * PEAK_N)
     assert "coulomb_friction" in named, summary(d)
     assert "stribeck_friction" not in named and "backlash" not in named, summary(d)
+
+
+def test_a_play_refines_the_segment_states_so_a_friction_of_0_n_adds_nothing():
+    """A recording through a play, evaluated as the search evaluates a model (multiple shooting: each segment
+    started from the data): the true play leaves the held-out residual near the noise, and a Coulomb friction of
+    0 N beside it gains nothing (it may lose: friction beside a play keeps the slow models' two steps). Before, only a slow (friction) model's segment states were refined, so a
+    friction of 0 N "removed" most of the play model's held-out residual and was named (rig prove --plant
+    emps_axis.toml seed 1, a10: coulomb_friction 0 N beside a 0.69 mm play)."""
+    from rig.diagnose.problem import Problem
+    noise_m, width_m = 2e-7, 7e-4
+    ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, backlash_m=width_m)
+    u = band_noise(1000.0, 12.0, 0.3, 30.0, PEAK_N, seed=5).cmd_V
+    cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(noise_m=noise_m, offset_m=3e-4, seed=2))
+    plant = parse_plant(PLANT, "axis.toml")
+    pb = Problem(cmd, pos, 1000.0, plant, np.ones(len(pos), bool), noise=noise_m)
+    assert pb.shoot is not None
+    lin = {"mass_kg": 20.0, "damping_n_s_per_m": 60.0}
+    play_only = pb.evaluate(lin, {"backlash": {"width_m": width_m}}, k=1)
+    with_zero = pb.evaluate(lin, {"backlash": {"width_m": width_m}, "coulomb_friction": {"force_n": 0.0}}, k=2)
+    held_out_rms = np.sqrt(play_only.rss_hold / pb.mhold.sum())
+    assert held_out_rms < 3.0 * noise_m, held_out_rms / noise_m
+    assert with_zero.rss_hold > 0.98 * play_only.rss_hold, with_zero.rss_hold / play_only.rss_hold

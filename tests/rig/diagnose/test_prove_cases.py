@@ -109,6 +109,16 @@ def test_confusion_and_score_by_hand():
     assert md.count("\n") == 2 + len(grading.CATALOGUE) + 1
 
 
+def test_score_gives_the_cpu_time_per_case():
+    """The speed targets are in CPU time per case (issue 26): median and max over the cases that measured it,
+    printed beside the wall time; rows without it (a folder graded before) leave it out."""
+    rows = [{**_row([], []), "cpu_s": c} for c in (2.0, 9.0, 4.0)] + [_row([], [])]
+    s = grading.score(rows)
+    assert s["cpu_seconds_per_case"] == {"median": 4.0, "max": 9.0, "n": 3}
+    assert "CPU median 4.0 s, max 9.0 s" in grading.score_text(s)
+    assert "CPU" not in grading.score_text(grading.score([_row([], [])]))
+
+
 def test_grade_parameter_errors():
     D = typed.diagnosis({"transport_delay": {"delay_s": 2.2e-3}, "valve_saturation": {"limit_ma": 3.0}},
                         fit=(typed.figures(0.3), typed.figures(0.1), typed.figures(0.02, 1.0)),
