@@ -245,12 +245,12 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
     scale, gain = _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
     if steps is not None:
-        # the stroke's sign from the valves' held steps (DC): the chirp's ratio at 3-6 Hz lies near the actuator's
-        # corner (7.4 Hz, Eq. 9) behind the transducer's delay, and its real part's sign drowns in a loaded host's
-        # jitter (read -6.1 for a channel the steps put at +0.90)
+        # the stroke over the command from the valves' held steps (DC), sign and size: the chirp's ratio at 3-6 Hz
+        # lies near the actuator's corner (7.4 Hz, Eq. 9) behind the transducer's delay, and a loaded host's jitter
+        # turns it (read -6.1 and +0.73 for channels ranged a decade up, which the steps put at +9.0 and +9.2)
         D = _step_matrix(t, x, cmd, steps)
         for j, m in enumerate(names):
-            gain[m] = abs(gain[m]) * (1.0 if D[stroke_of[j], j] >= 0 else -1.0)
+            gain[m] = float(D[stroke_of[j], j] / dc_gain_m_per_V)
     # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
@@ -501,13 +501,14 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
 def text(res: dict) -> str:
     """The report in words: one line per channel, then the findings."""
     lines = []
+    where = "in the held steps" if res.get("valves") else f"at {BAND_HZ[0]:g}-{2 * BAND_HZ[0]:g} Hz"
     for m in res["mounts"]:
         a, s = res["verdicts"][f"accel:{m}"], res["verdicts"][f"stroke:{m}"]
         ch = res["channels"]
         lines.append(f"{m}: accelerometer {a} (scale {res['accel_scale'][m]:+.3f} against x'', noise "
                      f"{ch['accel'][m]['noise_rms_mps2'] * 1e3:.2f} mm/s^2 rms, offset "
-                     f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command at "
-                     f"{BAND_HZ[0]:g}-{2 * BAND_HZ[0]:g} Hz {res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
+                     f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command {where} "
+                     f"{res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
                      f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
     for m, v in (res.get("valves") or {}).items():
         null = "not judged (its transducer's own offset)" if v["null_V"] is None else f"{v['null_V']:+.3f} V"
