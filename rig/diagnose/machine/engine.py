@@ -271,13 +271,14 @@ def at_bound(th: dict, slots) -> str:
 def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> float:
     """How far the instance moves theta's prediction (theta against theta without it), over what two faithful
     models of the rig differ by (residual.FIDELITY x the measured): the largest over channels and bands of the
-    rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there).
+    rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there;
+    without floor accelerometers both what the floor's projection leaves).
     Below 1 the effect moves the replay less than the model's own fidelity: a statistically sure but physically
     empty change (an accelerometer at x1.002 taking up what another effect's model leaves), whatever its
     likelihood ratio over thousands of bins."""
     wo = without_effect(th, inst, ctx.base)
     change = np.abs((ctx.rp.linear(th, at, U=u_of(ctx)(th)) - ctx.rp.linear(wo, at, U=u_of(ctx)(wo))) * at.sd) ** 2
-    faithful = (FIDELITY[None, :] * np.abs(ctx.sp.Y[ctx.sp.hold])) ** 2
+    faithful = (FIDELITY[None, :] * np.abs(ctx.sp.Y[ctx.sp.hold])) ** 2 * at.keep
     f = ctx.sp.f_hz[ctx.sp.hold]
     out = 0.0
     for lo, hi in BANDS_HZ:
