@@ -34,6 +34,9 @@ FULL_FITS = 4                   # candidates fitted jointly with the refit after
 EXPLAINED = 1.25                # held-out whitened residual power over what the right model leaves, in every
                                 # channel and band (spectra.BANDS_HZ): below it nothing is left to explain
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
+OVER_FIDELITY = 2.0             # an effect's change to the replay over what two faithful models differ by
+                                # (residual.FIDELITY, a typical difference, not a bound): below twice it the
+                                # change cannot be told from the model's own error
 
 
 PASSIVE_KEYS = ("K_L", "K_C")    # what the mounts show with the valves at null (their stiffness and its leak)
@@ -273,8 +276,8 @@ def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> 
     models of the rig differ by (residual.FIDELITY x the measured): the largest over channels and bands of the
     rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there;
     without floor accelerometers both what the floor's projection leaves).
-    Below 1 the effect moves the replay less than the model's own fidelity: a statistically sure but physically
-    empty change (an accelerometer at x1.002 taking up what another effect's model leaves), whatever its
+    Below OVER_FIDELITY the effect moves the replay about as much as the model's own error: a statistically sure
+    but physically empty change (an accelerometer at x1.002 taking up what another effect's model leaves), whatever its
     likelihood ratio over thousands of bins."""
     wo = without_effect(th, inst, ctx.base)
     change = np.abs((ctx.rp.linear(th, at, U=u_of(ctx)(th)) - ctx.rp.linear(wo, at, U=u_of(ctx)(wo))) * at.sd) ** 2
@@ -327,7 +330,7 @@ def select(ctx: Context, th_refit: dict, progress=None, prior: Selection | None 
             if pinned:
                 t.tests.update(passed=False, at_bound=pinned)
             t.tests["over_fidelity"] = over_fidelity(ctx, at_hold, res.th, inst)
-            faint = t.tests["passed"] and t.tests["over_fidelity"] < 1.0
+            faint = t.tests["passed"] and t.tests["over_fidelity"] < OVER_FIDELITY
             if faint:
                 t.tests["passed"] = False
             tried.append(t)
@@ -335,7 +338,7 @@ def select(ctx: Context, th_refit: dict, progress=None, prior: Selection | None 
                 f"{t.tests['lr_holdout']:.0f} (needs {t.tests['lr_needed']:.0f}), change "
                 f"{t.tests['over_fidelity']:.2g} x the model's fidelity{' - passes' if t.tests['passed'] else ''}"
                 + (f" (its {pinned} at the bound of its range: not a measurement)" if pinned else "")
-                + (" (it moves the replay less than the model's own fidelity: not told from it)" if faint else ""))
+                + (" (it moves the replay by less than twice the model's own fidelity: not told from it)" if faint else ""))
             if t.tests["passed"] and (best is None or t.tests["lr_holdout"] > best.tests["lr_holdout"]):
                 best = t
         if best is None:
