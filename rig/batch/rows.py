@@ -1,9 +1,10 @@
 """One recording's line of a batch summary, made from the typed results of the analysis (rig.diagnose.results
-Diagnosis; rig.identify IdentResult; the dict of rig.diagnose.refit.identify_plant).
+Diagnosis; a run of the four-mount rig's RigDiagnosis, rig.diagnose.machine.result; rig.identify IdentResult; the
+dict of rig.diagnose.refit.identify_plant).
 
 A row's content (JSON-safe, floats exact):
   verdict      the diagnosis's verdict status (explained, partly, not_described, no_claim); identify: ""
-  effects      {effect name: {parameter key: value in SI}} as named
+  effects      {effect name: {parameter key: value in SI}} as named (a run of the rig: "name[location]")
   parameters   {key: value} the identified linear parameters (a diagnosis: the augmented model's fitted ones)
   std          {key: 1 sigma} where the analysis gives one (identify)
   units        {key: unit} of the parameters
@@ -47,6 +48,24 @@ def diagnosis_row(diag, rec) -> dict:
             "figures": {"residual_over_noise_holdout": _num(aug.residual_over_noise_holdout),
                         "nrmse": _num(aug.nrmse), "noise_m": _num(diag.noise_m)},
             "notes": [" ~ ".join(g) + " confounded" for g in diag.groups],
+            "recording": _recording(rec)}
+
+
+def rig_diagnosis_row(diag, rec) -> dict:
+    """A run of the four-mount rig's diagnosis (rig.diagnose.machine.result RigDiagnosis) as a summary row: each
+    effect under "name[location]" (two mounts may have the same effect), the refit's common factors and latency
+    as its parameters, and the worst mount's held-out residual over expected, model and diagnosed."""
+    def worst(model: str):
+        return _num(max(v for m in diag.fit[model].values() for v in m.values()))
+    return {"verdict": diag.verdict,
+            "effects": {f"{e.name}[{e.location}]": {k: _num(v) for k, v in e.parameters.items()}
+                        for e in diag.effects},
+            "parameters": {k: _num(v) for k, v in diag.refit.items()},
+            "std": {},
+            "units": {k: "s" if k.endswith("_s") else "" for k in diag.refit},
+            "figures": {"worst_mount_residual_model": worst("nominal"),
+                        "worst_mount_residual_diagnosed": worst("augmented")},
+            "notes": [str(n) for n in diag.notes],
             "recording": _recording(rec)}
 
 

@@ -38,8 +38,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     batch.add_arguments(p)
 
 
+def is_machine_run(path, plant) -> bool:
+    """The route's one rule, for one file alone and for each of a batch's: a run of the four-mount rig
+    (docs/RUN_RECORDING.md) gets the machine's diagnosis, unless a plant file asks for another model."""
+    from rig.recordings.runfile import is_run_recording
+    return plant is None and Path(path).is_file() and is_run_recording(Path(path))
+
+
 def diagnose_one(plant: Path | None, config: str | None, seed: int, path: str, out: str) -> dict:
     """A batch's work on one recording (in a worker): diagnose it into out, as `rig diagnose` does; its row."""
+    if is_machine_run(path, plant):
+        from rig.commands import diagnose_rig
+        return diagnose_rig.batch_work(config, path, out)
     from rig.batch.rows import diagnosis_row
     from rig.diagnose import report
     from rig.diagnose.engine import diagnose
@@ -60,9 +70,8 @@ def run(args) -> int:
         options = {"seed": args.seed, "plant": file_identity(args.plant), "config": file_identity(args.config)}
         return batch.run_job(Job("diagnose", options, partial(diagnose_one, args.plant, args.config, args.seed)), args)
     args.recording = args.recording[0]
-    from rig.recordings.runfile import is_run_recording
-    if args.plant is None and args.recording.is_file() and is_run_recording(args.recording):
-        from rig.commands import diagnose_rig       # a run of the four-mount rig (no plant file asks for another)
+    if is_machine_run(args.recording, args.plant):
+        from rig.commands import diagnose_rig
         return diagnose_rig.run(args)
     return _one(args)
 

@@ -17,43 +17,69 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 from rig.errors import RigError  # noqa: E402
 
 
-def run(args) -> int:
-    import numpy as np
-
+def machine_config(config):
+    """The configured rig (a TOML path, or None for Table 1 and 2): refused in one line unless it is the machine."""
     from rig.config import load_config
-    from rig.diagnose.machine import report
-    from rig.diagnose.machine.result import diagnose_rig
-    from rig.recordings.runfile import read_run
-    from rig.diagnose.machine.series import replay_series
 
-    cfg = load_config(args.config) if args.config else load_config(None)
+    cfg = load_config(config) if config else load_config(None)
     if cfg.layout.plant != "machine":
         raise RigError(f"{cfg.source}: [layout] plant = {cfg.layout.plant!r}: a run of the four-mount rig is "
                        "diagnosed against the machine's model (--config of the run, or none for Table 1 and 2)")
+    return cfg
+
+
+def diagnose_file(path, cfg, out=None, progress=None):
+    """Diagnose the run recorded in path against cfg, writing the outputs into out if given: (diagnosis, the
+    recording, the paths written). The one piece of work of `rig diagnose RUN.h5` and of a batch's run."""
+    import numpy as np
+
+    from rig.diagnose.machine import report
+    from rig.diagnose.machine.result import diagnose_rig
+    from rig.diagnose.machine.series import replay_series
+    from rig.recordings.runfile import read_run
+
+    say = progress or (lambda s: None)
+    rec = read_run(path)                                # RecordingError: one line naming file and dataset
+    if rec.gaps:
+        say(f"note: {rec.gaps}")
+    say(f"diagnosing {rec.source}: {rec.n} rows at {rec.fs_hz:g} Hz, the four-mount rig against {cfg.source}")
+    diag = diagnose_rig(rec, cfg, progress=progress)
+    paths = {}
+    if out is not None:
+        say("writing outputs (and the replay as time series)")
+        th = {k: np.asarray(v) for k, v in diag.theta.items()}
+        try:
+            series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
+            paths = report.write_outputs(Path(out), diag, series)
+        except OSError as e:
+            raise RigError(f"--out {out}: cannot write ({e.strerror or e})") from None
+    return diag, rec, paths
+
+
+def batch_work(config, path: str, out: str) -> dict:
+    """A batch's work on a run of the four-mount rig (in a worker): diagnosed into out as `rig diagnose RUN.h5
+    --out` does; its summary row."""
+    from rig.batch.rows import rig_diagnosis_row
+
+    diag, rec, _ = diagnose_file(Path(path), machine_config(config), Path(out))
+    return rig_diagnosis_row(diag, rec)
+
+
+def run(args) -> int:
+    from rig.diagnose.machine import report
+
+    cfg = machine_config(args.config)
     t0 = time.perf_counter()
 
     def progress(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    rec = read_run(args.recording)                      # RecordingError: one line naming file and dataset
-    if rec.gaps:
-        progress(f"note: {rec.gaps}")
-    progress(f"diagnosing {rec.source}: {rec.n} rows at {rec.fs_hz:g} Hz, the four-mount rig against "
-             f"{cfg.source}")
-    diag = diagnose_rig(rec, cfg, progress=progress)
-    paths = {}
-    if args.out is not None:
-        progress("writing outputs (and the replay as time series)")
-        th = {k: np.asarray(v) for k, v in diag.theta.items()}
-        try:
-            series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
-            paths = report.write_outputs(args.out, diag, series)
-        except OSError as e:
-            raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    diag, _, paths = diagnose_file(args.recording, cfg, args.out, progress)
     progress(f"done in {time.perf_counter() - t0:.1f} s")
     if args.json:
         print(json.dumps(report.diagnosis_dict(diag), indent=1))

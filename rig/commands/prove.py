@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clean", type=cliargs.count(0, 1000), default=10, metavar="N",
                    help="with --commission: also N rigs wired right, none of which may be flagged (default 10)")
     cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,
-                       help="with --rig: keep each case's recording in DIR")
+                       help="with --rig: keep each case's recording and its graded row (JSON) in DIR")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
     p.add_argument("--scheduler", metavar="tcp://HOST:PORT", default=None,
                    help="run the cases on the Dask cluster of this scheduler instead of --workers processes "

@@ -5,6 +5,7 @@ errors), and graded (rig/diagnose/machine/prove.py).
 """
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 import time
@@ -28,7 +29,8 @@ def record_case(case, path: Path) -> None:
 
 
 def run_case(case_dict: dict, keep_dir: str | None = None) -> dict:
-    """One case: run, record, diagnose with the model's config, grade (in a worker process)."""
+    """One case: run, record, diagnose with the model's config, grade (in a worker process); with keep_dir its
+    recording and its graded row (JSON) are kept there."""
     from rig.config import config_from_dict
     from rig.diagnose.machine.prove import RigCase, grade
     from rig.diagnose.machine.report import summary_text
@@ -45,7 +47,10 @@ def run_case(case_dict: dict, keep_dir: str | None = None) -> dict:
         diag = diagnose_rig(rec, model)
         elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
         diag.summary = summary_text(diag)
-        return grade(case, diag, elapsed_s=elapsed, cpu_s=cpu)
+        row = grade(case, diag, elapsed_s=elapsed, cpu_s=cpu)
+    if keep_dir:                # beside its recording: a proof stopped half-way keeps what it graded
+        (Path(keep_dir) / f"{case.name}.json").write_text(json.dumps(row, indent=1, default=float))
+    return row
 
 
 def cases_and_rows(args, progress) -> tuple[list, list]:
@@ -64,7 +69,6 @@ def cases_and_rows(args, progress) -> tuple[list, list]:
 
 def run(args) -> int:
     """`rig prove --rig` from the parsed options of `rig prove`."""
-    import json
     import sys
 
     from rig.diagnose.machine import prove

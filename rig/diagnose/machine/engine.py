@@ -6,7 +6,8 @@
              (what an identification moves; not missing physics); then the weights: what the residual should be
              (weights.py)
   select     the catalogue's instances screened on a grid, the best fitted jointly with the refit, each tested
-             (BIC on the fit bins, likelihood ratio on the held-out bins); forward selection, at most two
+             (BIC on the fit bins, likelihood ratio on the held-out bins, its change to the replay above the
+             model's fidelity); forward selection, at most two
   polish     the chosen effects and the refit together
 Every stage is a function of the one before; the result is a Selection (the named instances with their tests and
 the final parameters), reported by result.py.
@@ -21,7 +22,7 @@ import numpy as np
 from rig.config import Config
 from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.fitting import FitResult, Slot, compare, fit, grid_search, put
-from rig.diagnose.machine.residual import Evaluation, Replay
+from rig.diagnose.machine.residual import FIDELITY, Evaluation, Replay
 from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, copy_theta, neutral, responses
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra, spectra_of
@@ -33,6 +34,9 @@ FULL_FITS = 4                   # candidates fitted jointly with the refit after
 EXPLAINED = 1.25                # held-out whitened residual power over what the right model leaves, in every
                                 # channel and band (spectra.BANDS_HZ): below it nothing is left to explain
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
+OVER_FIDELITY = 2.0             # an effect's change to the replay over what two faithful models differ by
+                                # (residual.FIDELITY, a typical difference, not a bound): below twice it the
+                                # change cannot be told from the model's own error
 
 
 PASSIVE_KEYS = ("K_L", "K_C")    # what the mounts show with the valves at null (their stiffness and its leak)
@@ -84,6 +88,7 @@ class Selection:
     tried: list                    # every candidate fitted, [Tried]
     screened: list                 # [(instance key, best grid value, fit rss)]
     evals: dict = field(default_factory=dict)      # "nominal"/"refit"/"augmented" -> Evaluation on all bins
+    dropped: list = field(default_factory=list)    # [Tried] chosen, then found not needed beside the others
 
 
 def prepare(run: RunRecording, cfg: Config) -> Context:
@@ -266,23 +271,50 @@ def at_bound(th: dict, slots) -> str:
     return ""
 
 
-def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
-    """Forward selection over the catalogue's instances (at most MAX_EFFECTS). Each round fits the screen's
+def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> float:
+    """How far the instance moves theta's prediction (theta against theta without it), over what two faithful
+    models of the rig differ by (residual.FIDELITY x the measured): the largest over channels and bands of the
+    rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there;
+    without floor accelerometers both what the floor's projection leaves).
+    Below OVER_FIDELITY the effect moves the replay about as much as the model's own error: a statistically sure
+    but physically empty change (an accelerometer at x1.002 taking up what another effect's model leaves), whatever its
+    likelihood ratio over thousands of bins."""
+    wo = without_effect(th, inst, ctx.base)
+    change = np.abs((ctx.rp.linear(th, at, U=u_of(ctx)(th)) - ctx.rp.linear(wo, at, U=u_of(ctx)(wo))) * at.sd) ** 2
+    faithful = (FIDELITY[None, :] * np.abs(ctx.sp.Y[ctx.sp.hold])) ** 2 * at.keep
+    f = ctx.sp.f_hz[ctx.sp.hold]
+    out = 0.0
+    for lo, hi in BANDS_HZ:
+        sel = (f >= lo) & (f < hi)
+        if sel.sum() >= 8:
+            out = max(out, float(np.max(np.sum(change[sel], axis=0) / np.sum(faithful[sel], axis=0))))
+    return math.sqrt(out)
+
+
+def select(ctx: Context, th_refit: dict, progress=None, prior: Selection | None = None) -> Selection:
+    """Forward selection over the catalogue's instances (at most MAX_EFFECTS named). Each round fits the screen's
     best FULL_FITS candidates (and the extra mode: its start is the screen's roughest) with the command's
-    latency, and tests them against the round's base."""
+    latency, and tests them against the round's base. prior: a polished selection to go on from (its effects
+    kept, the ones polish dropped not tried again)."""
     say = progress or (lambda s: None)
     latency = tuple(s for s in refit_slots(ctx.base.dt, ctx.valves_driven) if s.key == "latency_s")
-    th = th_refit
-    chosen, tried, screened_all = [], [], []
+    th = prior.th_final if prior else th_refit
+    chosen, tried, screened_all = ([], [], []) if prior is None else (list(prior.chosen), list(prior.tried),
+                                                                       list(prior.screened))
+    dropped = {t.instance.key for t in prior.dropped} if prior else set()
+    if prior:
+        reweigh(ctx, th)                # the weights from what is named now, as after each round
     n_fit, n_hold = dof(ctx, ctx.sp.fit), dof(ctx, ctx.sp.hold)
-    for step in range(MAX_EFFECTS):
+    step = 1 + max((t.step for t in tried), default=-1)
+    while len(chosen) < MAX_EFFECTS:
         base_fit, base_hold = _rss(ctx, th, ctx.sp.fit), _rss(ctx, th, ctx.sp.hold)
-        worst = worst_cell(ctx.rp.evaluate(th, ctx.sp.hold, U=u_of(ctx)(th)), ctx.sp.f_hz)
+        at_hold = ctx.rp.evaluate(th, ctx.sp.hold, U=u_of(ctx)(th))
+        worst = worst_cell(at_hold, ctx.sp.f_hz)
         if worst < EXPLAINED:
             say(f"round {step + 1}: held-out residual at most {worst:.2f} x expected in every channel and band: "
                 "nothing left to explain")
             break
-        exclude = {t.instance.key for t in chosen}
+        exclude = {t.instance.key for t in chosen} | dropped
         ranked = screen(ctx, th, exclude)
         screened_all += [(i.key, v, r, step) for i, v, r in ranked]
         say(f"round {step + 1}: screened {len(ranked)} candidates; best {ranked[0][0].key if ranked else '-'}")
@@ -297,17 +329,24 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
             pinned = at_bound(res.th, inst.slots)
             if pinned:
                 t.tests.update(passed=False, at_bound=pinned)
+            t.tests["over_fidelity"] = over_fidelity(ctx, at_hold, res.th, inst)
+            faint = t.tests["passed"] and t.tests["over_fidelity"] < OVER_FIDELITY
+            if faint:
+                t.tests["passed"] = False
             tried.append(t)
             say(f"  {inst.key}: held-out residual cut {100 * t.tests['holdout_gain']:.1f} %, LR "
-                f"{t.tests['lr_holdout']:.0f} (needs {t.tests['lr_needed']:.0f}){' - passes' if t.tests['passed'] else ''}"
-                + (f" (its {pinned} at the bound of its range: not a measurement)" if pinned else ""))
+                f"{t.tests['lr_holdout']:.0f} (needs {t.tests['lr_needed']:.0f}), change "
+                f"{t.tests['over_fidelity']:.2g} x the model's fidelity{' - passes' if t.tests['passed'] else ''}"
+                + (f" (its {pinned} at the bound of its range: not a measurement)" if pinned else "")
+                + (" (it moves the replay by less than twice the model's own fidelity: not told from it)" if faint else ""))
             if t.tests["passed"] and (best is None or t.tests["lr_holdout"] > best.tests["lr_holdout"]):
                 best = t
         if best is None:
             break
         chosen.append(best)
         th = best.th
-        if step + 1 < MAX_EFFECTS:
+        step += 1
+        if len(chosen) < MAX_EFFECTS:
             # the refit again beside what is chosen: a strong effect at one mount drives the common parameters
             # to their bounds before it is named (a valve's delay took K_L to x0.5), and the next round's
             # candidates would be judged on what they make up for there rather than on their own evidence. It
@@ -319,7 +358,8 @@ def select(ctx: Context, th_refit: dict, progress=None) -> Selection:
             reweigh(ctx, th)
             say("  refit beside it: " + ", ".join(f"{k} x{v:.3f}" for k, v in zip(ACT_KEYS, th["act"]))
                 + f", modal damping x{th['modal_zeta'][0]:.2f}, latency {1e3 * th['latency_s'][0]:.3f} ms")
-    return Selection(ctx, nominal_theta(ctx.base), th_refit, th, chosen, tried, screened_all)
+    return Selection(ctx, nominal_theta(ctx.base), th_refit, th, chosen, tried, screened_all,
+                     dropped=list(prior.dropped) if prior else [])
 
 
 def polish(sel: Selection, progress=None) -> Selection:
@@ -349,9 +389,10 @@ def polish(sel: Selection, progress=None) -> Selection:
                 say(f"{t.instance.key}: not needed beside the others (held-out cut "
                     f"{100 * tests['holdout_gain']:.1f} %): dropped")
                 sel.chosen = rest
+                sel.dropped.append(t)
                 th = th_wo
                 break
-            t.tests = tests
+            t.tests = tests | {k: t.tests[k] for k in ("over_fidelity",) if k in t.tests}
     sel.th_final = th
     return sel
 
@@ -390,5 +431,10 @@ def diagnose_run(run: RunRecording, cfg: Config, progress=None) -> Selection:
     th_ref, _ = refit(ctx)
     say("refit: " + ", ".join(f"{k} x{v:.3f}" for k, v in zip(ACT_KEYS, th_ref["act"]))
         + f", modal damping x{th_ref['modal_zeta'][0]:.2f}, latency {1e3 * th_ref['latency_s'][0]:.3f} ms")
-    sel = select(ctx, th_ref, say)
-    return evaluate_all(polish(sel, say))
+    sel = polish(select(ctx, th_ref, say), say)
+    if sel.dropped and len(sel.chosen) < MAX_EFFECTS:
+        # a round spent on an effect the later ones made unneeded (a torsion's frequency standing in for a mode
+        # the model lacks, before that mode was named) does not count: the rounds go on beside what is left
+        say("selection goes on beside " + (", ".join(t.instance.key for t in sel.chosen) or "nothing"))
+        sel = polish(select(ctx, th_ref, say, prior=sel), say)
+    return evaluate_all(sel)
