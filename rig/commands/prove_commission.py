@@ -160,11 +160,15 @@ def run(args) -> int:
 
 
 def _summary(rows: list[dict]) -> dict:
-    combo = [r for r in rows if r["what"] == "faults"]
-    clean = [r for r in rows if r["what"] == "clean"]
-    walls = sorted(r["wall_s"] for r in rows)
+    """The score over the cases commissioning judged; a run that stopped on a fault (the safety rules: nothing
+    judged, said in one line) is counted apart, not as a wrong name."""
+    judged = [r for r in rows if not r["error"]]
+    combo = [r for r in judged if r["what"] == "faults"]
+    clean = [r for r in judged if r["what"] == "clean"]
+    walls = sorted(r["wall_s"] for r in judged)
     return {"combinations": len(combo), "combinations_right": sum(r["right"] for r in combo),
             "clean": len(clean), "clean_flagged": sum(not r["right"] for r in clean),
+            "stopped": [f"case {r['case']}: {r['error']}" for r in rows if r["error"]],
             "wall_s_median": walls[len(walls) // 2] if walls else None, "wall_s_max": walls[-1] if walls else None,
             "peak_stroke_pct_of_limit_max": max((r["peak_stroke_pct_of_limit"] or 0) for r in rows) if rows else None}
 
@@ -174,6 +178,8 @@ def _markdown(seed: int, s: dict, rows: list[dict]) -> str:
            f"- combinations of two or three wiring faults named right: {s['combinations_right']} of "
            f"{s['combinations']}",
            f"- rigs wired right with something named: {s['clean_flagged']} of {s['clean']}",
+           f"- runs stopped by a fault, nothing judged: {len(s['stopped'])}"
+           + "".join(f"\n  - {x}" for x in s["stopped"]),
            f"- one commissioning (four mounts, wall time with its set-up): median {s['wall_s_median']} s, "
            f"max {s['wall_s_max']} s",
            f"- peak stroke: {s['peak_stroke_pct_of_limit_max']} % of the stroke limit at most", "",
