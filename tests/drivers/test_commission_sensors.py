@@ -45,6 +45,15 @@ def _commission_twice(tmp_path, keys: str):
     return first, json.loads(run.stdout)
 
 
+def _sensors(res) -> dict:
+    """The sensor channels' verdicts (the valves' are judged beside them: valve:<mount>)."""
+    return {k: v for k, v in res["verdicts"].items() if not k.startswith("valve:")}
+
+
+def _valves(res) -> dict:
+    return {k: v for k, v in res["verdicts"].items() if k.startswith("valve:")}
+
+
 def _faults(res) -> set:
     """What one commissioning named, {(channel, kind)} (as `rig prove --commission` grades it)."""
     return {(f["channel"], f["kind"]) for f in res["faults"]}
@@ -61,10 +70,11 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
                                                 "dt_offset_m = [0.0, 0.0, 50e-6, 0.0]\n"
                                                 "dt_noise_m = [0.0, 0.0, 0.0, 2e-7]\n"
                                                 "ai_offset_mps2 = [0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0]\n")
-    assert first["verdicts"] == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
-                                 f"accel:{FR}": "refused", f"stroke:{FR}": "ok",
-                                 f"accel:{RL}": "refused", f"stroke:{RL}": "corrected",
-                                 f"accel:{RR}": "corrected", f"stroke:{RR}": "refused"}
+    assert _valves(first) == {f"valve:{m}": "ok" for m in (FL, FR, RL, RR)}      # each judged through its stroke
+    assert _sensors(first) == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
+                               f"accel:{FR}": "refused", f"stroke:{FR}": "ok",
+                               f"accel:{RL}": "refused", f"stroke:{RL}": "corrected",
+                               f"accel:{RR}": "corrected", f"stroke:{RR}": "refused"}
     assert _faults(first) == {(f"stroke:{FL}", "scale"), (f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"),
                               (f"stroke:{RL}", "offset"), (f"stroke:{RR}", "noisy"), (f"accel:{RR}", "offset")}
     text = first["text"]
@@ -80,8 +90,7 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
     assert cal["accel"][FR]["scale"] == 1.0                        # a dead channel's scale is no calibration
     # the calibration applied: the slip and the offsets read right; the dead and noisy channels stay refused
     assert _faults(second) == {(f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"), (f"stroke:{RR}", "noisy")}
-    assert second["verdicts"] == {**first["verdicts"], f"stroke:{FL}": "ok", f"stroke:{RL}": "ok",
-                                  f"accel:{RR}": "ok"}
+    assert _sensors(second) == {**_sensors(first), f"stroke:{FL}": "ok", f"stroke:{RL}": "ok", f"accel:{RR}": "ok"}
     others = [abs(second["valve_gain_vs_model"][m]) for m in (FR, RL)]
     assert min(others) / 2 < abs(second["valve_gain_vs_model"][FL]) < 2 * max(others)
     assert abs(second["accel_scale"][FL]) == pytest.approx(1.0, abs=0.35)
@@ -96,10 +105,12 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
     first, second = _commission_twice(tmp_path, "dt_source = [1, 0, 2, 3]\ndt_factor = [1.0, 1.0, -1.0, 0.0]\n"
                                                 "dt_noise_m = [0.0, 0.0, 0.0, 5e-9]\n")
     assert first["stroke_of_valve"][:2] == [FR, FL]
-    assert first["verdicts"] == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
-                                 f"accel:{FR}": "ok", f"stroke:{FR}": "corrected",
-                                 f"accel:{RL}": "ok", f"stroke:{RL}": "corrected",
-                                 f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused"}
+    assert _sensors(first) == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
+                               f"accel:{FR}": "ok", f"stroke:{FR}": "corrected",
+                               f"accel:{RL}": "ok", f"stroke:{RL}": "corrected",
+                               f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused"}
+    # the valves judged through their strokes as found (swapped, inverted); the dead one's valve is not judged
+    assert _valves(first) == {f"valve:{FL}": "ok", f"valve:{FR}": "ok", f"valve:{RL}": "ok", f"valve:{RR}": "unchecked"}
     assert _faults(first) == {(f"stroke:{FL}", "swap"), (f"stroke:{FR}", "swap"), (f"stroke:{RL}", "sign"),
                               (f"stroke:{RR}", "dead")}
     assert _faults(second) == {(f"stroke:{RR}", "dead")}
@@ -109,8 +120,8 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
     assert f"accelerometer on {RL}" not in text                # judged against its stroke as calibrated
     cal = first["toml"]
     assert cal["stroke"][FR]["mount"] == FL and cal["stroke"][RL]["sign"] == -1.0
-    assert second["verdicts"] == {**{k: "ok" for k in first["verdicts"]}, f"accel:{RR}": "unchecked",
-                                  f"stroke:{RR}": "refused"}
+    assert _sensors(second) == {**{k: "ok" for k in _sensors(first)}, f"accel:{RR}": "unchecked",
+                                f"stroke:{RR}": "refused"}
     assert second["stroke_of_valve"][:3] == [FL, FR, RL] and second["valve_gain_vs_model"][RL] > 0
 
 

@@ -84,7 +84,8 @@ def test_missing_device_at_start_up_is_one_line_naming_it_and_keeps_the_recordin
 def test_missing_device_without_a_recording_leaves_no_empty_file(tmp_path):
     cfg = _hardware_config(tmp_path)
     rec = tmp_path / "new.h5"
-    out = subprocess.run(RIG + ["chirp", "--config", str(cfg), "--duration", "1", "--record", str(rec)],
+    out = subprocess.run(RIG + ["chirp", "--config", str(cfg), "--duration", "1", "--record", str(rec),
+                                "--uncommissioned"],
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert out.stderr.strip().splitlines()[-1].startswith("rig chirp: error: modbus_tcp 127.0.0.1:")
