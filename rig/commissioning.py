@@ -277,7 +277,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
                                             "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
                       for j, m in enumerate(names)}}
     _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names)
-    valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) \
+    valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V, D) \
         if steps is not None else None
     if valves is not None:
         verdicts.update(valves.pop("verdicts"))
@@ -417,7 +417,7 @@ def _step_matrix(t, x, cmd, steps) -> np.ndarray:
     return D
 
 
-def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V) -> dict:
+def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V, D=None) -> dict:
     """Each valve's DC gain, null offset and node, from its held steps (+A then -A, `steps` = start, hold, null
     after) and the quiet stretch at null.
 
@@ -433,7 +433,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     it as its own offset (that valve's null is not judged). The stroke's calibrated offset keeps only the part
     the corrected nulls do not explain."""
     n = len(names)
-    D = _step_matrix(t, x, cmd, steps)
+    D = _step_matrix(t, x, cmd, steps) if D is None else D          # analyse measured it once already
     w = t >= t[quiet].min()
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
     own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
