@@ -127,6 +127,27 @@ def parse_reference(text: str, dt: float, *, max_s: float = math.inf, where: str
                      span_s=vals["duration"], text=text)
 
 
+def positions_m(ref: Reference, now_m: float = 0.0) -> tuple[float, float, float]:
+    """(the hold position it moves to or around, the lowest and the highest position) that `ref` asks for, from a
+    piston held at now_m."""
+    target = {"hold": None, "step": now_m + (ref.target_m or 0.0)}.get(ref.kind, ref.target_m)
+    base = now_m if target is None else target
+    if ref.kind == "csv":
+        prof = np.asarray(ref.profile_m, dtype=float)
+        return base, float(prof.min()), float(prof.max())
+    return base, base - ref.amp_m, base + ref.amp_m
+
+
+def check_stroke(ref: Reference, stroke_limit_m: float, now_m: float = 0.0, name: str | None = None) -> None:
+    """RigError (one line) when `ref` asks for a position beyond the stroke limit (safety.stroke_limit_m). The
+    one stroke rule: the tracking controller's check and `rig run`'s start options, before anything is built."""
+    _, lo, hi = positions_m(ref, now_m)
+    for x in (lo, hi):
+        if abs(x) > stroke_limit_m:
+            raise RigError(f"{name or f'reference {ref}'}: position {x * 1e6:.1f} um is outside the stroke limit "
+                           f"(+-{stroke_limit_m * 1e6:.0f} um, safety.stroke_limit_m)")
+
+
 def _example(kind: str) -> str:
     return {"setpoint": "setpoint:x=5um", "step": "step:amp=2um", "sine": "sine:amp=10um,freq=5",
             "chirp": "chirp:amp=1um,f0=1,f1=100,duration=20"}[kind]

@@ -36,7 +36,7 @@ import numba
 import numpy as np
 
 from controllers.limits import clamp, slew
-from controllers.reference import Reference
+from controllers.reference import Reference, check_stroke, positions_m
 from controllers.state import step_law
 from controllers.timebase import check_step
 from rig.config import ControllerConfig, SafetyConfig
@@ -209,15 +209,14 @@ class TrackingPID:
         whatever share the feedforward supplies) inside the headroom of the clamp. Nothing is clamped."""
         r, lim = self.ref, self.p.limit_V
         tgt_now = float(state[_TGT]) if state is not None else 0.0
-        target = {"hold": None, "step": tgt_now + (ref.target_m or 0.0)}.get(ref.kind, ref.target_m)
-        base = tgt_now if target is None else target
+        check_stroke(ref, r.stroke_limit_m, tgt_now)
+        base = positions_m(ref, tgt_now)[0]
         name = f"reference {ref}"
         if ref.kind == "csv":
             prof = np.asarray(ref.profile_m, dtype=float)
             if len(prof) > r.profile_len:
                 raise RigError(f"{name}: {len(prof)} samples, the table holds {r.profile_len} "
                                f"(controller.track_profile_s)")
-            lo, hi = float(prof.min()), float(prof.max())
             vel = np.diff(prof) / self.dt if len(prof) > 1 else np.zeros(1)
             peak_rate = float(np.max(np.abs(vel)))
             volts = np.abs(vel + r.lag_rad_s * prof[:-1]) / r.flow_gain_m_per_Vs if len(prof) > 1 else [0.0]
@@ -226,15 +225,10 @@ class TrackingPID:
         else:
             a = ref.amp_m
             w = 2 * math.pi * max(ref.f0_hz, ref.f1_hz)
-            lo, hi = base - a, base + a
             peak_rate = a * w
             dyn = a * math.hypot(w, r.lag_rad_s) / r.flow_gain_m_per_Vs
             peak_V = abs(base) * r.lag_rad_s / r.flow_gain_m_per_Vs + dyn
             dv = dyn * w
-        for x in (lo, hi):
-            if abs(x) > r.stroke_limit_m:
-                raise RigError(f"{name}: position {x * 1e6:.1f} um is outside the stroke limit "
-                               f"(+-{r.stroke_limit_m * 1e6:.0f} um, safety.stroke_limit_m)")
         rng = self.hold_range_m()
         if ref.kind in ("hold", "setpoint", "step") and abs(base) > rng:
             raise RigError(f"{name}: {base * 1e6:.1f} um is outside what the actuator can hold: +-{rng * 1e6:.1f} um "

@@ -178,6 +178,18 @@ def start_request(args) -> str | None:
     return {"track": f"track {ref}", "hold": f"hold {pos}" if pos is not None else "hold"}.get(mode, mode)
 
 
+def check_start_stroke(args, cfg) -> None:
+    """A --position or --reference beyond the stroke limit, refused before the controllers are built (their
+    libraries take seconds to load); the rule is the tracking controller's own (controllers/reference.py)."""
+    text = args.reference if args.reference is not None else (
+        f"hold:{args.position}" if args.position is not None else None)
+    if text is None:
+        return
+    from controllers.reference import check_stroke, parse_reference
+    where = f"--reference {args.reference}" if args.reference is not None else f"--position {args.position}"
+    check_stroke(parse_reference(text, 1.0 / cfg.loop.rate_hz, where=where), cfg.safety.stroke_limit_m, name=where)
+
+
 def read_script(path) -> list[tuple[float, str]]:
     """`<loop time s> <control word>` per line; RigError naming the file and line."""
     p = Path(path)
@@ -278,6 +290,8 @@ class _RunPlan:
         if start is not None and not stand:
             raise RigError("--mode/--position/--reference: operating modes are for the stand layout "
                            "(--layout prototype)")
+        if stand:
+            check_start_stroke(args, cfg)
         self.record, self.tmp = args.record, None
         if args.plot and self.record is None:
             fd, self.tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")

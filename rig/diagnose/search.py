@@ -172,12 +172,14 @@ def select(pb: Problem, refit: ModelFit, nominal_lin: dict, band, lines: list, *
     screen = [n for n, e in pb.plant.effects.items() if not e.projected or R.lines]
     harmonic_now = True if nonlinear_hint is None else nonlinear_hint
     round1: dict[str, dict] = {}
+    rss0 = R.current.rss_hold
     for step in range(MAX_EFFECTS):
         over = math.sqrt(R.current.rss_hold / max(pb.mhold.sum(), 1)) / pb.noise
         explained = EXPLAINED_SLOW if catalogue.slow_in(R.current.fx) else EXPLAINED
-        # the search's own scale (its weights, the first noise estimate): the summary's residual/noise comes after
-        # the final noise estimate, so the two figures are not the same number and the line does not pretend so
-        R.say(f"round {step + 1}: searching for an effect (held-out residual on the search's scale {over:.3g})")
+        # progress as a share of the refit's own held-out residual: the search's x-noise figure uses its weights and
+        # the first noise estimate, not the summary's, and printed beside it read as a contradiction
+        share = f" (held-out residual {100 * math.sqrt(R.current.rss_hold / rss0):.0f} % of the linear refit's)"
+        R.say(f"round {step + 1}: searching for an effect{share if step and rss0 > 0 else ''}")
         results = _round(R, screen, harmonic_now, stop_at_noise and over < explained, explained, round1)
         if not R.chosen:
             round1 = {n_: dict(g.fx[n_]) for n_, g, _ in results if n_ in g.fx}

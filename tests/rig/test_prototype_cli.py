@@ -43,6 +43,19 @@ def test_run_refuses_in_one_line(tmp_path, args, match):
     assert out.stderr.strip().count("\n") == 0
 
 
+@pytest.mark.parametrize("args,match", [
+    (["--position", "2mm"], "--position 2mm: position 2000.0 um is outside the stroke limit (+-900 um"),
+    (["--reference", "sine:amp=0.5mm,freq=1,offset=-0.6mm"], "position -1100.0 um is outside the stroke limit")])
+def test_a_start_beyond_the_stroke_is_refused_before_the_controllers_load(args, match):
+    """The stroke rule runs on the options, before numba and python-control load (seconds on a busy host)."""
+    code = ("import sys\nfrom rig.cli import main\n"
+            f"code = main(['run', '--layout', 'prototype', '--sim-time', '--seconds', '0.2', *{args!r}])\n"
+            "print('CODE', code, sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'control')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "CODE 2 []" in out.stdout, (out.stdout, out.stderr[-2000:])
+    assert match in out.stderr and out.stderr.strip().count("\n") == 0, out.stderr
+
+
 def test_run_layout_must_agree_with_the_config(tmp_path):
     out = rig("run", "--layout", "prototype", "--config", "drivers/devicemaps/hil.toml", "--sim-time", "--seconds",
               "0.1")
