@@ -24,6 +24,7 @@ from rig.diagnose import catalogue, figures as figures_mod, uncertainty, units
 from rig.diagnose.evidence import signature_line
 from rig.diagnose.problem import MIN_GAIN
 from rig.diagnose.results import MODELS, Diagnosis, Mismatch, NamedEffect, Verdict
+from rig.plant.model import EHA_REFIT_KEYS
 FIT_COLUMNS = ("time_s", "measured_m", "nominal_m", "refit_m", "augmented_m", "augmented_sensor_m", "used")
 
 
@@ -304,7 +305,7 @@ def _mismatch_rows(mm: Mismatch, limit: int, verdict: Verdict | None = None) -> 
 
 def _refitted_what(plant: dict) -> str:
     free = plant.get("free_parameters") if plant.get("family", "eha") != "eha" else None
-    return ("its six parameters" if free is None else
+    return (f"its linear parameters {', '.join(EHA_REFIT_KEYS)}" if free is None else
             f"its free parameters {', '.join(free)}" if free else "nothing: every parameter is fixed")
 
 

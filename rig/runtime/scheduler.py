@@ -235,7 +235,8 @@ class Scheduler:
         if n and m / n > self.missed_limit:
             gate.fault(f"missed deadlines: {100 * m / n:.1f} % of {n} periods over the last "
                        f"{self.missed_window_s:g} s (limit missed_limit = {100 * self.missed_limit:g} %): "
-                       f"the loop cannot hold {self.rate_hz:g} Hz")
+                       f"the loop cannot hold {self.rate_hz:g} Hz (the host is busy or the loop lacks real-time "
+                       f"priority: docs/OPERATING.md real-time set-up; --sim-time runs without a clock to keep)")
 
     def _check_rate(self, gate, cpu_now_ns: int, now_ns: int) -> None:
         """The start-up rate check over its first periods: the median work of a period against period_budget
