@@ -59,6 +59,12 @@ TOP_FRACTION = 0.8             # one mount's noise floor: its rms above this x N
                                # (its band and its filter's tail, 1e-3 m/s^2 rms above 100 Hz on the emulated
                                # stand) has died out and the sensor's white noise is what is left; against the
                                # configured noise NOISY_RATIO holds (no others of its kind to compare with)
+HELD_MAX = 0.25                # ... judged only when at most this share of its samples at null repeat the one before
+                               # (a live sensor's never do: the host held the loop off, or the transducer's frames
+                               # came late, 8-17 % on a loaded host, 82 % under a load of 12 on 2 cores)
+QUIET_WINDOW_S = 0.1           # ... and its noise there the least over windows this long: a sensor's own noise is in
+                               # every window, a host's hiccup (late periods, repeats) puts the floor's motion's
+                               # steps into some (measured: 2.4e-5 m/s^2 in a clean window, 5.6e-3 in a late one)
 
 
 def _band(x, fs):
@@ -109,10 +115,19 @@ def noise_floor(x: np.ndarray, fs: float) -> np.ndarray:
     return np.sqrt((signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0) ** 2).mean(axis=0))
 
 
+def held_share(x: np.ndarray) -> np.ndarray:
+    """Each column's share of samples equal to the one before (repeated, not new)."""
+    return (np.diff(x, axis=0) == 0).mean(axis=0)
+
+
 def top_noise(x: np.ndarray, fs: float) -> np.ndarray:
-    """Each column's rms above TOP_FRACTION x Nyquist (one mount's noise floor, sensor_noise)."""
+    """Each column's rms above TOP_FRACTION x Nyquist, the least over windows of QUIET_WINDOW_S (one mount's noise
+    floor, sensor_noise)."""
     sos = signal.butter(4, TOP_FRACTION * fs / 2, btype="highpass", fs=fs, output="sos")
-    return np.sqrt((signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0) ** 2).mean(axis=0))
+    y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
+    w = max(int(round(QUIET_WINDOW_S * fs)), 8)
+    k = max(len(y) // w, 1)
+    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
 
 
 def top_noise_gain(fs: float) -> float:
@@ -139,7 +154,9 @@ def quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise=None) -> dict:
                      for i, m in enumerate(names)}
         if sensor_noise and kind in sensor_noise:
             top = top_noise(q, fs)
+            held = held_share(q)
             for i, m in enumerate(names):
+                out[kind][m]["held_share"] = float(held[i])
                 out[kind][m][f"noise_top_{unit}"] = float(top[i])
                 out[kind][m][f"noise_spec_{unit}"] = float(sensor_noise[kind]) * top_noise_gain(fs)
     return out
@@ -181,7 +198,8 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 findings.append(f"{name}: noisy, noise floor {nf * shown[0]:.3g} {shown[1]} rms above "
                                 f"{NOISE_HZ:g} Hz, {nf / float(np.median(others)):.1f} x the others'")
                 named.add((f"{kind}:{ch}", "noisy"))
-            elif not others and f"noise_spec_{unit}" in row:     # alone: against its own configured noise
+            elif not others and f"noise_spec_{unit}" in row and row["held_share"] <= HELD_MAX:   # alone: against
+                # its own configured noise (analyse notes a channel not judged: its samples held)
                 top = row[f"noise_top_{unit}"] * abs(fix.get(kind, {}).get(ch, 1.0))
                 spec = row[f"noise_spec_{unit}"]
                 if top > NOISY_RATIO * spec:
@@ -336,6 +354,12 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
                         "(no response matrix)"]
         if floor is None:
             res["notes"].append("no floor accelerometer fitted: the floor is not checked against the table")
+        for kind, rows in channels.items():
+            for ch, row in rows.items():
+                if row.get("held_share", 0.0) > HELD_MAX:
+                    res["notes"].append(f"{kind} {ch}: noise floor not judged, {100 * row['held_share']:.0f} % of "
+                                        f"its samples at null repeat the one before (the host held the loop off; "
+                                        f"run again on a quieter host)")
     return res
 
 
