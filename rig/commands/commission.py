@@ -122,7 +122,8 @@ def run(args) -> int:
     rec_path = out / "commissioning.h5"
     total = QUIET_S + len(names) * (slot_s + 2 * HOLD_S + LEAD_S) + LEAD_S
     if not args.json:
-        print(f"rig commission: {args.backend}, {len(names)} mounts at {rate:g} Hz: {QUIET_S:g} s at null, then one "
+        mounts = f"{len(names)} mounts" if len(names) > 1 else f"the {names[0]} alone"
+        print(f"rig commission: {args.backend}, {mounts} at {rate:g} Hz: {QUIET_S:g} s at null, then one "
               f"valve at a time a {AMPLITUDE_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {CHIRP_S:g} s, then held at "
               f"+-{STEP_V:g} V for {HOLD_S:g} s each ({total:.1f} s)",
               file=sys.stderr)
