@@ -124,6 +124,17 @@ def test_a_config_of_the_other_layout_is_refused_in_one_line(tmp_path):
     assert run.stderr.strip().splitlines()[-1].endswith("has [layout] plant = 'stand'")
 
 
+def test_a_stroke_limit_the_procedure_would_pass_half_of_is_refused_before_anything_moves(tmp_path):
+    cfg = tmp_path / "short.toml"
+    cfg.write_text(PROTOTYPE_HIL.read_text().replace("[safety]\n", "[safety]\nstroke_limit_m = 8e-6\n", 1))
+    argv = [sys.executable, "-m", "rig.cli", "commission", "--backend", "sim", "--config", str(cfg), "--out",
+            str(tmp_path / "out")]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert "safety.stroke_limit_m" in run.stderr and "beyond 50 % of it" in run.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def _quiet(noise_mps2, n=600, fs=500.0, seed=1):
     """A quiet stretch of one mount: the floor's motion (1-50 Hz) under the accelerometer, plus its white noise;
     the transducer its own noise."""
