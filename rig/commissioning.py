@@ -210,7 +210,8 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
             off = row[f"offset_{unit}"]
             # a stroke offset a valve's null explains (within NULL_MAX_V of the DC gain) is the valve's to name
             # (valve_checks): one owner for each offset
-            least = null_window_m if kind == "stroke" else 0.0
+            # (read through the channel's unit correction: a range a decade up reads the null's stroke 10 x)
+            least = null_window_m / abs(fix.get(kind, {}).get(ch, 1.0) or 1.0) if kind == "stroke" else 0.0
             if abs(off) > max(OFFSET_RATIO * row[f"noise_rms_{unit}"], least):
                 worse(key, "corrected")
                 findings.append(f"{name}: offset {off * shown[0]:+.4g} {shown[1]} at null (taken off by the "
@@ -519,11 +520,12 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     if idx:                              # the judged valves' nulls from their own channels (the others unknown)
         rows_x = [stroke_of[j] for j in idx]
         null[idx] = -np.linalg.solve(D[np.ix_(rows_x, idx)], o[rows_x])
-    gains = []
+    gains, ks = [], []
     for j in range(n):
         # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
         # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
         k = float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0))
+        ks.append(k)
         gains.append(float(abs(D[stroke_of[j], j]) * k / dc_gain_m_per_V))
     # the correction is against the valves that are ok: the table takes a share of each mount's stroke that the
     # one-actuator model has not (0.92 wired right), the same for every mount
@@ -558,7 +560,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
             faults.append({"channel": f"valve:{m}", "kind": "null"})
             out["null_V"] = float(null[j])
             findings.append(f"{node}: null offset {null[j]:+.3f} V (its spool centres there: at zero command the "
-                            f"stroke sits {-D[xs, j] * null[j] * 1e6:+.2f} um off)")
+                            f"stroke sits {-D[xs, j] * null[j] * ks[j] * 1e6:+.2f} um off)")
         verdicts[f"valve:{m}"] = v
         rows[m] = out
         figs[m] = {"dc_gain_vs_model": g, "null_V": float(null[j]) if judged[j] else None,
