@@ -312,9 +312,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
-    med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
-    if n == 1:      # no others: the answer a transducer reading the model's DC gain would give (dead: under 2 %)
-        med_x = R_x[stroke_of[0], 0] / max(abs(gain[names[0]]), 1e-12)
+    med_x = _stroke_ref(R_x, stroke_of, gain, names)
     dead_x = {m for j, m in enumerate(names) if R_x[stroke_of[j], j] < STROKE_DEAD_RATIO * med_x
               or not channels["stroke"][names[stroke_of[j]]]["alive"]}
     units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
@@ -345,23 +343,34 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
         faults = sorted(faults + valves.pop("faults"), key=lambda f: (f["channel"], f["kind"]))
         cal["valve"] = valves.pop("calibration")
         valves = valves["valves"]
-    res = {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
-           "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
-           "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
-           "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
-           "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values())}
-    if n == 1:
-        res["notes"] = ["one valve, one transducer, one accelerometer: no channel can be swapped with another "
-                        "(no response matrix)"]
-        if floor is None:
-            res["notes"].append("no floor accelerometer fitted: the floor is not checked against the table")
-        for kind, rows in channels.items():
-            for ch, row in rows.items():
-                if row.get("held_share", 0.0) > HELD_MAX:
-                    res["notes"].append(f"{kind} {ch}: noise floor not judged, {100 * row['held_share']:.0f} % of "
-                                        f"its samples at null repeat the one before (the host held the loop off; "
-                                        f"run again on a quieter host)")
-    return res
+    return {"mounts": list(names), "channels": channels, "stroke_response_m": R_x.tolist(),
+            "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
+            "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
+            "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
+            "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values()),
+            **({"notes": alone_notes(channels, floor is not None)} if n == 1 else {})}
+
+
+def _stroke_ref(R_x, stroke_of, gain, names) -> float:
+    """The stroke response a transducer is held against (dead below STROKE_DEAD_RATIO of it): the median over
+    the valves; one mount alone has no others, so the answer a transducer reading the model's DC gain would give."""
+    if len(names) == 1:
+        return float(R_x[stroke_of[0], 0] / max(abs(gain[names[0]]), 1e-12))
+    return float(np.median([R_x[stroke_of[j], j] for j in range(len(names))]))
+
+
+def alone_notes(channels: dict, floor_fitted: bool) -> list[str]:
+    """What one mount alone cannot check, in words (the report's notes)."""
+    notes = ["one valve, one transducer, one accelerometer: no channel can be swapped with another (no response "
+             "matrix)"]
+    if not floor_fitted:
+        notes.append("no floor accelerometer fitted: the floor is not checked against the table")
+    for kind, rows in channels.items():
+        for ch, row in rows.items():
+            if row.get("held_share", 0.0) > HELD_MAX:
+                notes.append(f"{kind} {ch}: noise floor not judged, {100 * row['held_share']:.0f} % of its samples "
+                             f"at null repeat the one before (the host held the loop off; run again on a quieter host)")
+    return notes
 
 
 def _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V) -> tuple[dict, dict]:
@@ -511,22 +520,18 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     w = t >= t[quiet].min()
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
     own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
-    seen = own > DEAD_RMS_RATIO * np.median(own)          # its transducer answers it: the valve can be judged
-    if n == 1:                                            # alone: against the model's, as a dead transducer is
-        seen = own > STROKE_DEAD_RATIO * abs(dc_gain_m_per_V)
+    # its transducer answers it: the valve can be judged (alone: against the model's, as a dead transducer is)
+    seen = own > (DEAD_RMS_RATIO * np.median(own) if n > 1 else STROKE_DEAD_RATIO * abs(dc_gain_m_per_V))
     judged = [bool(seen[j] and abs(o[stroke_of[j]]) <= NULL_MAX_V * own[j]) for j in range(n)]
     null = np.full(n, math.nan)
     idx = [j for j in range(n) if judged[j]]
     if idx:                              # the judged valves' nulls from their own channels (the others unknown)
         rows_x = [stroke_of[j] for j in idx]
         null[idx] = -np.linalg.solve(D[np.ix_(rows_x, idx)], o[rows_x])
-    gains, ks = [], []
-    for j in range(n):
-        # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
-        # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
-        k = float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0))
-        ks.append(k)
-        gains.append(float(abs(D[stroke_of[j], j]) * k / dc_gain_m_per_V))
+    # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
+    # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
+    ks = [float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0)) for j in range(n)]
+    gains = [float(abs(D[stroke_of[j], j]) * ks[j] / dc_gain_m_per_V) for j in range(n)]
     # the correction is against the valves that are ok: the table takes a share of each mount's stroke that the
     # one-actuator model has not (0.92 wired right), the same for every mount
     ok = [g for g in gains if abs(g - 1) <= GAIN_TOL]

@@ -81,13 +81,22 @@ def process_age_s() -> float:
         return 0.0
 
 
+def check_bounded(cfg, dc_gain_m_per_V: float) -> None:
+    """The commands are bounded: held at the larger of the chirp's and the steps' amplitude, the model's stroke
+    (Eq. 9 at DC) must stay inside SAFE_SHARE of the stroke limit, or nothing moves (RigError naming the field)."""
+    asked = abs(dc_gain_m_per_V) * max(AMPLITUDE_V, STEP_V)
+    if asked > SAFE_SHARE * cfg.safety.stroke_limit_m:
+        raise RigError(f"{cfg.source}: safety.stroke_limit_m: {cfg.safety.stroke_limit_m:g} m; commissioning's "
+                       f"{max(AMPLITUDE_V, STEP_V):g} V would move the stroke {asked * 1e6:.1f} um, beyond "
+                       f"{100 * SAFE_SHARE:g} % of it")
+
+
 def run(args) -> int:
     started = time.monotonic() - process_age_s()
     from rig.commands.run import layout_config
     # rig run's rule for --config / --layout, with the HIL's files on every backend: the procedure runs at
     # [hil] rate_hz whatever the backend (hil.toml, prototype_hil.toml without --config)
     cfg = layout_config(args, "hil")
-    stand = cfg.layout.plant == "stand"
     from controllers.playback import SignalPlayback        # heavy (numba, scipy): after the arguments are checked
     from rig import commissioning
     from rig.chirp import chirp_samples
@@ -101,13 +110,7 @@ def run(args) -> int:
     cfg = dataclasses.replace(cfg, supervisor=dataclasses.replace(cfg.supervisor, enabled=False))
     names = layout_mounts(cfg)
     dc_gain = ActuatorParams.from_config(cfg).dc_gain_m_per_V
-    # the commands are bounded: held at the larger of the chirp's and the steps' amplitude, the model's stroke
-    # (Eq. 9 at DC) must stay inside SAFE_SHARE of the stroke limit, or nothing moves
-    asked = abs(dc_gain) * max(AMPLITUDE_V, STEP_V)
-    if asked > SAFE_SHARE * cfg.safety.stroke_limit_m:
-        raise RigError(f"{cfg.source}: safety.stroke_limit_m: {cfg.safety.stroke_limit_m:g} m; commissioning's "
-                       f"{max(AMPLITUDE_V, STEP_V):g} V would move the stroke {asked * 1e6:.1f} um, beyond "
-                       f"{100 * SAFE_SHARE:g} % of it")
+    check_bounded(cfg, dc_gain)
     dt = 1.0 / rate
     slot_s = CHIRP_S + 2 * LEAD_S
     chirp = chirp_samples(AMPLITUDE_V, F0_HZ, F1_HZ, CHIRP_S, dt)
@@ -145,19 +148,12 @@ def run(args) -> int:
     rec = read_recording(rec_path)
     steps = (QUIET_S + len(names) * slot_s + LEAD_S, HOLD_S, LEAD_S)
     res = commissioning.analyse(rec, names, rate, QUIET_S, slot_s, LEAD_S, dc_gain, steps=steps,
-                                sensor_noise=sensor_noise(cfg) if stand else None)
+                                sensor_noise=sensor_noise(cfg) if len(names) == 1 else None)
     peak = float(np.abs(np.asarray(rec["stroke_m"])).max())
     res["peak_stroke_m"] = float(peak)
     res["stroke_limit_m"] = cfg.safety.stroke_limit_m
     res["through_calibration"] = through or None
-    (out / "report.txt").write_text(commissioning.text(res) + "\n")
-    (out / "report.json").write_text(json.dumps(res, indent=1))
-    (out / "commissioning.toml").write_text(commissioning.calibration_toml(res, str(rec_path)))
-    if len(names) == 1:                  # nothing to swap: its polarity and its valve's steps instead of a matrix
-        commissioning.plot_alone(res, rec, out / f"{names[0]}.png", QUIET_S, LEAD_S, steps)
-    else:
-        for m in names:
-            commissioning.plot(res, rec, m, out / f"{m}.png")
+    write_report(res, rec, out, rec_path, steps)
     res["wall_s"] = time.monotonic() - started
     if args.json:
         print(json.dumps(res))
@@ -167,3 +163,18 @@ def run(args) -> int:
               f"report, calibration and plots in {out}")
     print(f"rig commission: took {res['wall_s']:.1f} s wall (start-up included)", file=sys.stderr)
     return 0 if res["all_ok"] else EXIT_FINDINGS
+
+
+def write_report(res: dict, rec: dict, out: Path, rec_path: Path, steps) -> None:
+    """report.txt, report.json, commissioning.toml and a PNG per mount (one mount alone: nothing to swap, its
+    polarity and its valve's held steps instead of the response matrix)."""
+    from rig import commissioning
+    (out / "report.txt").write_text(commissioning.text(res) + "\n")
+    (out / "report.json").write_text(json.dumps(res, indent=1))
+    (out / "commissioning.toml").write_text(commissioning.calibration_toml(res, str(rec_path)))
+    names = res["mounts"]
+    if len(names) == 1:
+        commissioning.plot_alone(res, rec, out / f"{names[0]}.png", QUIET_S, LEAD_S, steps)
+    else:
+        for m in names:
+            commissioning.plot(res, rec, m, out / f"{m}.png")
