@@ -20,6 +20,11 @@ The sensors' own checks (sensor_findings): alive, offset and noise floor at null
 (above NOISE_HZ, where the table barely moves and a sensor's white noise shows) against the median of the
 others of its kind, and a transducer's range or unit slip (stroke_unit: its accelerometer a power of ten off its
 x'', and its stroke/command moved the other way against the other mounts').
+
+One mount alone (the prototype on its stand): one valve, one transducer, one accelerometer, so nothing can be
+swapped and there are no others of its kind to hold a channel against. A dead transducer is judged against the
+model's DC gain (its stroke per volt under STROKE_DEAD_RATIO of it), a noise floor against the sensor's own noise
+as configured plus its device's resolution (`sensor_noise`, above TOP_FRACTION of the Nyquist frequency).
 """
 from __future__ import annotations
 
@@ -50,6 +55,16 @@ NOISY_RATIO = 3.0              # a noise floor above this x the median of the ot
                                # no calibration takes noise out, and the loop would feed it to the valves; channels
                                # wired right lie within a few % of each other)
 OFFSET_RATIO = 5.0             # an offset at null above this x the channel's rms there: named (and taken off)
+TOP_FRACTION = 0.8             # one mount's noise floor: its rms above this x Nyquist, where the floor's motion
+                               # (its band and its filter's tail, 1e-3 m/s^2 rms above 100 Hz on the emulated
+                               # stand) has died out and the sensor's white noise is what is left; against the
+                               # configured noise NOISY_RATIO holds (no others of its kind to compare with)
+HELD_MAX = 0.25                # ... judged only when at most this share of its samples at null repeat the one before
+                               # (a live sensor's never do: the host held the loop off, or the transducer's frames
+                               # came late, 8-17 % on a loaded host, 82 % under a load of 12 on 2 cores)
+QUIET_WINDOW_S = 0.1           # ... and its noise there the least over windows this long: a sensor's own noise is in
+                               # every window, a host's hiccup (late periods, repeats) puts the floor's motion's
+                               # steps into some (measured: 2.4e-5 m/s^2 in a clean window, 5.6e-3 in a late one)
 
 
 def _band(x, fs):
@@ -100,9 +115,33 @@ def noise_floor(x: np.ndarray, fs: float) -> np.ndarray:
     return np.sqrt((signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0) ** 2).mean(axis=0))
 
 
-def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
+def held_share(x: np.ndarray) -> np.ndarray:
+    """Each column's share of samples equal to the one before (repeated, not new)."""
+    return (np.diff(x, axis=0) == 0).mean(axis=0)
+
+
+def top_noise(x: np.ndarray, fs: float) -> np.ndarray:
+    """Each column's rms above TOP_FRACTION x Nyquist, the least over windows of QUIET_WINDOW_S (one mount's noise
+    floor, sensor_noise)."""
+    sos = signal.butter(4, TOP_FRACTION * fs / 2, btype="highpass", fs=fs, output="sos")
+    y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
+    w = max(int(round(QUIET_WINDOW_S * fs)), 8)
+    k = max(len(y) // w, 1)
+    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
+
+
+def top_noise_gain(fs: float) -> float:
+    """top_noise of unit white noise: sqrt(mean |H|^4) over 0..Nyquist (sosfiltfilt applies |H|^2)."""
+    sos = signal.butter(4, TOP_FRACTION * fs / 2, btype="highpass", fs=fs, output="sos")
+    _, h = signal.sosfreqz(sos, worN=4096, fs=fs)
+    return float(np.sqrt(np.mean(np.abs(h) ** 4)))
+
+
+def quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise=None) -> dict:
     """Each channel at null: offset, rms, noise floor, alive (accel, stroke; floor where the floor accelerometers
-    are fitted). Keyed by the mount each channel is mapped to."""
+    are fitted). Keyed by the mount each channel is mapped to. sensor_noise ({kind: white noise rms per sample,
+    in the loop's units}): each such channel also its noise above TOP_FRACTION x Nyquist (noise_top_*) and what
+    that noise alone gives there (noise_spec_*)."""
     kinds = {"accel": (acc, "mps2"), "stroke": (x, "m")}
     if floor is not None:
         kinds["floor"] = (floor, "mps2")
@@ -113,6 +152,13 @@ def quiet_channels(acc, x, floor, quiet, fs, names) -> dict:
         out[kind] = {m: {f"offset_{unit}": float(q[:, i].mean()), f"noise_rms_{unit}": float(q[:, i].std()),
                          f"noise_floor_{unit}": float(nf[i]), "alive": bool(q[:, i].std() > 0)}
                      for i, m in enumerate(names)}
+        if sensor_noise and kind in sensor_noise:
+            top = top_noise(q, fs)
+            held = held_share(q)
+            for i, m in enumerate(names):
+                out[kind][m]["held_share"] = float(held[i])
+                out[kind][m][f"noise_top_{unit}"] = float(top[i])
+                out[kind][m][f"noise_spec_{unit}"] = float(sensor_noise[kind]) * top_noise_gain(fs)
     return out
 
 
@@ -152,10 +198,20 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 findings.append(f"{name}: noisy, noise floor {nf * shown[0]:.3g} {shown[1]} rms above "
                                 f"{NOISE_HZ:g} Hz, {nf / float(np.median(others)):.1f} x the others'")
                 named.add((f"{kind}:{ch}", "noisy"))
+            elif not others and f"noise_spec_{unit}" in row and row["held_share"] <= HELD_MAX:   # alone: against
+                # its own configured noise (analyse notes a channel not judged: its samples held)
+                top = row[f"noise_top_{unit}"] * abs(fix.get(kind, {}).get(ch, 1.0))
+                spec = row[f"noise_spec_{unit}"]
+                if top > NOISY_RATIO * spec:
+                    worse(key, "refused")
+                    findings.append(f"{name}: noisy, {top * shown[0]:.3g} {shown[1]} rms at the top of the band, "
+                                    f"{top / spec:.1f} x its configured noise and resolution")
+                    named.add((f"{kind}:{ch}", "noisy"))
             off = row[f"offset_{unit}"]
             # a stroke offset a valve's null explains (within NULL_MAX_V of the DC gain) is the valve's to name
             # (valve_checks): one owner for each offset
-            least = null_window_m if kind == "stroke" else 0.0
+            # (read through the channel's unit correction: a range a decade up reads the null's stroke 10 x)
+            least = null_window_m / abs(fix.get(kind, {}).get(ch, 1.0) or 1.0) if kind == "stroke" else 0.0
             if abs(off) > max(OFFSET_RATIO * row[f"noise_rms_{unit}"], least):
                 worse(key, "corrected")
                 findings.append(f"{name}: offset {off * shown[0]:+.4g} {shown[1]} at null (taken off by the "
@@ -217,9 +273,11 @@ def channel_map(R: np.ndarray) -> list[int]:
 
 
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
-            dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None) -> dict:
+            dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None,
+            sensor_noise: dict | None = None) -> dict:
     """The checks of one commissioning recording (rig.runtime.recorder.read_recording's dict). steps: the valves'
-    held steps after the chirps (start s, hold s, null s after each valve's pair: valve_checks), if recorded."""
+    held steps after the chirps (start s, hold s, null s after each valve's pair: valve_checks), if recorded.
+    sensor_noise: {kind: white noise rms per sample}, what a mount alone judges its noise floors against."""
     n = len(names)
     t = np.asarray(rec["time_s"]).ravel()
     acc = np.asarray(rec["accel_mps2"], dtype=float).reshape(len(t), -1)[:, :n]
@@ -229,7 +287,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     rel = acc - np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else acc
     quiet = (t > 0.2 * quiet_s) & (t < quiet_s)
     channels = quiet_channels(acc, x, np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n]
-                              if floor is not None else None, quiet, fs, names)
+                              if floor is not None else None, quiet, fs, names, sensor_noise if n == 1 else None)
     rb, xb, cb = _band(rel, fs), _band(x, fs), _band(cmd, fs)
     w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
     xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
@@ -254,14 +312,14 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     # a transducer's unit slip (stroke_unit) scales its stroke: the valve's gain and the accelerometer's scale
     # against it are judged through its correction; a dead transducer holds no accelerometer to anything
     gain_raw, scale_raw = dict(gain), dict(scale)
-    med_x = np.median([R_x[stroke_of[j], j] for j in range(n)])
+    med_x = _stroke_ref(R_x, stroke_of, gain, names)
     dead_x = {m for j, m in enumerate(names) if R_x[stroke_of[j], j] < STROKE_DEAD_RATIO * med_x
               or not channels["stroke"][names[stroke_of[j]]]["alive"]}
     units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
     for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
         gain[m] *= units[m]
         scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
-    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of)
+    verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of, med_x)
     fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
                      else 1.0 for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
@@ -289,7 +347,30 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             "accel_response_mps2": R_a.tolist(), "stroke_of_valve": [names[i] for i in stroke_of],
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
             "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
-            "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values())}
+            "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values()),
+            **({"notes": alone_notes(channels, floor is not None)} if n == 1 else {})}
+
+
+def _stroke_ref(R_x, stroke_of, gain, names) -> float:
+    """The stroke response a transducer is held against (dead below STROKE_DEAD_RATIO of it): the median over
+    the valves; one mount alone has no others, so the answer a transducer reading the model's DC gain would give."""
+    if len(names) == 1:
+        return float(R_x[stroke_of[0], 0] / max(abs(gain[names[0]]), 1e-12))
+    return float(np.median([R_x[stroke_of[j], j] for j in range(len(names))]))
+
+
+def alone_notes(channels: dict, floor_fitted: bool) -> list[str]:
+    """What one mount alone cannot check, in words (the report's notes)."""
+    notes = ["one valve, one transducer, one accelerometer: no channel can be swapped with another (no response "
+             "matrix)"]
+    if not floor_fitted:
+        notes.append("no floor accelerometer fitted: the floor is not checked against the table")
+    for kind, rows in channels.items():
+        for ch, row in rows.items():
+            if row.get("held_share", 0.0) > HELD_MAX:
+                notes.append(f"{kind} {ch}: noise floor not judged, {100 * row['held_share']:.0f} % of its samples "
+                             f"at null repeat the one before (the host held the loop off; run again on a quieter host)")
+    return notes
 
 
 def _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V) -> tuple[dict, dict]:
@@ -327,11 +408,13 @@ def _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names) -> None
                 cal[kind][names[of[j]]]["sign"] = 1.0
 
 
-def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of=None) -> tuple[dict, list]:
-    """Per channel ok / corrected / refused, and the findings in words (mount_of: the mount each valve moves)."""
+def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of=None,
+              x_ref=None) -> tuple[dict, list]:
+    """Per channel ok / corrected / refused, and the findings in words (mount_of: the mount each valve moves;
+    x_ref: the stroke response a transducer is held against, default the median over the valves)."""
     mount_of = list(range(len(names))) if mount_of is None else mount_of
     med_a = np.median([R_a[accel_of[j], j] / max(abs(scale[m]), 1e-12) for j, m in enumerate(names)])
-    med_x = np.median([R_x[stroke_of[j], j] for j in range(len(names))])
+    med_x = np.median([R_x[stroke_of[j], j] for j in range(len(names))]) if x_ref is None else x_ref
     verdicts, findings = {}, []
     for j, m in enumerate(names):
         ac, xs = accel_of[j], stroke_of[j]
@@ -437,19 +520,18 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     w = t >= t[quiet].min()
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
     own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
-    seen = own > DEAD_RMS_RATIO * np.median(own)          # its transducer answers it: the valve can be judged
+    # its transducer answers it: the valve can be judged (alone: against the model's, as a dead transducer is)
+    seen = own > (DEAD_RMS_RATIO * np.median(own) if n > 1 else STROKE_DEAD_RATIO * abs(dc_gain_m_per_V))
     judged = [bool(seen[j] and abs(o[stroke_of[j]]) <= NULL_MAX_V * own[j]) for j in range(n)]
     null = np.full(n, math.nan)
     idx = [j for j in range(n) if judged[j]]
     if idx:                              # the judged valves' nulls from their own channels (the others unknown)
         rows_x = [stroke_of[j] for j in idx]
         null[idx] = -np.linalg.solve(D[np.ix_(rows_x, idx)], o[rows_x])
-    gains = []
-    for j in range(n):
-        # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
-        # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
-        k = float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0))
-        gains.append(float(abs(D[stroke_of[j], j]) * k / dc_gain_m_per_V))
+    # through the transducer's own scale; its size only: a valve's sign is no wiring fault here, the stroke's
+    # sign is the transducer's (the held steps' sign holds where a chirp's ratio drowned under load)
+    ks = [float(cal.get("stroke", {}).get(names[stroke_of[j]], {}).get("scale", 1.0)) for j in range(n)]
+    gains = [float(abs(D[stroke_of[j], j]) * ks[j] / dc_gain_m_per_V) for j in range(n)]
     # the correction is against the valves that are ok: the table takes a share of each mount's stroke that the
     # one-actuator model has not (0.92 wired right), the same for every mount
     ok = [g for g in gains if abs(g - 1) <= GAIN_TOL]
@@ -483,7 +565,7 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
             faults.append({"channel": f"valve:{m}", "kind": "null"})
             out["null_V"] = float(null[j])
             findings.append(f"{node}: null offset {null[j]:+.3f} V (its spool centres there: at zero command the "
-                            f"stroke sits {-D[xs, j] * null[j] * 1e6:+.2f} um off)")
+                            f"stroke sits {-D[xs, j] * null[j] * ks[j] * 1e6:+.2f} um off)")
         verdicts[f"valve:{m}"] = v
         rows[m] = out
         figs[m] = {"dc_gain_vs_model": g, "null_V": float(null[j]) if judged[j] else None,
@@ -514,6 +596,7 @@ def text(res: dict) -> str:
         null = "not judged (its transducer's own offset)" if v["null_V"] is None else f"{v['null_V']:+.3f} V"
         lines.append(f"{m}: valve {res['verdicts'][f'valve:{m}']} (DC gain {v['dc_gain_vs_model']:.2f} x the model's, "
                      f"null {null}, moves {v['moves']})")
+    lines += [f"  ({note})" for note in res.get("notes", ())]
     lines += [f"  {f}" for f in res["findings"]] or ["  every channel ok"]
     return "\n".join(lines)
 
@@ -543,6 +626,42 @@ def plot(res: dict, rec: dict, mount: str, path) -> None:
     ax[1].set_title(f"accelerometer response (m/s^2 rms); scale {res['accel_scale'][mount]:+.3f}")
     for a in ax:
         a.tick_params(axis="x", labelrotation=30)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def plot_alone(res: dict, rec: dict, path, quiet_s: float, lead_s: float, steps) -> None:
+    """One mount alone (no response matrix to draw): its polarity, the accelerometer against its stroke's x''
+    (BAND_HZ, half a second of its chirp), and its valve's held steps, stroke and command."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    m = res["mounts"][0]
+    t = np.asarray(rec["time_s"]).ravel()
+    fs = 1.0 / float(np.median(np.diff(t)))
+    a = np.asarray(rec["accel_mps2"], dtype=float).reshape(len(t), -1)[:, 0]
+    x = np.asarray(rec["stroke_m"], dtype=float).reshape(len(t), -1)[:, 0]
+    u = np.asarray(rec["valve_cmd_V"], dtype=float).reshape(len(t), -1)[:, 0]
+    w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
+    xdd = np.fft.irfft(-(w ** 2) * np.fft.rfft(_band(x, fs)), n=len(t))
+    t0 = quiet_s + lead_s + 0.5
+    sl = (t > t0) & (t < t0 + 0.5)
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    ax[0].plot(t[sl], xdd[sl], label="x'' of the stroke")
+    ax[0].plot(t[sl], _band(a, fs)[sl], label="accelerometer", alpha=0.8)
+    ax[0].set_title(f"{m}: polarity, {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz (scale {res['accel_scale'][m]:+.3f})")
+    ax[0].set_xlabel("time (s)")
+    ax[0].set_ylabel("m/s^2")
+    ax[0].legend(fontsize=8)
+    hs = (t > steps[0] - 0.1) & (t < steps[0] + 2 * steps[1] + steps[2])
+    ax[1].plot(t[hs], x[hs] * 1e6, label="stroke (um)")
+    ax[1].plot(t[hs], u[hs], label="command (V)")
+    v = (res.get("valves") or {}).get(m, {})
+    null = "not judged" if v.get("null_V") is None else f"null {v['null_V']:+.3f} V"
+    ax[1].set_title(f"valve: DC gain {v.get('dc_gain_vs_model', float('nan')):.2f} x model's, {null}")
+    ax[1].set_xlabel("time (s)")
+    ax[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
