@@ -521,7 +521,8 @@ def valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_ga
     o = x[w].mean(axis=0) - D @ cmd[w].mean(axis=0)
     own = np.array([abs(D[stroke_of[j], j]) for j in range(n)])
     # its transducer answers it: the valve can be judged (alone: against the model's, as a dead transducer is)
-    seen = own > (DEAD_RMS_RATIO * np.median(own) if n > 1 else STROKE_DEAD_RATIO * abs(dc_gain_m_per_V))
+    # (STROKE_DEAD_RATIO: a transducer ranged a decade off answers 0.1 of the others', on the dead line's edge)
+    seen = own > STROKE_DEAD_RATIO * (np.median(own) if n > 1 else abs(dc_gain_m_per_V))
     judged = [bool(seen[j] and abs(o[stroke_of[j]]) <= NULL_MAX_V * own[j]) for j in range(n)]
     null = np.full(n, math.nan)
     idx = [j for j in range(n) if judged[j]]
