@@ -280,9 +280,13 @@ def hil(config: Path, record: Path, seconds: float | None, timeout_s: float = 90
     res, wall, err, code = _rig_json(argv, (0,), timeout_s)
     res = res or {}
     late = res.get("late_periods") or {}
-    return {"feedback_db": _r2(res.get("isolation_reduction_db")),
+    fb, ls = res.get("isolation_reduction_db"), (res.get("lockstep_reduction_db") or {}).get("feedback")
+    return {"feedback_db": _r2(fb),
             "feedforward_db": _r2(res.get("feedforward_reduction_db")),
-            "lockstep_feedback_db": _r2((res.get("lockstep_reduction_db") or {}).get("feedback")),
+            "lockstep_feedback_db": _r2(ls),
+            # the drivers' cost against the same design on the same stretch of floor in lockstep: the floor's own
+            # variation between runs (the stretch each mode meets depends on the start-up's length) taken out
+            "feedback_vs_lockstep_db": None if fb is None or ls is None else _r2(fb - ls),
             "late_feedback_pct": None if late.get("feedback") is None else round(100 * late["feedback"], 1),
             "exit": code, "harm": res.get("harm"), "error": err, "wall_s": round(wall, 1)}
 
@@ -340,7 +344,7 @@ def run_single(args) -> int:
                "named_right": res is not None and got == exp, "verdicts": verdicts, "verdict_expected": want,
                "verdict_right": res is not None and all(v == want for v in verdicts.values()),
                "commission_wall_s": round(wall, 1), "error": err, "load_average": round(load, 1), "hil": [],
-               "feedback_db": None, "feedforward_db": None, "within_1db": None}
+               "feedback_db": None, "feedforward_db": None, "feedback_vs_lockstep_db": None, "within_1db": None}
         print(f"[{i + 1}/{len(cases)}] {said}: {'named right' if row['named_right'] else 'NAMED WRONG'} "
               f"({', '.join(f'{c} {kd}' for c, kd in sorted(got)) or err or 'nothing named'}), "
               f"{', '.join(f'{c} {v}' for c, v in verdicts.items())} ({wall:.0f} s)", file=sys.stderr, flush=True)
@@ -360,6 +364,7 @@ def run_single(args) -> int:
                           + f" ({r['wall_s']:.0f} s)", file=sys.stderr, flush=True)
             fb, ff = _figures(row["hil"], "feedback_db"), _figures(row["hil"], "feedforward_db")
             row["feedback_db"], row["feedforward_db"] = fb, ff
+            row["feedback_vs_lockstep_db"] = _figures(row["hil"], "feedback_vs_lockstep_db")
             broke = any(r["error"] for r in row["hil"] if r["rig"] == "calibrated")
             row["within_1db"] = (False if broke and fb["calibrated_mean"] is None else
                                  None if fb["difference"] is None else abs(fb["difference"]) <= WITHIN_DB)
@@ -398,19 +403,21 @@ def single_summary(rows: list[dict], load0, load1) -> dict:
            "hil_runs_not_clean": [f"case {r['case']} {h['rig']}: {h['error']}" for r in rows for h in r["hil"]
                                   if h["error"]],
            "load_average_start": [round(x, 1) for x in load0], "load_average_end": [round(x, 1) for x in load1]}
-    for key in ("feedback_db", "feedforward_db"):
+    for key in ("feedback_db", "feedforward_db", "feedback_vs_lockstep_db"):
         diffs = [r[key]["difference"] for r in compared if r[key]["difference"] is not None]
         clean = [x for r in compared for x in r[key]["clean"]]
         pairs = [abs(r[key]["clean"][0] - r[key]["clean"][1]) for r in compared if len(r[key]["clean"]) >= 2]
         out[key] = {"within_1db": sum(abs(d) <= WITHIN_DB for d in diffs), "judged": len(diffs),
                     "difference": _spread(diffs), "clean_runs": _spread(clean),
-                    "clean_pair_abs_difference": _spread(pairs)}
+                    "clean_pair_abs_difference": _spread(pairs),
+                    # one clean run against the next (in time order, across cases): the spread with one run a case
+                    "clean_successive_abs_difference": _spread([abs(b - a) for a, b in zip(clean, clean[1:])])}
     return out
 
 
 def single_markdown(proof: dict) -> str:
     s, rows = proof["summary"], proof["rows"]
-    fb, ff = s["feedback_db"], s["feedforward_db"]
+    fb, ff, ls = s["feedback_db"], s["feedforward_db"], s["feedback_vs_lockstep_db"]
 
     def spread(d: dict) -> str:
         return "none" if not d["n"] else (f"{d['min']} to {d['max']} dB (mean {d['mean']}, sd {d['sd']}, "
@@ -430,18 +437,24 @@ def single_markdown(proof: dict) -> str:
            f"- calibrated within {WITHIN_DB:g} dB of the rig wired right, feedback: {fb['within_1db']} of "
            f"{fb['judged']} (difference {spread(fb['difference'])}); feedback + feedforward: {ff['within_1db']} of "
            f"{ff['judged']} (difference {spread(ff['difference'])})",
+           f"- the same against each run's lockstep twin (feedback through the drivers - in lockstep: the floor's "
+           f"variation taken out): {ls['within_1db']} of {ls['judged']} (difference {spread(ls['difference'])})",
            f"- the rig wired right, run to run (`rig hil` {proof['repeats']} x per case"
            f"{'' if proof['hil_seconds'] is None else ', ' + format(proof['hil_seconds'], 'g') + ' s'}): feedback "
            f"{spread(fb['clean_runs'])}, |difference| between a case's two runs {spread(fb['clean_pair_abs_difference'])}"
            f"; feedback + feedforward {spread(ff['clean_runs'])}, |difference| "
-           f"{spread(ff['clean_pair_abs_difference'])}",
+           f"{spread(ff['clean_pair_abs_difference'])}; |difference| between successive runs: feedback "
+           f"{spread(fb['clean_successive_abs_difference'])}, feedback + feedforward "
+           f"{spread(ff['clean_successive_abs_difference'])}, feedback - lockstep "
+           f"{spread(ls['clean_successive_abs_difference'])}",
            f"- `rig hil` runs that did not finish clean (left out of the means): {len(s['hil_runs_not_clean'])}"
            + "".join(f"\n  - {x}" for x in s["hil_runs_not_clean"]),
            f"- load average (1, 5, 15 min): {s['load_average_start']} at the start, {s['load_average_end']} at the "
            f"end", "",
            "| case | fault (mounts) | named | verdict | feedback dB, calibrated | wired right | difference | "
-           "feedback + feedforward dB, calibrated | wired right | difference | within 1 dB (feedback) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+           "feedback + feedforward dB, calibrated | wired right | difference | feedback - lockstep dB, calibrated | "
+           "wired right | difference | within 1 dB (feedback) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         got = ", ".join(f"{c} {k}" for c, k in r["named"]) or (r["error"] or "nothing")
         verdict = ", ".join(sorted({str(v) for v in r["verdicts"].values()}))
@@ -449,6 +462,7 @@ def single_markdown(proof: dict) -> str:
                   else "not judged"}[r["within_1db"]]
         out.append(f"| {r['case']} | {r['fault']} ({', '.join(r['mounts'])}) | "
                    f"{got}{'' if r['named_right'] else ' (WRONG)'} | {verdict} | "
-                   + " | ".join(figs(r["feedback_db"])) + " | " + " | ".join(figs(r["feedforward_db"]))
+                   + " | ".join(" | ".join(figs(r[k])) for k in ("feedback_db", "feedforward_db",
+                                                                   "feedback_vs_lockstep_db"))
                    + f" | {within} |")
     return "\n".join(out) + "\n"

@@ -116,9 +116,12 @@ def test_the_single_summary_measures_the_clean_rigs_spread():
         runs = [dict(rig="calibrated", feedback_db=x, feedforward_db=x + 5, error="") for x in cal] + \
                [dict(rig="clean", feedback_db=x, feedforward_db=x + 5, error=err if j else "")
                 for j, x in enumerate(clean)]
+        for r in runs:
+            r["feedback_vs_lockstep_db"] = r["feedback_db"] - 8.0
         fb, ff = _figures(runs, "feedback_db"), _figures(runs, "feedforward_db")
         return {"case": case, "named_right": True, "verdict_right": True, "verdict_expected": "corrected",
-                "error": "", "hil": [dict(r, rig=r["rig"]) for r in runs], "feedback_db": fb, "feedforward_db": ff}
+                "error": "", "hil": runs, "feedback_db": fb, "feedforward_db": ff,
+                "feedback_vs_lockstep_db": _figures(runs, "feedback_vs_lockstep_db")}
     rows = [row(0, [8.0, 8.4], [8.5, 8.1]), row(1, [6.0, 6.2], [8.0, 7.0], err="exit 1")]
     assert rows[0]["feedback_db"]["difference"] == -0.1 and rows[1]["feedback_db"]["clean"] == [8.0]
     s = single_summary(rows, (1, 2, 3), (4, 5, 6))
@@ -126,6 +129,8 @@ def test_the_single_summary_measures_the_clean_rigs_spread():
     assert s["feedback_db"]["clean_runs"]["n"] == 3 and s["feedback_db"]["clean_runs"]["max"] == 8.5
     assert s["feedback_db"]["clean_pair_abs_difference"] == {"n": 1, "min": 0.4, "max": 0.4, "mean": 0.4, "sd": None}
     assert s["feedforward_db"]["difference"]["min"] == -1.9
+    assert s["feedback_db"]["clean_successive_abs_difference"] == {"n": 2, "min": 0.1, "max": 0.4, "mean": 0.25, "sd": 0.21}
+    assert s["feedback_vs_lockstep_db"]["difference"]["max"] == -0.1
 
 
 @pytest.mark.hil
@@ -154,5 +159,6 @@ def test_prove_commission_single_runs_as_a_user_runs_it(tmp_path):
     assert isinstance(fb["calibrated_mean"], float) and isinstance(fb["clean_mean"], float), (row["hil"],
                                                                                               r.stderr[-3000:])
     assert fb["difference"] == round(fb["calibrated_mean"] - fb["clean_mean"], 2)
+    assert all(isinstance(h["feedback_vs_lockstep_db"], float) for h in row["hil"])
     assert row["within_1db"] in (True, False)
     assert "| fault (mounts) |" in (out / "proof.md").read_text() and "[1/1] accel_sign(front_right)" in r.stderr
