@@ -340,6 +340,7 @@ def run_single(args) -> int:
         want = "refused" if kind in REFUSED else "corrected"
         verdicts = {c: (res or {}).get("verdicts", {}).get(c) for c, _ in sorted(exp)}
         row = {"case": i, "fault": k, "kind": kind, "mounts": [MOUNTS[m] for m in ms], "wiring": said,
+               "hil_keys": {key: v for key, v in vars(w).items() if v != getattr(Wiring(), key)},
                "expected": sorted(map(list, exp)), "named": sorted(map(list, got)),
                "named_right": res is not None and got == exp, "verdicts": verdicts, "verdict_expected": want,
                "verdict_right": res is not None and all(v == want for v in verdicts.values()),

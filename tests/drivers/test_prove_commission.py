@@ -148,6 +148,7 @@ def test_prove_commission_single_runs_as_a_user_runs_it(tmp_path):
     assert proof == json.loads((out / "proof.json").read_text())
     (row,) = proof["rows"]
     assert row["fault"] == "accel_sign" and row["mounts"] == ["front_right"]
+    assert row["hil_keys"] == {"ai_factor": [1.0, -1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]}
     assert row["named"] == [["accel:front_right", "sign"]] and row["named_right"], (row, r.stderr[-3000:])
     assert row["verdicts"] == {"accel:front_right": "corrected"} and row["verdict_right"]
     assert sorted(h["rig"] for h in row["hil"]) == ["calibrated", "clean"]
