@@ -126,13 +126,17 @@ def case_config(text: str, w: Wiring, calibration: Path | None = None) -> str:
     return out
 
 
-def _rig_json(argv: list[str], ok_codes: tuple, timeout_s: float) -> tuple[dict | None, float, str, int]:
+def _rig_json(argv: list[str], ok_codes: tuple, timeout_s: float,
+              log: Path | None = None) -> tuple[dict | None, float, str, int]:
     """`rig ARGV --json` as a user runs it: (its JSON, wall s, the last line of its stderr when it gave none or
-    exited otherwise than ok_codes, its exit status)."""
+    exited otherwise than ok_codes, its exit status); its stderr kept in `log`."""
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "rig.cli", *argv, "--json"], capture_output=True, text=True,
                        timeout=timeout_s)
     wall = time.perf_counter() - t0
+    if log is not None:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        log.write_text(r.stderr)
     last = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"
     try:
         res = json.loads(r.stdout) if r.stdout.strip() else None
@@ -147,7 +151,7 @@ def commission(config: Path, out: Path, timeout_s: float = 600.0) -> tuple[dict 
     """`rig commission --backend hil --config CONFIG --out OUT --json` as a user runs it: (its report, wall s,
     the last of its stderr when it failed)."""
     res, wall, err, _ = _rig_json(["commission", "--backend", "hil", "--config", str(config), "--out", str(out)],
-                                  (0, 4), timeout_s)
+                                  (0, 4), timeout_s, out / "commission.log")
     return (None if err else res), wall, err
 
 
@@ -277,8 +281,12 @@ def hil(config: Path, record: Path, seconds: float | None, timeout_s: float = 90
     argv = ["hil", "--config", str(config), "--record", str(record)]
     if seconds is not None:
         argv += ["--seconds", f"{seconds:g}"]
-    res, wall, err, code = _rig_json(argv, (0,), timeout_s)
+    res, wall, err, code = _rig_json(argv, (0,), timeout_s, record.with_suffix(".log"))
     res = res or {}
+    if code == 1:
+        err = _fault_reason(record) or err
+    elif res.get("harm"):
+        err = res["harm"]
     late = res.get("late_periods") or {}
     fb, ls = res.get("isolation_reduction_db"), (res.get("lockstep_reduction_db") or {}).get("feedback")
     return {"feedback_db": _r2(fb),
@@ -289,6 +297,17 @@ def hil(config: Path, record: Path, seconds: float | None, timeout_s: float = 90
             "feedback_vs_lockstep_db": None if fb is None or ls is None else _r2(fb - ls),
             "late_feedback_pct": None if late.get("feedback") is None else round(100 * late["feedback"], 1),
             "exit": code, "harm": res.get("harm"), "error": err, "wall_s": round(wall, 1)}
+
+
+def _fault_reason(record: Path) -> str:
+    """The fault that stopped a run, as its recording holds it ("" when there is none to read)."""
+    import h5py
+    try:
+        with h5py.File(record, "r") as f:
+            why = f.attrs.get("fault_reason", "")
+    except OSError:
+        return ""
+    return f"FAULT: {why}" if why else ""
 
 
 def _r2(x):
