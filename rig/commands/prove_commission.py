@@ -262,6 +262,19 @@ def single_cases(kinds=None, all_mounts: bool = False) -> list[tuple[str, list[i
     return out
 
 
+def single_wirings(rng: random.Random, kinds=None, all_mounts: bool = False) -> list[tuple]:
+    """The cases of single_cases wired: (fault, mount indices, wiring, the fault in words, what commissioning
+    should name). The sizes are drawn over the whole table in order and `kinds` then picked, so that a case of
+    --kinds is wired as the same case of the whole table (a case re-run alone is the same case)."""
+    out = []
+    for k, ms in single_cases(None, all_mounts):
+        w, exp = Wiring(), set()
+        said = place(w, k, ms, rng, exp)
+        if kinds is None or k in set(kinds):
+            out.append((k, ms, w, said, exp))
+    return out
+
+
 def parse_kinds(text: str | None) -> list[str] | None:
     """--kinds: fault names of the table, comma separated (None: all)."""
     if text is None:
@@ -336,19 +349,16 @@ def run_single(args) -> int:
     --out/proof.md, every case in proof.json."""
     kinds = parse_kinds(getattr(args, "kinds", None))
     text, folder = _base(args)
-    cases = single_cases(kinds, getattr(args, "all_mounts", False))
+    cases = single_wirings(random.Random(args.seed), kinds, getattr(args, "all_mounts", False))
     repeats, seconds = getattr(args, "repeats", 2), getattr(args, "hil_seconds", None)
     clean_cfg = folder / "clean.toml"
     clean_cfg.write_text(case_config(text, Wiring()))
-    rng = random.Random(args.seed)
     load0 = os.getloadavg()
     print(f"rig prove --commission --single: {len(cases)} single faults, each commissioned; the correctable ones "
           f"then `rig hil` calibrated and wired right, {repeats} of each alternately (load average "
           f"{load0[0]:.1f})", file=sys.stderr, flush=True)
     rows = []
-    for i, (k, ms) in enumerate(cases):
-        w, exp = Wiring(), set()
-        said = place(w, k, ms, rng, exp)
+    for i, (k, ms, w, said, exp) in enumerate(cases):
         kind = FAULTS[k][3]
         case_dir = folder / f"case{i:03d}"
         cfg = folder / f"case{i:03d}.toml"

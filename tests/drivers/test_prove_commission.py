@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from rig.commands.prove_commission import (FAULTS, REFUSED, Wiring, _figures, case_config, draw, parse_kinds, place,
-                                          single_cases, single_summary)
+                                          single_cases, single_summary, single_wirings)
 from rig.config import MOUNTS
 from rig.errors import RigError
 from tests.paths import REPO
@@ -85,6 +85,10 @@ def test_the_single_faults_take_every_kind_of_the_table_and_every_mount():
     assert all({tuple(ms) for k2, ms in every if k2 == k} and
                {m for k2, ms in every if k2 == k for m in ms} == set(range(4)) for k in FAULTS)
     assert single_cases(["valve_null", "accel_sign"]) == [("accel_sign", [1]), ("valve_null", [0])]
+    whole = single_wirings(random.Random(1))
+    some = single_wirings(random.Random(1), ["accel_offset", "stroke_range"])
+    assert [(k, ms, vars(w), said) for k, ms, w, said, _ in some] == \
+        [(k, ms, vars(w), said) for k, ms, w, said, _ in whole if k in ("accel_offset", "stroke_range")]
     assert parse_kinds(None) is None and parse_kinds("accel_sign, valve_gain") == ["accel_sign", "valve_gain"]
     with pytest.raises(RigError, match="--kinds: expected fault names of .*got accel_upside_down"):
         parse_kinds("accel_sign,accel_upside_down")
