@@ -351,6 +351,7 @@ def run_single(args) -> int:
     text, folder = _base(args)
     cases = single_wirings(random.Random(args.seed), kinds, getattr(args, "all_mounts", False))
     repeats, seconds = getattr(args, "repeats", 2), getattr(args, "hil_seconds", None)
+    retries = getattr(args, "retries", 0)
     clean_cfg = folder / "clean.toml"
     clean_cfg.write_text(case_config(text, Wiring()))
     load0 = os.getloadavg()
@@ -364,7 +365,14 @@ def run_single(args) -> int:
         cfg = folder / f"case{i:03d}.toml"
         cfg.write_text(case_config(text, w))
         load = os.getloadavg()[0]
-        res, wall, err = commission(cfg, case_dir)
+        stopped = []                    # attempts stopped by a fault (a loaded host: a device stall, missed deadlines)
+        for attempt in range(1 + retries):
+            res, wall, err = commission(cfg, case_dir / (f"retry{attempt}" if attempt else ""))
+            if not err:
+                break
+            stopped.append(err)
+        if res is not None and stopped:
+            case_dir = case_dir / f"retry{len(stopped)}"
         got = named(res) if res is not None else set()
         want = "refused" if kind in REFUSED else "corrected"
         verdicts = {c: (res or {}).get("verdicts", {}).get(c) for c, _ in sorted(exp)}
@@ -373,9 +381,10 @@ def run_single(args) -> int:
                "expected": sorted(map(list, exp)), "named": sorted(map(list, got)),
                "named_right": res is not None and got == exp, "verdicts": verdicts, "verdict_expected": want,
                "verdict_right": res is not None and all(v == want for v in verdicts.values()),
-               "commission_wall_s": round(wall, 1), "error": err, "load_average": round(load, 1), "hil": [],
+               "commission_wall_s": round(wall, 1), "error": err, "commission_stopped": stopped,
+               "load_average": round(load, 1), "hil": [], "hil_stopped": [],
                "feedback_db": None, "feedforward_db": None, "feedback_vs_lockstep_db": None, "within_1db": None}
-        print(f"[{i + 1}/{len(cases)}] {said}: {'named right' if row['named_right'] else 'NAMED WRONG'} "
+        print(f"[{i + 1}/{len(cases)}] {said}: {'named right' if row['named_right'] else 'STOPPED' if res is None else 'NAMED WRONG'} "
               f"({', '.join(f'{c} {kd}' for c, kd in sorted(got)) or err or 'nothing named'}), "
               f"{', '.join(f'{c} {v}' for c, v in verdicts.items())} ({wall:.0f} s)", file=sys.stderr, flush=True)
         cal = case_dir / "commissioning.toml"
@@ -385,8 +394,14 @@ def run_single(args) -> int:
             order = ("clean", "calibrated") if i % 2 == 0 else ("calibrated", "clean")   # drift cancels over cases
             for n in range(repeats):
                 for who in order:
-                    r = dict(rig=who, **hil(clean_cfg if who == "clean" else cal_cfg,
-                                             case_dir / f"hil-{who}-{n + 1}.h5", seconds))
+                    for attempt in range(1 + retries):    # a run stopped by a fault (exit 1) has no figure
+                        r = dict(rig=who, **hil(clean_cfg if who == "clean" else cal_cfg,
+                                                 case_dir / f"hil-{who}-{n + 1}{'.' * bool(attempt)}"
+                                                            f"{attempt or ''}.h5", seconds), attempts=attempt + 1)
+                        if r["exit"] != 1:
+                            break
+                        row["hil_stopped"].append(f"{who}: {r['error']}")
+                        print(f"[{i + 1}/{len(cases)}]   rig hil stopped: {r['error']}", file=sys.stderr, flush=True)
                     row["hil"].append(r)
                     print(f"[{i + 1}/{len(cases)}]   rig hil, {'wired right' if who == 'clean' else 'calibrated'} "
                           f"{n + 1}/{repeats}: feedback {r['feedback_db']} dB, feedback + feedforward "
@@ -426,7 +441,9 @@ def single_summary(rows: list[dict], load0, load1) -> dict:
     compared = [r for r in rows if r["feedback_db"] is not None]
     out = {"cases": len(rows), "named_right": sum(r["named_right"] for r in rows),
            "verdict_right": sum(r["verdict_right"] for r in rows),
-           "stopped": [f"case {r['case']}: {r['error']}" for r in rows if r["error"]],
+           "stopped": [f"case {r['case']}: {e}" for r in rows for e in r["commission_stopped"]],
+           "stopped_not_judged": sum(bool(r["error"]) for r in rows),
+           "hil_stopped": [f"case {r['case']} {e}" for r in rows for e in r["hil_stopped"]],
            "refused": sum(r["verdict_expected"] == "refused" for r in rows),
            "refused_right": sum(r["verdict_expected"] == "refused" and r["verdict_right"] for r in rows),
            "hil_compared": len(compared),
@@ -462,8 +479,11 @@ def single_markdown(proof: dict) -> str:
            f"- faults named right (channel and kind, nothing else named): {s['named_right']} of {s['cases']}",
            f"- verdicts right (corrected, or refused for dead and noisy): {s['verdict_right']} of {s['cases']} "
            f"(refused right {s['refused_right']} of {s['refused']}, no `rig hil` on those)",
-           f"- commissionings stopped by a fault, nothing judged: {len(s['stopped'])}"
+           f"- commissionings stopped by a fault (a stall of the loaded host; --retries runs it again): "
+           f"{len(s['stopped'])}, of which cases left not judged: {s['stopped_not_judged']}"
            + "".join(f"\n  - {x}" for x in s["stopped"]),
+           f"- `rig hil` runs stopped by a fault: {len(s['hil_stopped'])}"
+           + "".join(f"\n  - {x}" for x in s["hil_stopped"]),
            f"- calibrated within {WITHIN_DB:g} dB of the rig wired right, feedback: {fb['within_1db']} of "
            f"{fb['judged']} (difference {spread(fb['difference'])}); feedback + feedforward: {ff['within_1db']} of "
            f"{ff['judged']} (difference {spread(ff['difference'])})",
@@ -486,12 +506,12 @@ def single_markdown(proof: dict) -> str:
            "wired right | difference | within 1 dB (feedback) |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        got = ", ".join(f"{c} {k}" for c, k in r["named"]) or (r["error"] or "nothing")
+        got = ", ".join(f"{c} {k}" for c, k in r["named"]) or (f"stopped: {r['error']}" if r["error"] else "nothing")
         verdict = ", ".join(sorted({str(v) for v in r["verdicts"].values()}))
         within = {True: "yes", False: "NO", None: "refused, no hil" if r["verdict_expected"] == "refused"
                   else "not judged"}[r["within_1db"]]
         out.append(f"| {r['case']} | {r['fault']} ({', '.join(r['mounts'])}) | "
-                   f"{got}{'' if r['named_right'] else ' (WRONG)'} | {verdict} | "
+                   f"{got}{'' if r['named_right'] or r['error'] else ' (WRONG)'} | {verdict} | "
                    + " | ".join(" | ".join(figs(r[k])) for k in ("feedback_db", "feedforward_db",
                                                                    "feedback_vs_lockstep_db"))
                    + f" | {within} |")

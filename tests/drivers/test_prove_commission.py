@@ -124,7 +124,7 @@ def test_the_single_summary_measures_the_clean_rigs_spread():
             r["feedback_vs_lockstep_db"] = r["feedback_db"] - 8.0
         fb, ff = _figures(runs, "feedback_db"), _figures(runs, "feedforward_db")
         return {"case": case, "named_right": True, "verdict_right": True, "verdict_expected": "corrected",
-                "error": "", "hil": runs, "feedback_db": fb, "feedforward_db": ff,
+                "error": "", "commission_stopped": [], "hil_stopped": [], "hil": runs, "feedback_db": fb, "feedforward_db": ff,
                 "feedback_vs_lockstep_db": _figures(runs, "feedback_vs_lockstep_db")}
     rows = [row(0, [8.0, 8.4], [8.5, 8.1]), row(1, [6.0, 6.2], [8.0, 7.0], err="exit 1")]
     assert rows[0]["feedback_db"]["difference"] == -0.1 and rows[1]["feedback_db"]["clean"] == [8.0]
