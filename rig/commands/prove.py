@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--single", action="store_true",
                    help="with --commission: every fault of the table alone, named and corrected, then `rig hil` "
                         "with its calibration against the rig wired right, alternately (docs/COMMISSIONING.md "
-                        "\"Single faults\"; about 25 min)")
+                        "\"Single faults\"; about 70 min with the default --repeats 2 on a loaded 2-core machine)")
     p.add_argument("--kinds", metavar="FAULT,...", default=None,
                    help="with --single: only these faults of the table, e.g. accel_sign,valve_null (default all)")
     p.add_argument("--all-mounts", action="store_true",
