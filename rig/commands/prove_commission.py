@@ -384,7 +384,8 @@ def run_single(args) -> int:
                "commission_wall_s": round(wall, 1), "error": err, "commission_stopped": stopped,
                "load_average": round(load, 1), "hil": [], "hil_stopped": [],
                "feedback_db": None, "feedforward_db": None, "feedback_vs_lockstep_db": None, "within_1db": None}
-        print(f"[{i + 1}/{len(cases)}] {said}: {'named right' if row['named_right'] else 'STOPPED' if res is None else 'NAMED WRONG'} "
+        said_named = "named right" if row["named_right"] else "STOPPED" if res is None else "NAMED WRONG"
+        print(f"[{i + 1}/{len(cases)}] {said}: {said_named} "
               f"({', '.join(f'{c} {kd}' for c, kd in sorted(got)) or err or 'nothing named'}), "
               f"{', '.join(f'{c} {v}' for c, v in verdicts.items())} ({wall:.0f} s)", file=sys.stderr, flush=True)
         cal = case_dir / "commissioning.toml"
@@ -491,7 +492,8 @@ def single_markdown(proof: dict) -> str:
            f"variation taken out): {ls['within_1db']} of {ls['judged']} (difference {spread(ls['difference'])})",
            f"- the rig wired right, run to run (`rig hil` {proof['repeats']} x per case"
            f"{'' if proof['hil_seconds'] is None else ', ' + format(proof['hil_seconds'], 'g') + ' s'}): feedback "
-           f"{spread(fb['clean_runs'])}, |difference| between a case's two runs {spread(fb['clean_pair_abs_difference'])}"
+           f"{spread(fb['clean_runs'])}, |difference| between a case's two runs "
+           f"{spread(fb['clean_pair_abs_difference'])}"
            f"; feedback + feedforward {spread(ff['clean_runs'])}, |difference| "
            f"{spread(ff['clean_pair_abs_difference'])}; |difference| between successive runs: feedback "
            f"{spread(fb['clean_successive_abs_difference'])}, feedback + feedforward "
