@@ -145,7 +145,8 @@ def test_the_single_summary_measures_the_clean_rigs_spread():
 def test_prove_commission_single_runs_as_a_user_runs_it(tmp_path):
     """`rig prove --commission --single --kinds accel_sign --repeats 1 --retries 2` (a loaded host may stall a
     run): the front-right accelerometer inverted is named on its channel and corrected; `rig hil` runs with the
-    calibration it wrote and on the rig wired right, and both figures and their difference are reported (the 1 dB is a measurement: docs/COMMISSIONING.md)."""
+    calibration it wrote and on the rig wired right, and both figures and their difference are reported (the 1 dB
+    is a measurement: docs/COMMISSIONING.md)."""
     out = tmp_path / "proof"
     r = subprocess.run([sys.executable, "-m", "rig.cli", "prove", "--commission", "--single", "--kinds", "accel_sign",
                         "--repeats", "1", "--hil-seconds", "6", "--retries", "2", "--out", str(out), "--json"],
