@@ -392,30 +392,8 @@ def run_single(args) -> int:
         if want == "corrected" and res is not None and cal.exists():
             cal_cfg = folder / f"case{i:03d}-calibrated.toml"
             cal_cfg.write_text(case_config(text, w, cal))
-            order = ("clean", "calibrated") if i % 2 == 0 else ("calibrated", "clean")   # drift cancels over cases
-            for n in range(repeats):
-                for who in order:
-                    for attempt in range(1 + retries):    # a run stopped by a fault (exit 1) has no figure
-                        r = dict(rig=who, **hil(clean_cfg if who == "clean" else cal_cfg,
-                                                 case_dir / f"hil-{who}-{n + 1}{'.' * bool(attempt)}"
-                                                            f"{attempt or ''}.h5", seconds), attempts=attempt + 1)
-                        if r["exit"] != 1:
-                            break
-                        row["hil_stopped"].append(f"{who}: {r['error']}")
-                        print(f"[{i + 1}/{len(cases)}]   rig hil stopped: {r['error']}", file=sys.stderr, flush=True)
-                    row["hil"].append(r)
-                    print(f"[{i + 1}/{len(cases)}]   rig hil, {'wired right' if who == 'clean' else 'calibrated'} "
-                          f"{n + 1}/{repeats}: feedback {r['feedback_db']} dB, feedback + feedforward "
-                          f"{r['feedforward_db']} dB" + (f"; {r['error']}" if r["error"] else "")
-                          + f" ({r['wall_s']:.0f} s)", file=sys.stderr, flush=True)
-            fb, ff = _figures(row["hil"], "feedback_db"), _figures(row["hil"], "feedforward_db")
-            row["feedback_db"], row["feedforward_db"] = fb, ff
-            row["feedback_vs_lockstep_db"] = _figures(row["hil"], "feedback_vs_lockstep_db")
-            broke = any(r["error"] for r in row["hil"] if r["rig"] == "calibrated")
-            row["within_1db"] = (False if broke and fb["calibrated_mean"] is None else
-                                 None if fb["difference"] is None else abs(fb["difference"]) <= WITHIN_DB)
-            print(f"[{i + 1}/{len(cases)}]   calibrated - wired right: feedback {fb['difference']} dB, "
-                  f"feedback + feedforward {ff['difference']} dB", file=sys.stderr, flush=True)
+            compare_hil(row, f"[{i + 1}/{len(cases)}]", {"clean": clean_cfg, "calibrated": cal_cfg}, case_dir,
+                        repeats, seconds, retries)
         rows.append(row)
     summary = single_summary(rows, load0, os.getloadavg())
     proof = {"command": "rig prove --commission --single", "seed": args.seed, "repeats": repeats,
@@ -425,6 +403,37 @@ def run_single(args) -> int:
     (folder / "proof.md").write_text(single_markdown(proof))
     print(json.dumps(proof) if args.json else single_markdown(proof))
     return 0
+
+
+def compare_hil(row: dict, tag: str, configs: dict, case_dir: Path, repeats: int, seconds: float | None,
+                retries: int) -> None:
+    """`rig hil` on the calibrated miswired rig and on the rig wired right (configs: {"calibrated", "clean"}),
+    `repeats` of each alternately, a run stopped by a fault run again up to `retries` times; the runs and their
+    figures into `row`."""
+    order = ("clean", "calibrated") if row["case"] % 2 == 0 else ("calibrated", "clean")   # drift cancels over cases
+    for n in range(repeats):
+        for who in order:
+            for attempt in range(1 + retries):    # a run stopped by a fault (exit 1) has no figure
+                r = dict(rig=who, **hil(configs[who],
+                                         case_dir / f"hil-{who}-{n + 1}{'.' * bool(attempt)}"
+                                                    f"{attempt or ''}.h5", seconds), attempts=attempt + 1)
+                if r["exit"] != 1:
+                    break
+                row["hil_stopped"].append(f"{who}: {r['error']}")
+                print(f"{tag}   rig hil stopped: {r['error']}", file=sys.stderr, flush=True)
+            row["hil"].append(r)
+            print(f"{tag}   rig hil, {'wired right' if who == 'clean' else 'calibrated'} "
+                  f"{n + 1}/{repeats}: feedback {r['feedback_db']} dB, feedback + feedforward "
+                  f"{r['feedforward_db']} dB" + (f"; {r['error']}" if r["error"] else "")
+                  + f" ({r['wall_s']:.0f} s)", file=sys.stderr, flush=True)
+    fb, ff = _figures(row["hil"], "feedback_db"), _figures(row["hil"], "feedforward_db")
+    row["feedback_db"], row["feedforward_db"] = fb, ff
+    row["feedback_vs_lockstep_db"] = _figures(row["hil"], "feedback_vs_lockstep_db")
+    broke = any(r["error"] for r in row["hil"] if r["rig"] == "calibrated")
+    row["within_1db"] = (False if broke and fb["calibrated_mean"] is None else
+                         None if fb["difference"] is None else abs(fb["difference"]) <= WITHIN_DB)
+    print(f"{tag}   calibrated - wired right: feedback {fb['difference']} dB, "
+          f"feedback + feedforward {ff['difference']} dB", file=sys.stderr, flush=True)
 
 
 def _spread(xs: list[float]) -> dict:
