@@ -36,6 +36,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(real time: about 20 s a case; --config: the HIL configuration, default hil.toml)")
     p.add_argument("--clean", type=cliargs.count(0, 1000), default=10, metavar="N",
                    help="with --commission: also N rigs wired right, none of which may be flagged (default 10)")
+    p.add_argument("--single", action="store_true",
+                   help="with --commission: every fault of the table alone, named and corrected, then `rig hil` "
+                        "with its calibration against the rig wired right, alternately (docs/COMMISSIONING.md "
+                        "\"Single faults\"; about 70 min with the default --repeats 2 on a loaded 2-core machine)")
+    p.add_argument("--kinds", metavar="FAULT,...", default=None,
+                   help="with --single: only these faults of the table, e.g. accel_sign,valve_null (default all)")
+    p.add_argument("--all-mounts", action="store_true",
+                   help="with --single: each fault on every mount (default: the mount turns per fault, each "
+                        "mount comes up)")
+    p.add_argument("--repeats", type=cliargs.count(1, 20), default=2, metavar="N",
+                   help="with --single: `rig hil` runs of each rig, calibrated and wired right, per case (default 2)")
+    p.add_argument("--retries", type=cliargs.count(0, 5), default=0, metavar="N",
+                   help="with --single: run a commissioning or a `rig hil` stopped by a fault (a loaded host: a "
+                        "device stall, missed deadlines) again, up to N times; every stop is reported (default 0)")
+    p.add_argument("--hil-seconds", type=cliargs.seconds(ge=3, le=3600), default=None, metavar="S",
+                   help="with --single: each `rig hil` run's length (default [hil] seconds of the config, 15 s)")
     cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,
                        help="with --rig: keep each case's recording and its graded row (JSON) in DIR")
     p.add_argument("--workers", type=cliargs.count(1, 64), default=2, help="processes (default 2)")
@@ -72,6 +88,8 @@ def _where(args) -> str:
 def run(args) -> int:
     if args.rig:                                    # the four-mount rig (issue 28): its own defaults
         return prove_rig.run(args)
+    if args.single and not args.commission:
+        raise RigError("--single: expected with --commission (rig prove --commission --single)")
     if args.commission:                             # the wiring checks (issue 27), on the emulated rig
         from rig.commands import prove_commission
         return prove_commission.run(args)

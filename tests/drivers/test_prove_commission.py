@@ -9,8 +9,10 @@ import sys
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from rig.commands.prove_commission import FAULTS, Wiring, draw
+from rig.commands.prove_commission import (FAULTS, REFUSED, Wiring, _figures, case_config, draw, parse_kinds, place,
+                                          single_cases, single_summary, single_wirings)
 from rig.config import MOUNTS
+from rig.errors import RigError
 from tests.paths import REPO
 
 
@@ -59,3 +61,113 @@ def test_prove_commission_runs_as_a_user_runs_it(tmp_path):
     assert [x["what"] for x in rows] == ["clean", "faults"] and rows[1]["expected"]
     assert s["peak_stroke_pct_of_limit_max"] < 50.0
     assert "| case | faults drawn |" in (out / "proof.md").read_text()
+
+
+def test_the_single_faults_take_every_kind_of_the_table_and_every_mount():
+    """`--single`'s cases: every fault of the table once, the mounts turning so that each comes up (a swap on its
+    mount and the next); --all-mounts every fault on every mount; --kinds a subset; each case wires exactly its
+    fault, and the channels it should be named on are its mounts'."""
+    doc = (REPO / "drivers" / "devicemaps" / "hil_wiring_faults.md").read_text()
+    kinds_named = {FAULTS[k][3] for k in FAULTS}
+    assert kinds_named == {"swap", "sign", "scale", "offset", "dead", "noisy", "null", "gain"}
+    cases = single_cases()
+    assert [k for k, _ in cases] == list(FAULTS)
+    assert {MOUNTS[m] for _, ms in cases for m in ms} == set(MOUNTS)
+    for k, ms in cases:
+        assert len(ms) == FAULTS[k][0] and len(set(ms)) == len(ms)
+        w, exp = Wiring(), set()
+        said = place(w, k, ms, random.Random(0), exp)
+        assert exp == {(f"{FAULTS[k][2]}:{MOUNTS[m]}", FAULTS[k][3]) for m in ms}, said
+        changed = {key for key, v in vars(w).items() if v != getattr(Wiring(), key)}
+        assert changed and all(f"`{key}`" in doc for key in changed), (k, changed)
+    every = single_cases(all_mounts=True)
+    assert len(every) == 4 * len(FAULTS)
+    assert all({tuple(ms) for k2, ms in every if k2 == k} and
+               {m for k2, ms in every if k2 == k for m in ms} == set(range(4)) for k in FAULTS)
+    assert single_cases(["valve_null", "accel_sign"]) == [("accel_sign", [1]), ("valve_null", [0])]
+    whole = single_wirings(random.Random(1))
+    some = single_wirings(random.Random(1), ["accel_offset", "stroke_range"])
+    assert [(k, ms, vars(w), said) for k, ms, w, said, _ in some] == \
+        [(k, ms, vars(w), said) for k, ms, w, said, _ in whole if k in ("accel_offset", "stroke_range")]
+    assert parse_kinds(None) is None and parse_kinds("accel_sign, valve_gain") == ["accel_sign", "valve_gain"]
+    with pytest.raises(RigError, match="--kinds: expected fault names of .*got accel_upside_down"):
+        parse_kinds("accel_sign,accel_upside_down")
+    assert {k for k in FAULTS if FAULTS[k][3] in REFUSED} == {"accel_dead", "accel_noisy", "stroke_dead",
+                                                               "stroke_noisy"}
+
+
+def test_a_case_config_carries_its_wiring_and_its_calibration(tmp_path):
+    """The faulty rig's configuration (hil.toml with the case's [hil] keys) loads as the rig loads it; with its
+    calibration, [drivers] calibration names that commissioning.toml, added to a [drivers] section or made."""
+    from rig.config import load_config
+    base = (REPO / "drivers" / "devicemaps" / "hil.toml").read_text()
+    w, exp = Wiring(), set()
+    place(w, "valve_nodes_swapped", [1, 2], random.Random(0), exp)
+    cal = tmp_path / "case" / "commissioning.toml"
+    for text in (base, base + "\n[drivers]\nstale_s = 0.1\n"):
+        plain, calibrated = tmp_path / "plain.toml", tmp_path / "cal.toml"
+        plain.write_text(case_config(text, w))
+        calibrated.write_text(case_config(text, w, cal))
+        assert load_config(plain).hil.valve_node_id == (1, 3, 2, 4)
+        assert load_config(plain).drivers.calibration == ""
+        assert load_config(calibrated).drivers.calibration == str(cal.resolve())
+
+
+def test_the_single_summary_measures_the_clean_rigs_spread():
+    """The summary's figures come from the rows: each case's difference calibrated - wired right, the clean runs'
+    spread over the run and between a case's two clean runs; a run that did not finish clean is left out."""
+    def row(case, cal, clean, err=""):
+        runs = [dict(rig="calibrated", feedback_db=x, feedforward_db=x + 5, error="") for x in cal] + \
+               [dict(rig="clean", feedback_db=x, feedforward_db=x + 5, error=err if j else "")
+                for j, x in enumerate(clean)]
+        for r in runs:
+            r["feedback_vs_lockstep_db"] = r["feedback_db"] - 8.0
+        fb, ff = _figures(runs, "feedback_db"), _figures(runs, "feedforward_db")
+        return {"case": case, "named_right": True, "verdict_right": True, "verdict_expected": "corrected",
+                "error": "", "commission_stopped": [], "hil_stopped": [], "hil": runs, "feedback_db": fb,
+                "feedforward_db": ff,
+                "feedback_vs_lockstep_db": _figures(runs, "feedback_vs_lockstep_db")}
+    rows = [row(0, [8.0, 8.4], [8.5, 8.1]), row(1, [6.0, 6.2], [8.0, 7.0], err="exit 1")]
+    assert rows[0]["feedback_db"]["difference"] == -0.1 and rows[1]["feedback_db"]["clean"] == [8.0]
+    s = single_summary(rows, (1, 2, 3), (4, 5, 6))
+    assert s["feedback_db"]["within_1db"] == 1 and s["feedback_db"]["judged"] == 2
+    assert s["feedback_db"]["clean_runs"]["n"] == 3 and s["feedback_db"]["clean_runs"]["max"] == 8.5
+    assert s["feedback_db"]["clean_pair_abs_difference"] == {"n": 1, "min": 0.4, "max": 0.4, "mean": 0.4,
+                                                             "sd": None}
+    assert s["feedforward_db"]["difference"]["min"] == -1.9
+    assert s["feedback_db"]["clean_successive_abs_difference"] == {"n": 2, "min": 0.1, "max": 0.4, "mean": 0.25,
+                                                                   "sd": 0.21}
+    assert s["feedback_vs_lockstep_db"]["difference"]["max"] == -0.1
+
+
+@pytest.mark.hil
+@pytest.mark.slow
+def test_prove_commission_single_runs_as_a_user_runs_it(tmp_path):
+    """`rig prove --commission --single --kinds accel_sign --repeats 1 --retries 2` (a loaded host may stall a
+    run): the front-right accelerometer inverted is named on its channel and corrected; `rig hil` runs with the
+    calibration it wrote and on the rig wired right, and both figures and their difference are reported (the 1 dB
+    is a measurement: docs/COMMISSIONING.md)."""
+    out = tmp_path / "proof"
+    r = subprocess.run([sys.executable, "-m", "rig.cli", "prove", "--commission", "--single", "--kinds", "accel_sign",
+                        "--repeats", "1", "--hil-seconds", "6", "--retries", "2", "--out", str(out), "--json"],
+                       capture_output=True, text=True, timeout=1800, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-3000:]
+    proof = json.loads(r.stdout)
+    assert proof == json.loads((out / "proof.json").read_text())
+    (row,) = proof["rows"]
+    assert row["fault"] == "accel_sign" and row["mounts"] == ["front_right"]
+    assert row["hil_keys"] == {"ai_factor": [1.0, -1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]}
+    assert row["named"] == [["accel:front_right", "sign"]] and row["named_right"], (row, r.stderr[-3000:])
+    assert row["verdicts"] == {"accel:front_right": "corrected"} and row["verdict_right"]
+    assert sorted(h["rig"] for h in row["hil"]) == ["calibrated", "clean"]
+    cal_cfg = (out / "case000-calibrated.toml").read_text()
+    assert str((out / "case000" / "commissioning.toml").resolve()) in cal_cfg
+    for who in ("calibrated", "clean"):
+        assert (out / "case000" / f"hil-{who}-1.h5").exists()
+    fb = row["feedback_db"]
+    assert isinstance(fb["calibrated_mean"], float) and isinstance(fb["clean_mean"], float), (row["hil"],
+                                                                                              r.stderr[-3000:])
+    assert fb["difference"] == round(fb["calibrated_mean"] - fb["clean_mean"], 2)
+    assert all(isinstance(h["feedback_vs_lockstep_db"], float) for h in row["hil"])
+    assert row["within_1db"] in (True, False)
+    assert "| fault (mounts) |" in (out / "proof.md").read_text() and "[1/1] accel_sign(front_right)" in r.stderr
