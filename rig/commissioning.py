@@ -75,6 +75,11 @@ def _band(x, fs):
 UNIT_FACTORS = (9.80665, 1.0 / 9.80665, 1e3, 1e-3, 1e6, 1e-6)    # g against m/s^2, mm/um/m against each other
 
 
+def unit_slip(a: float) -> bool:
+    """|scale| a is a unit's factor off 1 (g against m/s^2, mm/um/m against each other), within SCALE_TOL."""
+    return any(abs(a * f - 1) <= SCALE_TOL for f in UNIT_FACTORS)
+
+
 def correction(scale: float) -> float:
     """The factor the calibration puts on a channel measured at `scale` against its stroke's x'': 1 within the
     tolerance (the table's own flexibility, not the sensor), the unit slip it matches (g against m/s^2 ...),
@@ -433,10 +438,17 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
                 findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
             a = abs(s)
             if abs(a - 1) > SCALE_TOL:
-                if SCALE_FIX[0] <= a <= SCALE_FIX[1]:
+                if SCALE_FIX[0] <= a <= SCALE_FIX[1] and unit_slip(a):
                     v = "corrected"
                     hint = " (an input range in g read as m/s^2)" if abs(a * 9.80665 - 1) < SCALE_TOL else ""
                     findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x''{hint}")
+                elif SCALE_FIX[0] <= a <= SCALE_FIX[1]:
+                    # a wiring slip is a unit's factor; any other is a broken sensor or a measurement the host
+                    # spoiled, and its inverse as a calibration made a loop unstable (57 Hz, a loaded host)
+                    v = "refused"
+                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x'' is no unit slip "
+                                    f"(g against m/s^2, a power of ten): not corrected; commission again, then check "
+                                    f"the sensor")
                 else:
                     v = "refused"
                     dead = " (dead or unwired)" if a < SCALE_FIX[0] else ""

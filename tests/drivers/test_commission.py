@@ -76,3 +76,18 @@ def test_a_rig_wired_right_is_all_ok(tmp_path):
     assert res["accel_of_valve"] == res["stroke_of_valve"] == list(MOUNTS)
     assert all(s == pytest.approx(1.0, abs=0.35) for s in res["accel_scale"].values())
     assert "every channel ok" in (out / "report.txt").read_text()
+
+
+def test_only_a_units_slip_is_corrected_in_an_accelerometers_scale():
+    """A g range (0.102) is a wiring slip the calibration corrects; a scale of 0.40 is no unit's factor: a broken
+    sensor or a spoiled measurement, refused (its inverse as a calibration once made a loop unstable)."""
+    import numpy as np
+    from rig.commissioning import _verdicts, unit_slip
+    names = list(MOUNTS)
+    scale = dict(zip(names, (1.05, 1 / 9.80665, 0.40, -1.0)))
+    channels = {"accel": {m: {"alive": True} for m in names}}
+    verdicts, findings = _verdicts(names, np.diag([abs(s) for s in scale.values()]), np.eye(4), [0, 1, 2, 3],
+                                   [0, 1, 2, 3], scale, dict.fromkeys(names, 1.0), channels)
+    assert [verdicts[f"accel:{m}"] for m in names] == ["ok", "corrected", "refused", "corrected"]
+    assert any("is no unit slip" in f and names[2] in f for f in findings), findings
+    assert unit_slip(0.11) and unit_slip(1e-3 * 1.1) and not unit_slip(0.4) and not unit_slip(0.19)
