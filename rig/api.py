@@ -76,9 +76,14 @@ def diagnose_recording(recording, *, plant=None, config=None, seed: int = 0, pro
     """Where the recording and the model disagree, and which physics explains it, as `rig diagnose`: a
     Diagnosis (typed, frozen; rig/diagnose/results.py). plant: a plant file (default the eha actuator of
     Table 1, or of config)."""
-    from rig.diagnose.engine import diagnose as _diagnose
-    rec, pl = _subject(recording, plant, config)
-    return _diagnose(rec, pl, progress=progress, seed=seed)
+    from rig.diagnose.engine import diagnose_reading
+    from rig.diagnose.reading import read, read_files
+    from rig.plant.file import plant_for
+    if isinstance(recording, Recording):
+        reading = read(recording, plant_for(plant, config), progress)
+    else:                                   # read and checked as `rig diagnose` reads it
+        reading = read_files(Path(recording), plant, config, progress)
+    return diagnose_reading(reading, progress=progress, seed=seed)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 Each generator returns an `Excitation`: the command samples (V, held by the DAC between samples) and a short
 description of what they are. What the diagnosis concludes never depends on that description: it reads the
-recorded command itself (rig.diagnose.command). The signals:
+recorded command itself (rig.recordings.command). The signals:
 
 - linear_chirp       the paper's identification input, f0 -> f1 linearly in time
 - log_sweep          f0 -> f1 exponentially in time (equal time per decade)

@@ -52,16 +52,16 @@ def diagnose_one(plant: Path | None, config: str | None, seed: int, path: str, o
         return diagnose_rig.batch_work(config, path, out)
     from rig.batch.rows import diagnosis_row
     from rig.diagnose import report
-    from rig.diagnose.engine import diagnose
-    from rig.plant.file import load_subject
+    from rig.diagnose.engine import diagnose_reading
+    from rig.diagnose.reading import read_files
 
-    subject = load_subject(Path(path), plant, config)
-    diag = diagnose(subject.rec, subject.plant, seed=seed)
+    r = read_files(Path(path), plant, config)
+    diag = diagnose_reading(r, seed=seed)
     try:
-        report.write_outputs(Path(out), diag, subject.rec)
+        report.write_outputs(Path(out), diag, r.rec)
     except OSError as e:
         raise RigError(f"{out}: cannot write ({e.strerror or e})") from None
-    return diagnosis_row(diag, subject.rec)
+    return diagnosis_row(diag, r.rec)
 
 
 def run(args) -> int:
@@ -77,26 +77,25 @@ def run(args) -> int:
 
 
 def _one(args) -> int:
-    from rig.plant.file import load_subject
-
-    subject = load_subject(args.recording, args.plant, args.config)   # one line naming file and key, exit 2
-    rec = subject.rec
-    if rec.gaps:
-        print(f"note: {rec.gaps}", file=sys.stderr)
-
-    from rig.diagnose.engine import diagnose
+    """A recording against its plant: everything read and checked first (rig.diagnose.reading), then the engine."""
     from rig.diagnose import report
+    from rig.diagnose.engine import diagnose_reading
+    from rig.diagnose.reading import read_files
 
     t0 = time.perf_counter()
 
     def progress(msg: str) -> None:
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against {subject.against}")
+    r = read_files(args.recording, args.plant, args.config, progress)   # one line naming file and key, exit 2
+    rec = r.rec
+    if rec.gaps:
+        print(f"note: {rec.gaps}", file=sys.stderr)
+    progress(f"diagnosing {rec.source}: {rec.n} samples at {rec.fs_hz:g} Hz against {r.against}")
     if rec.closed_loop:
         from rig.recordings.recording import CLOSED_LOOP_NOTE
         progress(f"note: {CLOSED_LOOP_NOTE if rec.reference_m is not None else 'closed-loop recording: ' + rec.closed_loop}")
-    diag = diagnose(rec, subject.plant, progress=progress, seed=args.seed)
+    diag = diagnose_reading(r, progress=progress, seed=args.seed)
     paths = {}
     if args.out is not None:
         progress("writing outputs")

@@ -3,12 +3,14 @@ from the catalogue, fit the augmented model and prove each effect on a held-out 
 ride along in every model as nuisance parameters and are reported apart from the physics.
 
 `diagnose(rec, plant)` is the one entry: a recording and a plant in, a typed Diagnosis (rig.diagnose.results)
-out. It runs the stages in order, each a function from one typed value to the next (rig.diagnose.stages,
+out (`diagnose_reading(r)` takes what the reading stage read: `rig diagnose` reads its files first). It runs the
+stages in order, each a function from one typed value to the next (rig.diagnose.stages,
 rig.diagnose.search, rig.diagnose.conclude); rig.diagnose.report writes what it found.
 
 Protocol
-  * The recorded command is read first (rig.diagnose.command): sweep, multisine, steps, noise, one level or
-    several. The evidence follows from it, never from an assumed linear chirp.
+  * The recording is read and checked first (rig.diagnose.reading), the recorded command with it
+    (rig.recordings.command): sweep, multisine, steps, noise, one level or several. The evidence follows from
+    it, never from an assumed linear chirp.
   * Samples left out of every fit: flat tops at a converter's range (clipped), and, when the recording does not
     start at rest, the plant's start transient.
   * Fit/holdout split: interleaved blocks (even blocks fit, odd blocks held out), so both cover the whole run.
@@ -43,9 +45,8 @@ import time
 from dataclasses import replace
 from typing import Callable
 
-from rig.diagnose import conclude, search, stages
+from rig.diagnose import conclude, reading, search, stages
 from rig.diagnose.results import Diagnosis
-from rig.errors import RecordingError
 from rig.plant.model import Plant
 from sim_backend.linear import ActuatorParams
 
@@ -66,25 +67,21 @@ def diagnose(rec, plant: ActuatorParams | Plant, *, progress: Callable[[str], No
         d = diagnose(load_recording("run.csv.gz"), ActuatorParams())
         print(report.summary(d), d.effects)
     """
-    if isinstance(plant, Plant):
-        unit = getattr(rec, "command_unit", "V")
-        if plant.input_unit != unit:
-            raise RecordingError(f"{rec.source}: the command is in {unit} but the plant ({plant.source}) takes "
-                                 f"input_unit = {plant.input_unit!r}; check the signal map's command unit or the "
-                                 "plant")
-        if plant.family == "eha":
-            plant = plant.actuator
-    from threadpoolctl import threadpool_limits   # lazy: the BLAS limit is the diagnosis's alone
-    # one BLAS thread: the products here are tall and thin (n x 30), where OpenBLAS's threads only wait for each
-    # other (100x slower on a loaded 2-core machine); the two cores go to the simulators instead (lm._POOL)
-    with threadpool_limits(1, user_api="blas"):
-        return _run(rec, plant, progress or (lambda msg: None))
+    return diagnose_reading(reading.read(rec, plant, progress), progress=progress, seed=seed)
 
 
-def _run(rec, plant, say: Callable[[str], None]) -> Diagnosis:
+def diagnose_reading(r: reading.Reading, *, progress: Callable[[str], None] | None = None,
+                     seed: int = 0) -> Diagnosis:
+    """Diagnose what the reading stage read and checked (rig.diagnose.reading: `rig diagnose` reads its files
+    there first)."""
+    with reading.one_blas_thread():
+        return _run(r, progress or (lambda msg: None))
+
+
+def _run(r: reading.Reading, say: Callable[[str], None]) -> Diagnosis:
     """The stages in order."""
     t_start = time.perf_counter()
-    prepared = stages.prepare(rec, plant, say)
+    prepared = stages.prepare(r)
     refitted = stages.refit(prepared, say)
     screened = stages.screen(refitted, say)
     selection = _select(screened, say)

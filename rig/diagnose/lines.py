@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 
-from rig.diagnose import command as command_mod, locate, noise as noise_mod, sensor as sensor_mod
+from rig.recordings import command as command_mod
+from rig.diagnose import locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.problem import ModelFit, Problem
 
 LINE_RATIO = 40.0                  # spectral line / local median for a line candidate

@@ -1,6 +1,6 @@
 """Where and how the recording differs from a model: FRF bands beyond the coherence-based uncertainty, time
 windows, regimes (command magnitude, velocity sign), harmonics of a sweep's instantaneous phase (read from the
-command by rig.diagnose.command), and spectral lines not correlated with the command.
+command by rig.recordings.command), and spectral lines not correlated with the command.
 """
 from __future__ import annotations
 

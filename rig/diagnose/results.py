@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from rig.diagnose.command import Command
+from rig.recordings.command import Command
 from rig.diagnose.noise import NoiseFloor
 from rig.diagnose.sensor import SensorTerms
 

@@ -1,7 +1,8 @@
 """The stages of a diagnosis before and after the search (rig.diagnose.engine runs them in order), each a function
 from one typed value to the next:
 
-  prepare        Recording -> Prepared      the command read, the samples every fit leaves out, the Problem
+  (read)         files -> Reading           rig.diagnose.reading: read and checked, the command's kind, the loop
+  prepare        Reading -> Prepared        the samples every fit leaves out, the Problem
   refit          Prepared -> Refitted       nominal model, linear refit, sensor terms, lines sorted by two sensors
   screen         Refitted -> Screened       distortion the command's structure shows; excited enough for a claim?
   (search)       Screened -> Selection      rig.diagnose.search
@@ -17,16 +18,16 @@ from typing import Callable
 
 import numpy as np
 
-from rig.recordings import closedloop
-from rig.diagnose import command as command_mod, locate, noise as noise_mod, sensor as sensor_mod
+from rig.recordings import command as command_mod
+from rig.diagnose import locate, noise as noise_mod, sensor as sensor_mod
 from rig.diagnose.lines import choose_wander, residual_lines
 from rig.diagnose.plants import model_for
 from rig.diagnose.problem import N_BLOCKS, ModelFit, Problem
+from rig.diagnose.reading import Reading
 from rig.diagnose.results import Fit, FitFigures
 from rig.diagnose.search import Selection
 from rig.diagnose.verdict import no_claim_reason
 from rig.errors import RecordingError
-from rig.recordings.recording import check_plausible
 
 HARMONIC_SCREEN = 4.0              # nonlinear distortion / noise that makes nonlinear candidates worth fitting
 MIN_SNR = 3.0                      # motion rms / noise below which the recording is too poorly excited
@@ -151,20 +152,6 @@ def _feedback(pb: Problem) -> bool:
     return pb.plant.family != "eha" and pb.loop is not None and pb.loop.closed
 
 
-def _validate(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    src = getattr(rec, "source", "recording")
-    cmd = np.asarray(rec.valve_cmd_V, dtype=float)
-    pos = np.asarray(rec.position_m, dtype=float)
-    acc = np.asarray(getattr(rec, "accel_mps2", np.zeros_like(pos)), dtype=float)
-    if len(cmd) < 100 or not (np.all(np.isfinite(cmd)) and np.all(np.isfinite(pos)) and np.all(np.isfinite(acc))):
-        raise RecordingError(f"{src}: diagnosis needs at least 100 finite samples of valve_cmd_V and position_m")
-    check_plausible(rec)
-    if np.ptp(cmd) <= 0 or np.ptp(pos) <= 0:
-        raise RecordingError(f"{src}: valve_cmd_V or position_m is constant; diagnosis needs an excitation "
-                             "(chirp, sweep, multisine, noise or steps) and the position it caused")
-    return cmd, pos, acc
-
-
 def _excited_band(cmd_info: command_mod.Command, fs: float) -> tuple[tuple[float, float], tuple[float, float]]:
     """The band the command excites, and where a stand mode is looked for: a sweep's or multisine's band; for a
     broadband command (noise, steps) wherever its spectrum is within 60 dB of its peak."""
@@ -176,16 +163,12 @@ def _excited_band(cmd_info: command_mod.Command, fs: float) -> tuple[tuple[float
     return band, base_band
 
 
-def prepare(rec, p0, say: Callable[[str], None]) -> Prepared:
-    """Read the command and choose the samples every fit leaves out (clipped, the start transient)."""
-    cmd, pos, acc = _validate(rec)
-    fs = float(rec.fs_hz)
-    # was the command computed from the measured position? (named in the verdict; a plant file's axis also
-    # estimates its noise floor accordingly)
-    loop = closedloop.check(cmd, pos, fs, getattr(rec, "meta", None), stated=getattr(rec, "closed_loop", ""))
+def prepare(r: Reading) -> Prepared:
+    """The samples every fit leaves out (clipped, the start transient) and the fitting problem, from what the
+    reading stage read and checked (rig.diagnose.reading)."""
+    rec, p0, s = r.rec, r.fitted_plant, r.samples
+    cmd, pos, acc, fs, cmd_info = s.cmd, s.pos, s.acc, s.fs, s.command
     notes: list[str] = []
-    say("reading the command")
-    cmd_info = command_mod.analyse(cmd, fs, unit=getattr(rec, "command_unit", "V"))
     notes.append(f"command: {cmd_info.describe()}")
     plant = model_for(p0)
     if fs < 500.0 and plant.family == "eha":
@@ -211,7 +194,7 @@ def prepare(rec, p0, say: Callable[[str], None]) -> Prepared:
                              "clipped samples")
     band, base_band = _excited_band(cmd_info, fs)
     pb = Problem(cmd, pos, fs, p0, use, base_band=base_band, broadband=cmd_info.kind in ("noise", "steps"),
-                 loop=loop)
+                 loop=s.loop)
     return Prepared(rec=rec, cmd=cmd, pos=pos, acc=acc, fs=fs, cmd_info=cmd_info, notes=tuple(notes), use=use,
                     clip=(clip_cand, clip_lo, clip_hi), transient_s=transient_s, band=band,
                     no_claim=no_claim_reason(rec, cmd_info), pb=pb, rough=noise_mod.roughness(pos, use))

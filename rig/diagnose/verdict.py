@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from rig.diagnose import command as command_mod
+from rig.recordings import command as command_mod
 from rig.diagnose.plants import at_bounds
 from rig.diagnose.problem import LIN_BOUNDS, ModelFit, Problem
 from rig.diagnose.results import Fit, Verdict

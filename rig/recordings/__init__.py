@@ -6,6 +6,8 @@
   signalmap.py   a plant file's [signals]: another lab's file read as it is, in SI units; load_recording_for,
                  what the commands call
   closedloop.py  was the recording made in closed loop (the command computed from the measurement)?
+  command.py     what the recorded command is (sweep, multisine, steps, noise): read from the command itself
+  samples.py     the samples as a fit takes them (finite, plausible, not constant), their command and loop
   runfile.py     a run of the four-mount rig (rig run --record, rig hil; docs/RUN_RECORDING.md): its four mounts'
                  channels, the floor's when measured, the isolation modes
 """

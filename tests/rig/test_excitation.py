@@ -1,4 +1,4 @@
-"""Excitation signals (rig.excitation), what the diagnosis reads from a recorded command (rig.diagnose.command)
+"""Excitation signals (rig.excitation), what the diagnosis reads from a recorded command (rig.recordings.command)
 and `rig chirp --levels / --multisine`."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rig import excitation as ex
-from rig.diagnose.command import analyse
+from rig.recordings.command import analyse
 from rig.errors import RigError
 from rig.recordings.rigformat import load_recording
 

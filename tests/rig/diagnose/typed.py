@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rig.diagnose.command import analyse
+from rig.recordings.command import analyse
 from rig.diagnose.results import Diagnosis, Fit, FitFigures, Mismatch, NamedEffect, Verdict
 from rig.diagnose.sensor import SensorLine, SensorTerms
 
