@@ -54,3 +54,11 @@ def skip_unless_text_on_time(text: str) -> None:
             bound = 100 * LATE_BOUND if ln.startswith("late periods") else 10 * LATE_BOUND
             if pcts and max(pcts) > bound:
                 pytest.skip(f"host timing, not judged: {ln.strip()[:400]}")
+
+
+def skip_unless_commissioned_on_time(run) -> None:
+    """skip_unless_on_time for a `rig commission` subprocess, which also stops when a device went stale while the
+    host held the emulated devices' processes off the CPU ("the run faulted ... no new sample for")."""
+    skip_unless_on_time(run)
+    if "the run faulted" in run.stderr and "no new sample for" in run.stderr:
+        pytest.skip(f"host timing, not judged: {run.stderr.strip().splitlines()[-1][:400]}")
