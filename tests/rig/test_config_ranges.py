@@ -105,7 +105,8 @@ def test_shipped_configs_load():
     assert len(files) >= 2
     for f in files:
         cfg = C.load_config(f)
-        C.check_nyquist(cfg, cfg.hil.rate_hz, sections=("controller",))     # the HIL configs fit their rate
+        if f.parent.name == "devicemaps":                                # the drivers' configs fit the HIL rate
+            C.check_nyquist(cfg, cfg.hil.rate_hz, sections=("controller",))
 
 
 def test_defaults_are_inside_their_own_ranges():
