@@ -62,7 +62,7 @@ TOP_FRACTION = 0.8             # one mount's noise floor: its rms above this x N
 HELD_MAX = 0.25                # ... judged only when at most this share of its samples at null repeat the one before
                                # (a live sensor's never do: the host held the loop off, or the transducer's frames
                                # came late, 8-17 % on a loaded host, 82 % under a load of 12 on 2 cores)
-QUIET_WINDOW_S = 0.1           # ... and its noise there the least over windows this long: a sensor's own noise is in
+QUIET_WINDOW_S = 0.1           # a noise floor is the least rms over windows this long: a sensor's own noise is in
                                # every window, a host's hiccup (late periods, repeats) puts the floor's motion's
                                # steps into some (measured: 2.4e-5 m/s^2 in a clean window, 5.6e-3 in a late one)
 
@@ -114,10 +114,16 @@ def _gain_ref(gain: dict, m: str, dead: set) -> float:
     return float(np.median(others)) if others else 1.0
 
 
-def noise_floor(x: np.ndarray, fs: float) -> np.ndarray:
-    """Each column's rms above NOISE_HZ (or 0.3 fs): the sensor's own noise, where the table barely moves."""
-    sos = signal.butter(4, min(NOISE_HZ, 0.3 * fs), btype="highpass", fs=fs, output="sos")
-    return np.sqrt((signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0) ** 2).mean(axis=0))
+def noise_floor(x: np.ndarray, fs: float, corner_hz: float | None = None) -> np.ndarray:
+    """Each column's rms above corner_hz (default NOISE_HZ or 0.3 fs, the lower: where the table barely moves and
+    the sensor's own noise is what is left), the least over windows of QUIET_WINDOW_S: a sensor's noise is in every
+    window, a host's hiccup (late periods, repeated samples) only in some."""
+    corner = min(NOISE_HZ, 0.3 * fs) if corner_hz is None else corner_hz
+    sos = signal.butter(4, corner, btype="highpass", fs=fs, output="sos")
+    y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
+    w = max(int(round(QUIET_WINDOW_S * fs)), 8)
+    k = max(len(y) // w, 1)
+    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
 
 
 def held_share(x: np.ndarray) -> np.ndarray:
@@ -126,13 +132,8 @@ def held_share(x: np.ndarray) -> np.ndarray:
 
 
 def top_noise(x: np.ndarray, fs: float) -> np.ndarray:
-    """Each column's rms above TOP_FRACTION x Nyquist, the least over windows of QUIET_WINDOW_S (one mount's noise
-    floor, sensor_noise)."""
-    sos = signal.butter(4, TOP_FRACTION * fs / 2, btype="highpass", fs=fs, output="sos")
-    y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
-    w = max(int(round(QUIET_WINDOW_S * fs)), 8)
-    k = max(len(y) // w, 1)
-    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
+    """noise_floor above TOP_FRACTION x Nyquist (one mount's noise floor, against sensor_noise)."""
+    return noise_floor(x, fs, TOP_FRACTION * fs / 2)
 
 
 def top_noise_gain(fs: float) -> float:
