@@ -163,8 +163,8 @@ def test_a_late_module_makes_isolation_harm_and_the_supervisor_says_so(tmp_path)
     # [hil] extra_delay_s: the analog module's signal 20 ms late (10 conversions at 500 Hz), the loop's feedback
     # with it: isolation makes the table worse, and `rig hil` says so and switches it off
     cfg = _miswired(tmp_path, "late", "extra_delay_s = 0.02\n")
-    run = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(cfg), "--seconds", "10", "--json"],
-                         capture_output=True, text=True, timeout=600)
+    run = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(cfg), "--seconds", "10", "--json",
+                          "--record", str(tmp_path / "late.h5")], capture_output=True, text=True, timeout=600)
     assert run.returncode == EXIT_HARM, run.stderr[-3000:]
     figs = json.loads(run.stdout)
     assert "do-no-harm: isolation made the table worse" in figs["harm"] and figs["isolation_reduction_db"] < 0
