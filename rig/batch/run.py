@@ -76,7 +76,16 @@ def _utc_now() -> str:
 
 
 def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0      # Linux: kB
+    """This process's peak resident memory since it started its program. Linux's VmHWM: getrusage's ru_maxrss
+    would carry the parent's resident size at the fork into a spawned worker."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0                       # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0      # elsewhere: kB on Linux, best effort
 
 
 def _write_json(path: Path, doc: dict) -> None:

@@ -134,6 +134,8 @@ def add_arguments(p) -> None:
                     help="processes of the pool and of the LocalCluster (default 2)")
     bp.add_argument("--keep", metavar="DIR", type=Path, default=None,
                     help="make the recordings and the outputs here and keep them (default: a temporary folder)")
+    bp.add_argument("--memory", action="store_true",
+                    help="only the local pool, for the batch's peak memory against one recording diagnosed alone")
     bp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 

@@ -11,22 +11,28 @@ apart, with a concealed transport delay growing from 0 to 3 ms over them. The ba
      again: the recordings the second run did and skipped.
 Memory: each worker's peak RSS after its first recording and after its last (a batch that held its recordings
 would grow), against the size of one recording's arrays. The trend over the batch names what changed.
+
+`--memory` runs only the pool, for its memory: the recordings are made and one of them diagnosed alone, each in a
+process of its own, so that the batch's own process holds only what the batch needs. The batch's peak (its own
+process and every worker's) against that of two recordings per worker: twice the peak of one diagnosed alone.
 """
 from __future__ import annotations
 
 import json
 import os
-import resource
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from functools import partial
+from multiprocessing import get_context
 from pathlib import Path
 
 from rig.batch import trends
-from rig.batch.run import Job, run_batch
+from rig.batch import inputs
+from rig.batch.run import Job, _peak_rss_mb, run_batch, run_one
 from rig.commands.diagnose import diagnose_one
 from rig.diagnose.prove import Case, simulate_case
 from rig.recordings.rigformat import save_recording_h5
@@ -71,11 +77,19 @@ def _memory(rows: list[dict], n_samples: int) -> dict:
     by_worker: dict[str, list[float]] = {}
     for r in rows:
         by_worker.setdefault(r["worker"], []).append(r["worker_peak_rss_mb"])
-    return {"recording_arrays_mb": round(4 * 8 * n_samples / 2 ** 20, 2),     # the peak only grows: min = first
-            "worker_peak_rss_mb_after_first": [min(v) for v in by_worker.values()],
-            "worker_peak_rss_mb_after_last": [max(v) for v in by_worker.values()],
+    # the peak only grows, so sorted a worker's figures are its peak after its 1st, 2nd, ... recording. A worker
+    # that held its recordings would grow by at least one recording's arrays with each; one that grew less than
+    # that after its second never held more than two at once
+    after = [sorted(v) for v in by_worker.values()]
+    second = [v[min(1, len(v) - 1)] for v in after]
+    arrays_mb = 4 * 8 * n_samples / 2 ** 20
+    return {"recording_arrays_mb": round(arrays_mb, 2),
+            "worker_peak_rss_mb_after_first": [v[0] for v in after],
+            "worker_peak_rss_mb_after_second": second,
+            "worker_peak_rss_mb_after_last": [v[-1] for v in after],
+            "within_two_recordings_per_worker": all(v[-1] - s < arrays_mb for v, s in zip(after, second)),
             "recordings_per_worker": [len(v) for v in by_worker.values()],
-            "parent_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)}
+            "parent_peak_rss_mb": round(_peak_rss_mb(), 1)}
 
 
 def _killed_then_resumed(job, src: Path, out: Path, n: int, workers: int) -> dict:
@@ -124,12 +138,39 @@ def measure(root: Path, n: int, duration_s: float, fs_hz: float, workers: int, s
             "trends": judged.get("line", "")}
 
 
+def _alone(fn, *args):
+    """fn(*args) in a fresh spawned process of its own (its memory not this one's)."""
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as ex:
+        return ex.submit(fn, *args).result()
+
+
+def measure_memory(root: Path, n: int, duration_s: float, fs_hz: float, workers: int, say) -> dict:
+    src = root / "recordings"
+    paths = _alone(make_recordings, src, n, duration_s, fs_hz)
+    job = Job("diagnose", {"seed": 0, "plant": None, "config": None}, partial(diagnose_one, None, None, 0))
+    say(f"{n} recordings of {duration_s:g} s at {fs_hz:g} Hz in {src}; load {os.getloadavg()[0]:.1f}")
+    alone = _alone(run_one, job.work, str(paths[-1]), str(root / "alone"), "alone", inputs.file_key(paths[-1]), "")
+    say(f"one recording diagnosed alone: peak {alone['worker_peak_rss_mb']} MB")
+    local, rows = _timed(job, paths, root / "pool", workers=workers)
+    say(f"pool of {workers}: {local}")
+    mem = _memory(rows, int(round(duration_s * fs_hz)))
+    own = round(_peak_rss_mb(), 1)
+    batch_peak = own + sum(mem["worker_peak_rss_mb_after_last"])
+    two_per_worker = 2 * alone["worker_peak_rss_mb"] * workers
+    mem.update(parent_peak_rss_mb=own, one_alone_peak_rss_mb=alone["worker_peak_rss_mb"],
+               batch_peak_rss_mb=round(batch_peak, 1), two_recordings_per_worker_mb=round(two_per_worker, 1),
+               batch_within_two_recordings_per_worker=batch_peak <= two_per_worker)
+    return {"recordings": n, "duration_s": duration_s, "fs_hz": fs_hz, "workers": workers,
+            "load_1min": round(os.getloadavg()[0], 2), "pool": local, "memory": mem}
+
+
 def run(args) -> int:
     say = (lambda m: None) if args.json else (lambda m: print(f"rig bench batch: {m}", file=sys.stderr, flush=True))
+    how = measure_memory if args.memory else measure
     if args.keep is not None:
-        res = measure(args.keep, args.n, args.duration, args.fs, args.workers, say)
+        res = how(args.keep, args.n, args.duration, args.fs, args.workers, say)
     else:
         with tempfile.TemporaryDirectory(prefix="rig-bench-batch-") as d:
-            res = measure(Path(d), args.n, args.duration, args.fs, args.workers, say)
+            res = how(Path(d), args.n, args.duration, args.fs, args.workers, say)
     print(json.dumps(res, indent=1))
     return 0
