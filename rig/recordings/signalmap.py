@@ -422,7 +422,7 @@ def load_mapped(path, smap: SignalMap) -> Recording:
     return rec
 
 
-# ---- the plant file -------------------------------------------------------------------------------------------
+# ---- what the commands read ---------------------------------------------------------------------------------
 
 def load_recording_for(path, smap: SignalMap | None = None) -> Recording:
     """The recording REC as a command reads it: through its plant file's signal map when it has one, else rig's
