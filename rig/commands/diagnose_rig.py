@@ -39,6 +39,7 @@ def diagnose_file(path, cfg, out=None, progress=None):
     import numpy as np
 
     from rig.diagnose.machine import report
+    from rig.diagnose.machine.engine import nominal_theta
     from rig.diagnose.machine.result import diagnose_rig
     from rig.diagnose.machine.series import replay_series
     from rig.recordings.runfile import read_run
@@ -54,7 +55,7 @@ def diagnose_file(path, cfg, out=None, progress=None):
         say("writing outputs (and the replay as time series)")
         th = {k: np.asarray(v) for k, v in diag.theta.items()}
         try:
-            series = replay_series(rec, _base(cfg, rec), {"model": _nominal(cfg, rec), "diagnosed": th}, th)
+            series = replay_series(rec, diag.base, {"model": nominal_theta(diag.base), "diagnosed": th}, th)
             paths = report.write_outputs(Path(out), diag, series)
         except OSError as e:
             raise RigError(f"--out {out}: cannot write ({e.strerror or e})") from None
@@ -89,12 +90,3 @@ def run(args) -> int:
               "(add --out DIR for diagnosis.json, report.md, replay.csv and the plots)")
     return 0
 
-
-def _base(cfg, rec):
-    from rig.diagnose.machine.rigmodel import Base
-    return Base.of(cfg, 1.0 / rec.fs_hz)
-
-
-def _nominal(cfg, rec):
-    from rig.diagnose.machine.engine import nominal_theta
-    return nominal_theta(_base(cfg, rec))

@@ -13,8 +13,9 @@
     num = [2e-3]                        # position / command = num(s) / den(s), highest power first
     den = [1, { value = 30, min = 3, max = 300 }, 0]
 
-Only [plant] is read here; the signal map ([signals]) is read by the recording's loader. `load_subject` is what
-`rig identify` and `rig diagnose` read: the recording and the plant it is held against.
+The plant file is read once here (`read_plant_file`): its [plant] table becomes the Plant, its [signals] table
+goes as it is to the recording's loader (rig.recordings.signalmap). `load_subject` is what `rig identify` and
+`rig diagnose` read, in that order: the configuration (the eha actuator's defaults), the plant file, the recording.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from rig.config import load_config
 from rig.errors import ConfigError
 from rig.plant.model import FAMILIES, INPUT_UNITS, Param, Plant, eha_plant
 from rig.recordings.recording import Recording, check_plausible
-from rig.recordings.signalmap import load_recording_for
+from rig.recordings.signalmap import SignalMap, load_recording_for
 from sim_backend.linear import ActuatorParams
 
 AXIS_KEYS = {"mass_kg": True, "damping_n_s_per_m": True, "stiffness_n_per_m": False, "gain_n_per_unit": False}
@@ -150,8 +151,17 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
 PLANT_FILE_TABLES = ("plant", "signals")      # docs/PLANT.md
 
 
-def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
-    """The plant of a plant file (its [plant] table; no table: the default eha plant)."""
+@dataclass(frozen=True)
+class PlantFile:
+    """A plant file as read (docs/PLANT.md): its [plant] table (None: the default eha plant) and its [signals]
+    table (None: the recording is in rig's own format), each checked where it is used."""
+    source: str
+    plant: dict | None
+    signals: dict | None
+
+
+def read_plant_file(path: str | Path) -> PlantFile:
+    """The plant file's tables (unreadable, not TOML, an unknown table: one ConfigError line)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -167,9 +177,24 @@ def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
         raise ConfigError(f"{path}: [{unknown[0]}]: not a table of a plant file (expected "
                           f"{' and '.join(f'[{t}]' for t in PLANT_FILE_TABLES)}"
                           + (f"; did you mean [{near[0]}]?)" if near else ")"))
-    if "plant" not in data:
-        return eha_plant(p0, str(path))
-    return parse_plant(data["plant"], str(path), p0)
+    return PlantFile(str(path), data.get("plant"), data.get("signals"))
+
+
+def plant_of(plant_file: PlantFile, p0: ActuatorParams | None = None) -> Plant:
+    """The plant of a plant file's [plant] table (no table: the default eha plant), on the eha actuator p0."""
+    if plant_file.plant is None:
+        return eha_plant(p0, plant_file.source)
+    return parse_plant(plant_file.plant, plant_file.source, p0)
+
+
+def load_plant(path: str | Path, p0: ActuatorParams | None = None) -> Plant:
+    """The plant of a plant file (its [plant] table; no table: the default eha plant)."""
+    return plant_of(read_plant_file(path), p0)
+
+
+def configured_actuator(config_path=None) -> ActuatorParams:
+    """The eha actuator of the configuration's [actuator], [valve] and [fluid] (no configuration: Table 1)."""
+    return ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
 
 
 @dataclass(frozen=True)
@@ -184,17 +209,26 @@ class Subject:
 def plant_for(plant_path=None, config_path=None) -> Plant:
     """The plant a recording is held against: the plant file's, else the eha actuator of the configuration's
     [actuator] (default Table 1)."""
-    p0 = ActuatorParams.from_config(load_config(config_path)) if config_path else ActuatorParams()
-    return load_plant(plant_path, p0) if plant_path is not None else eha_plant(
-        p0, str(Path(config_path)) if config_path else "Table 1")
+    return _held_against(configured_actuator(config_path),
+                         read_plant_file(plant_path) if plant_path is not None else None, config_path)
+
+
+def _held_against(p0: ActuatorParams, plant_file: PlantFile | None, config_path) -> Plant:
+    """The plant file's plant on the eha actuator p0; no plant file: that actuator, named by its configuration."""
+    if plant_file is None:
+        return eha_plant(p0, str(Path(config_path)) if config_path else "Table 1")
+    return plant_of(plant_file, p0)
 
 
 def load_subject(recording, plant_path=None, config_path=None) -> Subject:
-    """Read the recording (through the plant file's signal map when it has one) and the plant, and check them
-    together: the command's unit is the plant's input, the values plausible. One line for any problem
-    (ConfigError, RecordingError)."""
-    plant = plant_for(plant_path, config_path)
-    rec = load_recording_for(recording, plant_path)
+    """Read the configuration, the plant file (once: its [plant] and its [signals]) and the recording (through
+    that signal map when there is one), and check them together: the command's unit is the plant's input, the
+    values plausible. One line for any problem (ConfigError, RecordingError)."""
+    p0 = configured_actuator(config_path)
+    plant_file = read_plant_file(plant_path) if plant_path is not None else None
+    plant = _held_against(p0, plant_file, config_path)
+    signals = plant_file.signals if plant_file is not None else None
+    rec = load_recording_for(recording, None if signals is None else SignalMap.from_table(signals, plant_file.source))
     if plant.input_unit != rec.command_unit:       # the command (in the unit its signal map gave) is not the input
         what = "the valve voltage, V or mV" if plant.family == "eha" else f"input_unit = {plant.input_unit!r}"
         raise ConfigError(f"{plant_path}: [signals] command is in {rec.command_unit}: the {plant.family} plant's "

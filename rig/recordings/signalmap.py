@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -423,34 +422,11 @@ def load_mapped(path, smap: SignalMap) -> Recording:
     return rec
 
 
-# ---- the plant file -------------------------------------------------------------------------------------------
+# ---- what the commands read ---------------------------------------------------------------------------------
 
-def read_plant_file(plant_path) -> dict:
-    """The plant file's TOML as a dict (missing, unreadable, invalid: one ConfigError line)."""
-    p = Path(plant_path)
-    try:
-        return tomllib.loads(p.read_bytes().decode("utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: plant file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{p}: cannot read the plant file ({type(e).__name__}: {e})"[:300]) from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: invalid TOML: {e}") from None
-
-
-def load_plant_signals(plant_path) -> SignalMap | None:
-    """The plant file's `[signals]` table as a SignalMap (None when it has none: the recording is in rig's own
-    format)."""
-    data = read_plant_file(plant_path)
-    if "signals" not in data:
-        return None
-    return SignalMap.from_table(data["signals"], str(plant_path))
-
-
-def load_recording_for(path, plant_path=None) -> Recording:
-    """The recording REC as a command reads it: through the plant file's signal map when it has one, else
-    rig's own formats (rig.recordings.rigformat.load_recording)."""
-    smap = load_plant_signals(plant_path) if plant_path is not None else None
+def load_recording_for(path, smap: SignalMap | None = None) -> Recording:
+    """The recording REC as a command reads it: through its plant file's signal map when it has one, else rig's
+    own formats (rig.recordings.rigformat.load_recording). The plant file is read by rig.plant.file."""
     if smap is not None:
         return load_mapped(path, smap)
     return load_recording(path)

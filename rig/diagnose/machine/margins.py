@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.analysis import DiscreteRig, _css, attenuation_db, band_summary, disk_margin, is_stable, margins, siso
-from controllers.isolation import IsolationController, make_isolation_controllers  # noqa: F401
+from controllers.isolation import IsolationController
 from rig.config import MOUNTS
 from rig.diagnose.machine.rigmodel import Base
 from sim_backend.rig_plant import I_TABLE
@@ -150,9 +150,9 @@ def _best_trim(rig, ctrl: SensedController, i: int, delay: int) -> tuple[float, 
 
 def mount_lines(base: Base, th_nominal: dict, th_diag: dict, *, n_f: int = 900, mounts=None) -> list[MountLine]:
     """One line per mount (see the module docstring); `mounts`: only those (indices)."""
-    cfg, dt = base.cfg, base.dt
+    dt = base.dt
     f = np.unique(np.concatenate([np.geomspace(0.05, 0.49 / dt, n_f), [1.0, 5.0, 10.0, 20.0, 60.0, 100.0]]))
-    ctrls = make_isolation_controllers(cfg, dt)
+    ctrls = base.controllers
     rig0, dev0 = _rig(base, th_nominal, f)
     rig1, dev1 = _rig(base, th_diag, f)
     out = []

@@ -16,7 +16,7 @@ from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine import detect, floor as floor_mod, margins as margins_mod, offsets as offsets_mod
 from rig.diagnose.machine.engine import Selection, diagnose_run, u_of, without_effect
 from rig.diagnose.machine.residual import Replay
-from rig.diagnose.machine.rigmodel import ACT_KEYS, responses
+from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, responses
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra
 from rig.diagnose.machine.transmissibility import transmissibility
@@ -61,6 +61,7 @@ class RigDiagnosis:
     timing_s: float = 0.0
     theta: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    base: Base | None = None    # the configured rig it was diagnosed against (the replay of theta runs on it)
 
 
 def _per_channel(ev, f_hz, bands=BANDS_HZ) -> list:
@@ -174,7 +175,8 @@ def diagnose_rig(run: RunRecording, cfg: Config, progress=None) -> RigDiagnosis:
     diag = RigDiagnosis(run.source, run.fs_hz, run.duration_s, run.floor_measured, run.mode_seconds(),
                         ctx.valves_driven, named, _refit_dict(sel), mismatch, _located(mismatch["refit"]),
                         {k: _mount_fit(ev) for k, ev in evh.items()}, _candidates(sel), fm, offs, rest, det, tr,
-                        lines, verdict, "", time.perf_counter() - t0, {k: v.tolist() for k, v in th.items()}, notes)
+                        lines, verdict, "", time.perf_counter() - t0, {k: v.tolist() for k, v in th.items()}, notes,
+                        ctx.base)
     if run.gaps:
         diag.notes.insert(0, run.gaps)
     return diag

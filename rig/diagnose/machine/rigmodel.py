@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from controllers.analysis import with_actuator
+from controllers.feedforward import FeedforwardFilter, make_feedforward_filters
+from controllers.isolation import IsolationController, make_isolation_controllers
 from rig.config import Config
 from sim_backend.machine import ModalModel, modal_model_from_config
 from sim_backend.rig_error import RigDeviation
@@ -47,7 +50,9 @@ def copy_theta(th: dict) -> dict:
 
 @dataclass
 class Base:
-    """The configured rig: its config, its modal model and the loop period of the recording."""
+    """The configured rig: its config, its modal model, the loop period of the recording and its controllers
+    at that period (built once, when first asked for: the transmissibility and the margins close their loops
+    with the same objects)."""
     cfg: Config
     modal: ModalModel
     dt: float
@@ -55,6 +60,16 @@ class Base:
     @classmethod
     def of(cls, cfg: Config, dt: float) -> "Base":
         return cls(cfg, modal_model_from_config(cfg), dt)
+
+    @cached_property
+    def controllers(self) -> list[IsolationController]:
+        """The configured isolation controllers, one per mount (controllers/isolation.py)."""
+        return make_isolation_controllers(self.cfg, self.dt)
+
+    @cached_property
+    def feedforward(self) -> list[FeedforwardFilter]:
+        """The configured floor feedforward filters, one per mount (controllers/feedforward.py)."""
+        return make_feedforward_filters(self.cfg, self.dt)
 
     @property
     def n_flex(self) -> int:

@@ -16,8 +16,6 @@ import math
 
 import numpy as np
 
-from controllers.feedforward import make_feedforward_filters
-from controllers.isolation import make_isolation_controllers
 from rig.config import MOUNTS
 from rig.diagnose.machine.rigmodel import Base, responses
 from rig.recordings.runfile import MODES, RunRecording
@@ -83,8 +81,8 @@ def transmissibility(run: RunRecording, base: Base, models: dict, noise: np.ndar
     """{"bands_hz", "floor", "segments", "mounts": {mount: {mode: {"measured_db", model name + "_db"}}}};
     models: {"model": theta, "diagnosed": theta}."""
     dt = base.dt
-    ctrls = make_isolation_controllers(base.cfg, dt)
-    ffs = make_feedforward_filters(base.cfg, dt) if run.floor_measured else None
+    ctrls = base.controllers
+    ffs = base.feedforward if run.floor_measured else None
     segs = _segments(run)
     out = {"bands_hz": [list(b) for b in BANDS_HZ], "segments": {},
            "floor": "measured" if run.floor_measured else "estimated from the mounts through the diagnosed model",

@@ -145,3 +145,33 @@ def test_an_eha_plant_file_says_which_values_the_diagnosis_refits():
     parts = dict(p.split("=", 1) for p in text.split(": ", 1)[1].split(", "))
     assert {k for k, v in parts.items() if v.endswith("(refit from here)")} == set(EHA_REFIT_KEYS), text
     assert {k for k, v in parts.items() if v.endswith("(fixed)")} == {"M", "A_p", "C", "V_t", "K_v", "beta"}, text
+
+
+def test_a_subject_is_read_in_layer_order_from_plain_values(tmp_path):
+    """`rig diagnose` / `rig identify` read the configuration, then the plant file (once: its [plant] and its
+    [signals]), then the recording: the eha plant is the configuration's actuator with the plant file's values
+    over it, the recording read through the same file's signal map, and the first bad file is the one named."""
+    from rig.plant.file import load_subject
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text("[actuator]\nC = 2100.0\n")
+    plant = tmp_path / "plant.toml"
+    plant.write_text('[plant]\nfamily = "eha"\nK_L = 7.0e8\n[signals]\ntime = "zeit"\n'
+                     'command = { name = "u_mV", unit = "mV" }\nposition = { name = "x_um", unit = "um" }\n')
+    t = np.arange(5000) / 1000.0
+    u = 500.0 * np.sin(2 * math.pi * 3.0 * t) * np.sin(2 * math.pi * 0.7 * t)
+    x = 20.0 * np.sin(2 * math.pi * 3.0 * t - 0.3) * np.sin(2 * math.pi * 0.7 * t)
+    rec_path = tmp_path / "lab.csv"
+    rec_path.write_text("zeit,u_mV,x_um\n" + "\n".join(f"{a:.4f},{b:.6f},{c:.6f}" for a, b, c in zip(t, u, x)))
+    s = load_subject(rec_path, plant, cfg)
+    assert s.plant.actuator.C == 2100.0 and s.plant.actuator.K_L == 7.0e8        # config's, then the file's
+    assert s.plant.actuator.K_Q == load_plant(plant).actuator.K_Q                 # the rest: Table 1
+    np.testing.assert_allclose(s.rec.valve_cmd_V, u / 1e3, rtol=0, atol=1e-9)     # through its own [signals]
+    np.testing.assert_allclose(s.rec.position_m, x / 1e6, rtol=0, atol=1e-12)
+    bad_cfg = tmp_path / "bad_rig.toml"
+    bad_cfg.write_text("[actuator]\nC = -1.0\n")
+    bad_plant = tmp_path / "bad_plant.toml"
+    bad_plant.write_text('[plant]\nfamily = "gearbox"\n[signals]\ncommand = 3\n')
+    with pytest.raises(ConfigError, match="bad_rig.toml"):
+        load_subject(rec_path, bad_plant, bad_cfg)
+    with pytest.raises(ConfigError, match=r"bad_plant.toml: \[plant\] family"):       # [plant] before [signals]
+        load_subject(rec_path, bad_plant, cfg)

@@ -59,8 +59,7 @@ def test_the_recordings_own_word_counts_where_the_data_are_too_short():
 def test_identify_through_a_plant_file_names_a_closed_loop_the_file_states(tmp_path):
     """rig identify --plant on a short closed-loop log at 100 Hz: the map's reference makes the report say so."""
     from rig.diagnose.refit import identify_plant
-    from rig.plant.file import load_plant
-    from rig.recordings.signalmap import load_recording_for
+    from rig.plant.file import load_subject
     rng = np.random.default_rng(3)
     n, fs, m, c = 1000, 100.0, 5.0, 20.0
     ref = np.where((np.arange(n) // 200) % 2, 0.01, -0.01)
@@ -78,7 +77,7 @@ def test_identify_through_a_plant_file_names_a_closed_loop_the_file_states(tmp_p
                           'damping_n_s_per_m = { value = 10.0, min = 1.0, max = 200.0 }\n'
                           '[signals]\ntime = "t"\ncommand = { name = "force", unit = "N" }\n'
                           'position = { name = "pos", unit = "m" }\nreference = { name = "ref", unit = "m" }\n')
-    rec = load_recording_for(tmp_path / "log.csv", plant_toml)
-    out = identify_plant(rec, load_plant(plant_toml))
+    subject = load_subject(tmp_path / "log.csv", plant_toml)
+    out = identify_plant(subject.rec, subject.plant)
     assert out["closed_loop"]["closed_loop"] is True and "says so" in out["closed_loop"]["reason"]
     assert "closed-loop data" in out["warning"]

@@ -16,8 +16,9 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from rig.cli import main
 from rig.errors import ConfigError, RecordingError
+from rig.plant.file import load_subject, read_plant_file
 from rig.recordings.rigformat import load_recording
-from rig.recordings.signalmap import (KEYS, UNITS, SignalMap, load_mapped, load_plant_signals, load_recording_for)
+from rig.recordings.signalmap import (KEYS, UNITS, SignalMap, load_mapped, load_recording_for)
 from tests.paths import RECORDINGS, REPO
 
 PLANT_FILES = sorted((REPO / "docs" / "examples").glob("*.toml"))
@@ -151,8 +152,9 @@ def test_no_signals_table_is_rigs_own_format(tmp_path):
                         "\n".join(f"{ti:.6f},{ui / 40:.9g},{xi:.9g},{ai:.9g}" for ti, ui, xi, ai in zip(t, u, x, a)))
     plant = tmp_path / "p.toml"
     plant.write_text('[plant]\nfamily = "eha"\n')
-    assert load_plant_signals(plant) is None
-    np.testing.assert_array_equal(load_recording_for(rec_path, plant).position_m, load_recording(rec_path).position_m)
+    assert read_plant_file(plant).signals is None
+    np.testing.assert_array_equal(load_subject(rec_path, plant).rec.position_m, load_recording(rec_path).position_m)
+    np.testing.assert_array_equal(load_recording_for(rec_path).position_m, load_recording(rec_path).position_m)
 
 
 @pytest.mark.shared
@@ -165,7 +167,7 @@ def test_identify_through_a_plant_file_matches_the_shared_recording(tmp_path, ca
                            "acc": ref.accel_mps2[k]})
     plant = _plant(tmp_path, 'time = "zeit"\ncommand = { name = "u_mV", unit = "mV" }\n'
                              'position = { name = "x_um", unit = "um" }\nacceleration = "acc"\n', 'family = "eha"')
-    rec = load_recording_for(mat, plant)
+    rec = load_subject(mat, plant).rec
     np.testing.assert_allclose(rec.position_m, ref.position_m[k], rtol=1e-12, atol=1e-20)
     np.testing.assert_allclose(rec.valve_cmd_V, ref.valve_cmd_V[k], rtol=1e-12, atol=1e-15)
     assert main(["identify", str(mat), "--plant", str(plant), "--starts", "1", "--no-refine", "--json"]) == 0
@@ -261,12 +263,12 @@ def test_each_error_is_one_line(tmp_path, capsys, command, signals, writer, plan
 
 def test_plant_file_problems_name_the_plant_file(tmp_path):
     missing = tmp_path / "nope.toml"
-    with pytest.raises(ConfigError, match="nope.toml: plant file not found"):
-        load_plant_signals(missing)
+    with pytest.raises(ConfigError, match="nope.toml: cannot read the plant file"):
+        read_plant_file(missing)
     bad = tmp_path / "bad.toml"
     bad.write_text("[signals\n")
-    with pytest.raises(ConfigError, match="bad.toml: invalid TOML"):
-        load_plant_signals(bad)
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        read_plant_file(bad)
 
 
 def test_csv_column_problems(tmp_path):
@@ -347,7 +349,7 @@ def _write_for(smap: SignalMap, path: Path, truth: dict[str, np.ndarray]) -> Non
 
 @pytest.mark.parametrize("example", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_shipped_example_loads_a_file_laid_out_as_it_says(tmp_path, example):
-    smap = load_plant_signals(example)
+    smap = SignalMap.from_table(read_plant_file(example).signals, str(example))
     assert smap is not None and smap.format in ("csv", "mat", "hdf5")
     t, u, x, a, r = _axis()
     t = t + 0.5 if smap.start_s is None else t + smap.start_s - 0.25        # the window cuts the first 0.25 s
