@@ -59,7 +59,8 @@ log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
-             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording")
+             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording",
+             "pre_steps")
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
