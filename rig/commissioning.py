@@ -95,15 +95,17 @@ def correction(scale: float) -> float:
 
 def stroke_unit(gain_vs_model: float, accel_scale: float, gain_ref: float = 1.0) -> float:
     """The factor that puts a transducer's range or unit slip right (a range a decade off: 10 or 0.1; mm read as
-    um: 1e3 ...), else 1. A transducer reading k x its stroke shows twice: its accelerometer's scale against its x''
-    reads 1/k, and its stroke/command k x the rig's (gain_ref: the other mounts' median over the model's DC gain).
-    The first gives the power of ten; the second must have moved more than half way towards it: an accelerometer's
-    own g range moves the first only, a valve's own gain the second only."""
+    um: 1e3 ...), else 1. A transducer reading k x its stroke shows twice: its stroke/command reads k x the rig's
+    (gain_ref: the other mounts' median over the model's DC gain), and its accelerometer's scale against its x''
+    1/k (times the accelerometer's own slip, a g range on the same mount: 0.102/k). The power of ten comes from the
+    first (a valve's own gain, within GAIN_FIX, stays inside half a decade); the second must have moved more than
+    half way towards it: a valve ten times weak or strong moves the first only, an accelerometer's g range the
+    second only."""
     g, a = abs(gain_vs_model) / abs(gain_ref), abs(accel_scale)
     if not (g > 0 and a > 0 and math.isfinite(g) and math.isfinite(a)):
         return 1.0
-    decades = round(math.log10(a))            # the accelerometer against x'': 10^decades = 1/k
-    if decades == 0 or -math.log10(g) * decades < 0.5 * decades ** 2:
+    decades = -round(math.log10(g))           # the stroke/command against the rig's: 10^-decades = k
+    if decades == 0 or math.log10(a) * decades < 0.5 * decades ** 2:
         return 1.0
     return 10.0 ** decades
 
@@ -452,7 +454,10 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
                                     f"the sensor")
                 else:
                     v = "refused"
-                    dead = " (dead or unwired)" if a < SCALE_FIX[0] else ""
+                    # a range 1000 x too coarse (mm/s^2 read as m/s^2) answers as little as an unwired input: the
+                    # signal lies at the module's resolution, and 1000 x its steps would be no calibration
+                    dead = (" (dead, unwired, or its range 1000 x too coarse: the signal is lost below the module's "
+                            "resolution; check the channel's wiring and range)") if a < SCALE_FIX[0] else ""
                     findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects{dead}")
         verdicts[f"accel:{m}"] = v
         v = "ok"
