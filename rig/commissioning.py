@@ -426,6 +426,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
     verdicts, findings = {}, []
     for j, m in enumerate(names):
         ac, xs = accel_of[j], stroke_of[j]
+        on = names[mount_of[j]]      # the mount the sensors answering valve j sit on (swapped nodes: not m)
         # the accelerometer answering valve j
         v = "ok"
         if R_a[ac, j] / max(abs(scale[m]), 1e-12) < DEAD_RMS_RATIO * med_a or not channels["accel"][names[ac]]["alive"]:
@@ -438,18 +439,18 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
             s = scale[m]
             if s < 0 and abs(s) >= SCALE_FIX[0]:         # a dead channel's sign is its noise's
                 v = "corrected"
-                findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
+                findings.append(f"accelerometer on {on}: sign inverted (scale {s:+.3f} against its stroke's x'')")
             a = abs(s)
             if abs(a - 1) > SCALE_TOL:
                 if SCALE_FIX[0] <= a <= SCALE_FIX[1] and unit_slip(a):
                     v = "corrected"
                     hint = " (an input range in g read as m/s^2)" if abs(a * 9.80665 - 1) < SCALE_TOL else ""
-                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x''{hint}")
+                    findings.append(f"accelerometer on {on}: scale {a:.3f} against its stroke's x''{hint}")
                 elif SCALE_FIX[0] <= a <= SCALE_FIX[1]:
                     # a wiring slip is a unit's factor; any other is a broken sensor or a measurement the host
                     # spoiled, and its inverse as a calibration made a loop unstable (57 Hz, a loaded host)
                     v = "refused"
-                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x'' is no unit slip "
+                    findings.append(f"accelerometer on {on}: scale {a:.3f} against its stroke's x'' is no unit slip "
                                     f"(g against m/s^2, a power of ten): not corrected; commission again, then check "
                                     f"the sensor")
                 else:
@@ -458,18 +459,18 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
                     # signal lies at the module's resolution, and 1000 x its steps would be no calibration
                     dead = (" (dead, unwired, or its range 1000 x too coarse: the signal is lost below the module's "
                             "resolution; check the channel's wiring and range)") if a < SCALE_FIX[0] else ""
-                    findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects{dead}")
+                    findings.append(f"accelerometer on {on}: scale {a:.3g} beyond what calibration corrects{dead}")
         verdicts[f"accel:{m}"] = v
         v = "ok"
         if R_x[xs, j] < STROKE_DEAD_RATIO * med_x:
             v = "refused"
-            findings.append(f"transducer of {m}: no answer to its valve")
+            findings.append(f"transducer of {on}: no answer to its valve")
         elif xs != mount_of[j]:
             v = "corrected"
             findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
         if gain[m] < 0 and v != "refused":             # a dead transducer's sign is its noise's
             v = "corrected"
-            findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
+            findings.append(f"stroke of {on}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
     return verdicts, findings
 
