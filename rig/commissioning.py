@@ -18,8 +18,8 @@ SCALE_FIX, a transducer's unit slip, an offset), refused (dead, noisy, or a scal
 unchecked (an accelerometer whose mount's transducer is dead: nothing to hold its sign and scale against).
 The sensors' own checks (sensor_findings): alive, offset and noise floor at null, each channel's noise floor
 (above NOISE_HZ, where the table barely moves and a sensor's white noise shows) against the median of the
-others of its kind, and a transducer's range or unit slip (stroke_unit: its accelerometer a power of ten off its
-x'', and its stroke/command moved the other way against the other mounts').
+others of its kind, and a transducer's range or unit slip (stroke_unit: its stroke/command a power of ten off the
+other mounts', and its accelerometer moved the other way against its x'').
 
 One mount alone (the prototype on its stand): one valve, one transducer, one accelerometer, so nothing can be
 swapped and there are no others of its kind to hold a channel against. A dead transducer is judged against the

@@ -22,8 +22,9 @@ period after its deadline, or the accelerometer module's new conversion had not 
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
 suffers first).
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording"} on
-stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
+"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording",
+"pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
+seeded floor the run met; its lockstep twin takes them first); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
