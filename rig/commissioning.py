@@ -18,8 +18,8 @@ SCALE_FIX, a transducer's unit slip, an offset), refused (dead, noisy, or a scal
 unchecked (an accelerometer whose mount's transducer is dead: nothing to hold its sign and scale against).
 The sensors' own checks (sensor_findings): alive, offset and noise floor at null, each channel's noise floor
 (above NOISE_HZ, where the table barely moves and a sensor's white noise shows) against the median of the
-others of its kind, and a transducer's range or unit slip (stroke_unit: its accelerometer a power of ten off its
-x'', and its stroke/command moved the other way against the other mounts').
+others of its kind, and a transducer's range or unit slip (stroke_unit: its stroke/command a power of ten off the
+other mounts', and its accelerometer moved the other way against its x'').
 
 One mount alone (the prototype on its stand): one valve, one transducer, one accelerometer, so nothing can be
 swapped and there are no others of its kind to hold a channel against. A dead transducer is judged against the
@@ -95,15 +95,17 @@ def correction(scale: float) -> float:
 
 def stroke_unit(gain_vs_model: float, accel_scale: float, gain_ref: float = 1.0) -> float:
     """The factor that puts a transducer's range or unit slip right (a range a decade off: 10 or 0.1; mm read as
-    um: 1e3 ...), else 1. A transducer reading k x its stroke shows twice: its accelerometer's scale against its x''
-    reads 1/k, and its stroke/command k x the rig's (gain_ref: the other mounts' median over the model's DC gain).
-    The first gives the power of ten; the second must have moved more than half way towards it: an accelerometer's
-    own g range moves the first only, a valve's own gain the second only."""
+    um: 1e3 ...), else 1. A transducer reading k x its stroke shows twice: its stroke/command reads k x the rig's
+    (gain_ref: the other mounts' median over the model's DC gain), and its accelerometer's scale against its x''
+    1/k (times the accelerometer's own slip, a g range on the same mount: 0.102/k). The power of ten comes from the
+    first (a valve's own gain, within GAIN_FIX, stays inside half a decade); the second must have moved more than
+    half way towards it: a valve ten times weak or strong moves the first only, an accelerometer's g range the
+    second only."""
     g, a = abs(gain_vs_model) / abs(gain_ref), abs(accel_scale)
     if not (g > 0 and a > 0 and math.isfinite(g) and math.isfinite(a)):
         return 1.0
-    decades = round(math.log10(a))            # the accelerometer against x'': 10^decades = 1/k
-    if decades == 0 or -math.log10(g) * decades < 0.5 * decades ** 2:
+    decades = -round(math.log10(g))           # the stroke/command against the rig's: 10^-decades = k
+    if decades == 0 or math.log10(a) * decades < 0.5 * decades ** 2:
         return 1.0
     return 10.0 ** decades
 
@@ -424,6 +426,7 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
     verdicts, findings = {}, []
     for j, m in enumerate(names):
         ac, xs = accel_of[j], stroke_of[j]
+        on = names[mount_of[j]]      # the mount the sensors answering valve j sit on (swapped nodes: not m)
         # the accelerometer answering valve j
         v = "ok"
         if R_a[ac, j] / max(abs(scale[m]), 1e-12) < DEAD_RMS_RATIO * med_a or not channels["accel"][names[ac]]["alive"]:
@@ -436,35 +439,38 @@ def _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount
             s = scale[m]
             if s < 0 and abs(s) >= SCALE_FIX[0]:         # a dead channel's sign is its noise's
                 v = "corrected"
-                findings.append(f"accelerometer on {m}: sign inverted (scale {s:+.3f} against its stroke's x'')")
+                findings.append(f"accelerometer on {on}: sign inverted (scale {s:+.3f} against its stroke's x'')")
             a = abs(s)
             if abs(a - 1) > SCALE_TOL:
                 if SCALE_FIX[0] <= a <= SCALE_FIX[1] and unit_slip(a):
                     v = "corrected"
                     hint = " (an input range in g read as m/s^2)" if abs(a * 9.80665 - 1) < SCALE_TOL else ""
-                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x''{hint}")
+                    findings.append(f"accelerometer on {on}: scale {a:.3f} against its stroke's x''{hint}")
                 elif SCALE_FIX[0] <= a <= SCALE_FIX[1]:
                     # a wiring slip is a unit's factor; any other is a broken sensor or a measurement the host
                     # spoiled, and its inverse as a calibration made a loop unstable (57 Hz, a loaded host)
                     v = "refused"
-                    findings.append(f"accelerometer on {m}: scale {a:.3f} against its stroke's x'' is no unit slip "
+                    findings.append(f"accelerometer on {on}: scale {a:.3f} against its stroke's x'' is no unit slip "
                                     f"(g against m/s^2, a power of ten): not corrected; commission again, then check "
                                     f"the sensor")
                 else:
                     v = "refused"
-                    dead = " (dead or unwired)" if a < SCALE_FIX[0] else ""
-                    findings.append(f"accelerometer on {m}: scale {a:.3g} beyond what calibration corrects{dead}")
+                    # a range 1000 x too coarse (mm/s^2 read as m/s^2) answers as little as an unwired input: the
+                    # signal lies at the module's resolution, and 1000 x its steps would be no calibration
+                    dead = (" (dead, unwired, or its range 1000 x too coarse: the signal is lost below the module's "
+                            "resolution; check the channel's wiring and range)") if a < SCALE_FIX[0] else ""
+                    findings.append(f"accelerometer on {on}: scale {a:.3g} beyond what calibration corrects{dead}")
         verdicts[f"accel:{m}"] = v
         v = "ok"
         if R_x[xs, j] < STROKE_DEAD_RATIO * med_x:
             v = "refused"
-            findings.append(f"transducer of {m}: no answer to its valve")
+            findings.append(f"transducer of {on}: no answer to its valve")
         elif xs != mount_of[j]:
             v = "corrected"
             findings.append(f"transducers swapped: valve {m} is answered by the channel mapped to {names[xs]}")
         if gain[m] < 0 and v != "refused":             # a dead transducer's sign is its noise's
             v = "corrected"
-            findings.append(f"stroke of {m}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
+            findings.append(f"stroke of {on}: sign inverted against its valve (gain {gain[m]:+.2f} x the model's)")
         verdicts[f"stroke:{m}"] = v
     return verdicts, findings
 

@@ -22,8 +22,9 @@ period after its deadline, or the accelerometer module's new conversion had not 
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
 suffers first).
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording"} on
-stdout; progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
+"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording",
+"pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
+seeded floor the run met; its lockstep twin takes them first); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
@@ -59,7 +60,8 @@ log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
-             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording")
+             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording",
+             "pre_steps")
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 

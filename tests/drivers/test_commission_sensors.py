@@ -79,7 +79,7 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
                               (f"stroke:{RL}", "offset"), (f"stroke:{RR}", "noisy"), (f"accel:{RR}", "offset")}
     text = first["text"]
     assert f"transducer of {FL} (channel mapped to {FL}): reads 0.1 x its stroke" in text
-    assert f"accelerometer on {FR}: scale" in text and "(dead or unwired)" in text
+    assert f"accelerometer on {FR}: scale" in text and "(dead, unwired, or its range 1000 x too coarse" in text
     assert f"accelerometer channel mapped to {RL}: noisy" in text
     assert f"transducer channel mapped to {RR}: noisy" in text
     assert f"transducer channel mapped to {RL}: offset +" in text
@@ -130,11 +130,33 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
     ("ai_factor = [1.0, 0.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n", f"{FR}: accelerometer stuck"),
     ("dt_factor = [1.0, 1.0, 1.0, 0.0]\n", f"{RR}: displacement transducer stuck"),
     ("dt_factor = [1e-3, 1.0, 1.0, 1.0]\n", f"{FL}: displacement transducer stuck"),   # mm read as um: 0 at null
+    ("dt_factor = [1.0, 1e3, 1.0, 1.0]\n", f"{FR}: stroke limit"),                       # um read as mm
+    # an accelerometer 100 x (the emulated module's largest factor; 1000 x meets the rail sooner)
+    ("ai_factor = [1.0, 1.0, 100.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n", "AI ch2 (rear_left) at the +-10 V rail"),
 ])
 def test_a_channel_dead_at_a_constant_stops_commissioning_naming_it(tmp_path, keys, line):
+    """A dead channel, or a unit slip of 1000 (100 on the accelerometer), stops commissioning by the safety rules,
+    naming the channel: nothing judged, no calibration written."""
     run, out = _commission(tmp_path, "--config", str(_miswired(tmp_path, "dead", keys)))
     assert run.returncode not in (0, EXIT_FINDINGS) and run.stdout == ""
     assert line in run.stderr and "nothing judged" in run.stderr and not (out / "commissioning.toml").exists()
+
+
+@pytest.mark.hil
+def test_an_accelerometer_ranged_1000_x_too_coarse_is_refused_not_corrected(tmp_path):
+    """rear_left's accelerometer reads 1e-3 x its signal (mm/s^2 read as m/s^2): below the module's resolution it
+    answers like an unwired input; refused on its channel with the range named as a cause, its scale left 1 in the
+    calibration (1000 x the module's steps would be no calibration), the other channels ok."""
+    cfg = _miswired(tmp_path, "coarse", "ai_factor = [1.0, 1.0, 0.001, 1.0, 1.0, 1.0, 1.0, 1.0]\n")
+    run, out = _commission(tmp_path / "c", "--config", str(cfg))
+    assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
+    res = json.loads(run.stdout)
+    assert _sensors(res) == {**{f"{k}:{m}": "ok" for k in ("accel", "stroke") for m in (FL, FR, RL, RR)},
+                             f"accel:{RL}": "refused"}, res["findings"]
+    assert abs(res["accel_scale"][RL]) < 0.01
+    assert any(f.startswith(f"accelerometer on {RL}: scale") and "range 1000 x too coarse" in f
+               for f in res["findings"])
+    assert tomllib.loads((out / "commissioning.toml").read_text())["accel"][RL]["scale"] == 1.0
 
 
 def test_a_range_slip_is_told_from_a_g_range_and_a_valve_gain():
@@ -143,6 +165,10 @@ def test_a_range_slip_is_told_from_a_g_range_and_a_valve_gain():
     assert stroke_unit(0.4, 0.102, 0.4) == 1.0            # an accelerometer's g range: the gain did not move
     assert stroke_unit(0.04, 1.0, 0.4) == 1.0             # a valve's own gain: the accelerometer did not move
     assert stroke_unit(0.0, 0.0, 0.4) == 1.0              # dead: nothing to correct
+    # two faults on one mount: a range a decade up and an accelerometer's g range (0.102 / 10 against x'')
+    assert stroke_unit(3.6, 0.0102, 0.4) == pytest.approx(0.1)
+    assert stroke_unit(4.0, 1.0, 0.4) == 1.0              # a valve ten times strong: the accelerometer did not move
+    assert stroke_unit(0.64, 0.102, 0.4) == 1.0           # a g range beside a valve's gain of 1.6
 
 
 def test_the_module_delays_its_signal_by_fractional_conversions():

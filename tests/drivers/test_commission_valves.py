@@ -182,3 +182,17 @@ def test_two_valves_on_one_node_is_one_line(tmp_path):
         _valve_node_ids(load_config(cfg))
     cfg.write_text("[hil]\nvalve_node_id = [2, 1, 3, 4]\n[drivers]\nvalve_node_id_base = 5\n")
     assert _valve_node_ids(load_config(cfg)) == [6, 5, 7, 8]          # the numbers shift with the base
+
+
+def test_with_swapped_nodes_a_sensors_finding_names_the_mount_it_sits_on():
+    """rear_left's accelerometer inverted beside swapped rear nodes: the command for rear_right moves rear_left, and
+    the inverted accelerometer answering it is named on rear_left, where it sits (the verdicts stay keyed by the
+    valve's mount as configured, as the rest of the report)."""
+    perm = [0, 1, 3, 2]
+    R = np.eye(4)[perm].T + 0.01                       # R[channel, valve]: channel perm[j] answers valve j
+    scale = dict(zip(MOUNTS, [1.0, 1.0, 1.0, -1.0]))   # valve rear_right's slot: the rear_left channel, inverted
+    gain = dict(zip(MOUNTS, [0.93] * 4))
+    channels = {"accel": {m: {"alive": True} for m in MOUNTS}}
+    verdicts, findings = commissioning._verdicts(MOUNTS, R, R, perm, perm, scale, gain, channels, perm)
+    assert findings == ["accelerometer on rear_left: sign inverted (scale -1.000 against its stroke's x'')"]
+    assert verdicts["accel:rear_right"] == "corrected"

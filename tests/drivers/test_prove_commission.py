@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from rig.commands.prove_commission import (FAULTS, REFUSED, Wiring, _figures, case_config, draw, parse_kinds, place,
-                                          single_cases, single_summary, single_wirings)
+                                          single_cases, single_markdown, single_summary,
+                                          single_wirings)
 from rig.config import MOUNTS
 from rig.errors import RigError
 from tests.paths import REPO
@@ -138,6 +139,12 @@ def test_the_single_summary_measures_the_clean_rigs_spread():
     assert s["feedback_db"]["clean_successive_abs_difference"] == {"n": 2, "min": 0.1, "max": 0.4, "mean": 0.25,
                                                                    "sd": 0.21}
     assert s["feedback_vs_lockstep_db"]["difference"]["max"] == -0.1
+    # judged on the same floor: the calibrated runs against their twins (0.0, 0.4 and -2.0, -1.8 dB)
+    assert s["feedback_vs_lockstep_db"]["same_floor"]["within_1db"] == 1
+    assert s["feedback_vs_lockstep_db"]["same_floor"]["calibrated_vs_twin"]["min"] == -1.9
+    assert "on the same stretch of floor** (the calibrated run through the drivers against its lockstep twin, the " \
+           "rig wired right in simulated time), feedback: 1 of 2 (-1.9 to 0.2 dB" in single_markdown({"summary": s, "rows": [], "command": "c", "seed": 0, "date_utc": "d",
+                                        "repeats": 2, "hil_seconds": None})
 
 
 @pytest.mark.hil
@@ -171,3 +178,27 @@ def test_prove_commission_single_runs_as_a_user_runs_it(tmp_path):
     assert all(isinstance(h["feedback_vs_lockstep_db"], float) for h in row["hil"])
     assert row["within_1db"] in (True, False)
     assert "| fault (mounts) |" in (out / "proof.md").read_text() and "[1/1] accel_sign(front_right)" in r.stderr
+
+
+def test_the_lockstep_twin_is_the_rig_wired_right_whatever_the_wiring_and_its_calibration(tmp_path):
+    """The proof judges a calibrated rig against its run's lockstep twin as the rig wired right on the same stretch
+    of floor: the simulated backend carries neither the [hil] wiring faults nor the calibration, so the twin of a
+    miswired calibrated configuration is the twin of the rig wired right, to the last bit; and a different stretch
+    of floor (the plant's steps before the loop) gives another figure (what made two `rig hil` runs differ)."""
+    from rig.commands.hil import hil_config
+    from rig.commands.hil_lockstep import lockstep
+    from rig.config import load_config
+    from rig.runtime.gate import ISOLATION_MODES
+    text = (REPO / "drivers" / "devicemaps" / "hil.toml").read_text()
+    w = Wiring()
+    place(w, "valve_nodes_swapped", [2, 3], random.Random(0), set())
+    cal = tmp_path / "commissioning.toml"
+    cal.write_text('[valve.rear_left]\nmount = "rear_right"\n\n[valve.rear_right]\nmount = "rear_left"\n')
+    (tmp_path / "clean.toml").write_text(case_config(text, Wiring()))
+    (tmp_path / "cal.toml").write_text(case_config(text, w, cal))
+    modes = ISOLATION_MODES[:2]
+    twin = {k: [lockstep(hil_config(load_config(tmp_path / f"{k}.toml")), 1.0, modes, 0.1, 0.05, pre)["table_rms_m"]
+                for pre in (0, 400)] for k in ("clean", "cal")}
+    assert load_config(tmp_path / "cal.toml").hil.valve_node_id == (1, 2, 4, 3)
+    assert twin["cal"] == twin["clean"]
+    assert twin["clean"][0]["feedback"] != twin["clean"][1]["feedback"]
