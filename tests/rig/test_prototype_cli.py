@@ -22,7 +22,7 @@ def rig(*args, timeout=600):
 def test_run_tracks_a_sine_and_prints_the_figures_and_the_plot(tmp_path):
     script = tmp_path / "s.txt"
     script.write_text("# a session\n0.3 hold 5um\n0.6 track sine:amp=10um,freq=5\n2.0 isolate\n2.6 off\n2.8 stop\n")
-    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "5", "--quiet", "--script", script,
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "5", "--script", script,
               "--record", tmp_path / "r.h5", "--plot", tmp_path / "r.png")
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.strip().splitlines()
