@@ -57,9 +57,10 @@ STATUS_S = 0.1
 # busy machine); at a real-time priority below the loop's and the drivers', off the loop's CPU, it finishes its
 # short work instead
 LINK_PRIORITY = 40
-# the web server's niceness in a real-time run: ahead of ordinary processes, so that the page keeps its update
-# rate and a click its quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
+# the web server's niceness: ahead of ordinary processes, so that the page keeps its update rate and a click its
+# quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
 SERVER_NICE = -10
+READY_TIMEOUT_S = 120.0        # the web server's start-up (its imports) on a very busy machine
 
 
 @dataclass
@@ -110,6 +111,21 @@ class _LogTap(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         self.records.append(record)
+
+
+def _server_priority(loop_cpu: int | None):
+    """The web server process's set-up, run before it starts (its imports included, seconds on a busy machine):
+    ahead of ordinary work by SERVER_NICE, and in a real-time run off the loop's CPU."""
+    def apply() -> None:
+        if loop_cpu is not None and hasattr(os, "sched_setaffinity"):
+            cpus = os.sched_getaffinity(0) - {loop_cpu}
+            if cpus:
+                os.sched_setaffinity(0, cpus)
+        try:
+            os.nice(SERVER_NICE)
+        except OSError:         # not allowed here: ordinary priority, the page answers when it can
+            pass
+    return apply
 
 
 class Console:
@@ -168,11 +184,8 @@ class Console:
             if self.serve == "process":
                 cmd = [sys.executable, "-m", "rig.console.server", "--control-fd", str(theirs.fileno()),
                        "--listen-fd", str(listen.fileno())]
-                cpu = self._loop_cpu()
-                if cpu is not None:          # a real-time run: off the loop's CPU, ahead of ordinary work
-                    cmd += ["--avoid-cpu", str(cpu), "--nice", str(SERVER_NICE)]
                 self._proc = subprocess.Popen(cmd, pass_fds=(theirs.fileno(), listen.fileno()),
-                                              stdin=subprocess.DEVNULL)
+                                              stdin=subprocess.DEVNULL, preexec_fn=_server_priority(self._loop_cpu()))
                 theirs.close()
                 listen.close()
             else:
@@ -181,6 +194,7 @@ class Console:
             send(mine, {"type": "hello", "token": self.token, "read_only": self.read_only,
                         "backend": self.backend, "config": self.cfg.source, "pid": os.getpid(),
                         "mounts_all": list(MOUNTS), "commands_logged": True})
+            self._wait_ready()
         except BaseException:
             self._stop_server()
             raise
@@ -192,6 +206,24 @@ class Console:
         self._thread = threading.Thread(target=self._run, name="rig-console-link", daemon=True)
         self._thread.start()
         return self
+
+    def _wait_ready(self) -> None:
+        """Until the web server answers (its imports take seconds on a busy machine, and the address printed
+        before would keep the first page waiting that long: 13 s at load 16 measured), with the CPU its own: the
+        run's set-up waits. Past READY_TIMEOUT_S the run goes on and the page answers when it can."""
+        ready, _, _ = select.select([self._sock], [], [], READY_TIMEOUT_S)
+        if not ready:
+            log.warning("console: the web server has not answered in %g s (a busy machine?); the run goes on and "
+                        "the page answers when it can", READY_TIMEOUT_S)
+            return
+        msg, fds = receive(self._sock)
+        for fd in fds:
+            os.close(fd)
+        if msg is None:
+            code = self._proc.wait(5.0) if self._proc is not None else None
+            raise RigError("console: the web server did not start" + (f" (exit {code})" if code is not None else ""))
+        if msg.get("type") != "ready":
+            raise RigError(f"console: the web server sent {msg.get('type')!r} before it was ready")
 
     def _listen(self) -> socket.socket:
         """The listening socket on 127.0.0.1: the given port, or the first free one from DEFAULT_PORT."""
