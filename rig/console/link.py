@@ -191,9 +191,12 @@ class Console:
             else:
                 from rig.console.server import serve_in_thread   # lazy: the web libraries only in thread mode
                 self._server_thread = serve_in_thread(theirs, listen)
-            send(mine, {"type": "hello", "token": self.token, "read_only": self.read_only,
-                        "backend": self.backend, "config": self.cfg.source, "pid": os.getpid(),
-                        "mounts_all": list(MOUNTS), "commands_logged": True})
+            try:
+                send(mine, {"type": "hello", "token": self.token, "read_only": self.read_only,
+                            "backend": self.backend, "config": self.cfg.source, "pid": os.getpid(),
+                            "mounts_all": list(MOUNTS), "commands_logged": True})
+            except OSError:
+                self._not_started()
             self._wait_ready()
         except BaseException:
             self._stop_server()
@@ -216,14 +219,20 @@ class Console:
             log.warning("console: the web server has not answered in %g s (a busy machine?); the run goes on and "
                         "the page answers when it can", READY_TIMEOUT_S)
             return
-        msg, fds = receive(self._sock)
+        try:
+            msg, fds = receive(self._sock)
+        except OSError:
+            msg, fds = None, []
         for fd in fds:
             os.close(fd)
         if msg is None:
-            code = self._proc.wait(5.0) if self._proc is not None else None
-            raise RigError("console: the web server did not start" + (f" (exit {code})" if code is not None else ""))
+            self._not_started()
         if msg.get("type") != "ready":
             raise RigError(f"console: the web server sent {msg.get('type')!r} before it was ready")
+
+    def _not_started(self) -> None:
+        code = self._proc.wait(5.0) if self._proc is not None else None
+        raise RigError("console: the web server did not start" + (f" (exit {code})" if code is not None else ""))
 
     def _listen(self) -> socket.socket:
         """The listening socket on 127.0.0.1: the given port, or the first free one from DEFAULT_PORT."""
