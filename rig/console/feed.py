@@ -22,6 +22,7 @@ import math
 import time
 
 import numpy as np
+import scipy.signal
 
 from controllers import vibration_criteria as criteria
 
@@ -176,7 +177,6 @@ class Feed:
             if len(x) < nper:
                 out[name] = {"seconds": len(x) / fs, "asd": None}
                 continue
-            import scipy.signal     # here, not at the top: 3 s of imports the page's first answer need not wait for
             f, S = scipy.signal.welch(x, fs=fs, window="hann", nperseg=nper, detrend="linear")
             sel = (f >= F_MIN_HZ) & (f <= min(F_MAX_HZ, fs / 2.5))
             psd[name] = (f[sel], S[sel])

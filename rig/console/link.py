@@ -57,8 +57,8 @@ STATUS_S = 0.1
 # busy machine); at a real-time priority below the loop's and the drivers', off the loop's CPU, it finishes its
 # short work instead
 LINK_PRIORITY = 40
-# the web server's niceness: ahead of ordinary processes, so that the page keeps its update rate and a click its
-# quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
+# the web server's niceness in a real-time run: ahead of ordinary processes, so that the page keeps its update
+# rate and a click its quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
 SERVER_NICE = -10
 READY_TIMEOUT_S = 120.0        # the web server's start-up (its imports) on a very busy machine
 
@@ -114,10 +114,13 @@ class _LogTap(logging.Handler):
 
 
 def _server_priority(loop_cpu: int | None):
-    """The web server process's set-up, run before it starts (its imports included, seconds on a busy machine):
-    ahead of ordinary work by SERVER_NICE, and in a real-time run off the loop's CPU."""
+    """The web server process's set-up, run before it starts (before its imports: seconds on a busy machine): in
+    a real-time run off the loop's CPU and ahead of ordinary work by SERVER_NICE; else nothing (None)."""
+    if loop_cpu is None:
+        return None
+
     def apply() -> None:
-        if loop_cpu is not None and hasattr(os, "sched_setaffinity"):
+        if hasattr(os, "sched_setaffinity"):
             cpus = os.sched_getaffinity(0) - {loop_cpu}
             if cpus:
                 os.sched_setaffinity(0, cpus)

@@ -396,18 +396,15 @@ def _server(state: ConsoleState, listen: socket.socket):
 
 
 async def _announce_ready(state: ConsoleState, server) -> None:
-    """Once the server answers: "ready" to the loop's side (it prints the page's address then, so that the
-    address answers at once), and the spectra's library (scipy.signal, seconds of imports on a busy machine)
-    loaded in a thread of its own while the page already answers."""
+    """Once the server answers, every import done: "ready" to the loop's side (it prints the page's address
+    then, so that the address answers at once, and starts the loop then, so that no start-up of ours competes
+    with the loop's first periods)."""
     while not server.started:
         if server.should_exit:
             return
         await asyncio.sleep(0.01)
-    try:
+    with contextlib.suppress(OSError):
         send(state.control, {"type": "ready"})
-    except OSError:
-        return
-    threading.Thread(target=lambda: __import__("scipy.signal"), name="rig-console-imports", daemon=True).start()
 
 
 async def _serve(state: ConsoleState, listen: socket.socket) -> None:
