@@ -222,16 +222,21 @@ class Console:
             log.warning("console: the web server has not answered in %g s (a busy machine?); the run goes on and "
                         "the page answers when it can", READY_TIMEOUT_S)
             return
-        try:
-            msg, fds = receive(self._sock)
-        except OSError:
-            msg, fds = None, []
-        for fd in fds:
-            os.close(fd)
+        msg = self._receive()
         if msg is None:
             self._not_started()
         if msg.get("type") != "ready":
             raise RigError(f"console: the web server sent {msg.get('type')!r} before it was ready")
+
+    def _receive(self) -> dict | None:
+        """The web server's next message (no descriptors come this way); None when it has gone."""
+        try:
+            msg, fds = receive(self._sock)
+        except OSError:
+            return None
+        for fd in fds:
+            os.close(fd)
+        return msg
 
     def _not_started(self) -> None:
         code = self._proc.wait(5.0) if self._proc is not None else None
@@ -400,12 +405,7 @@ class Console:
             except (OSError, ValueError):
                 return
             if self._sock in ready:
-                try:
-                    msg, fds = receive(self._sock)
-                except OSError:
-                    msg, fds = None, []
-                for fd in fds:
-                    os.close(fd)
+                msg = self._receive()
                 if msg is None:
                     log.warning("console: the web server has gone; the run goes on")
                     return
