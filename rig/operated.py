@@ -4,8 +4,10 @@ read back per segment, with the figures an operator asks for and the plot of ref
 A segment starts at each mode request the run recorded (events `<mount>: mode ...`) and at activation; its
 figures skip the first `settle_s` (the move to the reference's offset, a waveform's fade-in) and say:
   every mode     peak valve command, share of periods the limiter acted, rms of the load's acceleration,
-                 and the load's motion in 1-100 Hz from it (the accelerometer on the moving part, its spectrum
-                 divided by (2 pi f)^4: compare isolate with hold under the same floor)
+                 and the load's and the floor's motion in 1-100 Hz (`load_and_floor_m`: the accelerometer on
+                 the moving part integrated twice in that band; compare isolate with hold under the same floor).
+                 These are the rms of the very curves the plot draws, over the segment less its settle_s (the
+                 plot shades what they leave out and writes them beside each segment): one figure, one function.
   track / hold   rms and max tracking error, the reference's amplitude (half its peak-to-peak) and the rms
                  error in % of it
   isolate / off  rms of the transducer (isolating: the stroke the loop moved against the floor)
@@ -22,6 +24,7 @@ import scipy.signal
 from rig.errors import RecordingError
 
 LOAD_BAND_HZ = (1.0, 100.0)
+TAPER_S = 0.2                  # the band filter's fade at each end of a record: a fifth of the band's longest period
 
 MODE_NAMES = ("off", "hold", "track", "isolate")
 
@@ -101,6 +104,7 @@ def _mode_at(run: OperatedRun, t: float) -> str:
 def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
     """The figures of each segment (module docstring), skipping its first settle_s."""
     out = []
+    motion = None
     for a, b, what in segments(run):
         skip = min(settle_s, 0.5 * (b - a))
         sel = (run.t_s >= a + skip) & (run.t_s < b) & run.active
@@ -112,7 +116,12 @@ def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
         u = run.valve_cmd_V[sel]
         d["peak_command_V"] = float(np.max(np.abs(u)))
         d["accel_rms_mps2"] = float(np.std(run.accel_mps2[sel]))
-        d["load_motion_um"] = load_motion_m(run.accel_mps2[sel], 1.0 / float(np.median(np.diff(run.t_s)))) * 1e6
+        if motion is None:
+            motion = load_and_floor_m(run)
+            whole = untapered(len(run.t_s), 1.0 / float(np.median(np.diff(run.t_s))))
+        if np.any(sel & whole):        # not when the segment lies in the record's faded end (no 1 Hz figure there)
+            d["load_motion_um"], d["floor_motion_um"] = (rms_um(x, sel & whole) for x in motion[:2])
+            d["motion_s"] = [float(run.t_s[sel & whole][0]), float(run.t_s[sel & whole][-1])]
         d["limited_pct"] = float(100 * np.mean(run.limited[sel] > 0))
         if mode in ("hold", "track"):
             e = run.error_m[sel]
@@ -128,26 +137,39 @@ def figures(run: OperatedRun, settle_s: float = 0.5) -> list[dict]:
     return out
 
 
-def load_motion_m(accel_mps2, fs_hz: float, band_hz=LOAD_BAND_HZ) -> float:
-    """The load's displacement rms in band_hz from its absolute acceleration: Welch spectrum / (2 pi f)^4."""
-    a = np.asarray(accel_mps2, dtype=float)
-    f, p = scipy.signal.welch(a - a.mean(), fs=fs_hz, nperseg=min(len(a), int(2 * fs_hz)))
-    sel = (f >= band_hz[0]) & (f <= band_hz[1])
-    return math.sqrt(float(np.trapezoid(p[sel] / (2 * np.pi * f[sel]) ** 4, f[sel]))) if sel.sum() > 1 else math.nan
+def rms_um(x_m, sel) -> float:
+    """The rms of a displacement over the periods `sel`, in um: every motion figure, printed or plotted."""
+    return float(np.sqrt(np.mean(np.asarray(x_m)[sel] ** 2))) * 1e6 if np.any(sel) else math.nan
+
+
+def _taper_n(n: int, fs_hz: float) -> int:
+    """Periods faded at each end of a record before the band filter: 5 % of it, at most TAPER_S."""
+    return max(1, min(int(0.05 * n), int(TAPER_S * fs_hz)))
+
+
+def untapered(n: int, fs_hz: float) -> np.ndarray:
+    """The periods of a record of n that the band filter's end tapers leave whole (a motion figure's window)."""
+    k = _taper_n(n, fs_hz)
+    keep = np.zeros(n, dtype=bool)
+    keep[k:n - k] = True
+    return keep
 
 
 def _in_band(x, fs_hz: float, gain) -> np.ndarray:
     """x through a zero-phase filter given by gain(f) (complex), LOAD_BAND_HZ only: the record's ends tapered
-    (10 % Tukey) and the FFT zero-padded to four times its length, so that neither end wraps onto the other."""
+    (Tukey, `_taper_n` periods each) and the FFT zero-padded to four times its length, so that neither end wraps
+    onto the other. The tapered ends read low: figures leave them out (`untapered`)."""
     x = np.asarray(x, dtype=float)
     x = np.where(np.isfinite(x), x, 0.0)
-    n = 4 * len(x)
-    X = np.fft.rfft((x - x.mean()) * scipy.signal.windows.tukey(len(x), 0.1), n)
-    f = np.fft.rfftfreq(n, 1.0 / fs_hz)
+    n = len(x)
+    if n < 3:
+        return np.zeros(n)
+    X = np.fft.rfft((x - x.mean()) * scipy.signal.windows.tukey(n, 2 * _taper_n(n, fs_hz) / n), 4 * n)
+    f = np.fft.rfftfreq(4 * n, 1.0 / fs_hz)
     sel = (f >= LOAD_BAND_HZ[0]) & (f <= LOAD_BAND_HZ[1])
     Y = np.zeros_like(X)
     Y[sel] = X[sel] * gain(f[sel])
-    return np.fft.irfft(Y, n)[:len(x)]
+    return np.fft.irfft(Y, 4 * n)[:n]
 
 
 def band_displacement_m(accel_mps2, fs_hz: float) -> np.ndarray:
@@ -166,6 +188,12 @@ def load_and_floor_m(run: OperatedRun) -> tuple[np.ndarray, np.ndarray, str]:
     return load, load - _in_band(run.position_m, fs, lambda f: 1.0), "load - transducer"
 
 
+def _motion_text(d: dict) -> str:
+    if "load_motion_um" not in d:
+        return f"load not judged (in the recording's last {TAPER_S:g} s, where its {LOAD_BAND_HZ[0]:g} Hz edge fades)"
+    return f"load {d['load_motion_um']:.3f} um rms in {LOAD_BAND_HZ[0]:g}-{LOAD_BAND_HZ[1]:g} Hz"
+
+
 def figures_text(figs: list[dict]) -> str:
     """One line per segment."""
     lines = []
@@ -175,10 +203,10 @@ def figures_text(figs: list[dict]) -> str:
             pct = f" ({d['rms_error_pct']:.2f} % of {d['reference_amplitude_um']:.2f} um)" \
                 if d.get("rms_error_pct") is not None else ""
             lines.append(f"{head} tracking error rms {d['rms_error_um']:.4f} um{pct}, max {d['max_error_um']:.3f} um, "
-                         f"command peak {d['peak_command_V']:.2f} V, limited {d['limited_pct']:.1f} %, load "
-                         f"{d['load_motion_um']:.3f} um rms in 1-100 Hz")
+                         f"command peak {d['peak_command_V']:.2f} V, limited {d['limited_pct']:.1f} %, "
+                         f"{_motion_text(d)}")
         elif "position_rms_um" in d:
-            lines.append(f"{head} load {d['load_motion_um']:.3f} um rms in 1-100 Hz (from the accelerometer), "
+            lines.append(f"{head} {_motion_text(d)} (from the accelerometer), "
                          f"transducer rms {d['position_rms_um']:.3f} um, command peak {d['peak_command_V']:.2f} V")
         else:
             lines.append(f"{head} (too short)")
@@ -218,11 +246,21 @@ def figure(run: OperatedRun, figs: list[dict] | None = None):
         axes[1].set_ylabel("tracking error [um]")
     am = axes[-2]
     load, floor, how = load_and_floor_m(run)
-    rms = lambda x: float(np.sqrt(np.mean(x[run.active] ** 2))) * 1e6 if run.active.any() else math.nan  # noqa: E731
-    am.plot(t, floor * 1e6, color="0.55", lw=0.7, label=f"floor ({how}): {rms(floor):.3g} um rms while ACTIVE")
-    am.plot(t, load * 1e6, color="tab:green", lw=0.8, label=f"load (accelerometer): {rms(load):.3g} um rms")
+    am.plot(t, floor * 1e6, color="0.55", lw=0.7, label=f"floor ({how})")
+    am.plot(t, load * 1e6, color="tab:green", lw=0.8, label="load (accelerometer)")
     am.set_ylabel(f"motion {LOAD_BAND_HZ[0]:g}-{LOAD_BAND_HZ[1]:g} Hz [um]")
-    am.legend(loc="upper right", fontsize=8)
+    for i, d in enumerate(f for f in figs if "load_motion_um" in f):
+        # the printed figures, written over the stretch they cover (unshaded: the segment less its settling
+        # and the recording's faded ends)
+        lo, hi = d["motion_s"]
+        for x0, x1 in ((d["from_s"], lo), (hi, d["to_s"])):
+            if x1 > x0:
+                am.axvspan(x0, x1, color="0.88", lw=0, zorder=0)
+        am.text(lo, 0.97 - 0.2 * (i % 2), f"load {d['load_motion_um']:.3f}\nfloor {d['floor_motion_um']:.3f} um",
+                transform=am.get_xaxis_transform(), fontsize=6.5, va="top", color="tab:green",
+                bbox={"facecolor": "white", "alpha": 0.8, "lw": 0, "pad": 1})
+    am.legend(loc="lower right", fontsize=7, title="rms per segment as printed (shaded: not counted)",
+              title_fontsize=7)
     a3.plot(t, run.valve_cmd_V, color="0.3", lw=0.6)
     a3.set_ylabel("valve [V]")
     a3.set_xlabel("time [s]")

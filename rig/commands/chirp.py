@@ -104,12 +104,12 @@ def run(args) -> int:
             else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
     print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
           f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
-          f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}", file=sys.stderr)
+          f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}")  # the result
     missing = s["skipped_periods"] + s["dropped_rows"]
     if missing:
         print(f"WARNING: the recording has gaps: {missing} rows missing ({s['skipped_periods']} loop periods skipped "
               f"by overruns, {s['dropped_rows']} rows dropped by the recorder); rig identify bridges gaps of a few "
               f"samples and otherwise uses the longest stretch without one. Lower --rate or free the CPU for a "
               f"whole recording", file=sys.stderr)
-    print(f"next: rig identify {s['recording']}", file=sys.stderr)
+    print(f"next: rig identify {s['recording']}", file=sys.stderr)     # a hint, not a figure
     return 0

@@ -110,7 +110,8 @@ def add_arguments(p) -> None:
     p.add_argument("--sim-time", action="store_true",
                    help="sim backend only: run in simulated time (as fast as possible, lockstep)")
     p.add_argument("--quiet", action="store_true",
-                   help="no live status line (the lifecycle lines, warnings and results still print)")
+                   help="only warnings, errors and the result (on stdout): no live status line, no start, "
+                        "lifecycle or stop lines (the console's address still prints, and its page logs them all)")
     p.add_argument("--force", action="store_true",
                    help="run isolation controllers that `rig design` calls unstable (the oscillation rule still "
                         "faults a limit cycle)")
@@ -215,7 +216,7 @@ def read_script(path) -> list[tuple[float, str]]:
 
 def run(args) -> int:
     """`rig run`: plan from the options, run (alone or under the console), report; the exit code."""
-    _log_to_stderr()
+    _log_to_stderr(quiet=args.quiet)
     plan = _RunPlan(args)
     if args.console:
         from rig.console.runner import run_with_console
@@ -225,11 +226,17 @@ def run(args) -> int:
     return plan.finish(loop, reason)
 
 
-def _log_to_stderr() -> None:
+def _log_to_stderr(quiet: bool = False) -> None:
+    """Our own INFO lines (lifecycle, start/stop) on stderr, libraries' (canopen, pymodbus) from WARNING;
+    quiet: warnings and errors only. The rig's loggers stay at INFO either way (the console's page logs every
+    line): --quiet silences the terminal only."""
     if not logging.getLogger().handlers:
-        # our own INFO lines (lifecycle, start/stop); libraries (canopen, pymodbus) only from WARNING
         logging.basicConfig(level=logging.WARNING, format="rig run: %(message)s", stream=sys.stderr)
         logging.getLogger("rig").setLevel(logging.INFO)
+    if quiet:
+        for h in logging.getLogger().handlers:
+            if getattr(h, "stream", None) is sys.stderr:
+                h.setLevel(logging.WARNING)
 
 
 def check_commissioned(cfg) -> None:
@@ -350,10 +357,12 @@ class _RunPlan:
                      "time: run on the real clock for it)%s", reason, loop.iterations, recorded)
         else:
             tm = loop.timing_us()
-            log.info("stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
-                     "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
-                     100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
-                     recorded)
+            behind = loop.overruns or loop.missed_deadline_fraction      # fell behind: said even with --quiet
+            log.log(logging.WARNING if behind else logging.INFO,
+                    "stopped (%s) after %d periods: overruns %d, missed deadlines %.4f %%, wake p99 %.1f us, "
+                    "compute p99 %.1f us%s", reason, loop.iterations, loop.overruns,
+                    100 * loop.missed_deadline_fraction, tm["wake_latency_us"]["p99"], tm["compute_us"]["p99"],
+                    recorded)
         if self.stand and record is not None:
             try:
                 _report(record, args.plot, loop.names, title=None if self.tmp is None else "rig run")
@@ -388,8 +397,9 @@ def _vc_summary(path, png=None, name: str | None = None) -> None:
     from rig import report
     try:
         rep = report.vc_of_recording(path)
-    except RecordingError as e:
-        log.info("no VC report%s: %s", f" (no {png})" if png else "", str(e).replace(str(path), name or str(path)))
+    except RecordingError as e:         # a plot asked for and not drawn is a warning, else a note
+        (log.warning if png else log.info)("no VC report%s: %s", f" (no {png})" if png else "",
+                                           str(e).replace(str(path), name or str(path)))
         return
     print(f"rig run: {report.summary(rep)}" + ("" if png else f" (curves: rig report {path} --plot FILE)"))  # a figure
     if png:

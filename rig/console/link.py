@@ -60,6 +60,7 @@ LINK_PRIORITY = 40
 # the web server's niceness in a real-time run: ahead of ordinary processes, so that the page keeps its update
 # rate and a click its quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
 SERVER_NICE = -10
+READY_TIMEOUT_S = 120.0        # the web server's start-up (its imports) on a very busy machine
 
 
 @dataclass
@@ -110,6 +111,24 @@ class _LogTap(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         self.records.append(record)
+
+
+def _server_priority(loop_cpu: int | None):
+    """The web server process's set-up, run before it starts (before its imports: seconds on a busy machine): in
+    a real-time run off the loop's CPU and ahead of ordinary work by SERVER_NICE; else nothing (None)."""
+    if loop_cpu is None:
+        return None
+
+    def apply() -> None:
+        if hasattr(os, "sched_setaffinity"):
+            cpus = os.sched_getaffinity(0) - {loop_cpu}
+            if cpus:
+                os.sched_setaffinity(0, cpus)
+        try:
+            os.nice(SERVER_NICE)
+        except OSError:         # not allowed here: ordinary priority, the page answers when it can
+            pass
+    return apply
 
 
 class Console:
@@ -168,19 +187,20 @@ class Console:
             if self.serve == "process":
                 cmd = [sys.executable, "-m", "rig.console.server", "--control-fd", str(theirs.fileno()),
                        "--listen-fd", str(listen.fileno())]
-                cpu = self._loop_cpu()
-                if cpu is not None:          # a real-time run: off the loop's CPU, ahead of ordinary work
-                    cmd += ["--avoid-cpu", str(cpu), "--nice", str(SERVER_NICE)]
                 self._proc = subprocess.Popen(cmd, pass_fds=(theirs.fileno(), listen.fileno()),
-                                              stdin=subprocess.DEVNULL)
+                                              stdin=subprocess.DEVNULL, preexec_fn=_server_priority(self._loop_cpu()))
                 theirs.close()
                 listen.close()
             else:
                 from rig.console.server import serve_in_thread   # lazy: the web libraries only in thread mode
                 self._server_thread = serve_in_thread(theirs, listen)
-            send(mine, {"type": "hello", "token": self.token, "read_only": self.read_only,
-                        "backend": self.backend, "config": self.cfg.source, "pid": os.getpid(),
-                        "mounts_all": list(MOUNTS), "commands_logged": True})
+            try:
+                send(mine, {"type": "hello", "token": self.token, "read_only": self.read_only,
+                            "backend": self.backend, "config": self.cfg.source, "pid": os.getpid(),
+                            "mounts_all": list(MOUNTS), "commands_logged": True})
+            except OSError:
+                self._not_started()
+            self._wait_ready()
         except BaseException:
             self._stop_server()
             raise
@@ -192,6 +212,35 @@ class Console:
         self._thread = threading.Thread(target=self._run, name="rig-console-link", daemon=True)
         self._thread.start()
         return self
+
+    def _wait_ready(self) -> None:
+        """Until the web server answers (its imports take seconds on a busy machine, and the address printed
+        before would keep the first page waiting that long: 13 s at load 16 measured), with the CPU its own: the
+        run's set-up waits. Past READY_TIMEOUT_S the run goes on and the page answers when it can."""
+        ready, _, _ = select.select([self._sock], [], [], READY_TIMEOUT_S)
+        if not ready:
+            log.warning("console: the web server has not answered in %g s (a busy machine?); the run goes on and "
+                        "the page answers when it can", READY_TIMEOUT_S)
+            return
+        msg = self._receive()
+        if msg is None:
+            self._not_started()
+        if msg.get("type") != "ready":
+            raise RigError(f"console: the web server sent {msg.get('type')!r} before it was ready")
+
+    def _receive(self) -> dict | None:
+        """The web server's next message (no descriptors come this way); None when it has gone."""
+        try:
+            msg, fds = receive(self._sock)
+        except OSError:
+            return None
+        for fd in fds:
+            os.close(fd)
+        return msg
+
+    def _not_started(self) -> None:
+        code = self._proc.wait(5.0) if self._proc is not None else None
+        raise RigError("console: the web server did not start" + (f" (exit {code})" if code is not None else ""))
 
     def _listen(self) -> socket.socket:
         """The listening socket on 127.0.0.1: the given port, or the first free one from DEFAULT_PORT."""
@@ -356,12 +405,7 @@ class Console:
             except (OSError, ValueError):
                 return
             if self._sock in ready:
-                try:
-                    msg, fds = receive(self._sock)
-                except OSError:
-                    msg, fds = None, []
-                for fd in fds:
-                    os.close(fd)
+                msg = self._receive()
                 if msg is None:
                     log.warning("console: the web server has gone; the run goes on")
                     return

@@ -395,11 +395,25 @@ def _server(state: ConsoleState, listen: socket.socket):
     return server
 
 
+async def _announce_ready(state: ConsoleState, server) -> None:
+    """Once the server answers, every import done: "ready" to the loop's side (it prints the page's address
+    then, so that the address answers at once, and starts the loop then, so that no start-up of ours competes
+    with the loop's first periods)."""
+    while not server.started:
+        if server.should_exit:
+            return
+        await asyncio.sleep(0.01)
+    with contextlib.suppress(OSError):
+        send(state.control, {"type": "ready"})
+
+
 async def _serve(state: ConsoleState, listen: socket.socket) -> None:
     server = _server(state, listen)
     stop = asyncio.ensure_future(state.gone.wait())
     serve = asyncio.ensure_future(server.serve(sockets=[listen]))
+    ready = asyncio.ensure_future(_announce_ready(state, server))
     await asyncio.wait([stop, serve], return_when=asyncio.FIRST_COMPLETED)
+    ready.cancel()
     await asyncio.sleep(0.3)                 # the pages get the "ended" message
     server.should_exit = True
     await serve
@@ -428,18 +442,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m rig.console.server", description=__doc__.splitlines()[0])
     p.add_argument("--control-fd", type=int, required=True)
     p.add_argument("--listen-fd", type=int, required=True)
-    p.add_argument("--avoid-cpu", type=int, default=None, help="keep off this CPU (the loop's)")
-    p.add_argument("--nice", type=int, default=0, help="scheduling niceness (negative: ahead of ordinary work)")
-    a = p.parse_args(argv)
-    if a.avoid_cpu is not None and hasattr(os, "sched_setaffinity"):
-        cpus = os.sched_getaffinity(0) - {a.avoid_cpu}
-        if cpus:
-            os.sched_setaffinity(0, cpus)
-    if a.nice:
-        try:
-            os.nice(a.nice)
-        except OSError:         # not allowed here: ordinary priority, the page updates when it can
-            pass
+    a = p.parse_args(argv)        # its CPU and priority are set before it starts (rig/console/link.py)
     logging.basicConfig(level=logging.WARNING, format="rig console: %(message)s", stream=sys.stderr)
     control = socket.socket(fileno=a.control_fd)
     listen = socket.socket(fileno=a.listen_fd)

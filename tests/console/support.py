@@ -105,7 +105,7 @@ def rig_run_console(*extra: str, cwd=None, realtime: bool = False):
     with tempfile.NamedTemporaryFile("w", suffix=".toml", prefix="rig-console-test-", delete=False) as f:
         f.write(TEST_TOML)
     proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--config", f.name, "--console", "--port", "0",
-                             "--quiet", *([] if realtime else ["--no-realtime"]), *extra], cwd=cwd or REPO, stderr=subprocess.PIPE,
+                             *([] if realtime else ["--no-realtime"]), *extra], cwd=cwd or REPO, stderr=subprocess.PIPE,
                             text=True, env=env)
     lines: list[str] = []
     url = None

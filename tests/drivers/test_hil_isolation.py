@@ -103,7 +103,7 @@ def test_rig_run_with_the_hil_backend():
     """`rig run --backend hil` goes through the same make_port and drivers (the runtime's command): it warms the
     controllers up INACTIVE (2 / blend_hz, about 5 s) and then isolates without reaching the clamp."""
     out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--backend", "hil", "--config",
-                          str(HIL_DEFAULT_CONFIG), "--seconds", "7.5", "--quiet"], capture_output=True, text=True,
+                          str(HIL_DEFAULT_CONFIG), "--seconds", "7.5"], capture_output=True, text=True,
                          timeout=300)
     skip_unless_on_time(out)
     missed = re.search(r"missed deadlines ([0-9.]+) %", out.stderr)

@@ -31,7 +31,7 @@ def own_lock_dir(tmp_path, monkeypatch):
 def test_rig_run_hil_without_config_runs_the_hil_design():
     """Issue: without --config it took the 5 kHz Table 1 controller at 500 Hz and never activated within
     --seconds 8. Now the HIL design (hil.toml): warmed up 2 / blend_hz, then isolating, no fault."""
-    out = subprocess.run([PY, "-m", "rig.cli", "run", "--backend", "hil", "--seconds", "7.5", "--quiet"],
+    out = subprocess.run([PY, "-m", "rig.cli", "run", "--backend", "hil", "--seconds", "7.5"],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "devicemaps/hil.toml" in out.stderr and "at 500 Hz" in out.stderr

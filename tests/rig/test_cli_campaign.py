@@ -261,7 +261,7 @@ def test_no_command_or_unknown_ones(capsys, argv):
 def test_rig_run_prints_its_vc_figure_on_stdout_and_the_lifecycle_on_stderr(tmp_path):
     import subprocess
     import sys
-    out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--sim-time", "--seconds", "6", "--quiet",
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--sim-time", "--seconds", "6",
                           "--record", str(tmp_path / "r.h5")], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().startswith("rig run: VC class, machine at its mounts") and "VC class" not in out.stderr

@@ -83,7 +83,11 @@ def test_cli_csv_output_is_the_shared_format(tmp_path, capsys):
     rec = load_recording(out)
     assert rec.n == 600 and math.isclose(rec.fs_hz, 1000.0)
     assert not (tmp_path / "c.csv.gz.part.h5").exists()
-    assert capsys.readouterr().out == ""                   # progress and summary go to stderr
+    got = capsys.readouterr()                 # docs/CLI.md: the result on stdout, progress and hints on stderr
+    assert got.out.splitlines() == [f"chirp 1->20 Hz, 2 V, 0.5 s on the sim backend at 1000 Hz: 600 samples -> {out} "
+                                    f"(csv); {got.out.split('; ')[1].split(' s wall')[0]} s wall, overruns 0, "
+                                    f"dropped rows 0"], got
+    assert "samples ->" not in got.err and got.err.strip().splitlines()[-1] == f"next: rig identify {out}"
 
 
 @pytest.mark.parametrize("argv, expect", [

@@ -29,7 +29,7 @@ def start_run(tmp_path, *extra, new_session=False):
     cfg.write_text("[vibration]\nrms_m = 1e-6\n[loop]\noverrun_policy = \"catch_up\"\n[safety]\nwatchdog_s = 0.2\n"
                    "lag_limit_s = 10\nmissed_limit = 1.0\n")
     cmd = [sys.executable, "-m", "rig.cli", "run", "--config", str(cfg), "--backend", "sim", "--no-realtime",
-           "--quiet", *extra]
+           *extra]                        # not --quiet: the tests read the lifecycle lines
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=new_session)
     lines: list[str] = []

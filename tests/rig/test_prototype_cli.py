@@ -22,7 +22,7 @@ def rig(*args, timeout=600):
 def test_run_tracks_a_sine_and_prints_the_figures_and_the_plot(tmp_path):
     script = tmp_path / "s.txt"
     script.write_text("# a session\n0.3 hold 5um\n0.6 track sine:amp=10um,freq=5\n2.0 isolate\n2.6 off\n2.8 stop\n")
-    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "5", "--quiet", "--script", script,
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "5", "--script", script,
               "--record", tmp_path / "r.h5", "--plot", tmp_path / "r.png")
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.strip().splitlines()
@@ -238,14 +238,22 @@ def test_an_isolate_run_plots_load_and_floor_and_says_what_runs_in_words(tmp_pat
         labels = [a.get_ylabel() for a in fig.axes]
         motion = fig.axes[1]
         lines = {ln.get_label().split(" ")[0]: np.asarray(ln.get_ydata()) for ln in motion.get_lines()}
+        texts = [t.get_text() for t in motion.texts]
     finally:
         plt.close(fig)
     assert labels == ["position [um]", "motion 1-100 Hz [um]", "valve [V]"]     # no tracking panel
     load, floor = lines["load"], lines["floor"]
-    act = run.active
-    load_um, floor_um = np.sqrt(np.mean(load[act] ** 2)), np.sqrt(np.mean(floor[act] ** 2))
     iso = next(d for d in figs if d["mode"] == "isolate")
-    assert abs(load_um / iso["load_motion_um"] - 1) < 0.3, (load_um, iso)     # the figures' load, in time
+    # one figure (issue 29: the printed 7.618 um against the legend's 7.46): the printed rms is the drawn curve's
+    # over the stretch the plot leaves unshaded, and the plot writes that very figure beside the segment
+    lo, hi = iso["motion_s"]
+    win = (run.t_s >= lo) & (run.t_s <= hi)
+    load_um, floor_um = np.sqrt(np.mean(load[win] ** 2)), np.sqrt(np.mean(floor[win] ** 2))
+    assert load_um == pytest.approx(iso["load_motion_um"], rel=1e-9)
+    assert floor_um == pytest.approx(iso["floor_motion_um"], rel=1e-9)
+    printed = f"load {iso['load_motion_um']:.3f} um rms in 1-100 Hz"
+    assert printed in operated.figures_text(figs) and printed in out.stdout
+    assert texts == [f"load {iso['load_motion_um']:.3f}\nfloor {iso['floor_motion_um']:.3f} um"], texts
     assert 1.0 < floor_um < 4.0 and load_um < floor_um / 3                     # the floor moves, the load less
 
 

@@ -86,7 +86,7 @@ def test_sigusr1_during_the_start_up_is_held_not_fatal(tmp_path):
     """Issue: SIGUSR1 in the first ~1.5 s killed `rig run` (exit 138). The handler is installed before the
     slow imports and set-up; a toggle sent then is applied at the first period (isolation off)."""
     rec = tmp_path / "usr1.h5"
-    run = Command("run", "--config", relaxed(tmp_path), "--seconds", "1.0", "--quiet", "--no-realtime",
+    run = Command("run", "--config", relaxed(tmp_path), "--seconds", "1.0", "--no-realtime",
                   "--record", str(rec))
     end = time.monotonic() + 30
     while not _usr1_caught(run.proc.pid) and time.monotonic() < end and run.proc.poll() is None:
@@ -106,7 +106,7 @@ def test_a_control_file_left_saying_stop_or_off_does_not_count(tmp_path):
     ctl = tmp_path / "ctl"
     ctl.write_text("stop\n")
     rec = tmp_path / "ctl.h5"
-    run = Command("run", "--config", relaxed(tmp_path), "--seconds", "3", "--quiet", "--no-realtime", "--control",
+    run = Command("run", "--config", relaxed(tmp_path), "--seconds", "3", "--no-realtime", "--control",
                   str(ctl), "--isolation", "on", "--record", str(rec))
     assert run.wait_for("activate -> ACTIVE"), run.text
     time.sleep(0.3)
@@ -155,7 +155,7 @@ def test_a_second_process_driving_the_same_rig_is_refused_naming_the_holder(tmp_
 def test_inject_drives_a_sim_knob_and_the_run_faults_naming_it(tmp_path):
     """Issue: the fault knobs could not be reached from the command line."""
     rec = tmp_path / "inj.h5"
-    out = rig("run", "--config", relaxed(tmp_path), "--seconds", "2", "--quiet", "--no-realtime", "--record", str(rec),
+    out = rig("run", "--config", relaxed(tmp_path), "--seconds", "2", "--no-realtime", "--record", str(rec),
               "--inject", "nan:front_left:accel@0.4")
     assert out.returncode == 1, out.stderr
     faults = [ln for ln in out.stderr.splitlines() if "FAULT:" in ln]

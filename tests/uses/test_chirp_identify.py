@@ -62,8 +62,9 @@ def _check_identified(d: dict) -> None:
     assert d["fit"]["n_samples"] == 500_500 and d["fit"]["nrmse"] < 0.05
 
 
-def _summary_line(stderr: str) -> str:
-    return next(ln for ln in stderr.replace("\r", "\n").splitlines() if "samples ->" in ln)
+def _summary_line(stdout: str) -> str:
+    """The chirp's result line: on stdout (docs/CLI.md), progress on stderr."""
+    return next(ln for ln in stdout.splitlines() if "samples ->" in ln)
 
 
 @pytest.mark.slow
@@ -72,7 +73,7 @@ def test_default_chirp_then_identify_under_load(tmp_path):
     processes beside it: no row dropped (in simulated time the loop waits for the writer), and identify takes it."""
     with _cpu_hogs(2):
         res = _ok(_rig("chirp", "--record", "chirp.h5", cwd=tmp_path))
-    line = _summary_line(res.stderr)
+    line = _summary_line(res.stdout)
     assert "500500 samples -> chirp.h5 (hdf5)" in line and line.endswith("overruns 0, dropped rows 0")
     assert "WARNING" not in res.stderr and "next: rig identify chirp.h5" in res.stderr
     with h5py.File(tmp_path / "chirp.h5") as f:
@@ -86,7 +87,7 @@ def test_default_chirp_then_identify_under_load(tmp_path):
 def test_default_chirp_as_csv_then_identify(tmp_path):
     """The CSV variant: the recording converted, the HDF5 under it removed, identify takes the CSV."""
     res = _ok(_rig("chirp", "--record", "chirp.csv.gz", "--csv", cwd=tmp_path))
-    assert "-> chirp.csv.gz (csv)" in _summary_line(res.stderr) and "dropped rows 0" in res.stderr
+    assert "-> chirp.csv.gz (csv)" in _summary_line(res.stdout) and "dropped rows 0" in res.stdout
     assert "do-no-harm" not in res.stderr          # nothing isolates in a chirp: no supervisor line to puzzle over
     assert sorted(p.name for p in tmp_path.iterdir()) == ["chirp.csv.gz"]
     _check_identified(_identified(tmp_path / "chirp.csv.gz"))
