@@ -16,6 +16,7 @@ The rules:
 """
 from __future__ import annotations
 
+import ctypes
 import datetime as dt
 import hashlib
 import json
@@ -94,6 +95,15 @@ def _write_json(path: Path, doc: dict) -> None:
     os.replace(tmp, path)                   # atomic: a kill leaves the old file or the new, never half
 
 
+def _give_back_freed_memory() -> None:
+    """Return the heap a recording's analysis freed to the system (glibc keeps it otherwise): the next recording's
+    peak then starts from the worker's resident size, not from the last one's high-water mark."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):        # not glibc: its allocator decides
+        pass
+
+
 def run_one(work, path: str, out: str, name: str, key: dict, run_id: str) -> dict:
     """One recording, in a worker: the work, timed, any failure caught as one line; batch_row.json last."""
     folder = Path(out)
@@ -116,6 +126,7 @@ def run_one(work, path: str, out: str, name: str, key: dict, run_id: str) -> dic
             (folder / ERROR_FILE).write_text(traceback.format_exc())
         except OSError:
             pass
+    _give_back_freed_memory()
     row.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                worker=f"{socket.gethostname()}:{os.getpid()}", worker_peak_rss_mb=round(_peak_rss_mb(), 1),
                run=run_id)
