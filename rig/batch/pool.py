@@ -12,9 +12,11 @@ worker) and see the same files at the same paths (the caller checks its folders 
 """
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import os
 import re
+import signal
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from multiprocessing import get_context
@@ -30,6 +32,7 @@ WORKERS_TIMEOUT_S = 30.0
 PACKAGES = ("rig", "controllers", "sim_backend", "drivers")     # the source that makes the results
 
 Task = tuple[Callable, tuple]
+PR_SET_PDEATHSIG = 1               # linux/prctl.h
 
 
 def cores() -> int:
@@ -55,6 +58,18 @@ def _one_thread_each():
                 os.environ[k] = v
 
 
+def _die_with_parent(parent_pid: int) -> None:
+    """A pool worker ends when the batch's process does (Linux: PR_SET_PDEATHSIG): a batch killed by the operator
+    or a scheduler leaves no worker analysing recordings nobody will collect. Elsewhere, the pool's own pipes."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        if os.getppid() != parent_pid:               # it died before the line above: nobody to work for
+            os._exit(1)
+    except (OSError, AttributeError):
+        pass
+
+
 def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
     if workers <= 1 or len(tasks) == 1:
         for i, (fn, args) in enumerate(tasks):
@@ -66,7 +81,8 @@ def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
     # spawned processes start at a submit (and again after one died), not with the pool: the setting holds
     # while the pool lives
     with _one_thread_each():
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=get_context("spawn"))
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=get_context("spawn"),
+                                   initializer=_die_with_parent, initargs=(os.getpid(),))
         try:
             futs = {pool.submit(fn, *args): i for i, (fn, args) in enumerate(tasks)}
             for fut in as_completed(futs):
