@@ -113,22 +113,20 @@ class _LogTap(logging.Handler):
         self.records.append(record)
 
 
-def _server_priority(loop_cpu: int | None):
-    """The web server process's set-up, run before it starts (before its imports: seconds on a busy machine): in
-    a real-time run off the loop's CPU and ahead of ordinary work by SERVER_NICE; else nothing (None)."""
+def _server_priority(pid: int, loop_cpu: int | None) -> None:
+    """The web server process, just started (its imports take seconds on a busy machine): in a real-time run off
+    the loop's CPU and ahead of ordinary work by SERVER_NICE; else as it is. Set from here rather than in the
+    child before its exec (preexec_fn is unsafe beside threads)."""
     if loop_cpu is None:
-        return None
-
-    def apply() -> None:
+        return
+    try:
         if hasattr(os, "sched_setaffinity"):
-            cpus = os.sched_getaffinity(0) - {loop_cpu}
+            cpus = os.sched_getaffinity(pid) - {loop_cpu}
             if cpus:
-                os.sched_setaffinity(0, cpus)
-        try:
-            os.nice(SERVER_NICE)
-        except OSError:         # not allowed here: ordinary priority, the page answers when it can
-            pass
-    return apply
+                os.sched_setaffinity(pid, cpus)
+        os.setpriority(os.PRIO_PROCESS, pid, SERVER_NICE)
+    except OSError:         # not allowed here, or it has gone: ordinary priority, the page answers when it can
+        pass
 
 
 class Console:
@@ -188,7 +186,8 @@ class Console:
                 cmd = [sys.executable, "-m", "rig.console.server", "--control-fd", str(theirs.fileno()),
                        "--listen-fd", str(listen.fileno())]
                 self._proc = subprocess.Popen(cmd, pass_fds=(theirs.fileno(), listen.fileno()),
-                                              stdin=subprocess.DEVNULL, preexec_fn=_server_priority(self._loop_cpu()))
+                                              stdin=subprocess.DEVNULL)
+                _server_priority(self._proc.pid, self._loop_cpu())
                 theirs.close()
                 listen.close()
             else:
