@@ -67,8 +67,10 @@ def test_state_and_commands_with_the_token(run):
     assert s.loop.isolation is False
     code, reply = command(console, "isolation", on=True)
     wait(lambda: state(console)["now"]["isolation"] is True, "isolation on on the console")
-    events = wait(lambda: (lambda ev: ev if any("isolation on requested" in t for t in ev) else None)(
-        [e["text"] for e in state(console)["events"]]), "the command's log line")
+    # The gate logs "isolation on" a moment after the console logs the request: wait for both records.
+    events = wait(lambda: (lambda ev: ev if any("isolation on requested" in t for t in ev)
+                           and "isolation on" in ev else None)(
+        [e["text"] for e in state(console)["events"]]), "the command's and the gate's log lines")
     assert "isolation off" in events and "isolation on" in events            # the gate's log records
     assert any("isolation off requested" in t and "http 127.0.0.1" in t for t in events)   # the command's log line
 
