@@ -57,6 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "--duration rounded to whole periods); its empty lines detect nonlinearity")
     p.add_argument("--period", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S), default=10.0, metavar="S",
                    help="multisine period, s (default 10: 0.1 Hz line spacing)")
+    p.add_argument("--json", action="store_true", help="print only the JSON result on stdout")
 
 
 _LEVEL = cliargs.Number(gt=0, le=50, unit="V")
@@ -102,9 +103,14 @@ def run(args) -> int:
         bar.stop()
     what = ("chirp at levels " + ",".join(f"{v:g}" for v in args.levels) + " V" if args.levels
             else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
-    print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
-          f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
-          f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}")  # the result
+    if args.json:
+        import json
+        print(json.dumps({"signal": what, "f0_hz": args.f0, "f1_hz": args.f1, "amplitude_V": args.amplitude,
+                          "duration_s": args.duration, **s}))
+    else:
+        print(f"{what} {args.f0:g}->{args.f1:g} Hz, {args.amplitude:g} V, {args.duration:g} s on the {backend} backend at "
+              f"{s['rate_hz']:g} Hz: {s['rows_written']} samples -> {s['recording']} ({s['format']}); "
+              f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}")  # the result
     missing = s["skipped_periods"] + s["dropped_rows"]
     if missing:
         print(f"WARNING: the recording has gaps: {missing} rows missing ({s['skipped_periods']} loop periods skipped "

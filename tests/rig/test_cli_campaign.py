@@ -151,7 +151,7 @@ def test_run(capsys, case):
                               "--rate": ["1000", "2000", "10", "100000"],
                               "--mount": ["front_left", "rear_right"], "--settle": ["0", "0.05"],
                               "--seed": ["0", "7"]},
-                {"--record": FILE_KINDS}, ["--csv", "--overwrite"]))
+                {"--record": FILE_KINDS}, ["--csv", "--overwrite", "--json"]))
 def test_chirp(capsys, case):
     ws, argv = case
     if "--duration" not in argv:

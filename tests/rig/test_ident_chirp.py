@@ -3,6 +3,7 @@ and identification from it."""
 from __future__ import annotations
 
 import gzip
+import json
 import math
 
 import numpy as np
@@ -88,6 +89,18 @@ def test_cli_csv_output_is_the_shared_format(tmp_path, capsys):
                                     f"(csv); {got.out.split('; ')[1].split(' s wall')[0]} s wall, overruns 0, "
                                     f"dropped rows 0"], got
     assert "samples ->" not in got.err and got.err.strip().splitlines()[-1] == f"next: rig identify {out}"
+
+
+def test_cli_json_is_only_the_result_on_stdout(tmp_path, capsys):
+    from rig.cli import main
+    out = tmp_path / "c.h5"
+    assert main(["chirp", "--duration", "0.5", "--f0", "1", "--f1", "20", "--rate", "1000", "--json",
+                 "--record", str(out)]) == 0
+    got = capsys.readouterr()
+    res = json.loads(got.out)                 # only JSON on stdout
+    assert res["recording"] == str(out) and res["rows_written"] == load_recording(out).n == 600
+    assert res["signal"] == "chirp" and res["f1_hz"] == 20 and res["dropped_rows"] == 0
+    assert got.err.strip().splitlines()[-1] == f"next: rig identify {out}"
 
 
 @pytest.mark.parametrize("argv, expect", [
