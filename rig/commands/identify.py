@@ -55,7 +55,7 @@ def table_markdown(res) -> str:
         note = "weak (prior-held)" if k in res.weakly_identified else ""
         lines.append(f"| {k} | {UNITS[k]} | {v0:.4g} | {v:.4g} | {s:.2g} | {100 * (v / v0 - 1):+.1f} % | {note} |")
     f = res.fit
-    lines.append(f"| K_C*K_L | m^3/s/m | {res.p0.K_C * res.p0.K_L:.4g} | {f['K_C*K_L']:.4g} | "
+    lines.append(f"| K_C*K_L | m^4/s | {res.p0.K_C * res.p0.K_L:.4g} | {f['K_C*K_L']:.4g} | "
                  f"{f['K_C*K_L'] * f['K_C*K_L_rel_std']:.2g} | "
                  f"{100 * (f['K_C*K_L'] / (res.p0.K_C * res.p0.K_L) - 1):+.1f} % | lag corner, well fixed |")
     return "\n".join(lines)

@@ -70,6 +70,9 @@ def test_an_injected_sensor_fault_shows_its_reason_and_is_reset_from_the_page(ch
                                 "document.getElementById('fault').textContent")
         assert s.loop.state is State.FAULT and s.loop.lc.fault_reason in banner
         assert "front_right" in banner
+        assert s.loop.isolation             # chosen on, not isolating: never shown as plain "on" in green
+        assert page.text_content("#isolation") == "on (held: FAULT)"
+        assert "held" in page.get_attribute("#isolation", "class")
         s.port.clear_faults()
         page.click("#reset-fault")
         wait_for(page, "document.getElementById('state').textContent === 'INACTIVE'")

@@ -119,8 +119,9 @@
     st.textContent = run.phase === "chirp" ? `${state} (chirp)` : state;
     st.className = "badge " + state;
     const isoEl = $("isolation");
-    isoEl.textContent = iso === undefined ? "-" : (iso ? "on" : "off");
-    isoEl.className = "badge " + (iso ? "on" : "off");
+    const held = iso && state !== "ACTIVE";        // chosen on, but the loop is not isolating (FAULT, INACTIVE)
+    isoEl.textContent = iso === undefined ? "-" : (held ? `on (held: ${state})` : (iso ? "on" : "off"));
+    isoEl.className = "badge " + (held ? "held" : (iso ? "on" : "off"));
     const faulted = state === "FAULT";
     $("fault").hidden = !faulted;
     if (faulted) $("fault").textContent = "FAULT: " + (run.fault_reason || "(reason follows)");
