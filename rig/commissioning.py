@@ -171,15 +171,17 @@ def quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise=None) -> dict:
 
 
 def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings,
-                    fix=None, null_window_m: float = 0.0) -> set:
+                    fix=None, null_window_m: float = 0.0, floor_of=None) -> set:
     """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
     offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration);
     its noise floor is compared as calibrated (fix: {kind: {channel: its scale}}: a range a decade up is not noisy).
+    floor_of: the floor channel found under each mount (floor_response; default each its own).
     Returns {(kind:channel, fault)} of what it named."""
     fix = fix or {}
     named = set()
     carries = {"accel": {names[a]: m for a, m in zip(accel_of, names)},
-               "stroke": {names[x]: m for x, m in zip(stroke_of, names)}, "floor": {m: m for m in names}}
+               "stroke": {names[x]: m for x, m in zip(stroke_of, names)},
+               "floor": {names[k]: m for k, m in zip(floor_of or range(len(names)), names)}}
     what = {"accel": "accelerometer", "stroke": "transducer", "floor": "floor accelerometer"}
     rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
 
@@ -280,6 +282,129 @@ def channel_map(R: np.ndarray) -> list[int]:
     return out
 
 
+def _sensor_calibration(names, accel_of, stroke_of, mount_of, scale, gain, units, channels) -> dict:
+    """The calibration's sensor tables: per channel as mapped the mount it carries, its sign, scale and offset."""
+    return {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
+                                           "scale": correction(scale[m]),
+                                           "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
+                      for j, m in enumerate(names)},
+            "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0,
+                                             "scale": units[m],
+                                             "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
+                       for j, m in enumerate(names)}}
+
+
+def _against_stroke(scale, gain, units, dead_x) -> None:
+    """Each accelerometer's scale (as measured against its stroke's x'', in place) against the stroke as
+    calibrated: its unit and sign put right (gain: the stroke/command with its unit put right)."""
+    for m in scale:
+        scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
+
+
+def floor_pass(names, fs, sel, slots, ab, xdd, fb, cb, xb, accel_of, stroke_of, mount_of, scale, gain, units,
+               channels, dc_gain_m_per_V) -> tuple[dict, dict]:
+    """With floor accelerometers: each checked against the table (floor_response: the table's accelerometers at
+    the sign and unit slip their first scale found, the strokes as calibrated), then the floor as each channel
+    found under a mount reads it (its sign, a unit's slip) taken out of that mount's table accelerometer, and the
+    accelerometers' scales against x'' measured again. In a 2 s chirp the floor's motion (about 11 mm/s^2 rms in
+    BAND_HZ on the emulated rig, as much as a valve's x'') is most of the scatter of that estimate: measured
+    1.00-1.03 with it taken out, 0.98-1.36 with it in, the same recording. A mount whose floor channel does not
+    answer keeps its first estimate. Returns floor_response's result and the raw scales (before _against_stroke)."""
+    k_a = {m: 1.0 / correction(scale[m]) if unit_slip(abs(scale[m])) else 1.0 for m in names}
+    cal = {"accel": {names[accel_of[j]]: {"sign": 1.0 if scale[m] >= 0 else -1.0, "scale": 1.0 / k_a[m]}
+                     for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: {"sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m]}
+                      for j, m in enumerate(names)}}
+    flo = floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal)
+    rel = ab.copy()
+    for j, m in enumerate(names):
+        p = mount_of[j]
+        k, c = flo["floor_of"][p], flo["scale"][names[p]]
+        if channels["floor"][names[k]]["alive"] and SCALE_FIX[0] <= abs(c) <= SCALE_FIX[1]:
+            floor_p = fb[:, k] * (1.0 if c >= 0 else -1.0) * (correction(c) if unit_slip(abs(c)) else 1.0)
+            rel[:, accel_of[j]] -= floor_p * cal["accel"][names[accel_of[j]]]["sign"] * k_a[m]
+    raw, _ = _scale_and_gain(names, slots, xdd, rel, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
+    return flo, raw
+
+
+def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal) -> dict:
+    """The floor accelerometers against the table. table = floor + stroke at each mount (the identity the
+    accelerometers' scale check uses, the other way round): the floor under mount p is its table accelerometer a_p
+    less its stroke's x''_p, both as calibrated (their channel map, sign and scale). The chirps move the table, not
+    the floor: the floor's own motion (part of it common to the mounts, part each mount's own) is the signal, over
+    the whole recording (sel) in BAND_HZ. Per frequency, floor channel k = c a_p + d x''_p (two inputs, H1): the
+    transducer's later sample (0-2 samples under load) turns d's phase, not c, and the table's flexibility (a_p =
+    floor + s x''_p, s 1.0-1.2) goes into d; c, averaged over the band, is the channel's scale against the floor
+    under p (1 wired right), its sign from the real part. Which channel is under which mount: the response matrix
+    |c| (channel_map, as the valves' channels). Returns H[k, p] = c, floor_of (the channel under each mount) and
+    scale (each mount's c through its channel)."""
+    n = len(names)
+    a, xs = np.zeros((int(sel.sum()), n)), np.zeros((int(sel.sum()), n))
+    for j in range(n):
+        ca, cx = cal["accel"][names[accel_of[j]]], cal["stroke"][names[stroke_of[j]]]
+        a[:, mount_of[j]] = ab[sel, accel_of[j]] * ca["sign"] * ca["scale"]
+        xs[:, mount_of[j]] = xdd[sel, stroke_of[j]] * cx["sign"] * cx["scale"]
+    z = np.column_stack([a, xs, fb[sel]])
+    f, S = signal.csd(z[:, :, None], z[:, None, :], fs=fs, nperseg=min(512, len(z)), axis=0)    # S[f, i, j]
+    S = S[(f >= BAND_HZ[0]) & (f <= BAND_HZ[1])]
+    H = np.zeros((n, n))
+    for p in range(n):
+        G = S[:, [p, n + p]][:, :, [p, n + p]]                  # [[S_aa, S_ax], [S_xa, S_xx]] per frequency
+        for k in range(n):
+            c = np.linalg.solve(G, S[:, [p, n + p], 2 * n + k][..., None])[:, 0, 0].mean()
+            H[k, p] = abs(c) * (1.0 if c.real >= 0 else -1.0)
+    floor_of = channel_map(np.abs(H))
+    return {"H": H, "floor_of": floor_of, "scale": {m: float(H[floor_of[p], p]) for p, m in enumerate(names)}}
+
+
+def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of) -> set:
+    """Per mount, the floor accelerometer floor_response found under it: ok, corrected (swapped channels, a sign,
+    a unit's slip: as the table's accelerometers, SCALE_TOL and unit_slip), refused (no answer to the floor's motion
+    or a scale no unit's slip explains), unchecked (the mount's table accelerometer or transducer refused or
+    unchecked: nothing to hold it against). Verdicts ("floor:<mount>"), findings and cal["floor"] updated in place;
+    returns the faults {("floor:<channel as mapped>", kind)}."""
+    rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
+    held = {mount_of[j] for j, m in enumerate(names)
+            if {verdicts[f"accel:{m}"], verdicts[f"stroke:{m}"]} & {"refused", "unchecked"}}
+    out, cal["floor"] = set(), {}
+    for p, m in enumerate(names):
+        k = flo["floor_of"][p]
+        ch, s = names[k], flo["scale"][m]
+        name = f"floor accelerometer under {m} (channel mapped to {ch})"
+        v = "ok"
+        cal["floor"][ch] = {"mount": m, "sign": 1.0, "scale": 1.0,
+                            "offset_mps2": channels["floor"][ch]["offset_mps2"]}
+        if p in held:
+            v = "unchecked"
+            findings.append(f"{name}: not checked (the table's accelerometer or transducer of {m} is not right)")
+        elif (f"floor:{ch}", "dead") in named:
+            v = "refused"                                       # sensor_findings named it (constant at null)
+        elif abs(s) < SCALE_FIX[0]:
+            v = "refused"
+            out.add((f"floor:{ch}", "dead"))
+            findings.append(f"{name}: no answer to the floor's motion (scale {s:+.3g} against the table less its "
+                            f"stroke's x''): dead or unwired")
+        else:
+            if k != p:
+                v = "corrected"
+                out.add((f"floor:{ch}", "swap"))
+                findings.append(f"floor accelerometers swapped: the floor under {m} is read by the channel mapped "
+                                f"to {ch}")
+            if s < 0:
+                v = "corrected"
+                out.add((f"floor:{ch}", "sign"))
+                findings.append(f"{name}: sign inverted (scale {s:+.3f} against the table less its stroke's x'')")
+            a = abs(s)
+            if abs(a - 1) > SCALE_TOL:
+                out.add((f"floor:{ch}", "scale"))
+                v = "corrected" if SCALE_FIX[0] <= a <= SCALE_FIX[1] and unit_slip(a) else "refused"
+                findings.append(f"{name}: scale {a:.3f} against the table less its stroke's x''" +
+                                ("" if v == "corrected" else " is no unit slip: not corrected; check the sensor"))
+            cal["floor"][ch].update(sign=1.0 if s >= 0 else -1.0, scale=correction(s) if v != "refused" else 1.0)
+        verdicts[f"floor:{m}"] = max(v, verdicts.get(f"floor:{m}", "ok"), key=rank.get)   # noisy: refused
+    return out
+
+
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
             dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None,
             sensor_noise: dict | None = None) -> dict:
@@ -292,11 +417,12 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     x = np.asarray(rec["stroke_m"], dtype=float).reshape(len(t), -1)[:, :n]
     cmd = np.asarray(rec["valve_cmd_V"], dtype=float).reshape(len(t), -1)[:, :n]
     floor = rec.get("floor_accel_mps2")
-    rel = acc - np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else acc
+    floor = np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else None
     quiet = (t > 0.2 * quiet_s) & (t < quiet_s)
-    channels = quiet_channels(acc, x, np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n]
-                              if floor is not None else None, quiet, fs, names, sensor_noise if n == 1 else None)
-    rb, xb, cb = _band(rel, fs), _band(x, fs), _band(cmd, fs)
+    channels = quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise if n == 1 else None)
+    # the table's accelerometers alone: a floor channel miswired would spoil their checks (the floor's motion is
+    # no chirp's: H1 against x'' is unbiased by it); the floor is checked against them (floor_checks)
+    rb, xb, cb = _band(acc, fs), _band(x, fs), _band(cmd, fs)
     w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
     xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
     R_x, R_a = np.zeros((n, n)), np.zeros((n, n))      # [channel, valve]
@@ -326,22 +452,25 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
     for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
         gain[m] *= units[m]
-        scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
+    _against_stroke(scale, gain, units, dead_x)
+    flo = None
+    if floor is not None and n > 1:     # the floor checked against the table, then taken out of it (floor_pass)
+        flo, scale_raw = floor_pass(names, fs, t >= t[quiet].min(), slots, rb, xdd, _band(floor, fs), cb, xb,
+                                    accel_of, stroke_of, mount_of, scale, gain, units, channels, dc_gain_m_per_V)
+        scale.update(scale_raw)
+        _against_stroke(scale, gain, units, dead_x)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of, med_x)
     fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
                      else 1.0 for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
+    cal = _sensor_calibration(names, accel_of, stroke_of, mount_of, scale, gain, units, channels)
     named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix,
-                            null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0)
+                            null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0,
+                            floor_of=flo["floor_of"] if flo else None)
+    if flo is not None:
+        named |= floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of)
     faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
-    cal = {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
-                                          "scale": correction(scale[m]),
-                                          "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
-                     for j, m in enumerate(names)},
-           "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m],
-                                            "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
-                      for j, m in enumerate(names)}}
     _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names)
     valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V, D) \
         if steps is not None else None
@@ -356,6 +485,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
             "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
             "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values()),
+            **({"floor_scale": flo["scale"], "floor_of_mount": [names[k] for k in flo["floor_of"]],
+                "floor_response": flo["H"].tolist()} if flo else {}),
             **({"notes": alone_notes(channels, floor is not None)} if n == 1 else {})}
 
 
