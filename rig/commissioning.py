@@ -6,10 +6,14 @@ of `slot_s`: its valve a bounded chirp, the others null. Per slot j and channel 
 where the transducer's second derivative and the accelerometers are both above their noise):
 
   stroke response   rms of stroke channel i in slot j          -> which transducer answers which valve
-  accel response    rms of (table - floor) accel i in slot j   -> which accelerometer answers which valve
+  accel response    rms of accel i in slot j                   -> which accelerometer answers which valve
   accel scale       S(x_j'', a_i) / S(x_j'', x_j'') in band  -> sign and scale against the second derivative of
-                    (a: table minus floor, x_j: the stroke       its own mount's stroke (table = floor + stroke:
-                    answering valve j)                           the floor accelerometers take the floor out)
+                    (a: the table's accelerometer, less the      its own mount's stroke (table = floor + stroke:
+                    floor once checked; x_j: the stroke          the floor accelerometers take the floor out)
+                    answering valve j)
+  floor scale       floor channel k = c a_p + d x_p'' per        -> each floor accelerometer's sign, scale and
+                    frequency over the whole recording, c        mount (floor_response: the table less its own
+                    averaged over the band                       stroke's x'' is the floor under it)
   valve gain        the stroke's chirp response over the command at the low end of the band against the model's
                     DC gain (the actuator's lag corner lies far above it)
 
@@ -743,6 +747,11 @@ def text(res: dict) -> str:
                      f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command {where} "
                      f"{res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
                      f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
+    for m, k in zip(res["mounts"], res.get("floor_of_mount") or ()):
+        f = res["channels"]["floor"][k]
+        lines.append(f"{m}: floor accelerometer {res['verdicts'][f'floor:{m}']} (channel mapped to {k}, scale "
+                     f"{res['floor_scale'][m]:+.3f} against the table less its stroke's x'', noise "
+                     f"{f['noise_rms_mps2'] * 1e3:.2f} mm/s^2 rms, offset {f['offset_mps2'] * 1e3:+.2f} mm/s^2)")
     for m, v in (res.get("valves") or {}).items():
         null = "not judged (its transducer's own offset)" if v["null_V"] is None else f"{v['null_V']:+.3f} V"
         lines.append(f"{m}: valve {res['verdicts'][f'valve:{m}']} (DC gain {v['dc_gain_vs_model']:.2f} x the model's, "
@@ -770,11 +779,16 @@ def plot(res: dict, rec: dict, mount: str, path) -> None:
     import matplotlib.pyplot as plt
     names = res["mounts"]
     j = names.index(mount)
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    floor = res.get("floor_response")
+    fig, ax = plt.subplots(1, 3 if floor else 2, figsize=(13.5 if floor else 9, 3.5))
     ax[0].bar(names, [r[j] * 1e6 for r in res["stroke_response_m"]])
     ax[0].set_title(f"valve {mount}: stroke response (um rms, {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)")
     ax[1].bar(names, [r[j] for r in res["accel_response_mps2"]])
     ax[1].set_title(f"accelerometer response (m/s^2 rms); scale {res['accel_scale'][mount]:+.3f}")
+    if floor:                # each floor channel against the floor under this mount (the table less its x'')
+        ax[2].bar(names, [r[j] for r in floor])
+        ax[2].axhline(1.0, color="k", lw=0.5)
+        ax[2].set_title(f"floor channels against the floor under {mount}; scale {res['floor_scale'][mount]:+.3f}")
     for a in ax:
         a.tick_params(axis="x", labelrotation=30)
     fig.tight_layout()
