@@ -40,8 +40,8 @@ from scipy import signal
 from scipy.optimize import linear_sum_assignment
 
 BAND_HZ = (3.0, 30.0)          # where x'' from the transducer and the accelerometers are both well above noise
-SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible table at a mount is not rigid on its
-                               # stroke: 1.0-1.2 measured on a rig wired right; a g range is 0.10, inverted -1)
+SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (wired right 1.0-1.2 with the floor's motion in the
+                               # accelerometer, 1.00-1.04 with it taken out; a g range is 0.10, inverted -1)
 SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
 DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
 # the valves (valve_checks): a null beyond NULL_TOL_V is named and corrected (0.5 % of a +-10 V valve's range: wired
@@ -409,6 +409,21 @@ def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of)
     return out
 
 
+def _responses(t, xb, rb, quiet_s: float, slot_s: float, lead_s: float):
+    """Each valve's chirp slot (its settled part), and the stroke and accelerometer channels' band rms in each:
+    R[channel, valve]."""
+    n = xb.shape[1]
+    R_x, R_a = np.zeros((n, n)), np.zeros((n, n))
+    slots = []
+    for j in range(n):
+        t0 = quiet_s + j * slot_s + lead_s
+        sl = (t > t0 + 0.1) & (t < t0 + slot_s - 2 * lead_s - 0.1)
+        slots.append(sl)
+        R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
+        R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
+    return slots, R_x, R_a
+
+
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
             dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None,
             sensor_noise: dict | None = None) -> dict:
@@ -429,14 +444,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     rb, xb, cb = _band(acc, fs), _band(x, fs), _band(cmd, fs)
     w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
     xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
-    R_x, R_a = np.zeros((n, n)), np.zeros((n, n))      # [channel, valve]
-    slots = []
-    for j in range(n):
-        t0 = quiet_s + j * slot_s + lead_s
-        sl = (t > t0 + 0.1) & (t < t0 + slot_s - 2 * lead_s - 0.1)
-        slots.append(sl)
-        R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
-        R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
+    slots, R_x, R_a = _responses(t, xb, rb, quiet_s, slot_s, lead_s)
     stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
     mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
     scale, gain = _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
@@ -457,7 +465,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
         gain[m] *= units[m]
     _against_stroke(scale, gain, units, dead_x)
-    flo = None
+    flo, floor_in = None, dict(scale)
     if floor is not None and n > 1:     # the floor checked against the table, then taken out of it (floor_pass)
         flo, scale_raw = floor_pass(names, fs, t >= t[quiet].min(), slots, rb, xdd, _band(floor, fs), cb, xb,
                                     accel_of, stroke_of, mount_of, scale, gain, units, channels, dc_gain_m_per_V)
@@ -490,7 +498,7 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
             "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values()),
             **({"floor_scale": flo["scale"], "floor_of_mount": [names[k] for k in flo["floor_of"]],
-                "floor_response": flo["H"].tolist()} if flo else {}),
+                "floor_response": flo["H"].tolist(), "accel_scale_floor_in": floor_in} if flo else {}),
             **({"notes": alone_notes(channels, floor is not None)} if n == 1 else {})}
 
 
