@@ -306,32 +306,36 @@ def _against_stroke(scale, gain, units, dead_x) -> None:
 
 
 def floor_pass(names, fs, sel, slots, ab, xdd, fb, cb, xb, accel_of, stroke_of, mount_of, scale, gain, units,
-               channels, dc_gain_m_per_V) -> tuple[dict, dict]:
+               channels, dc_gain_m_per_V, dead_x) -> tuple[dict, dict]:
     """With floor accelerometers: each checked against the table (floor_response: the table's accelerometers at
     the sign and unit slip their first scale found, the strokes as calibrated), then the floor as each channel
     found under a mount reads it (its sign, a unit's slip) taken out of that mount's table accelerometer, and the
     accelerometers' scales against x'' measured again. In a 2 s chirp the floor's motion (about 11 mm/s^2 rms in
     BAND_HZ on the emulated rig, as much as a valve's x'') is most of the scatter of that estimate: measured
     1.00-1.03 with it taken out, 0.98-1.36 with it in, the same recording. A mount whose floor channel does not
-    answer keeps its first estimate. Returns floor_response's result and the raw scales (before _against_stroke)."""
+    answer as wired right, or a unit's slip, keeps its first estimate. Returns floor_response's result and the raw
+    scales (before _against_stroke)."""
     k_a = {m: 1.0 / correction(scale[m]) if unit_slip(abs(scale[m])) else 1.0 for m in names}
     cal = {"accel": {names[accel_of[j]]: {"sign": 1.0 if scale[m] >= 0 else -1.0, "scale": 1.0 / k_a[m]}
                      for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: {"sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m]}
                       for j, m in enumerate(names)}}
-    flo = floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal)
+    # the floor under a mount is held against its table only where the table's accelerometer and transducer answer
+    table = [mount_of[j] for j, m in enumerate(names) if m not in dead_x and abs(scale[m]) >= SCALE_FIX[0]
+             and channels["accel"][names[accel_of[j]]]["alive"]]
+    flo = floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal, table)
     rel = ab.copy()
     for j, m in enumerate(names):
         p = mount_of[j]
         k, c = flo["floor_of"][p], flo["scale"][names[p]]
-        if channels["floor"][names[k]]["alive"] and SCALE_FIX[0] <= abs(c) <= SCALE_FIX[1]:
+        if p in table and channels["floor"][names[k]]["alive"] and (abs(abs(c) - 1) <= SCALE_TOL or unit_slip(abs(c))):
             floor_p = fb[:, k] * (1.0 if c >= 0 else -1.0) * (correction(c) if unit_slip(abs(c)) else 1.0)
             rel[:, accel_of[j]] -= floor_p * cal["accel"][names[accel_of[j]]]["sign"] * k_a[m]
     raw, _ = _scale_and_gain(names, slots, xdd, rel, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
     return flo, raw
 
 
-def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal) -> dict:
+def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal, table=None) -> dict:
     """The floor accelerometers against the table. table = floor + stroke at each mount (the identity the
     accelerometers' scale check uses, the other way round): the floor under mount p is its table accelerometer a_p
     less its stroke's x''_p, both as calibrated (their channel map, sign and scale). The chirps move the table, not
@@ -340,8 +344,9 @@ def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, c
     transducer's later sample (0-2 samples under load) turns d's phase, not c, and the table's flexibility (a_p =
     floor + s x''_p, s 1.0-1.2) goes into d; c, averaged over the band, is the channel's scale against the floor
     under p (1 wired right), its sign from the real part. Which channel is under which mount: the response matrix
-    |c| (channel_map, as the valves' channels). Returns H[k, p] = c, floor_of (the channel under each mount) and
-    scale (each mount's c through its channel)."""
+    |c| (channel_map, as the valves' channels) over the mounts in `table` (default all: those whose table
+    accelerometer and transducer answer; a dead one's column is noise), the others' channels left to them in order.
+    Returns H[k, p] = c, floor_of (the channel under each mount) and scale (each mount's c through its channel)."""
     n = len(names)
     a, xs = np.zeros((int(sel.sum()), n)), np.zeros((int(sel.sum()), n))
     for j in range(n):
@@ -357,7 +362,12 @@ def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, c
         for k in range(n):
             c = np.linalg.solve(G, S[:, [p, n + p], 2 * n + k][..., None])[:, 0, 0].mean()
             H[k, p] = abs(c) * (1.0 if c.real >= 0 else -1.0)
-    floor_of = channel_map(np.abs(H))
+    table = list(range(n)) if table is None else sorted(table)
+    floor_of = list(range(n))
+    if table:
+        found = channel_map(np.abs(H[:, table]))
+        left = iter(k for k in range(n) if k not in found)
+        floor_of = [found[table.index(p)] if p in table else next(left) for p in range(n)]
     return {"H": H, "floor_of": floor_of, "scale": {m: float(H[floor_of[p], p]) for p, m in enumerate(names)}}
 
 
@@ -468,7 +478,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     flo, floor_in = None, dict(scale)
     if floor is not None and n > 1:     # the floor checked against the table, then taken out of it (floor_pass)
         flo, scale_raw = floor_pass(names, fs, t >= t[quiet].min(), slots, rb, xdd, _band(floor, fs), cb, xb,
-                                    accel_of, stroke_of, mount_of, scale, gain, units, channels, dc_gain_m_per_V)
+                                    accel_of, stroke_of, mount_of, scale, gain, units, channels, dc_gain_m_per_V,
+                                    dead_x)
         scale.update(scale_raw)
         _against_stroke(scale, gain, units, dead_x)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of, med_x)
