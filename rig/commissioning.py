@@ -371,12 +371,15 @@ def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, c
     return {"H": H, "floor_of": floor_of, "scale": {m: float(H[floor_of[p], p]) for p, m in enumerate(names)}}
 
 
-def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of) -> set:
+def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of, means) -> set:
     """Per mount, the floor accelerometer floor_response found under it: ok, corrected (swapped channels, a sign,
     a unit's slip: as the table's accelerometers, SCALE_TOL and unit_slip), refused (no answer to the floor's motion
     or a scale no unit's slip explains), unchecked (the mount's table accelerometer or transducer refused or
     unchecked: nothing to hold it against). Verdicts ("floor:<mount>"), findings and cal["floor"] updated in place;
-    returns the faults {("floor:<channel as mapped>", kind)}."""
+    returns the faults {("floor:<channel as mapped>", kind)}. An offset is taken off only where sensor_findings
+    named one, at the channel's mean over the whole recording (means): the floor feedforward integrates its input
+    twice (controllers/feedforward.py, 0.1 Hz high-pass), and the mean of the quiet 1.2 s (the floor's own motion,
+    up to 0.25 mm/s^2) taken off as an offset wound its command up to 18 V and onto the valves' clamp."""
     rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
     held = {mount_of[j] for j, m in enumerate(names)
             if {verdicts[f"accel:{m}"], verdicts[f"stroke:{m}"]} & {"refused", "unchecked"}}
@@ -387,7 +390,7 @@ def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of)
         name = f"floor accelerometer under {m} (channel mapped to {ch})"
         v = "ok"
         cal["floor"][ch] = {"mount": m, "sign": 1.0, "scale": 1.0,
-                            "offset_mps2": channels["floor"][ch]["offset_mps2"]}
+                            "offset_mps2": float(means[k]) if (f"floor:{ch}", "offset") in named else 0.0}
         if p in held:
             v = "unchecked"
             findings.append(f"{name}: not checked (the table's accelerometer or transducer of {m} is not right)")
@@ -491,7 +494,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
                             null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0,
                             floor_of=flo["floor_of"] if flo else None)
     if flo is not None:
-        named |= floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of)
+        named |= floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of,
+                              floor[t >= t[quiet].min()].mean(axis=0))
     faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
     _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names)

@@ -3,18 +3,21 @@ mount), on the emulated rig over the real drivers (Modbus TCP on 127.0.0.1, the 
 through the canopen stack) with floor wiring faults from [hil] (drivers/devicemaps/hil_wiring_faults.md: AI ch4-7):
 front_left's floor accelerometer inverted, rear_left's and rear_right's swapped. Each named on its floor channel
 with its mount, nothing else named; the calibration's [floor.*] tables applied by the drivers, commissioning the
-same miswired rig again finds every channel ok. A rig wired right names nothing on its floor channels (the
+same miswired rig again finds every channel ok, and `rig hil` through it gains from the floor feedforward. A rig wired right names nothing on its floor channels (the
 simulated backend, and the miswired rig through its calibration)."""
 from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 import tomllib
 
 import numpy as np
 import pytest
 
 from tests.drivers.test_commission import _commission as _commission_sim
+from tests.hosttiming import skip_unless_on_time
 from tests.drivers.test_commission_valves import _commission
 
 from drivers import build_driver_port, conversion
@@ -51,9 +54,18 @@ def test_an_inverted_and_two_swapped_floor_accelerometers_are_named_and_correcte
     cal = tomllib.loads((tmp_path / "first" / "commissioning.toml").read_text())["floor"]
     assert cal[FL]["sign"] == -1.0 and cal[RR]["mount"] == RL and cal[RL]["mount"] == RR
     assert all(cal[m]["scale"] == 1.0 for m in MOUNTS)
+    assert all(cal[m]["offset_mps2"] == 0.0 for m in MOUNTS)      # none named: the floor's own motion is no offset
     # the calibration applied by the drivers ([drivers] calibration): the same miswired rig reads right
     fixed = tmp_path / "calibrated.toml"
     fixed.write_text(cfg.read_text() + f'\n[drivers]\ncalibration = "{tmp_path / "first" / "commissioning.toml"}"\n')
+    # `rig hil` through it: the floor feedforward, fed the floor as calibrated, adds isolation (an inverted or a
+    # swapped floor channel would feed the floor's motion forward the wrong way)
+    hil = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert hil.returncode == 0, hil.stderr[-3000:]
+    skip_unless_on_time(hil)
+    figs = json.loads(hil.stdout)
+    assert figs["harm"] is None and figs["feedforward_reduction_db"] > figs["isolation_reduction_db"] + 1.0, figs
     again = _commission(fixed, tmp_path / "again")
     assert again.returncode == 0, again.stderr[-3000:] + again.stdout[-2000:]
     res2 = json.loads(again.stdout)
