@@ -341,8 +341,8 @@ def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, c
     less its stroke's x''_p, both as calibrated (their channel map, sign and scale). The chirps move the table, not
     the floor: the floor's own motion (part of it common to the mounts, part each mount's own) is the signal, over
     the whole recording (sel) in BAND_HZ. Per frequency, floor channel k = c a_p + d x''_p (two inputs, H1): the
-    transducer's later sample (0-2 samples under load) turns d's phase, not c, and the table's flexibility (a_p =
-    floor + s x''_p, s 1.0-1.2) goes into d; c, averaged over the band, is the channel's scale against the floor
+    transducer's later sample (0-2 samples under load) turns d's phase, not c, and any share of x''_p the table
+    accelerometer reads other than 1 goes into d; c, averaged over the band, is the channel's scale against the floor
     under p (1 wired right), its sign from the real part. Which channel is under which mount: the response matrix
     |c| (channel_map, as the valves' channels) over the mounts in `table` (default all: those whose table
     accelerometer and transducer answer; a dead one's column is noise), the others' channels left to them in order.

@@ -2,9 +2,10 @@
 mount), on the emulated rig over the real drivers (Modbus TCP on 127.0.0.1, the DTA-4 on a real pty, the valves
 through the canopen stack) with floor wiring faults from [hil] (drivers/devicemaps/hil_wiring_faults.md: AI ch4-7):
 front_left's floor accelerometer inverted, rear_left's and rear_right's swapped. Each named on its floor channel
-with its mount, nothing else named; the calibration's [floor.*] tables applied by the drivers, commissioning the
-same miswired rig again finds every channel ok, and `rig hil` through it gains from the floor feedforward. A rig wired right names nothing on its floor channels (the
-simulated backend, and the miswired rig through its calibration)."""
+with its mount, nothing else named; the calibration's [floor.*] tables applied by the drivers, `rig hil` through
+them gains from the floor feedforward, and commissioning the same miswired rig again finds every channel ok. A rig
+wired right names nothing on its floor channels (the simulated backend, and the miswired rig through its
+calibration)."""
 from __future__ import annotations
 
 import dataclasses
