@@ -18,6 +18,7 @@ from rig.errors import ConfigError
 
 MAX_MOUNTS = 4          # one 4-channel transducer amplifier (DTA-4), AI ch0-3 of the I/O module
 # AI ch0-3 = the mount accelerometers, layout order; ch4-7: the floor accelerometers, [sensors] floor_channels
+# (the calibration's [accel.*] and [floor.*] tables: drivers/conversion.py calibrated)
 
 
 def calibration_path(cfg) -> Path:
@@ -70,7 +71,8 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     x_chs = conversion.channels(range(n), [1.0] * n)
     if d.calibration:
         cal = conversion.read_calibration(calibration_path(cfg))
-        a_chs = conversion.calibrated(a_chs[:n], cal, "accel", names, "mps2") + a_chs[n:]
+        a_chs = (conversion.calibrated(a_chs[:n], cal, "accel", names, "mps2")
+                 + (conversion.calibrated(a_chs[n:], cal, "floor", names, "mps2") if floor else ()))
         x_chs = conversion.calibrated(x_chs, cal, "stroke", names, "m")
         v_chs = conversion.calibrated_valves(v_chs, cal, names)
     valves["channels"] = conversion.to_dict(v_chs)

@@ -6,10 +6,14 @@ of `slot_s`: its valve a bounded chirp, the others null. Per slot j and channel 
 where the transducer's second derivative and the accelerometers are both above their noise):
 
   stroke response   rms of stroke channel i in slot j          -> which transducer answers which valve
-  accel response    rms of (table - floor) accel i in slot j   -> which accelerometer answers which valve
+  accel response    rms of accel i in slot j                   -> which accelerometer answers which valve
   accel scale       S(x_j'', a_i) / S(x_j'', x_j'') in band  -> sign and scale against the second derivative of
-                    (a: table minus floor, x_j: the stroke       its own mount's stroke (table = floor + stroke:
-                    answering valve j)                           the floor accelerometers take the floor out)
+                    (a: the table's accelerometer, less the      its own mount's stroke (table = floor + stroke:
+                    floor once checked; x_j: the stroke          the floor accelerometers take the floor out)
+                    answering valve j)
+  floor scale       floor channel k = c a_p + d x_p'' per        -> each floor accelerometer's sign, scale and
+                    frequency over the whole recording, c        mount (floor_response: the table less its own
+                    averaged over the band                       stroke's x'' is the floor under it)
   valve gain        the stroke's chirp response over the command at the low end of the band against the model's
                     DC gain (the actuator's lag corner lies far above it)
 
@@ -36,8 +40,8 @@ from scipy import signal
 from scipy.optimize import linear_sum_assignment
 
 BAND_HZ = (3.0, 30.0)          # where x'' from the transducer and the accelerometers are both well above noise
-SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (the flexible table at a mount is not rigid on its
-                               # stroke: 1.0-1.2 measured on a rig wired right; a g range is 0.10, inverted -1)
+SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (wired right 1.0-1.2 with the floor's motion in the
+                               # accelerometer, 1.00-1.04 with it taken out; a g range is 0.10, inverted -1)
 SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
 DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
 # the valves (valve_checks): a null beyond NULL_TOL_V is named and corrected (0.5 % of a +-10 V valve's range: wired
@@ -171,15 +175,17 @@ def quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise=None) -> dict:
 
 
 def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings,
-                    fix=None, null_window_m: float = 0.0) -> set:
+                    fix=None, null_window_m: float = 0.0, floor_of=None) -> set:
     """The sensors' checks beside the response matrix (verdicts and findings updated in place): dead, noisy,
     offset at null, a transducer's unit slip. A channel is named as mapped (its [kind.<name>] in the calibration);
     its noise floor is compared as calibrated (fix: {kind: {channel: its scale}}: a range a decade up is not noisy).
+    floor_of: the floor channel found under each mount (floor_response; default each its own).
     Returns {(kind:channel, fault)} of what it named."""
     fix = fix or {}
     named = set()
     carries = {"accel": {names[a]: m for a, m in zip(accel_of, names)},
-               "stroke": {names[x]: m for x, m in zip(stroke_of, names)}, "floor": {m: m for m in names}}
+               "stroke": {names[x]: m for x, m in zip(stroke_of, names)},
+               "floor": {names[k]: m for k, m in zip(floor_of or range(len(names)), names)}}
     what = {"accel": "accelerometer", "stroke": "transducer", "floor": "floor accelerometer"}
     rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
 
@@ -280,6 +286,157 @@ def channel_map(R: np.ndarray) -> list[int]:
     return out
 
 
+def _sensor_calibration(names, accel_of, stroke_of, mount_of, scale, gain, units, channels) -> dict:
+    """The calibration's sensor tables: per channel as mapped the mount it carries, its sign, scale and offset."""
+    return {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
+                                           "scale": correction(scale[m]),
+                                           "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
+                      for j, m in enumerate(names)},
+            "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0,
+                                             "scale": units[m],
+                                             "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
+                       for j, m in enumerate(names)}}
+
+
+def _against_stroke(scale, gain, units, dead_x) -> None:
+    """Each accelerometer's scale (as measured against its stroke's x'', in place) against the stroke as
+    calibrated: its unit and sign put right (gain: the stroke/command with its unit put right)."""
+    for m in scale:
+        scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
+
+
+def floor_pass(names, fs, sel, slots, ab, xdd, fb, cb, xb, accel_of, stroke_of, mount_of, scale, gain, units,
+               channels, dc_gain_m_per_V, dead_x) -> tuple[dict, dict]:
+    """With floor accelerometers: each checked against the table (floor_response: the table's accelerometers at
+    the sign and unit slip their first scale found, the strokes as calibrated), then the floor as each channel
+    found under a mount reads it (its sign, a unit's slip) taken out of that mount's table accelerometer, and the
+    accelerometers' scales against x'' measured again. In a 2 s chirp the floor's motion (about 11 mm/s^2 rms in
+    BAND_HZ on the emulated rig, as much as a valve's x'') is most of the scatter of that estimate: measured
+    1.00-1.03 with it taken out, 0.98-1.36 with it in, the same recording. A mount whose floor channel does not
+    answer as wired right, or a unit's slip, keeps its first estimate. Returns floor_response's result and the raw
+    scales (before _against_stroke)."""
+    k_a = {m: 1.0 / correction(scale[m]) if unit_slip(abs(scale[m])) else 1.0 for m in names}
+    cal = {"accel": {names[accel_of[j]]: {"sign": 1.0 if scale[m] >= 0 else -1.0, "scale": 1.0 / k_a[m]}
+                     for j, m in enumerate(names)},
+           "stroke": {names[stroke_of[j]]: {"sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m]}
+                      for j, m in enumerate(names)}}
+    # the floor under a mount is held against its table only where the table's accelerometer and transducer answer
+    table = [mount_of[j] for j, m in enumerate(names) if m not in dead_x and abs(scale[m]) >= SCALE_FIX[0]
+             and channels["accel"][names[accel_of[j]]]["alive"]]
+    flo = floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal, table)
+    rel = ab.copy()
+    for j, m in enumerate(names):
+        p = mount_of[j]
+        k, c = flo["floor_of"][p], flo["scale"][names[p]]
+        if p in table and channels["floor"][names[k]]["alive"] and (abs(abs(c) - 1) <= SCALE_TOL or unit_slip(abs(c))):
+            floor_p = fb[:, k] * (1.0 if c >= 0 else -1.0) * (correction(c) if unit_slip(abs(c)) else 1.0)
+            rel[:, accel_of[j]] -= floor_p * cal["accel"][names[accel_of[j]]]["sign"] * k_a[m]
+    raw, _ = _scale_and_gain(names, slots, xdd, rel, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
+    return flo, raw
+
+
+def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, cal, table=None) -> dict:
+    """The floor accelerometers against the table. table = floor + stroke at each mount (the identity the
+    accelerometers' scale check uses, the other way round): the floor under mount p is its table accelerometer a_p
+    less its stroke's x''_p, both as calibrated (their channel map, sign and scale). The chirps move the table, not
+    the floor: the floor's own motion (part of it common to the mounts, part each mount's own) is the signal, over
+    the whole recording (sel) in BAND_HZ. Per frequency, floor channel k = c a_p + d x''_p (two inputs, H1): the
+    transducer's later sample (0-2 samples under load) turns d's phase, not c, and any share of x''_p the table
+    accelerometer reads other than 1 goes into d; c, averaged over the band, is the channel's scale against the floor
+    under p (1 wired right), its sign from the real part. Which channel is under which mount: the response matrix
+    |c| (channel_map, as the valves' channels) over the mounts in `table` (default all: those whose table
+    accelerometer and transducer answer; a dead one's column is noise), the others' channels left to them in order.
+    Returns H[k, p] = c, floor_of (the channel under each mount) and scale (each mount's c through its channel)."""
+    n = len(names)
+    a, xs = np.zeros((int(sel.sum()), n)), np.zeros((int(sel.sum()), n))
+    for j in range(n):
+        ca, cx = cal["accel"][names[accel_of[j]]], cal["stroke"][names[stroke_of[j]]]
+        a[:, mount_of[j]] = ab[sel, accel_of[j]] * ca["sign"] * ca["scale"]
+        xs[:, mount_of[j]] = xdd[sel, stroke_of[j]] * cx["sign"] * cx["scale"]
+    z = np.column_stack([a, xs, fb[sel]])
+    f, S = signal.csd(z[:, :, None], z[:, None, :], fs=fs, nperseg=min(512, len(z)), axis=0)    # S[f, i, j]
+    S = S[(f >= BAND_HZ[0]) & (f <= BAND_HZ[1])]
+    H = np.zeros((n, n))
+    for p in range(n):
+        G = S[:, [p, n + p]][:, :, [p, n + p]]                  # [[S_aa, S_ax], [S_xa, S_xx]] per frequency
+        for k in range(n):
+            c = np.linalg.solve(G, S[:, [p, n + p], 2 * n + k][..., None])[:, 0, 0].mean()
+            H[k, p] = abs(c) * (1.0 if c.real >= 0 else -1.0)
+    table = list(range(n)) if table is None else sorted(table)
+    floor_of = list(range(n))
+    if table:
+        found = channel_map(np.abs(H[:, table]))
+        left = iter(k for k in range(n) if k not in found)
+        floor_of = [found[table.index(p)] if p in table else next(left) for p in range(n)]
+    return {"H": H, "floor_of": floor_of, "scale": {m: float(H[floor_of[p], p]) for p, m in enumerate(names)}}
+
+
+def floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of, means) -> set:
+    """Per mount, the floor accelerometer floor_response found under it: ok, corrected (swapped channels, a sign,
+    a unit's slip: as the table's accelerometers, SCALE_TOL and unit_slip), refused (no answer to the floor's motion
+    or a scale no unit's slip explains), unchecked (the mount's table accelerometer or transducer refused or
+    unchecked: nothing to hold it against). Verdicts ("floor:<mount>"), findings and cal["floor"] updated in place;
+    returns the faults {("floor:<channel as mapped>", kind)}. An offset is taken off only where sensor_findings
+    named one, at the channel's mean over the whole recording (means): the floor feedforward integrates its input
+    twice (controllers/feedforward.py, 0.1 Hz high-pass), and the mean of the quiet 1.2 s (the floor's own motion,
+    up to 0.25 mm/s^2) taken off as an offset wound its command up to 18 V and onto the valves' clamp."""
+    rank = {"ok": 0, "unchecked": 1, "corrected": 2, "refused": 3}
+    held = {mount_of[j] for j, m in enumerate(names)
+            if {verdicts[f"accel:{m}"], verdicts[f"stroke:{m}"]} & {"refused", "unchecked"}}
+    out, cal["floor"] = set(), {}
+    for p, m in enumerate(names):
+        k = flo["floor_of"][p]
+        ch, s = names[k], flo["scale"][m]
+        name = f"floor accelerometer under {m} (channel mapped to {ch})"
+        v = "ok"
+        cal["floor"][ch] = {"mount": m, "sign": 1.0, "scale": 1.0,
+                            "offset_mps2": float(means[k]) if (f"floor:{ch}", "offset") in named else 0.0}
+        if p in held:
+            v = "unchecked"
+            findings.append(f"{name}: not checked (the table's accelerometer or transducer of {m} is not right)")
+        elif (f"floor:{ch}", "dead") in named:
+            v = "refused"                                       # sensor_findings named it (constant at null)
+        elif abs(s) < SCALE_FIX[0]:
+            v = "refused"
+            out.add((f"floor:{ch}", "dead"))
+            findings.append(f"{name}: no answer to the floor's motion (scale {s:+.3g} against the table less its "
+                            f"stroke's x''): dead or unwired")
+        else:
+            if k != p:
+                v = "corrected"
+                out.add((f"floor:{ch}", "swap"))
+                findings.append(f"floor accelerometers swapped: the floor under {m} is read by the channel mapped "
+                                f"to {ch}")
+            if s < 0:
+                v = "corrected"
+                out.add((f"floor:{ch}", "sign"))
+                findings.append(f"{name}: sign inverted (scale {s:+.3f} against the table less its stroke's x'')")
+            a = abs(s)
+            if abs(a - 1) > SCALE_TOL:
+                out.add((f"floor:{ch}", "scale"))
+                v = "corrected" if SCALE_FIX[0] <= a <= SCALE_FIX[1] and unit_slip(a) else "refused"
+                findings.append(f"{name}: scale {a:.3f} against the table less its stroke's x''" +
+                                ("" if v == "corrected" else " is no unit slip: not corrected; check the sensor"))
+            cal["floor"][ch].update(sign=1.0 if s >= 0 else -1.0, scale=correction(s) if v != "refused" else 1.0)
+        verdicts[f"floor:{m}"] = max(v, verdicts.get(f"floor:{m}", "ok"), key=rank.get)   # noisy: refused
+    return out
+
+
+def _responses(t, xb, rb, quiet_s: float, slot_s: float, lead_s: float):
+    """Each valve's chirp slot (its settled part), and the stroke and accelerometer channels' band rms in each:
+    R[channel, valve]."""
+    n = xb.shape[1]
+    R_x, R_a = np.zeros((n, n)), np.zeros((n, n))
+    slots = []
+    for j in range(n):
+        t0 = quiet_s + j * slot_s + lead_s
+        sl = (t > t0 + 0.1) & (t < t0 + slot_s - 2 * lead_s - 0.1)
+        slots.append(sl)
+        R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
+        R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
+    return slots, R_x, R_a
+
+
 def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: float,
             dc_gain_m_per_V: float, steps: tuple[float, float, float] | None = None,
             sensor_noise: dict | None = None) -> dict:
@@ -292,21 +449,15 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     x = np.asarray(rec["stroke_m"], dtype=float).reshape(len(t), -1)[:, :n]
     cmd = np.asarray(rec["valve_cmd_V"], dtype=float).reshape(len(t), -1)[:, :n]
     floor = rec.get("floor_accel_mps2")
-    rel = acc - np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else acc
+    floor = np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n] if floor is not None else None
     quiet = (t > 0.2 * quiet_s) & (t < quiet_s)
-    channels = quiet_channels(acc, x, np.asarray(floor, dtype=float).reshape(len(t), -1)[:, :n]
-                              if floor is not None else None, quiet, fs, names, sensor_noise if n == 1 else None)
-    rb, xb, cb = _band(rel, fs), _band(x, fs), _band(cmd, fs)
+    channels = quiet_channels(acc, x, floor, quiet, fs, names, sensor_noise if n == 1 else None)
+    # the table's accelerometers alone: a floor channel miswired would spoil their checks (the floor's motion is
+    # no chirp's: H1 against x'' is unbiased by it); the floor is checked against them (floor_checks)
+    rb, xb, cb = _band(acc, fs), _band(x, fs), _band(cmd, fs)
     w = 2 * np.pi * np.fft.rfftfreq(len(t), 1 / fs)
     xdd = np.fft.irfft(-(w ** 2)[:, None] * np.fft.rfft(xb, axis=0), n=len(t), axis=0)    # x'', exact in band
-    R_x, R_a = np.zeros((n, n)), np.zeros((n, n))      # [channel, valve]
-    slots = []
-    for j in range(n):
-        t0 = quiet_s + j * slot_s + lead_s
-        sl = (t > t0 + 0.1) & (t < t0 + slot_s - 2 * lead_s - 0.1)
-        slots.append(sl)
-        R_x[:, j] = np.sqrt((xb[sl] ** 2).mean(axis=0))
-        R_a[:, j] = np.sqrt((rb[sl] ** 2).mean(axis=0))
+    slots, R_x, R_a = _responses(t, xb, rb, quiet_s, slot_s, lead_s)
     stroke_of, accel_of = channel_map(R_x), channel_map(R_a)     # the channel answering valve j
     mount_of = valve_map(stroke_of, accel_of)                   # the mount valve j moves (swapped CAN nodes)
     scale, gain = _scale_and_gain(names, slots, xdd, rb, cb, xb, stroke_of, accel_of, fs, dc_gain_m_per_V)
@@ -326,22 +477,27 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
     units = {m: 1.0 if m in dead_x else stroke_unit(gain[m], scale[m], _gain_ref(gain, m, dead_x)) for m in names}
     for m in names:                     # judged against the stroke as calibrated: its unit and sign put right
         gain[m] *= units[m]
-        scale[m] = 1.0 if m in dead_x else scale[m] / units[m] * (1.0 if gain[m] >= 0 else -1.0)
+    _against_stroke(scale, gain, units, dead_x)
+    flo, floor_in = None, dict(scale)
+    if floor is not None and n > 1:     # the floor checked against the table, then taken out of it (floor_pass)
+        flo, scale_raw = floor_pass(names, fs, t >= t[quiet].min(), slots, rb, xdd, _band(floor, fs), cb, xb,
+                                    accel_of, stroke_of, mount_of, scale, gain, units, channels, dc_gain_m_per_V,
+                                    dead_x)
+        scale.update(scale_raw)
+        _against_stroke(scale, gain, units, dead_x)
     verdicts, findings = _verdicts(names, R_a, R_x, accel_of, stroke_of, scale, gain, channels, mount_of, med_x)
     fix = {"accel": {names[accel_of[j]]: correction(scale[m]) if SCALE_FIX[0] <= abs(scale[m]) <= SCALE_FIX[1]
                      else 1.0 for j, m in enumerate(names)},
            "stroke": {names[stroke_of[j]]: units[m] for j, m in enumerate(names)}}
+    cal = _sensor_calibration(names, accel_of, stroke_of, mount_of, scale, gain, units, channels)
     named = sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_x, verdicts, findings, fix,
-                            null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0)
+                            null_window_m=NULL_MAX_V * abs(dc_gain_m_per_V) if steps is not None else 0.0,
+                            floor_of=flo["floor_of"] if flo else None)
+    if flo is not None:
+        named |= floor_checks(names, flo, channels, cal, verdicts, findings, named, mount_of,
+                              floor[t >= t[quiet].min()].mean(axis=0))
     faults = sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, named)
     scale.update({m: scale_raw[m] for m in dead_x})
-    cal = {"accel": {names[accel_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if scale[m] >= 0 else -1.0,
-                                          "scale": correction(scale[m]),
-                                          "offset_mps2": channels["accel"][names[accel_of[j]]]["offset_mps2"]}
-                     for j, m in enumerate(names)},
-           "stroke": {names[stroke_of[j]]: {"mount": names[mount_of[j]], "sign": 1.0 if gain[m] >= 0 else -1.0, "scale": units[m],
-                                            "offset_m": channels["stroke"][names[stroke_of[j]]]["offset_m"]}
-                      for j, m in enumerate(names)}}
     _no_correction_of_refused(cal, verdicts, accel_of, stroke_of, names)
     valves = valve_checks(names, t, x, cmd, quiet, steps, stroke_of, mount_of, cal, dc_gain_m_per_V, D) \
         if steps is not None else None
@@ -356,6 +512,8 @@ def analyse(rec: dict, names, fs: float, quiet_s: float, slot_s: float, lead_s: 
             "accel_of_valve": [names[i] for i in accel_of], "accel_scale": scale, "valve_gain_vs_model": gain,
             "valves": valves, "verdicts": verdicts, "findings": findings, "faults": faults, "calibration": cal,
             "band_hz": list(BAND_HZ), "all_ok": all(v == "ok" for v in verdicts.values()),
+            **({"floor_scale": flo["scale"], "floor_of_mount": [names[k] for k in flo["floor_of"]],
+                "floor_response": flo["H"].tolist(), "accel_scale_floor_in": floor_in} if flo else {}),
             **({"notes": alone_notes(channels, floor is not None)} if n == 1 else {})}
 
 
@@ -612,6 +770,11 @@ def text(res: dict) -> str:
                      f"{ch['accel'][m]['offset_mps2'] * 1e3:+.2f} mm/s^2); transducer {s} (stroke/command {where} "
                      f"{res['valve_gain_vs_model'][m]:+.2f} x the model's DC gain, noise "
                      f"{ch['stroke'][m]['noise_rms_m'] * 1e9:.1f} nm rms)")
+    for m, k in zip(res["mounts"], res.get("floor_of_mount") or ()):
+        f = res["channels"]["floor"][k]
+        lines.append(f"{m}: floor accelerometer {res['verdicts'][f'floor:{m}']} (channel mapped to {k}, scale "
+                     f"{res['floor_scale'][m]:+.3f} against the table less its stroke's x'', noise "
+                     f"{f['noise_rms_mps2'] * 1e3:.2f} mm/s^2 rms, offset {f['offset_mps2'] * 1e3:+.2f} mm/s^2)")
     for m, v in (res.get("valves") or {}).items():
         null = "not judged (its transducer's own offset)" if v["null_V"] is None else f"{v['null_V']:+.3f} V"
         lines.append(f"{m}: valve {res['verdicts'][f'valve:{m}']} (DC gain {v['dc_gain_vs_model']:.2f} x the model's, "
@@ -639,11 +802,16 @@ def plot(res: dict, rec: dict, mount: str, path) -> None:
     import matplotlib.pyplot as plt
     names = res["mounts"]
     j = names.index(mount)
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    floor = res.get("floor_response")
+    fig, ax = plt.subplots(1, 3 if floor else 2, figsize=(13.5 if floor else 9, 3.5))
     ax[0].bar(names, [r[j] * 1e6 for r in res["stroke_response_m"]])
     ax[0].set_title(f"valve {mount}: stroke response (um rms, {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)")
     ax[1].bar(names, [r[j] for r in res["accel_response_mps2"]])
     ax[1].set_title(f"accelerometer response (m/s^2 rms); scale {res['accel_scale'][mount]:+.3f}")
+    if floor:                # each floor channel against the floor under this mount (the table less its x'')
+        ax[2].bar(names, [r[j] for r in floor])
+        ax[2].axhline(1.0, color="k", lw=0.5)
+        ax[2].set_title(f"floor channels against the floor under {mount}; scale {res['floor_scale'][mount]:+.3f}")
     for a in ax:
         a.tick_params(axis="x", labelrotation=30)
     fig.tight_layout()

@@ -138,6 +138,7 @@ def run(args) -> int:
     clock = SimClock() if args.backend == "sim" else MonotonicClock()
     with Session(cfg, args.backend, controllers=ctrls, clock=clock, rate_hz=rate, isolation=True, names=names,
                  record=rec_path, record_attrs={"command": "rig commission"}, signals=True,
+                 record_floor=cfg.sensors.floor_accel,      # the floor accelerometers, checked against the table
                  realtime=args.backend != "sim" and cfg.loop.realtime) as s:
         if args.backend == "hil":
             time.sleep(0.2)          # the I/O processes refresh their samples after the set-up pause

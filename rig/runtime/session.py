@@ -64,7 +64,10 @@ class Session:
     Floor feedforward ([sensors] floor_accel, isolation controllers on every mount): built into the loop's
     period (controllers/feedforward.py, [controller] ff_*), off at the start unless feedforward=True; the
     isolation mode (off / feedback / feedback_feedforward, not an operating mode) switches live
-    (request_isolation_mode). feedforward=True without floor sensors raises ConfigError."""
+    (request_isolation_mode). feedforward=True without floor sensors raises ConfigError. record_floor: the floor
+    accelerometers in the loop and its recording whatever the controllers (`rig commission` checks them against
+    the table): without isolation controllers on every mount the feedforward's filters are built switched off and
+    stay off (feedback_feedforward is refused), so the commands are the controllers' own."""
 
     def __init__(self, cfg: Config, backend: str = "sim", *, controllers=None, clock=None,
                  rate_hz: float | None = None, port_options: dict | None = None, isolation: bool = True,
@@ -73,7 +76,8 @@ class Session:
                  rate_check: bool = True, stability_check: bool = False, record=None,
                  record_attrs: dict | None = None, columns: "Columns | None" = None,
                  realtime: bool = False, signals: bool = False, status: bool = False,
-                 control_file: str | None = None, mode=None, script=None, feedforward: bool = False) -> None:
+                 control_file: str | None = None, mode=None, script=None, feedforward: bool = False,
+                 record_floor: bool = False) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clock = clock if clock is not None else MonotonicClock()
@@ -85,9 +89,11 @@ class Session:
         self._loop_kw = dict(isolation=isolation, overrun_policy=overrun_policy, names=names,
                              keep_timing=keep_timing, stop_on_fault=stop_on_fault, watchdog_thread=watchdog_thread,
                              rate_check=rate_check, feedforward_on=bool(feedforward))
-        if feedforward and not cfg.sensors.floor_accel:
-            raise ConfigError(f"{cfg.source}: the floor feedforward needs floor accelerometers: "
-                              f"sensors.floor_accel = true")
+        for asked, what in ((feedforward, "the floor feedforward"), (record_floor, "recording the floor")):
+            if asked and not cfg.sensors.floor_accel:
+                raise ConfigError(f"{cfg.source}: {what} needs floor accelerometers: sensors.floor_accel = true")
+        self._record_floor = bool(record_floor)
+        self._floor_only = False         # the feedforward built for the recording only (it cannot be switched on)
         self.record = record
         self._record_attrs = dict(record_attrs or {})
         self.columns = columns
@@ -194,10 +200,14 @@ class Session:
     def _feedforward(self, ctrls) -> list | None:
         """The floor feedforward filters, one per mount: with floor accelerometers and isolation controllers
         on every mount (other kinds run without it)."""
-        if not self.cfg.sensors.floor_accel or not all(getattr(c, "kind", None) == _isolation.KIND for c in ctrls):
+        isolating = all(getattr(c, "kind", None) == _isolation.KIND for c in ctrls)
+        if not self.cfg.sensors.floor_accel or not (isolating or self._record_floor):
             if self._loop_kw["feedforward_on"]:
                 raise ConfigError("Session: feedforward=True needs isolation controllers on every mount")
             return None
+        if not isolating and self._loop_kw["feedforward_on"]:
+            raise ConfigError("Session: feedforward=True needs isolation controllers on every mount")
+        self._floor_only = not isolating
         names = self._names(ctrls) or mount_names(len(ctrls))
         return make_feedforward_filters(self.cfg, self.dt, names=tuple(names))
 
@@ -293,6 +303,9 @@ class Session:
     def request_isolation_mode(self, mode: str) -> None:
         """off / feedback / feedback_feedforward, bumpless, at the next period boundary
         (rig.runtime.gate.ISOLATION_MODES; not an operating mode: request_mode)."""
+        if mode == "feedback_feedforward" and self._floor_only:
+            raise ValueError("isolation mode feedback_feedforward: the floor is recorded here, its feedforward "
+                             "runs with isolation controllers only")
         self.loop.request_isolation_mode(mode)
 
     def reset_fault(self) -> None:

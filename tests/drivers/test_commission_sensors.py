@@ -50,6 +50,14 @@ def _sensors(res) -> dict:
     return {k: v for k, v in res["verdicts"].items() if not k.startswith("valve:")}
 
 
+def _floor_ok(*mounts) -> dict:
+    return {f"floor:{m}": "ok" for m in mounts}
+
+
+def _floor_unchecked(*mounts) -> dict:
+    return {f"floor:{m}": "unchecked" for m in mounts}
+
+
 def _valves(res) -> dict:
     return {k: v for k, v in res["verdicts"].items() if k.startswith("valve:")}
 
@@ -74,7 +82,10 @@ def test_range_slip_offsets_dead_and_noisy_channels(tmp_path):
     assert _sensors(first) == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
                                f"accel:{FR}": "refused", f"stroke:{FR}": "ok",
                                f"accel:{RL}": "refused", f"stroke:{RL}": "corrected",
-                               f"accel:{RR}": "corrected", f"stroke:{RR}": "refused"}
+                               f"accel:{RR}": "corrected", f"stroke:{RR}": "refused",
+                               # the floor under a mount whose accelerometer or transducer is refused: nothing to
+                               # hold it against
+                               **_floor_ok(FL), **_floor_unchecked(FR, RL, RR)}
     assert _faults(first) == {(f"stroke:{FL}", "scale"), (f"accel:{FR}", "dead"), (f"accel:{RL}", "noisy"),
                               (f"stroke:{RL}", "offset"), (f"stroke:{RR}", "noisy"), (f"accel:{RR}", "offset")}
     text = first["text"]
@@ -108,7 +119,8 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
     assert _sensors(first) == {f"accel:{FL}": "ok", f"stroke:{FL}": "corrected",
                                f"accel:{FR}": "ok", f"stroke:{FR}": "corrected",
                                f"accel:{RL}": "ok", f"stroke:{RL}": "corrected",
-                               f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused"}
+                               f"accel:{RR}": "unchecked", f"stroke:{RR}": "refused",
+                               **_floor_ok(FL, FR, RL), **_floor_unchecked(RR)}
     # the valves judged through their strokes as found (swapped, inverted); the dead one's valve is not judged
     assert _valves(first) == {f"valve:{FL}": "ok", f"valve:{FR}": "ok", f"valve:{RL}": "ok", f"valve:{RR}": "unchecked"}
     assert _faults(first) == {(f"stroke:{FL}", "swap"), (f"stroke:{FR}", "swap"), (f"stroke:{RL}", "sign"),
@@ -121,7 +133,7 @@ def test_swapped_inverted_and_dead_transducers(tmp_path):
     cal = first["toml"]
     assert cal["stroke"][FR]["mount"] == FL and cal["stroke"][RL]["sign"] == -1.0
     assert _sensors(second) == {**{k: "ok" for k in _sensors(first)}, f"accel:{RR}": "unchecked",
-                                f"stroke:{RR}": "refused"}
+                                f"stroke:{RR}": "refused", **_floor_unchecked(RR)}
     assert second["stroke_of_valve"][:3] == [FL, FR, RL] and second["valve_gain_vs_model"][RL] > 0
 
 
@@ -151,8 +163,8 @@ def test_an_accelerometer_ranged_1000_x_too_coarse_is_refused_not_corrected(tmp_
     run, out = _commission(tmp_path / "c", "--config", str(cfg))
     assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
     res = json.loads(run.stdout)
-    assert _sensors(res) == {**{f"{k}:{m}": "ok" for k in ("accel", "stroke") for m in (FL, FR, RL, RR)},
-                             f"accel:{RL}": "refused"}, res["findings"]
+    assert _sensors(res) == {**{f"{k}:{m}": "ok" for k in ("accel", "stroke", "floor") for m in (FL, FR, RL, RR)},
+                             f"accel:{RL}": "refused", **_floor_unchecked(RL)}, res["findings"]
     assert abs(res["accel_scale"][RL]) < 0.01
     assert any(f.startswith(f"accelerometer on {RL}: scale") and "range 1000 x too coarse" in f
                for f in res["findings"])

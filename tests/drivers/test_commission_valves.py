@@ -46,13 +46,11 @@ def test_valve_faults_are_named_on_their_valves_and_the_calibration_puts_them_ri
     run = _commission(cfg, tmp_path / "first")
     assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
     res = json.loads(run.stdout)
-    flagged = {k: v for k, v in res["verdicts"].items() if v != "ok"}
-    valves = {f"valve:{m}" for m in MOUNTS}
-    assert valves <= set(flagged)
-    # the weak valve moves its own mount half as much, so the other mounts' motion weighs twice in its
-    # accelerometer's scale against x'': it scatters there (docs/COMMISSIONING.md, "A weak valve's accelerometer").
-    # Refused at worst (commission again), never corrected: no calibration may come of it
-    assert set(flagged) - valves <= {"accel:front_right"} and flagged.get("accel:front_right", "refused") == "refused"
+    assert {k for k, v in res["verdicts"].items() if v != "ok"} == {f"valve:{m}" for m in MOUNTS}
+    # the weak valve moves its own mount half as much, so the floor's motion weighed twice in its accelerometer's
+    # scale against x'' (0.73-1.09 over six runs); with the floor taken out, 1.005-1.032 (docs/COMMISSIONING.md,
+    # "A weak valve's accelerometer")
+    assert res["accel_scale"]["front_right"] == pytest.approx(1.0, abs=0.15)
     v = res["valves"]
     assert v["front_left"]["null_V"] == pytest.approx(0.3, abs=0.05)
     assert v["front_right"]["dc_gain_vs_model"] / v["front_left"]["dc_gain_vs_model"] == pytest.approx(0.5, abs=0.1)

@@ -220,3 +220,30 @@ def test_floor_accelerometers_without_the_feedforward():
             s.loop.cycle(p * s.loop.period_ns)
             p += 3 if p % 50 == 0 else 1                   # skipped periods: older conversions handed over
         assert s.loop.state is State.ACTIVE
+
+
+def test_record_floor_records_the_floor_with_any_controllers_and_leaves_their_commands_alone(tmp_path):
+    """`rig commission`'s open-loop playback with the floor accelerometers recorded (record_floor): the floor in
+    the recording as the port read it, the commands the playback's own to the bit (the feedforward's filters run
+    switched off, and cannot be switched on); the same run without it records no floor (nothing else changes)."""
+    from controllers.playback import SignalPlayback
+    sig = list(np.sin(np.arange(400) * 0.05))
+
+    def run(path, **kw):
+        ctrls = [SignalPlayback(sig, DT, name=m) for m in MOUNTS]
+        with Session(FLOOR, "sim", clock=SimClock(), controllers=ctrls, record=path, **kw) as s:
+            s.run(iterations=600, activate_after_s=0.02)
+            if kw:
+                with pytest.raises(ValueError, match="feedforward runs with isolation controllers only"):
+                    s.request_isolation_mode("feedback_feedforward")
+                assert not s.control("feedback_feedforward", "test")          # refused in one line
+        return read_recording(path)
+
+    with_floor, without = run(tmp_path / "floor.h5", record_floor=True), run(tmp_path / "plain.h5")
+    assert "floor_accel_mps2" not in without
+    floor = np.asarray(with_floor["floor_accel_mps2"])
+    assert floor.shape == (600, 4) and np.all(floor.std(axis=0) > 0)          # each mount's floor, moving
+    assert np.array_equal(with_floor["valve_cmd_V"], without["valve_cmd_V"])    # the playback's commands alone
+    assert np.abs(with_floor["valve_cmd_V"]).max() > 0.5 and not np.any(with_floor["ff_cmd_V"])
+    with pytest.raises(ConfigError, match="recording the floor needs floor accelerometers"):
+        Session(Config(), "sim", clock=SimClock(), record_floor=True)

@@ -1,0 +1,109 @@
+"""The floor accelerometers in `rig commission`: each checked against the table (table = floor + stroke at its
+mount), on the emulated rig over the real drivers (Modbus TCP on 127.0.0.1, the DTA-4 on a real pty, the valves
+through the canopen stack) with floor wiring faults from [hil] (drivers/devicemaps/hil_wiring_faults.md: AI ch4-7):
+front_left's floor accelerometer inverted, rear_left's and rear_right's swapped. Each named on its floor channel
+with its mount, nothing else named; the calibration's [floor.*] tables applied by the drivers, `rig hil` through
+them gains from the floor feedforward, and commissioning the same miswired rig again finds every channel ok. A rig
+wired right names nothing on its floor channels (the simulated backend, and the miswired rig through its
+calibration)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pytest
+
+from tests.drivers.test_commission import _commission as _commission_sim
+from tests.hosttiming import skip_unless_on_time
+from tests.drivers.test_commission_valves import _commission
+
+from drivers import build_driver_port, conversion
+from rig import commissioning
+from rig.commands.commission import EXIT_FINDINGS
+from rig.commands.hil import HIL_DEFAULT_CONFIG
+from rig.config import MOUNTS, Config
+
+FL, FR, RL, RR = MOUNTS
+FLOOR_FAULTS = "ai_source = [0, 1, 2, 3, 4, 5, 7, 6]\nai_factor = [1.0, 1.0, 1.0, 1.0, -1.0, 1.0, 1.0, 1.0]\n"
+
+
+def _floor(res) -> dict:
+    return {k: v for k, v in res["verdicts"].items() if k.startswith("floor:")}
+
+
+@pytest.mark.hil
+def test_an_inverted_and_two_swapped_floor_accelerometers_are_named_and_corrected(tmp_path):
+    cfg = tmp_path / "floor.toml"
+    cfg.write_text(HIL_DEFAULT_CONFIG.read_text().replace("[hil]\n", "[hil]\n" + FLOOR_FAULTS, 1))
+    run = _commission(cfg, tmp_path / "first")
+    assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
+    res = json.loads(run.stdout)
+    assert {k: v for k, v in res["verdicts"].items() if v != "ok"} == {
+        f"floor:{FL}": "corrected", f"floor:{RL}": "corrected", f"floor:{RR}": "corrected"}
+    assert {(f["channel"], f["kind"]) for f in res["faults"]} == {
+        (f"floor:{FL}", "sign"), (f"floor:{RR}", "swap"), (f"floor:{RL}", "swap")}
+    assert res["floor_of_mount"] == [FL, FR, RR, RL]
+    assert res["floor_scale"][FL] == pytest.approx(-1.0, abs=commissioning.SCALE_TOL)
+    assert all(res["floor_scale"][m] == pytest.approx(1.0, abs=commissioning.SCALE_TOL) for m in (FR, RL, RR))
+    text = (tmp_path / "first" / "report.txt").read_text()
+    assert f"floor accelerometer under {FL} (channel mapped to {FL}): sign inverted" in text
+    assert f"floor accelerometers swapped: the floor under {RL} is read by the channel mapped to {RR}" in text
+    cal = tomllib.loads((tmp_path / "first" / "commissioning.toml").read_text())["floor"]
+    assert cal[FL]["sign"] == -1.0 and cal[RR]["mount"] == RL and cal[RL]["mount"] == RR
+    assert all(cal[m]["scale"] == 1.0 for m in MOUNTS)
+    assert all(cal[m]["offset_mps2"] == 0.0 for m in MOUNTS)      # none named: the floor's own motion is no offset
+    # the calibration applied by the drivers ([drivers] calibration): the same miswired rig reads right
+    fixed = tmp_path / "calibrated.toml"
+    fixed.write_text(cfg.read_text() + f'\n[drivers]\ncalibration = "{tmp_path / "first" / "commissioning.toml"}"\n')
+    # `rig hil` through it: the floor feedforward, fed the floor as calibrated, adds isolation (an inverted or a
+    # swapped floor channel would feed the floor's motion forward the wrong way)
+    hil = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert hil.returncode == 0, hil.stderr[-3000:]
+    skip_unless_on_time(hil)
+    figs = json.loads(hil.stdout)
+    assert figs["harm"] is None and figs["feedforward_reduction_db"] > figs["isolation_reduction_db"] + 1.0, figs
+    again = _commission(fixed, tmp_path / "again")
+    assert again.returncode == 0, again.stderr[-3000:] + again.stdout[-2000:]
+    res2 = json.loads(again.stdout)
+    assert res2["all_ok"] and not res2["faults"] and res2["floor_of_mount"] == list(MOUNTS)
+    assert all(s == pytest.approx(1.0, abs=commissioning.SCALE_TOL) for s in res2["floor_scale"].values())
+
+
+def test_a_rig_wired_right_names_nothing_on_its_floor_channels(tmp_path):
+    run, out = _commission_sim(tmp_path, "--backend", "sim")
+    assert run.returncode == 0, run.stderr[-3000:]
+    res = json.loads(run.stdout)
+    assert _floor(res) == {f"floor:{m}": "ok" for m in MOUNTS} and res["floor_of_mount"] == list(MOUNTS)
+    H = np.asarray(res["floor_response"])           # each channel answers its own mount's floor most
+    assert np.all(np.argmax(np.abs(H), axis=1) == np.arange(4)) and np.all(np.abs(np.diag(H) - 1) < 0.15)
+    assert "floor accelerometer ok" in (out / "report.txt").read_text()
+
+
+def test_the_drivers_apply_the_floor_table(tmp_path):
+    """[floor.<channel>] as `rig commission` writes it, in the analog module's conversion the drivers build (AI
+    ch4-7, drivers/__init__.py): the swapped pair read back in mount order, the inverted one's sign put right, its
+    offset taken off; the mount accelerometers (AI ch0-3) untouched."""
+    (tmp_path / "commissioning.toml").write_text(
+        f'[floor.{FL}]\nmount = "{FL}"\nsign = -1.0\nscale = 1.0\noffset_mps2 = 0.01\n'
+        f'[floor.{RL}]\nmount = "{RR}"\nsign = 1.0\nscale = 1.0\noffset_mps2 = 0.0\n'
+        f'[floor.{RR}]\nmount = "{RL}"\nsign = 1.0\nscale = 1.0\noffset_mps2 = 0.0\n')
+    base = Config().replace(sensors=dataclasses.replace(Config().sensors, floor_accel=True))
+    cfg = base.replace(drivers=dataclasses.replace(base.drivers, calibration=str(tmp_path / "commissioning.toml")))
+    ports = [build_driver_port(c, "hardware", can_interface="virtual", can_channel="never", modbus_host="127.0.0.1",
+                               modbus_port=1, serial_port="/nonexistent/tty", stale_s=0.1) for c in (base, cfg)]
+    try:
+        plain, fixed = ([conversion.from_dict(s["channels"]) for s in p.specs if s["kind"] == "analog"][0]
+                        for p in ports)
+    finally:
+        for p in ports:
+            p.close()
+    assert fixed[:4] == plain[:4]
+    assert [c.source for c in fixed[4:]] == [4, 5, 7, 6]
+    raw = [0.0] * 4 + [2.0, 2.0, 3.0, 4.0]
+    g = plain[4].gain
+    assert conversion.apply(fixed[4:], raw) == pytest.approx([-2 * g + 0.01, 2 * g, 4 * g, 3 * g])
