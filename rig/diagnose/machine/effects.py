@@ -243,7 +243,7 @@ def worth_naming(effect: Effect, params: dict) -> bool:
 
 
 def shortfall(effect: Effect, params: dict) -> str:
-    """"" if the effect is worth naming, else one line saying why not."""
+    """Empty if the effect is worth naming, else one line saying why not."""
     if worth_naming(effect, params):
         return ""
     return f"its size {effect.size(params):.3g} is below {effect.least:g}: within {effect.tolerance}"
