@@ -65,6 +65,14 @@ def _smallest(lam: float, needed: float, size: float, unit: str) -> float:
     return size * k
 
 
+def _least(eff: fx.Effect, unit: str) -> float:
+    """The effect's least size worth naming (effects.Effect.least) in the unit of its smallest size: below it
+    nothing is named, however strong the evidence (a relative least for a "%" size)."""
+    if eff.size is None:
+        return 0.0
+    return 100 * eff.least if unit == "%" else eff.least
+
+
 def detectability(rp: Replay, th: dict, mask: np.ndarray, U_of, ctx, *, rp_floor: Replay | None = None) -> list:
     """Per instance of the replay's catalogue (valve effects included whether the valves moved or not)."""
     at = rp.evaluate(th, mask, U=U_of(th))
@@ -81,6 +89,7 @@ def detectability(rp: Replay, th: dict, mask: np.ndarray, U_of, ctx, *, rp_floor
         if at_f is not None:
             lam_f = float(np.sum(np.abs(rp_floor.linear(th1, at_f, U=U_of(th1)) - at_f.r) ** 2))
             with_floor = _smallest(lam_f, max(MIN_GAIN * at_f.rss, needed), size, unit)
-        out.append(Detectability(inst.key, inst.effect.name, inst.location, _smallest(lam, needed, size, unit),
-                                 unit, with_floor))
+        least = _least(inst.effect, unit)
+        out.append(Detectability(inst.key, inst.effect.name, inst.location, max(_smallest(lam, needed, size, unit),
+                                 least), unit, None if with_floor is None else max(with_floor, least)))
     return out

@@ -78,6 +78,9 @@ class Effect:
                                 # added), for what a recording can tell (detect.py)
     started: bool = False       # its start is the engine's own search (the extra mode), not a grid
     shared_place: bool = False  # a second one of it in a case may sit where the first does (proof)
+    size: Callable | None = None    # parameters as reported -> the size compared with `least` (None: any size)
+    least: float = 0.0          # the least size worth naming: below it the part is within its own tolerance
+    tolerance: str = ""         # what `least` stands for (for the report)
 
 
 def _mode_instances(key: str, lo: float, hi: float):
@@ -183,7 +186,11 @@ MOUNT_DAMPING = Effect(
 SENSOR_GAIN = Effect(
     "sensor_gain", "gain", "sensor", (Param("gain", "", -10.0, 10.0),),
     "one channel reads the replay scaled (a sign reversed: opposite phase) in every band where it is seen",
-    _sensor_instances, _report_gain, _say_gain, grid=(-1.0, 0.8, 1.25), typical=(1.1, "%"))
+    _sensor_instances, _report_gain, _say_gain, grid=(-1.0, 0.8, 1.25), typical=(1.1, "%"),
+    # a sensitivity is known to its calibration's uncertainty: a back-to-back comparison (ISO 16063-21) gives an
+    # accelerometer's to 1-2 %, a displacement transducer's gain is known to about 1 %; a sign reversed is a fault
+    size=lambda p: math.inf if p["gain"] < 0 else abs(p["gain"] - 1.0), least=0.02,
+    tolerance="a sensor's calibration uncertainty (1-2 %)")
 TRANSPORT_DELAY = Effect(
     "transport_delay", "delay", "valve", (Param("delay_s", "s", 0.0, 0.01),),
     "one valve's response lags the others' by a phase growing with frequency (-w tau)",
@@ -200,14 +207,17 @@ VALVE_NULL_OFFSET = Effect(
     "valve_null_offset", "null", "valve", (Param("offset_V", "V", -10.0, 10.0),),
     "from rest, one actuator drifts with its valve at null, and holds a mean command to stay centred",
     say=lambda p: f"{p['mount']}: valve null offset {p['offset_V']:+.3f} V (+-{p['se_V']:.3f})",
-    margins_note="a constant at the valve")
+    margins_note="a constant at the valve",
+    size=lambda p: abs(p["offset_V"]), least=0.03, tolerance="a valve's null tolerance (V)")
 FLOOR_ROCKING = Effect(
     "floor_rocking", "rocking", "floor", (Param("rocking_over_heave", "", 0.0, 10.0),),
     "the floor's front mounts move against its rear (pitch) or its left against its right (roll), coherently, "
     "beyond the independent motion the model assumes",
     say=lambda p: (f"the floor rocks ({p['axis']}): its rocking {p['rocking_over_heave']:.2f} of its heave, "
                    f"{p['ratio']:.1f}x the twist's power"),
-    margins_note="the floor is the loop's input, not part of it", shared_place=True)
+    margins_note="the floor is the loop's input, not part of it", shared_place=True,
+    size=lambda p: p["ratio"], least=1.6,       # a third more in rms than twist
+    tolerance="the share independent motion at the mounts puts into pitch or roll (as much as into twist)")
 
 REPLAY_EFFECTS = (MODE_FREQUENCY, MODE_DAMPING, EXTRA_MODE, MOUNT_STIFFNESS, MOUNT_DAMPING, SENSOR_GAIN,
                   TRANSPORT_DELAY, VALVE_DEADBAND)
@@ -224,6 +234,19 @@ def instances(ctx, *, valves_driven: bool) -> list[Instance]:
 def parameters(inst: Instance, th: dict, ctx) -> dict:
     """The instance's parameters as reported (physical units)."""
     return inst.effect.report(inst, th, ctx)
+
+
+def worth_naming(effect: Effect, params: dict) -> bool:
+    """Whether the effect's size reaches the least worth naming (its `least`): a smaller one is within the
+    part's tolerance, not a fault, however sure the fit is of it."""
+    return effect.size is None or effect.size(params) >= effect.least
+
+
+def shortfall(effect: Effect, params: dict) -> str:
+    """Empty if the effect is worth naming, else one line saying why not."""
+    if worth_naming(effect, params):
+        return ""
+    return f"its size {effect.size(params):.3g} is below {effect.least:g}: within {effect.tolerance}"
 
 
 def describe(name: str, params: dict) -> str:

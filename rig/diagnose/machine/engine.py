@@ -31,6 +31,7 @@ from rig.diagnose.machine.weights import expected, inflated, inflation
 
 MAX_EFFECTS = 2
 FULL_FITS = 4                   # candidates fitted jointly with the refit after the screen
+MAX_FITS = 2 * FULL_FITS        # with those refused below their least size (effects.Effect.least) fitted in place
 EXPLAINED = 1.25                # held-out whitened residual power over what the right model leaves, in every
                                 # channel and band (spectra.BANDS_HZ): below it nothing is left to explain
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
@@ -318,10 +319,13 @@ def select(ctx: Context, th_refit: dict, progress=None, prior: Selection | None 
         ranked = screen(ctx, th, exclude)
         screened_all += [(i.key, v, r, step) for i, v, r in ranked]
         say(f"round {step + 1}: screened {len(ranked)} candidates; best {ranked[0][0].key if ranked else '-'}")
-        todo = ranked[:FULL_FITS] + [x for x in ranked[FULL_FITS:] if x[0].effect.started]
         slots = list(latency) + [s for t in chosen for s in t.instance.slots]
         best = None
-        for inst, value, _ in todo:
+        counted = fits = 0
+        for inst, value, _ in ranked:
+            if (counted >= FULL_FITS or fits >= MAX_FITS) and not inst.effect.started:
+                continue
+            fits += 1
             mode_like = inst.effect.where in ("mode", "machine")     # the modes' common damping trades with it
             res = fit_candidate(ctx, th, inst, value, slots + ([MODAL_ZETA] if mode_like else []))
             rf, rh = res.ev.rss, _rss(ctx, res.th, ctx.sp.hold)
@@ -333,12 +337,18 @@ def select(ctx: Context, th_refit: dict, progress=None, prior: Selection | None 
             faint = t.tests["passed"] and t.tests["over_fidelity"] < OVER_FIDELITY
             if faint:
                 t.tests["passed"] = False
+            small = fx.shortfall(inst.effect, fx.parameters(inst, res.th, ctx))
+            if small:                   # not a full fit spent: the next candidate is fitted in its place
+                t.tests.update(passed=False, below_least=small)
+            else:
+                counted += 1
             tried.append(t)
             say(f"  {inst.key}: held-out residual cut {100 * t.tests['holdout_gain']:.1f} %, LR "
                 f"{t.tests['lr_holdout']:.0f} (needs {t.tests['lr_needed']:.0f}), change "
                 f"{t.tests['over_fidelity']:.2g} x the model's fidelity{' - passes' if t.tests['passed'] else ''}"
                 + (f" (its {pinned} at the bound of its range: not a measurement)" if pinned else "")
-                + (" (it moves the replay by less than twice the model's own fidelity: not told from it)" if faint else ""))
+                + (" (it moves the replay by less than twice the model's own fidelity: not told from it)" if faint else "")
+                + (f" ({small}: not a fault)" if small else ""))
             if t.tests["passed"] and (best is None or t.tests["lr_holdout"] > best.tests["lr_holdout"]):
                 best = t
         if best is None:
@@ -378,6 +388,14 @@ def polish(sel: Selection, progress=None) -> Selection:
         slots = base_slots + [s for t in chosen for s in t.instance.slots]
         return fit(ctx.rp, th, slots, ctx.sp.fit, U_of=u_of(ctx), max_nfev=20).th
     th = polished(sel.chosen, sel.th_final)
+    for t in sel.chosen:                # polished below its least size: within its part's tolerance after all
+        small = fx.shortfall(t.instance.effect, fx.parameters(t.instance, th, ctx))
+        if small:
+            say(f"{t.instance.key}: polished, {small}: dropped")
+            sel.chosen = [c for c in sel.chosen if c is not t]
+            sel.dropped.append(t)
+            th = polished(sel.chosen, without_effect(th, t.instance, ctx.base))
+            break
     if len(sel.chosen) > 1:
         full_fit, full_hold = _rss(ctx, th, ctx.sp.fit), _rss(ctx, th, ctx.sp.hold)
         for t in list(sel.chosen):

@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rig.diagnose.machine.effects import FLOOR_ROCKING, worth_naming
 from rig.diagnose.machine.rigmodel import predict, modal, responses
 from rig.diagnose.machine.residual import Replay
 
 PATTERNS = {"heave": np.array([1, 1, 1, 1]) / 2, "pitch": np.array([1, 1, -1, -1]) / 2,
             "roll": np.array([1, -1, 1, -1]) / 2, "twist": np.array([1, -1, -1, 1]) / 2}
 BAND_HZ = (1.0, 50.0)           # the floor's band (the paper's 1-50 Hz)
-MIN_RATIO = 1.6                 # rocking: its pattern's power over twist's at least this (a third more in rms)
 MIN_Z = 6.0
 
 
@@ -43,7 +43,7 @@ class FloorMotion:
 
     @property
     def rocking(self) -> bool:
-        return self.ratio >= MIN_RATIO and self.z >= MIN_Z
+        return worth_naming(FLOOR_ROCKING, {"ratio": self.ratio}) and self.z >= MIN_Z
 
 
 def floor_estimate(rp: Replay, th: dict, U=None) -> np.ndarray:

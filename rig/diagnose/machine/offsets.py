@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig.config import MOUNTS
+from rig.diagnose.machine.effects import VALVE_NULL_OFFSET, worth_naming
 from rig.recordings.runfile import RunRecording
 
-MIN_OFFSET_V = 0.03             # smaller offsets are within a valve's null tolerance
 MIN_T = 6.0                     # offset / its standard error to stand out
 SETTLE_S = 2.0                  # the centring's and the filters' start left out
 START_ROWS = 5                  # the first rows: the run's start at rest
@@ -41,7 +41,7 @@ class MountOffset:
 
     @property
     def stands_out(self) -> bool:
-        return abs(self.offset_V) >= MIN_OFFSET_V and self.t >= MIN_T
+        return worth_naming(VALVE_NULL_OFFSET, {"offset_V": self.offset_V}) and self.t >= MIN_T
 
     @property
     def transducer_zero(self) -> bool:
