@@ -128,13 +128,13 @@ def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
     period boundary at or after them, as the lockstep run switches); each metered from settle_s into its share
     (the emulated plant's phase, per plant step) to its end, the last one to settle_s before the run's end
     (as hil_lockstep meters: no window at the band filter's edge)."""
+    from rig.commands.hil_lockstep import windows
     share = seconds / len(modes)
-    for k, mode in enumerate(modes):
+    for k, (mode, (t0, t1)) in enumerate(zip(modes, windows(seconds, modes, settle_s))):
         if k:
             loop.gate.schedule(k * share, lambda m=mode: loop.request_isolation_mode(m))
-        loop.gate.schedule(k * share + settle_s, lambda m=mode: rig.phase(m))
-        end = (k + 1) * share - (settle_s if k == len(modes) - 1 else 0.0)
-        loop.gate.schedule(end - 0.5 * loop.dt, lambda: rig.phase(None))
+        loop.gate.schedule(t0, lambda m=mode: rig.phase(m))
+        loop.gate.schedule(t1 - 0.5 * loop.dt, lambda: rig.phase(None))
 
 
 def run(args) -> int:
@@ -270,7 +270,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
             counts = port.counts()
     rec = session.recorder
-    late = late_periods(record, modes, seconds / len(modes), settle, rate)
+    late = late_periods(record, modes, seconds, settle, rate)
     table, floor, codes = rig.trace()
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
     total = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
@@ -297,8 +297,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     return out
 
 
-def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float) -> dict:
-    """Per mode (each share_s of loop time in turn, metered after settle_s, as schedule_modes meters): the share of its
+def late_periods(record, modes, seconds: float, settle_s: float, rate_hz: float) -> dict:
+    """Per mode (its window of the run's seconds, hil_lockstep.windows, as schedule_modes meters): the share of its
     periods that were late, from the recording: the loop woke more than a period after the deadline, or the
     accelerometers read as in the period before (the module's new conversion had not arrived: the controllers
     held). {} when the recording cannot be read."""
@@ -310,8 +310,9 @@ def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float)
     held = np.r_[False, np.all(acc[1:] == acc[:-1], axis=1)]
     late = (wake > 1e6 / rate_hz) | held
     out = {}
-    for k, mode in enumerate(modes):
-        m = (t >= k * share_s + settle_s) & (t < (k + 1) * share_s - (settle_s if k == len(modes) - 1 else 0.0))
+    from rig.commands.hil_lockstep import windows
+    for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
+        m = (t >= t0) & (t < t1)
         out[mode] = round(float(late[m].mean()), 4) if m.any() else None
     return out
 

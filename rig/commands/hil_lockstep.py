@@ -37,6 +37,14 @@ def band(x: np.ndarray, fs: float, lo: float = BAND_HZ[0], hi: float = BAND_HZ[1
     return scipy.signal.sosfiltfilt(sos, np.asarray(x, dtype=float))
 
 
+def windows(seconds: float, modes, settle_s: float) -> list[tuple[float, float]]:
+    """Each mode's metered window in loop time (s): its equal share of the run from settle_s after its start, the
+    last one up to settle_s before the run's end (no window at either end of the band-limited trace)."""
+    share = seconds / len(modes)
+    return [(j * share + settle_s, (j + 1) * share - (settle_s if j == len(modes) - 1 else 0.0))
+            for j in range(len(modes))]
+
+
 def phase_rms(table: np.ndarray, codes: np.ndarray, fs: float, phases: dict[str, int],
               end: int | None = None) -> dict[str, float]:
     """The table's rms in 1-100 Hz over the steps of each metered phase (the trace band-limited whole first, up to
@@ -79,9 +87,8 @@ def lockstep(cfg, seconds: float, modes, settle_s: float, activate_after_s: floa
         fault = loop.lc.fault_reason
     b = band(table, rate)
     out = {}
-    for j, m in enumerate(modes):
-        w = slice(int(round((j * share + settle_s) * rate)),
-                  int(round(((j + 1) * share - (settle_s if j == len(modes) - 1 else 0.0)) * rate)))
+    for m, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
+        w = slice(int(round(t0 * rate)), int(round(t1 * rate)))
         out[m] = float(np.sqrt(np.mean(b[w] ** 2)))
     return {"table_rms_m": out, "fault": fault}
 
