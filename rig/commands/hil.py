@@ -12,7 +12,7 @@ tuned for [hil] rate_hz. The run uses [hil] rate_hz (Modbus request/response lim
 stale_s as the staleness limit of the drivers and of the loop's sensor check. The run is split evenly into the
 modes, switched live through the loop's mode request (bumpless): off, feedback, and feedback_feedforward when
 the floor accelerometers are fitted (hil.toml fits them: the module's AI ch4-7); [hil] settle_s at the start of
-each mode is not metered. isolation_reduction_db = 20 log10(rms table motion off / feedback),
+each mode and at the end of the run is not metered. isolation_reduction_db = 20 log10(rms table motion off / feedback),
 feedforward_reduction_db the same for feedback + feedforward (null without floor accelerometers): the true table
 motion of the emulated plant. The modes see successive stretches of the floor motion (one real-time run), so
 the figures also carry the floor's own variation; "transmissibility_db" (table rms over floor rms per mode)
@@ -126,13 +126,15 @@ class _Progress(threading.Thread):
 def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
     """The modes in turn, an equal share of the run each, switched at those loop times (the gate's schedule: the
     period boundary at or after them, as the lockstep run switches); each metered from settle_s into its share
-    (the emulated plant's phase, per plant step) to its end."""
+    (the emulated plant's phase, per plant step) to its end, the last one to settle_s before the run's end
+    (as hil_lockstep meters: no window at the band filter's edge)."""
+    from rig.commands.hil_lockstep import windows
     share = seconds / len(modes)
-    for k, mode in enumerate(modes):
+    for k, (mode, (t0, t1)) in enumerate(zip(modes, windows(seconds, modes, settle_s))):
         if k:
             loop.gate.schedule(k * share, lambda m=mode: loop.request_isolation_mode(m))
-        loop.gate.schedule(k * share + settle_s, lambda m=mode: rig.phase(m))
-        loop.gate.schedule((k + 1) * share - 0.5 * loop.dt, lambda: rig.phase(None))
+        loop.gate.schedule(t0, lambda m=mode: rig.phase(m))
+        loop.gate.schedule(t1 - 0.5 * loop.dt, lambda: rig.phase(None))
 
 
 def run(args) -> int:
@@ -260,6 +262,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             pre_steps = rig.steps
             with inject.Armed(session, injections):
                 reason = session.run(seconds=seconds, activate_after_s=activate)
+            end_steps = rig.steps          # the trace up to here: the valves go to null after it
         finally:
             if progress is not None:
                 progress.stop()
@@ -267,9 +270,9 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
             counts = port.counts()
     rec = session.recorder
-    late = late_periods(record, modes, seconds / len(modes), settle, rate)
+    late = late_periods(record, modes, seconds, settle, rate)
     table, floor, codes = rig.trace()
-    band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter})
+    band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
     total = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
     tr = {m: 20 * math.log10(total[m] / rig.floor_rms_m(m)) if m in rig.meter and total[m] > 0 else math.nan
           for m in modes}
@@ -294,8 +297,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     return out
 
 
-def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float) -> dict:
-    """Per mode (each share_s of loop time in turn, metered after settle_s, as schedule_modes meters): the share of its
+def late_periods(record, modes, seconds: float, settle_s: float, rate_hz: float) -> dict:
+    """Per mode (its window of the run's seconds, hil_lockstep.windows, as schedule_modes meters): the share of its
     periods that were late, from the recording: the loop woke more than a period after the deadline, or the
     accelerometers read as in the period before (the module's new conversion had not arrived: the controllers
     held). {} when the recording cannot be read."""
@@ -307,8 +310,9 @@ def late_periods(record, modes, share_s: float, settle_s: float, rate_hz: float)
     held = np.r_[False, np.all(acc[1:] == acc[:-1], axis=1)]
     late = (wake > 1e6 / rate_hz) | held
     out = {}
-    for k, mode in enumerate(modes):
-        m = (t >= k * share_s + settle_s) & (t < (k + 1) * share_s)
+    from rig.commands.hil_lockstep import windows
+    for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
+        m = (t >= t0) & (t < t1)
         out[mode] = round(float(late[m].mean()), 4) if m.any() else None
     return out
 

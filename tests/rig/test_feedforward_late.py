@@ -96,14 +96,15 @@ def test_rig_hil_counts_the_late_periods_of_each_mode(tmp_path):
     wake = np.full(n, 50.0)
     wake[[600, 700, 2000]] = 2500.0                         # more than the 2000 us period late
     wake[1000] = 1999.0                                     # late, but within its period
-    acc[2601] = acc[2600]                                   # no new conversion (second mode)
+    acc[2301] = acc[2300]                                   # no new conversion (second mode)
     acc[1601] = acc[1600]                                   # in the second mode's settling: not metered
-    acc[2500:2503] = acc[2499]
+    acc[2400:2403] = acc[2399]
     acc[100] = acc[99]                                      # in the first mode's settling: not metered
+    acc[2601] = acc[2600]                                   # in the run's last second: not metered either
     rec = tmp_path / "run.h5"
     with h5py.File(rec, "w") as f:
         for name, v in (("time_s", t), ("wake_latency_us", wake), ("accel_mps2", acc)):
             f.create_dataset(name, data=v)
-    got = late_periods(rec, ("off", "feedback"), 3.0, 1.0, rate)
-    assert got == {"off": round(2 / 1000, 4), "feedback": round(5 / 1000, 4)}
+    got = late_periods(rec, ("off", "feedback"), 6.0, 1.0, rate)
+    assert got == {"off": round(2 / 1000, 4), "feedback": round(5 / 500, 4)}
     assert late_periods(tmp_path / "missing.h5", ("off",), 3.0, 1.0, rate) == {}
