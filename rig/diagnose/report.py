@@ -334,6 +334,9 @@ def summary_text(diag: Diagnosis, rec=None) -> str:
             lines.append(f"    removes {100 * e.share:.3g} % of the refit's held-out residual variance (the others "
                          f"kept); held-out log-likelihood ratio of taking it out {e.evidence:.0f}")
         lines.append(f"    evidence: {effect_evidence(e, mm)}")
+        if e.bias:
+            lines.append(f"    the reduced model's own bias taken off (measured on the full stand physics at the fit): "
+                         f"{format_parameters(e.bias)}")
     for g in diag.groups:
         lines.append(f"  confounded (cannot be told apart here): {', '.join(g)}")
     lines.append("SENSOR terms (fitted in every model, not physics):")
