@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.signal import welch
 
-from rig.diagnose import catalogue, evidence as evidence_mod, sensor as sensor_mod, uncertainty, units
+from rig.diagnose import catalogue, evidence as evidence_mod, reduction, sensor as sensor_mod, uncertainty, units
 from rig.diagnose.problem import ModelFit, Problem
 from rig.diagnose.results import Diagnosis, Mismatch, NamedEffect
 from rig.diagnose.stages import Located, noise_how
@@ -26,11 +26,14 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
     unit = sensor.unit
     mm = L.mismatch
     stand = uncertainty.standings(pb, augmented, T.refit, sel.chosen, sel.round1)
-    effects = tuple(sorted((NamedEffect(name, public_params(pb, name, augmented), float(sel.stats[name]["lr_holdout"]),
+    bias = reduction.bias(pb, augmented) if sel.chosen else {}         # the reduced model's own, taken off
+    shown = replace(augmented, fx=reduction.corrected(pb, augmented, bias))
+    effects = tuple(sorted((NamedEffect(name, public_params(pb, name, shown), float(sel.stats[name]["lr_holdout"]),
                                         sel.stats[name],
                                         R.lines[0]["evidence"] if catalogue.get(name).projected and R.lines else "",
-                                        interval=stand[name].interval, share=stand[name].share,
-                                        evidence=stand[name].evidence)
+                                        interval=reduction.shifted(stand[name].interval, bias.get(name, {})),
+                                        share=stand[name].share, evidence=stand[name].evidence,
+                                        bias=bias.get(name, {}))
                             for name in sel.chosen), key=lambda e: -e.evidence))    # the strongest first
     v = judge(pb, T.screened.no_claim, bool(effects), L.fit, T.refit, R.check)
     v = replace(v, rest=rest_of(mm, L.fit) if v.status not in ("explained", "no_claim") else (),

@@ -120,10 +120,14 @@ class Problem:
         self._set_basis(sensor_mod.SensorBasis(self.n, self.fs, zero_terms=self.shoot is None))
 
     def with_(self, *, noise: float | None = None, basis: sensor_mod.SensorBasis | None = None,
-              proxy=_KEEP) -> "Problem":
+              proxy=_KEEP, y: np.ndarray | None = None) -> "Problem":
         """The same problem with another noise estimate, sensor basis or superposition proxy (the data and the
-        blocks shared)."""
+        blocks shared), or another position y of the same command (a simulated twin, rig.diagnose.reduction)."""
         new = copy.copy(self)
+        if y is not None:
+            if self.shoot is not None:
+                raise ValueError("a segmented plant's start states are read from its own data")
+            new.y = np.asarray(y, dtype=float)
         if noise is not None:
             new.noise = noise
         if basis is not None:

@@ -54,7 +54,8 @@ def diagnosis_dict(diag: Diagnosis, rec=None) -> dict:
     """The diagnosis.json document (schema of issue 7, plus groups, refit parameters and noise)."""
     effects = [{"name": e.name, "parameters": dict(e.parameters), "evidence": effect_evidence(e, diag.mismatch),
                 "score": e.score, "interval_95": {k: list(v) for k, v in e.interval.items()},
-                "share_of_refit_holdout_residual": e.share, "holdout_lr_of_taking_it_out": e.evidence}
+                "share_of_refit_holdout_residual": e.share, "holdout_lr_of_taking_it_out": e.evidence,
+                "reduced_model_bias_taken_off": dict(e.bias)}
                for e in diag.effects]
     cmd = diag.command
     doc = {"effects": effects, "mismatch": diag.mismatch.as_dict(), "fit": diag.fit.as_dict(),
@@ -65,7 +66,9 @@ def diagnosis_dict(diag: Diagnosis, rec=None) -> dict:
            "verdict": {"status": diag.verdict.status, "text": verdict_text(diag.verdict),
                        "suggestions": list(diag.verdict.suggestions), "rest": list(diag.verdict.rest),
                        "noise": diag.verdict.noise},
-           "interval_method": uncertainty.METHOD if diag.effects else None,
+           "interval_method": (uncertainty.METHOD + ("; the reduced model's bias, measured on the full stand "
+                               "physics at the fit, taken off (rig.diagnose.reduction)"
+                               if any(e.bias for e in diag.effects) else "")) if diag.effects else None,
            "command": {"kind": cmd.kind, "description": cmd.describe(), "band_hz": list(cmd.band_hz),
                        "peak_V": cmd.peak_V, "levels_V": [sg.peak_V for sg in cmd.segments] if cmd.multilevel
                        else None, "period_s": cmd.period / cmd.fs_hz if cmd.period else None}}
@@ -331,6 +334,9 @@ def summary_text(diag: Diagnosis, rec=None) -> str:
             lines.append(f"    removes {100 * e.share:.3g} % of the refit's held-out residual variance (the others "
                          f"kept); held-out log-likelihood ratio of taking it out {e.evidence:.0f}")
         lines.append(f"    evidence: {effect_evidence(e, mm)}")
+        if e.bias:
+            lines.append(f"    the reduced model's own bias taken off (measured on the full stand physics at the fit): "
+                         f"{format_parameters(e.bias)}")
     for g in diag.groups:
         lines.append(f"  confounded (cannot be told apart here): {', '.join(g)}")
     lines.append("SENSOR terms (fitted in every model, not physics):")

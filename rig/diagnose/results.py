@@ -34,6 +34,8 @@ class NamedEffect:
     interval: dict = field(default_factory=dict)    # key -> (low, high): 95 % (rig.diagnose.uncertainty)
     share: float | None = None      # of the refit's held-out residual variance it removes, the others kept
     evidence: float | None = None   # held-out log-likelihood ratio of taking it out (the effects' order)
+    bias: dict = field(default_factory=dict)        # key -> the reduced model's bias, already taken off the
+                                                    # parameters and the interval (rig.diagnose.reduction)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,8 @@ MAX_EFFECTS = 2
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
 EXPLAINED_SLOW = 1.02              # the same once a reduced (deadband/friction) model is in
 SLOW_RTOL = 1e-4                   # a slow (reduced) model's fit stops when an iteration gains < 0.01 % of the rss
+POLISH_GAIN = 0.05                 # the polish stops when an iteration gains < 0.05 of one sample's share of the rss
+POLISH_MAX_ITER = 20               # ... or after this many iterations of a slow model (~1 s each on 30 s at 5 kHz)
 VERDICT_AT_NOISE = 1.15            # augmented residual / noise: "explains the recording"
 
 
@@ -144,9 +146,15 @@ def _at_edge(pb: Problem, f: ModelFit, name: str) -> bool:
 
 
 def _polish(pb: Problem, f: ModelFit) -> ModelFit:
-    """All linear and effect parameters together (the disturbance frequency refined after)."""
+    """All linear and effect parameters together (the disturbance frequency refined after), to the minimum: an
+    iteration gaining less than POLISH_GAIN of one sample's share of the sum stops it (a chi-square of 0.05 at
+    the noise). SLOW_RTOL stops a search's fit 7.5 short on 75,000 samples: on the stand with 400 N of friction the
+    polish stopped at 403.2 N, 1.6 standard errors below its minimum, and the interval, centred on the minimum,
+    sat lopsided around it (issue 29). A fast model's fit converges in a few steps: its rule is unchanged."""
     slow = catalogue.slow_in(f.fx)
-    pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=5 if slow else 15, rtol=SLOW_RTOL if slow else 1e-5))
+    rtol = POLISH_GAIN / max(int(pb.mfit.sum()), 1)
+    pol = _refine_disturbance(pb, pb.fit(f.lin, f.fx, max_iter=POLISH_MAX_ITER if slow else 15,
+                                          rtol=rtol if slow else 1e-5))
     return pol if pol.rss_fit < f.rss_fit else f
 
 
