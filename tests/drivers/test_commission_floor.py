@@ -20,11 +20,11 @@ import pytest
 from tests.drivers.test_commission import _commission as _commission_sim
 from tests.hosttiming import skip_unless_on_time
 from tests.drivers.test_commission_valves import _commission
+from tests.drivers.test_commission_sensors import _miswired
 
 from drivers import build_driver_port, conversion
 from rig import commissioning
 from rig.commands.commission import EXIT_FINDINGS
-from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.config import MOUNTS, Config
 
 FL, FR, RL, RR = MOUNTS
@@ -37,8 +37,7 @@ def _floor(res) -> dict:
 
 @pytest.mark.hil
 def test_an_inverted_and_two_swapped_floor_accelerometers_are_named_and_corrected(tmp_path):
-    cfg = tmp_path / "floor.toml"
-    cfg.write_text(HIL_DEFAULT_CONFIG.read_text().replace("[hil]\n", "[hil]\n" + FLOOR_FAULTS, 1))
+    cfg = _miswired(tmp_path, "floor", FLOOR_FAULTS)
     run = _commission(cfg, tmp_path / "first")
     assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
     res = json.loads(run.stdout)

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from tests.hosttiming import skip_unless_commissioned_on_time
+from tests.drivers.test_commission_sensors import _miswired
 
 from drivers import conversion
 from rig import commissioning
 from rig.commands.commission import EXIT_FINDINGS
-from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.config import MOUNTS
 from rig.errors import ConfigError
 
@@ -41,8 +41,7 @@ def _commission(cfg, out):
 
 @pytest.mark.hil
 def test_valve_faults_are_named_on_their_valves_and_the_calibration_puts_them_right(tmp_path):
-    cfg = tmp_path / "valves.toml"
-    cfg.write_text(HIL_DEFAULT_CONFIG.read_text().replace("[hil]\n", "[hil]\n" + FAULTS, 1))
+    cfg = _miswired(tmp_path, "valves", FAULTS)
     run = _commission(cfg, tmp_path / "first")
     assert run.returncode == EXIT_FINDINGS, run.stderr[-3000:]
     res = json.loads(run.stdout)
