@@ -27,6 +27,11 @@ from rig.runtime.session import Session
 LABELS = {"off": "isolation off", "feedback": "feedback", "feedback_feedforward": "feedback + feedforward"}
 
 
+def mode_row(label: str, cells, width: int = 26) -> str:
+    """One row of a per-mode table (`rig demo`, `rig hil`): the label, then a right-aligned cell per mode."""
+    return f"{label:28s}" + "".join(f"{c:>{width}s}" for c in cells)
+
+
 def rms(x):
     x = np.asarray(x, dtype=float)
     return float(np.sqrt(np.mean((x - x.mean()) ** 2)))

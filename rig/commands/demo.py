@@ -67,7 +67,7 @@ def _log(text: str) -> None:
 
 
 def _print(res: dict, v) -> None:
-    from rig.compare import LABELS, MODES
+    from rig.compare import LABELS, MODES, mode_row
     print(f"rig demo: floor {res['floor_rms_um']:.2f} um rms ({v.band_lo_hz:g}-{v.band_hi_hz:g} Hz) as the table "
           f"feels it (the mean of the four mounts' floor, each {v.rms_m * 1e6:g} um rms), the same realisation in all "
           f"three runs: reductions are like with like")
@@ -77,10 +77,9 @@ def _print(res: dict, v) -> None:
         print(f"plant: actuator {p['model_error_pct']:g} % off the controllers' model ({fac}; {p['chosen']})")
     else:
         print(f"plant: {p['chosen']}")
-    w = 26
 
     def row(label, cells):
-        print(f"{label:28s}" + "".join(f"{c:>{w}s}" for c in cells))
+        print(mode_row(label, cells))
     row("", [LABELS[m] for m in MODES])
     for key, lab in (("table", "table Y rms"), ("tool", "tool point Y rms")):
         r = res[f"{key}_rms_um"]
@@ -102,7 +101,7 @@ def _print(res: dict, v) -> None:
 def _plot(path, dt, traces, sl, res):
     import matplotlib
     import scipy.signal
-    from rig.compare import LABELS, MODES
+    from rig.compare import LABELS, MODES, mode_row
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fs = 1.0 / dt

@@ -181,24 +181,30 @@ def run(args) -> int:
         print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at "
               f"{cfg.loop.rate_hz:g} Hz, {out['faults']} faults, {out['overruns']} overruns, "
               f"{out['samples_recorded']} samples recorded to {out['recording']}")
-        ls = res.get("lockstep_reduction_db", {})
-        for key, mode in (("isolation_reduction_db", "feedback"), ("feedforward_reduction_db",
-                                                                  "feedback_feedforward")):
-            if mode not in res["table_rms_m"]:
-                continue
-            red, sim = out[key], ls.get(mode)
-            from rig.commands.hil_lockstep import BAND_HZ
-            print(f"reduction of table motion ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz), {mode.replace('_', ' + ')}: "
-                  f"{'n/a' if red is None else f'{red:.1f} dB'} through the drivers, "
-                  f"{'n/a' if sim is None else f'{sim:.1f} dB'} in lockstep"
-                  f"{'' if red is None or sim is None else f' ({red - sim:+.1f} dB)'} "
-                  f"(rms {res['table_rms_m']['off'] * 1e6:.3f} um off -> {res['table_rms_m'][mode] * 1e6:.3f} um; "
-                  f"table/floor {out['transmissibility_db'].get('off')} -> {out['transmissibility_db'].get(mode)} dB)")
-        late = out["late_periods"]
-        if late:
-            print("late periods (woke a period late or no new accelerometer conversion), metered: " + ", ".join(
-                f"{m.replace('_', ' + ')} {'n/a' if v is None else f'{100 * v:.1f} %'}" for m, v in late.items()))
+        _print_modes(res, out)
     return _exit_code(res)
+
+
+def _print_modes(res: dict, out: dict) -> None:
+    """The modes side by side: the table's rms through the drivers with each reduction, the same design in
+    lockstep (gap: drivers minus lockstep), the transmissibility and the late periods."""
+    from rig.commands.hil_lockstep import BAND_HZ
+    from rig.compare import LABELS, mode_row
+    modes = [m for m in LABELS if m in res["table_rms_m"]]
+    red = {"feedback": out.get("isolation_reduction_db"), "feedback_feedforward": out.get("feedforward_reduction_db")}
+    ls = res.get("lockstep_reduction_db", {})
+
+    def db(x, fmt=".1f"):
+        return "n/a" if x is None else f"{x:{fmt}} dB"
+    print(mode_row("", [LABELS[m] for m in modes]))
+    print(mode_row(f"table rms ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)", [
+        f"{res['table_rms_m'][m] * 1e6:.3f} um" + ("" if m == "off" else f" ({db(red.get(m))})") for m in modes]))
+    print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
+        "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))
+    print(mode_row("table/floor", [db(out["transmissibility_db"].get(m), ".2f") for m in modes]))
+    late = out["late_periods"]
+    if late:
+        print(mode_row("late periods", ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
 
 
 LATE_WARN = 0.01        # issue 24: at most 1 % of a mode's periods late; beyond, the run says its figures suffer

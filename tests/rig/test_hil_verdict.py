@@ -1,8 +1,9 @@
 """`rig hil`'s closing verdict (rig/commands/hil.py): a mode that made the table worse, and a host that let more
-than 1 % of a mode's periods come late, are each said in one warning line on stderr; a run on time says nothing."""
+than 1 % of a mode's periods come late, are each said in one warning line on stderr; a run on time says nothing.
+Its figures come as one table, a column per mode (issue 29: read at a glance, as `rig demo`'s)."""
 from __future__ import annotations
 
-from rig.commands.hil import LATE_WARN, _exit_code
+from rig.commands.hil import LATE_WARN, _exit_code, _print_modes
 
 
 def _res(late: dict, fb_db: float = 7.6, ff_db: float = 11.8) -> dict:
@@ -26,3 +27,27 @@ def test_late_periods_beyond_the_bound_are_said_in_one_line(capsys):
 def test_a_mode_worse_than_off_is_said(capsys):
     assert _exit_code(_res({"off": 0.0}, fb_db=-4.0)) == 0
     assert "feedback made the table 4.0 dB worse than isolation off" in capsys.readouterr().err
+
+
+def test_the_modes_are_one_table_with_the_lockstep_gap(capsys):
+    res = {"table_rms_m": {"off": 2.0e-6, "feedback": 0.8e-6, "feedback_feedforward": 0.4e-6},
+           "lockstep_reduction_db": {"feedback": 7.5, "feedback_feedforward": 14.5}}
+    out = {"isolation_reduction_db": 7.96, "feedforward_reduction_db": 13.98, "late_periods": {"off": 0.0,
+           "feedback": 0.002, "feedback_feedforward": None},
+           "transmissibility_db": {"off": 0.5, "feedback": -7.3, "feedback_feedforward": None}}
+    _print_modes(res, out)
+    rows = [" ".join(line.split()) for line in capsys.readouterr().out.splitlines()]
+    assert rows == ["isolation off feedback feedback + feedforward",
+                    "table rms (1-100 Hz) 2.000 um 0.800 um (8.0 dB) 0.400 um (14.0 dB)",
+                    "in lockstep (gap) 7.5 dB (+0.5) 14.5 dB (-0.5)",
+                    "table/floor 0.50 dB -7.30 dB n/a",
+                    "late periods 0.0 % 0.2 % n/a"]
+
+
+def test_a_run_without_feedforward_has_two_columns(capsys):
+    res = {"table_rms_m": {"off": 2.0e-6, "feedback": 1.0e-6}, "lockstep_reduction_db": {}}
+    out = {"isolation_reduction_db": 6.02, "feedforward_reduction_db": None, "late_periods": {},
+           "transmissibility_db": {"off": 0.1, "feedback": -6.0}}
+    _print_modes(res, out)
+    rows = [" ".join(line.split()) for line in capsys.readouterr().out.splitlines()]
+    assert rows[0] == "isolation off feedback" and rows[2] == "in lockstep (gap) n/a" and len(rows) == 4
