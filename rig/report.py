@@ -146,12 +146,14 @@ def _labels(path, n: int) -> list[str] | None:
 
 def summary(rep: dict) -> str:
     """One line: the class met per mode (machine at its mounts; the floor's with floor accelerometers)."""
-    parts = [f"{m.replace('_', ' + ')} {rep['vc_class'][m]}" for m in MODES if m in rep["vc_class"]]
-    text = "VC class, machine at its mounts (worst mount, 1-100 Hz): " + ", ".join(parts)
+    def classes(by_mode):       # "off = workshop (ISO), feedback = VC-A": a mode and its class read as a pair
+        return ", ".join(f"{m.replace('_', ' + ')} = {c}" for m, c in by_mode)
+    text = "VC class, machine at its mounts (worst mount, 1-100 Hz): " + classes(
+        (m, rep["vc_class"][m]) for m in MODES if m in rep["vc_class"])
     if "off" in rep.get("absent_modes", {}):
         text += " (no isolation-off stretch to compare with)"
     if rep.get("vc_class_floor"):
-        text += "; floor: " + ", ".join(f"{m.replace('_', ' + ')} {c}" for m, c in rep["vc_class_floor"].items())
+        text += "; floor: " + classes(rep["vc_class_floor"].items())
     return text
 
 

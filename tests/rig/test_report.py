@@ -49,7 +49,9 @@ def test_report_classes_by_mode(three_modes):
     assert abs(tr["off"]) < 1.0 and tr["feedback_feedforward"] < tr["feedback"] - 10.0 < -15.0
     assert set(rep["mounts"]["feedback"]["vc_class_per_mount"]) == {"front_left", "front_right", "rear_left",
                                                                    "rear_right"}
-    assert "feedback + feedforward" in report.summary(rep)
+    line = report.summary(rep)                                          # each mode paired with its class
+    assert f"feedback + feedforward = {c['feedback_feedforward']}" in line and f"off = {c['off']}, " in line
+    assert f"; floor: off = {rep['vc_class_floor']['off']}" in line
 
 
 def test_rig_report_cli_json_and_plot(three_modes, tmp_path, capsys):
