@@ -201,6 +201,14 @@ def write_fit_csv(path: Path, diag, rec) -> Path:
 _UNITS = catalogue.display_units()      # parameter key -> (scale, unit), from the effects' definitions
 
 
+def _like(bound: float, value: float) -> str:
+    """An interval's bound with the decimals its estimate is printed with (402.1: 395.0 to 408.5)."""
+    shown = f"{value:.4g}"
+    if "e" in shown or "e" in f"{bound:.4g}":
+        return f"{bound:.4g}"
+    return f"{bound:.{len(shown.partition('.')[2])}f}"
+
+
 def format_parameters(prm: dict, interval: dict | None = None) -> str:
     """Parameters in their display units; with an interval, each key's 95 % interval after it."""
     out = []
@@ -209,7 +217,7 @@ def format_parameters(prm: dict, interval: dict | None = None) -> str:
             scale, unit = _UNITS.get(k, (1.0, ""))
             name = k.rsplit("_", 1)[0] if k in _UNITS and unit else k
             iv = (interval or {}).get(k)
-            ci = f" (95 %: {iv[0] * scale:.4g} to {iv[1] * scale:.4g})" if iv else ""
+            ci = f" (95 %: {_like(iv[0] * scale, v * scale)} to {_like(iv[1] * scale, v * scale)})" if iv else ""
             out.append(f"{name} {v * scale:.4g}{(' ' + unit) if unit else ''}{ci}")
         else:
             out.append(f"{k} {v}")

@@ -27,3 +27,10 @@ def test_a_verdict_short_of_explained_keeps_them_off():
         assert long == "Bands still off after the augmented fit" and text == "40-45 Hz"
     long, text = _after(_mismatch_rows(_mismatch([]), 6, Verdict("explained", 1.0, 3.0, True)))
     assert text == "none"
+
+
+def test_an_interval_reads_with_its_estimate_decimals():
+    from rig.diagnose.report import format_parameters
+    text = format_parameters({"force_n": 402.1}, {"force_n": (395.0, 408.5)})
+    assert text == "force 402.1 N (95 %: 395.0 to 408.5)"
+    assert format_parameters({"x": 1.632e5}, {"x": (1.2e5, 2.0e5)}) == "x 1.632e+05 (95 %: 1.2e+05 to 2e+05)"
