@@ -197,7 +197,7 @@ def _print_modes(res: dict, out: dict) -> None:
     def db(x, fmt=".1f"):
         return "n/a" if x is None else f"{x:{fmt}} dB"
     print(mode_row("", [LABELS[m] for m in modes]))
-    print(mode_row(f"table rms ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)", [
+    print(mode_row(f"table Y rms ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)", [
         f"{res['table_rms_m'][m] * 1e6:.3f} um" + ("" if m == "off" else f" ({db(red.get(m))})") for m in modes]))
     print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
         "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))

@@ -38,7 +38,7 @@ def test_the_modes_are_one_table_with_the_lockstep_gap(capsys):
     _print_modes(res, out)
     rows = [" ".join(line.split()) for line in capsys.readouterr().out.splitlines()]
     assert rows == ["isolation off feedback feedback + feedforward",
-                    "table rms (1-100 Hz) 2.000 um 0.800 um (8.0 dB) 0.400 um (14.0 dB)",
+                    "table Y rms (1-100 Hz) 2.000 um 0.800 um (8.0 dB) 0.400 um (14.0 dB)",
                     "in lockstep (gap) 7.5 dB (+0.5) 14.5 dB (-0.5)",
                     "table/floor 0.50 dB -7.30 dB n/a",
                     "late periods 0.0 % 0.2 % n/a"]
