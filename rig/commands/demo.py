@@ -101,7 +101,7 @@ def _print(res: dict, v) -> None:
 def _plot(path, dt, traces, sl, res):
     import matplotlib
     import scipy.signal
-    from rig.compare import LABELS, MODES, mode_row
+    from rig.compare import LABELS, MODES
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fs = 1.0 / dt
