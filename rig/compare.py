@@ -83,6 +83,7 @@ def compare(cfg, *, seconds: float = 10.0, settle_s: float = 1.0, log=None) -> t
                          f"noise: the reductions are the isolation alone, table (or tool) rms with isolation over "
                          f"without")
     res["loop"] = {"periods": 3 * n, "wall_s": wall, "path": "rig.runtime.session.Session over SimBackend(RigPlant)"}
+    res["harm"] = {m: traces[m]["harm"] for m in MODES if traces[m]["harm"]}   # issue 27: never silently
     return res, traces
 
 
@@ -96,6 +97,7 @@ def simulate_mode(cfg, n: int, mode: str):
         loop, plant = session.loop, session.port.plant
         lay, row = loop.kernel.layout, loop.kernel.row
         rf = lay["ff_cmd_V"]
+        loop.sched.t0_ns = 0           # loop time from the first period: the supervisor's windows run on it
         loop.activate()
         t0 = time.perf_counter()
         for k in range(n):
@@ -110,6 +112,7 @@ def simulate_mode(cfg, n: int, mode: str):
             tr["ff"][k] = row[rf:rf + 4]
             tr["stroke"][k] = plant.stroke_m
             tr["limited"][k] = loop.limiter.limited
+        tr["harm"] = loop.harm       # the do-no-harm supervisor's line if it switched isolation off, else None
         return tr, time.perf_counter() - t0
 
 
