@@ -275,10 +275,14 @@ def sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, nam
 
 
 def channel_map(R: np.ndarray) -> list[int]:
-    """Which channel answers which valve: each channel's responses over its own largest (a channel's scale,
-    wrong or not, cancels: a g range answers as clearly as a right one), the valves given channels one to one
-    by the best total (scipy's assignment). R[channel, valve]; returns the channel of each valve."""
-    rel = R / np.maximum(R.max(axis=1, keepdims=True), 1e-300)
+    """Which channel answers which valve: each channel's responses over its own mean (a channel's scale, wrong or
+    not, cancels: a g range answers as clearly as a right one), the valves given channels one to one by the best
+    total (scipy's assignment). R[channel, valve]; returns the channel of each valve. With fewer valves than
+    channels (the floor's map over the mounts that can hold it) some channels are left out: over its own largest,
+    a channel that answers none of them (its mount left out) read 1 on some valve and took that valve's channel
+    (the floor under a mount with a dead transducer named swapped, twice in `rig prove --commission`); over its
+    mean it reads flat, below a channel that answers its own. In a square R any per-channel factor cancels."""
+    rel = R / np.maximum(R.mean(axis=1, keepdims=True), 1e-300)
     rows, cols = linear_sum_assignment(-np.log(np.maximum(rel, 1e-12)))
     out = [0] * R.shape[1]
     for i, j in zip(rows, cols):

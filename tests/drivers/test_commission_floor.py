@@ -106,3 +106,38 @@ def test_the_drivers_apply_the_floor_table(tmp_path):
     raw = [0.0] * 4 + [2.0, 2.0, 3.0, 4.0]
     g = plain[4].gain
     assert conversion.apply(fixed[4:], raw) == pytest.approx([-2 * g + 0.01, 2 * g, 4 * g, 3 * g])
+
+
+# floor_response's |c| (report.json `floor_response`, H[channel, mount]) of two commissionings of
+# `rig prove --commission --seed 2` whose rig had one transducer dead (front_left in the first, front_right in the
+# second) and its floor wired right: that mount is left out of the floor's map (nothing to hold its floor against)
+MEASURED_H_DEAD_STROKE = {
+    0: [[0.947, 0.464, 0.446, 0.469], [0.41, 0.999, 0.445, 0.519], [0.569, 0.67, 0.891, 0.631],
+        [0.397, 0.539, 0.449, 0.971]],
+    1: [[1.064, 0.425, 0.567, 0.485], [0.524, 0.907, 0.547, 0.54], [0.545, 0.417, 1.071, 0.532],
+        [0.497, 0.473, 0.527, 1.077]]}
+
+
+@pytest.mark.parametrize("left_out", sorted(MEASURED_H_DEAD_STROKE))
+def test_a_mount_left_out_of_the_floor_map_takes_no_other_mounts_floor_channel(left_out):
+    """The floor's channel map over the mounts that can hold it: the floor channel of the mount left out answers
+    none of them (the floor's part common to the mounts, about 0.5) and must not take another mount's channel; each
+    other mount keeps its own (floor_response gives the one left out the channel left: its own). Before: each channel's answers
+    over its own largest made the flat row read 1 and named two floor channels swapped, with a scale."""
+    H = np.asarray(MEASURED_H_DEAD_STROKE[left_out])
+    table = [p for p in range(4) if p != left_out]
+    assert commissioning.channel_map(H[:, table]) == table
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_channel_map_cancels_each_channels_scale(seed):
+    """A channel's scale (a g range, a sign's size) does not move the map: square, any factor per channel gives
+    the same assignment; over a subset of valves, a channel read 0.1 x (a g range) still takes its own."""
+    rng = np.random.default_rng(seed)
+    R = 0.3 + 0.3 * rng.random((4, 4))
+    perm = rng.permutation(4)
+    R[perm, np.arange(4)] = 1.0 + 0.2 * rng.random(4)             # channel perm[j] answers valve j
+    scaled = R * np.array([0.10197, 1.0, 9.80665, 1e-3])[:, None]
+    assert commissioning.channel_map(R) == commissioning.channel_map(scaled) == list(perm)
+    sub = [j for j in range(4) if j != seed % 4]
+    assert commissioning.channel_map(scaled[:, sub]) == [int(perm[j]) for j in sub]
