@@ -125,13 +125,20 @@ def _gain_ref(gain: dict, m: str, dead: set) -> float:
 def noise_floor(x: np.ndarray, fs: float, corner_hz: float | None = None) -> np.ndarray:
     """Each column's rms above corner_hz (default NOISE_HZ or 0.3 fs, the lower: where the table barely moves and
     the sensor's own noise is what is left), the least over windows of QUIET_WINDOW_S: a sensor's noise is in every
-    window, a host's hiccup (late periods, repeated samples) only in some."""
+    window, a host's hiccup (late periods) only in some. A window in which more than HELD_MAX of the samples repeat
+    the one before on every column at once has no noise to measure (the host held the loop off, the device's whole
+    frame: a stall of the amplifier's frames read 1.2 nm on a transducer whose other windows read 12-16 nm, and two
+    channels beside it were named noisy against it); it is left out unless every window is. (One column's own
+    repeats are its resolution: a transducer ranged a decade down reads a few nm in 1 nm steps.)"""
     corner = min(NOISE_HZ, 0.3 * fs) if corner_hz is None else corner_hz
     sos = signal.butter(4, corner, btype="highpass", fs=fs, output="sos")
     y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
     w = max(int(round(QUIET_WINDOW_S * fs)), 8)
     k = max(len(y) // w, 1)
-    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
+    rms = np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1))
+    same = np.concatenate([[False], np.all(np.diff(x, axis=0) == 0, axis=1)])
+    held = same[:k * w].reshape(k, -1).mean(axis=1) > HELD_MAX
+    return rms.min(axis=0) if held.all() else rms[~held].min(axis=0)
 
 
 def held_share(x: np.ndarray) -> np.ndarray:
@@ -207,7 +214,10 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 named.add((f"{kind}:{ch}", "dead"))
                 continue
             floors = {c: r[f"noise_floor_{unit}"] * abs(fix.get(kind, {}).get(c, 1.0)) for c, r in rows.items()}
-            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]]
+            # the others of its kind that are sensors: a dead transducer reads the amplifier's own few nm, and two of
+            # them would make the median a sensor's noise is held against
+            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]
+                      and not (kind == "stroke" and carries[kind][c] in dead_x)]
             nf = floors[ch]
             if others and nf > NOISY_RATIO * float(np.median(others)):
                 worse(key, "refused")
