@@ -43,6 +43,8 @@ BAND_HZ = (3.0, 30.0)          # where x'' from the transducer and the accelerom
 SCALE_TOL = 0.35               # |scale| within 1 +- this: ok (wired right 1.0-1.2 with the floor's motion in the
                                # accelerometer, 1.00-1.04 with it taken out; a g range is 0.10, inverted -1)
 SCALE_FIX = (0.05, 20.0)       # |scale| in this range (g against m/s^2, mm against um... ): corrected
+NO_ANSWER = SCALE_FIX[0]       # channel_map: a channel whose largest answer is below this x the median channel's
+DOCUMENTED = 1.25              # answers nothing; between answers that do not tell, the wiring as documented stands
 DEAD_RMS_RATIO = 0.1           # a channel answering its valve less than this of the others' median: dead
 # the valves (valve_checks): a null beyond NULL_TOL_V is named and corrected (0.5 % of a +-10 V valve's range: wired
 # right the quiet stroke reads about 0.01 V's worth); an apparent null beyond NULL_MAX_V is no valve's but its
@@ -123,13 +125,20 @@ def _gain_ref(gain: dict, m: str, dead: set) -> float:
 def noise_floor(x: np.ndarray, fs: float, corner_hz: float | None = None) -> np.ndarray:
     """Each column's rms above corner_hz (default NOISE_HZ or 0.3 fs, the lower: where the table barely moves and
     the sensor's own noise is what is left), the least over windows of QUIET_WINDOW_S: a sensor's noise is in every
-    window, a host's hiccup (late periods, repeated samples) only in some."""
+    window, a host's hiccup (late periods) only in some. A window in which more than HELD_MAX of the samples repeat
+    the one before on every column at once has no noise to measure (the host held the loop off, the device's whole
+    frame: a stall of the amplifier's frames read 1.2 nm on a transducer whose other windows read 12-16 nm, and two
+    channels beside it were named noisy against it); it is left out unless every window is. (One column's own
+    repeats are its resolution: a transducer ranged a decade down reads a few nm in 1 nm steps.)"""
     corner = min(NOISE_HZ, 0.3 * fs) if corner_hz is None else corner_hz
     sos = signal.butter(4, corner, btype="highpass", fs=fs, output="sos")
     y = signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
     w = max(int(round(QUIET_WINDOW_S * fs)), 8)
     k = max(len(y) // w, 1)
-    return np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1)).min(axis=0)
+    rms = np.sqrt((y[:k * w] ** 2).reshape(k, -1, y.shape[1]).mean(axis=1))
+    same = np.concatenate([[False], np.all(np.diff(x, axis=0) == 0, axis=1)])
+    held = same[:k * w].reshape(k, -1).mean(axis=1) > HELD_MAX
+    return rms.min(axis=0) if held.all() else rms[~held].min(axis=0)
 
 
 def held_share(x: np.ndarray) -> np.ndarray:
@@ -205,7 +214,10 @@ def sensor_findings(names, channels, accel_of, stroke_of, units, gain_raw, dead_
                 named.add((f"{kind}:{ch}", "dead"))
                 continue
             floors = {c: r[f"noise_floor_{unit}"] * abs(fix.get(kind, {}).get(c, 1.0)) for c, r in rows.items()}
-            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]]
+            # the others of its kind that are sensors: a dead transducer reads the amplifier's own few nm, and two of
+            # them would make the median a sensor's noise is held against
+            others = [floors[c] for c, r in rows.items() if c != ch and r["alive"]
+                      and not (kind == "stroke" and carries[kind][c] in dead_x)]
             nf = floors[ch]
             if others and nf > NOISY_RATIO * float(np.median(others)):
                 worse(key, "refused")
@@ -274,11 +286,29 @@ def sensor_faults(names, accel_of, stroke_of, scale, gain, dead_x, verdicts, nam
     return [{"channel": c, "kind": k} for c, k in sorted(out)]
 
 
-def channel_map(R: np.ndarray) -> list[int]:
-    """Which channel answers which valve: each channel's responses over its own largest (a channel's scale,
-    wrong or not, cancels: a g range answers as clearly as a right one), the valves given channels one to one
-    by the best total (scipy's assignment). R[channel, valve]; returns the channel of each valve."""
-    rel = R / np.maximum(R.max(axis=1, keepdims=True), 1e-300)
+def channel_map(R: np.ndarray, own=None) -> list[int]:
+    """Which channel answers which valve: each channel's responses over its own mean (a channel's scale, wrong or
+    not, cancels: a g range answers as clearly as a right one), the valves given channels one to one by the best
+    total (scipy's assignment). R[channel, valve]; own: the channel each valve has as documented (default the
+    valve's index); returns the channel of each valve.
+    - With fewer valves than channels (the floor's map over the mounts that can hold it) some channels are left
+      out: over its own largest, a channel that answers none of them (its mount left out) read 1 on some valve and
+      took that valve's channel (the floor under a mount with a dead transducer named swapped, twice in `rig prove
+      --commission`); over its mean it reads flat, below a channel that answers its own.
+    - A channel that answers nothing (its largest below NO_ANSWER x the channels' median: dead, unwired) holds no
+      evidence: 1 on every valve, not 0 (a dead floor channel, cost without end on every mount, was left out and a
+      flat channel took its mount).
+    - Between answers that do not tell (flat rows, dead channels) the wiring as documented stands: its channel's
+      answer counts DOCUMENTED x. A real swap moves a channel's answer by about 2 x (the floor: 1.05 under its
+      mount, 0.4-0.6 under the others; the valves' chirps far more), a flat row by a few %.
+    In a square R any per-channel factor cancels."""
+    R = np.asarray(R, dtype=float)
+    own = list(range(R.shape[1])) if own is None else list(own)
+    top = R.max(axis=1)
+    rel = R / np.maximum(R.mean(axis=1, keepdims=True), 1e-300)
+    rel[top < NO_ANSWER * np.median(top)] = 1.0
+    for j, k in enumerate(own):
+        rel[k, j] *= DOCUMENTED
     rows, cols = linear_sum_assignment(-np.log(np.maximum(rel, 1e-12)))
     out = [0] * R.shape[1]
     for i, j in zip(rows, cols):
@@ -365,7 +395,7 @@ def floor_response(names, fs, sel, ab, xdd, fb, accel_of, stroke_of, mount_of, c
     table = list(range(n)) if table is None else sorted(table)
     floor_of = list(range(n))
     if table:
-        found = channel_map(np.abs(H[:, table]))
+        found = channel_map(np.abs(H[:, table]), own=table)
         left = iter(k for k in range(n) if k not in found)
         floor_of = [found[table.index(p)] if p in table else next(left) for p in range(n)]
     return {"H": H, "floor_of": floor_of, "scale": {m: float(H[floor_of[p], p]) for p, m in enumerate(names)}}

@@ -48,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=cliargs.count(1, 20), default=2, metavar="N",
                    help="with --single: `rig hil` runs of each rig, calibrated and wired right, per case (default 2)")
     p.add_argument("--retries", type=cliargs.count(0, 5), default=0, metavar="N",
-                   help="with --single: run a commissioning or a `rig hil` stopped by a fault (a loaded host: a "
-                        "device stall, missed deadlines) again, up to N times; every stop is reported (default 0)")
+                   help="with --commission: run a commissioning (with --single also a `rig hil`) stopped by a fault (a "
+                        "loaded host: a device stall, missed deadlines) again, up to N times; every stop is reported "
+                        "(default 0)")
     p.add_argument("--hil-seconds", type=cliargs.seconds(ge=3, le=3600), default=None, metavar="S",
                    help="with --single: each `rig hil` run's length (default [hil] seconds of the config, 15 s)")
     cliargs.output_arg(p, "--keep", kind="folder", metavar="DIR", default=None,

@@ -4,7 +4,8 @@ Each case wires the emulated rig wrong in two or three ways drawn from the wirin
 (drivers/devicemaps/hil_wiring_faults.md: the [hil] keys), runs `rig commission --backend hil` on it as a user
 does, and grades what it names: right when the faults it names, channel and kind, are exactly the ones drawn
 (nothing missed, nothing invented). The clean cases are rigs wired right: right when nothing is named. A mount
-carries at most one fault (a swap takes two mounts), so that every drawn fault has one right name.
+carries at most one fault (a swap takes two mounts), so that every drawn fault has one right name. The floor
+accelerometers' faults (AI ch4-7) are drawn only where the configuration has them ([sensors] floor_accel).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from rig.config import MOUNTS
 from rig.errors import RigError
 
 N_AI = 8                                # the analog module's channels (ch0-3 the mounts' table accelerometers)
+FLOOR_AI = 4                            # AI ch4-7: the floor accelerometers under the mounts, in MOUNTS order
 
 
 @dataclass
@@ -43,17 +45,18 @@ class Wiring:
 
 
 # Sizes are drawn within what the table documents for each: a fault a real rig has, not a borderline one.
-def _swap(key: str):
+# `first`: the channel of the first mount (the floor's: AI ch4-7).
+def _swap(key: str, first: int = 0):
     def wire(w: Wiring, ms: list[int], rng: random.Random) -> None:
-        a, b = ms
+        a, b = (first + m for m in ms)
         src = getattr(w, key)
         src[a], src[b] = src[b], src[a]
     return wire
 
 
-def _set(key: str, values):
+def _set(key: str, values, first: int = 0):
     def wire(w: Wiring, ms: list[int], rng: random.Random) -> None:
-        getattr(w, key)[ms[0]] = rng.choice(values)
+        getattr(w, key)[first + ms[0]] = rng.choice(values)
     return wire
 
 
@@ -81,14 +84,29 @@ FAULTS = {
     "valve_null": (1, _set("valve_null_V", [-0.3, 0.3, 0.5]), "valve", "null"),
     "valve_gain": (1, _set("valve_gain", [0.6, 1.6]), "valve", "gain"),
     "valve_nodes_swapped": (2, _swap("valve_node_id"), "valve", "swap"),
+    # the floor accelerometers (AI ch4-7), the same keys and sizes as the table's; dead also at a constant (no
+    # safety rule stops a floor channel that does not move: only NaN or out of range)
+    "floor_swap": (2, _swap("ai_source", FLOOR_AI), "floor", "swap"),
+    "floor_sign": (1, _set("ai_factor", [-1.0], FLOOR_AI), "floor", "sign"),
+    "floor_g_range": (1, _set("ai_factor", [1 / 9.80665], FLOOR_AI), "floor", "scale"),
+    "floor_offset": (1, _set("ai_offset_mps2", [-0.5, 0.3, 0.8], FLOOR_AI), "floor", "offset"),
+    "floor_dead": (1, _both(_set("ai_factor", [0.0], FLOOR_AI), _set("ai_noise_mps2", [0.0, 0.002], FLOOR_AI)),
+                   "floor", "dead"),
+    "floor_noisy": (1, _set("ai_noise_mps2", [0.02, 0.05], FLOOR_AI), "floor", "noisy"),
 }
 
 
-def draw(rng: random.Random, n_faults: int) -> tuple[Wiring, list[str], set[tuple[str, str]]]:
-    """A wiring with `n_faults` faults on distinct mounts: (the wiring, the faults in words, what commissioning
-    should name: {(channel, kind)})."""
+def fault_kinds(floor: bool) -> list[str]:
+    """The faults a rig can be wired with: the floor accelerometers' only where they are fitted."""
+    return [k for k in FAULTS if floor or FAULTS[k][2] != "floor"]
+
+
+def draw(rng: random.Random, n_faults: int, floor: bool = True) -> tuple[Wiring, list[str], set[tuple[str, str]]]:
+    """A wiring with `n_faults` faults on distinct mounts, the floor accelerometers' among them only with `floor`:
+    (the wiring, the faults in words, what commissioning should name: {(channel, kind)})."""
+    kinds = sorted(fault_kinds(floor))
     while True:
-        names = [rng.choice(sorted(FAULTS)) for _ in range(n_faults)]
+        names = [rng.choice(kinds) for _ in range(n_faults)]
         if sum(FAULTS[k][0] for k in names) <= len(MOUNTS):
             break
     free = list(range(len(MOUNTS)))
@@ -162,20 +180,28 @@ def run(args) -> int:
     if getattr(args, "single", False):
         return run_single(args)
     text, folder = _base(args)
+    floor = _floor_fitted(folder, text)
     rng = random.Random(args.seed)
     cases = [("clean", Wiring(), [], set()) for _ in range(args.clean)]
     for i in range(args.n):
-        w, said, exp = draw(rng, 2 + i % 2)
+        w, said, exp = draw(rng, 2 + i % 2, floor)
         cases.append(("faults", w, said, exp))
     rows = []
     for i, (what, w, said, exp) in enumerate(cases):
         cfg = folder / f"case{i:03d}.toml"
         cfg.write_text(case_config(text, w))
-        res, wall, err = commission(cfg, folder / f"case{i:03d}")
+        stopped = []                    # attempts stopped by a fault (a loaded host: a device stall, missed deadlines)
+        for attempt in range(1 + getattr(args, "retries", 0)):
+            res, wall, err = commission(cfg, folder / f"case{i:03d}" / (f"retry{attempt}" if attempt else ""))
+            if not err:
+                break
+            stopped.append(err)
+            print(f"[{i + 1}/{len(cases)}]   stopped: {err}", file=sys.stderr, flush=True)
         got = named(res) if res is not None else set()
         right = res is not None and got == exp
         row = {"case": i, "what": what, "faults": said, "expected": sorted(map(list, exp)),
                "named": sorted(map(list, got)), "right": right, "wall_s": round(wall, 1), "error": err,
+               "commission_stopped": stopped, "load_average": round(os.getloadavg()[0], 1),
                "peak_stroke_pct_of_limit": (round(100 * res["peak_stroke_m"] / res["stroke_limit_m"], 1)
                                             if res is not None else None)}
         rows.append(row)
@@ -210,6 +236,15 @@ def _base(args) -> tuple[str, Path]:
     return text, folder
 
 
+def _floor_fitted(folder: Path, text: str) -> bool:
+    """[sensors] floor_accel of the base configuration, as the rig loads it (a copy in the --out folder: its
+    relative paths are not needed to read it)."""
+    from rig.config import load_config
+    probe = folder / "base.toml"
+    probe.write_text(text)
+    return load_config(probe).sensors.floor_accel
+
+
 def _summary(rows: list[dict]) -> dict:
     """The score over the cases commissioning judged; a run that stopped on a fault (the safety rules: nothing
     judged, said in one line) is counted apart, not as a wrong name."""
@@ -220,8 +255,27 @@ def _summary(rows: list[dict]) -> dict:
     return {"combinations": len(combo), "combinations_right": sum(r["right"] for r in combo),
             "clean": len(clean), "clean_flagged": sum(not r["right"] for r in clean),
             "stopped": [f"case {r['case']}: {r['error']}" for r in rows if r["error"]],
+            "stopped_then_run_again": [f"case {r['case']}: {e}" for r in rows if not r["error"]
+                                       for e in r.get("commission_stopped", [])],
+            "per_fault": per_fault(combo),
             "wall_s_median": walls[len(walls) // 2] if walls else None, "wall_s_max": walls[-1] if walls else None,
             "peak_stroke_pct_of_limit_max": max((r["peak_stroke_pct_of_limit"] or 0) for r in rows) if rows else None}
+
+
+def per_fault(rows: list[dict]) -> dict:
+    """Per fault of the table: the judged cases that drew it, and in how many of them its own channels were named
+    with its kind (nothing missed on them; an invented name elsewhere is the case's, not the fault's)."""
+    out = {}
+    for r in rows:
+        got = {tuple(x) for x in r["named"]}
+        for said in r["faults"]:
+            k, ms = said.split("(")[0], said[len(said.split("(")[0]) + 1:-1].split(", ")
+            _, _, prefix, kind = FAULTS[k]
+            d = out.setdefault(k, {"drawn": 0, "named": 0, "case_right": 0})
+            d["drawn"] += 1
+            d["named"] += all((f"{prefix}:{m}", kind) in got for m in ms)
+            d["case_right"] += bool(r["right"])
+    return {k: out[k] for k in FAULTS if k in out}
 
 
 def _markdown(seed: int, s: dict, rows: list[dict]) -> str:
@@ -231,9 +285,14 @@ def _markdown(seed: int, s: dict, rows: list[dict]) -> str:
            f"- rigs wired right with something named: {s['clean_flagged']} of {s['clean']}",
            f"- runs stopped by a fault, nothing judged: {len(s['stopped'])}"
            + "".join(f"\n  - {x}" for x in s["stopped"]),
+           f"- runs stopped by a fault, then judged on a run again (--retries): {len(s['stopped_then_run_again'])}"
+           + "".join(f"\n  - {x}" for x in s["stopped_then_run_again"]),
            f"- one commissioning (four mounts, wall time with its set-up): median {s['wall_s_median']} s, "
            f"max {s['wall_s_max']} s",
            f"- peak stroke: {s['peak_stroke_pct_of_limit_max']} % of the stroke limit at most", "",
+           "| fault | judged cases that drew it | its channels named with its kind | the whole case right |",
+           "|---|---|---|---|",
+           *(f"| {k} | {d['drawn']} | {d['named']} | {d['case_right']} |" for k, d in s["per_fault"].items()), "",
            "| case | faults drawn | right | missed | invented |", "|---|---|---|---|---|"]
     for r in rows:
         exp, got = {tuple(x) for x in r["expected"]}, {tuple(x) for x in r["named"]}
@@ -353,6 +412,11 @@ def run_single(args) -> int:
     --out/proof.md, every case in proof.json."""
     kinds = parse_kinds(getattr(args, "kinds", None))
     text, folder = _base(args)
+    if not _floor_fitted(folder, text):
+        if kinds is not None and set(kinds) - set(fault_kinds(False)):
+            raise RigError(f"--kinds: {', '.join(k for k in kinds if k not in fault_kinds(False))}: the "
+                           f"configuration has no floor accelerometers ([sensors] floor_accel = false)")
+        kinds = kinds if kinds is not None else fault_kinds(False)
     cases = single_wirings(random.Random(args.seed), kinds, getattr(args, "all_mounts", False))
     repeats, seconds = getattr(args, "repeats", 2), getattr(args, "hil_seconds", None)
     retries = getattr(args, "retries", 0)

@@ -106,3 +106,69 @@ def test_the_drivers_apply_the_floor_table(tmp_path):
     raw = [0.0] * 4 + [2.0, 2.0, 3.0, 4.0]
     g = plain[4].gain
     assert conversion.apply(fixed[4:], raw) == pytest.approx([-2 * g + 0.01, 2 * g, 4 * g, 3 * g])
+
+
+# floor_response's c (report.json `floor_response`, H[channel, mount]) of four commissionings of
+# `rig prove --commission --seed 2`, each with a mount left out of the floor's map (nothing to hold its floor against:
+# its transducer dead, or its table accelerometer dead), and in the last two a floor channel dead on another mount
+# (at a constant: a row of zeros; with the module's own noise: a row of a few thousandths); the floor otherwise wired
+# right. (the mount left out, the mounts' floor channels as wired)
+MEASURED_H = {
+    "front_left's transducer dead": (0, [0, 1, 2, 3], [
+        [0.947, 0.464, 0.446, 0.469], [0.41, 0.999, 0.445, 0.519], [0.569, 0.67, 0.891, 0.631],
+        [0.397, 0.539, 0.449, 0.971]]),
+    "front_right's transducer dead": (1, [0, 1, 2, 3], [
+        [1.064, 0.425, 0.567, 0.485], [0.524, 0.907, 0.547, 0.54], [0.545, 0.417, 1.071, 0.532],
+        [0.497, 0.473, 0.527, 1.077]]),
+    "rear_left's accelerometer dead, front_left's floor dead at a constant": (2, [0, 1, 2, 3], [
+        [0.0, -0.0, 0.0, 0.0], [0.473, 1.046, 1.134, 0.511], [0.455, 0.486, 1.111, 0.462],
+        [0.466, 0.668, 0.936, 1.073]]),
+    "rear_right's transducer dead, front_right's floor dead with the module's noise": (3, [0, 1, 2, 3], [
+        [1.064, 0.548, 0.497, 0.409], [-0.003, 0.003, -0.003, 0.003], [0.521, 0.513, 1.084, 0.503],
+        [0.507, 0.561, 0.56, 0.914]]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MEASURED_H))
+def test_a_mount_left_out_of_the_floor_map_takes_no_other_mounts_floor_channel(case):
+    """The floor's channel map over the mounts that can hold it: the floor channel of the mount left out answers
+    none of them (the floor's part common to the mounts, about 0.5) and a dead floor channel answers nothing; neither
+    may take another mount's channel, and each mount held keeps its own (floor_response gives the one left out the
+    channel left: its own). Before: each channel's answers over its own largest made the flat row read 1, and a dead
+    channel's zeros cost without end on every mount; each named two floor channels swapped, with a scale."""
+    left_out, wired, H = MEASURED_H[case]
+    table = [p for p in range(4) if p != left_out]
+    assert commissioning.channel_map(np.abs(np.asarray(H))[:, table], own=table) == [wired[p] for p in table]
+    assert commissioning.channel_map(np.abs(np.asarray(H))) == wired
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_channel_map_cancels_each_channels_scale(seed):
+    """A channel's scale (a unit's slip within SCALE_FIX) does not move the map: square, any such factor per
+    channel gives the same assignment; over the mounts but one (its channel wired right, its row flat over the
+    others: the floor's common part 0.4-0.6, measured), a channel read 0.1 x still takes its own."""
+    rng = np.random.default_rng(seed)
+    R = 0.4 + 0.2 * rng.random((4, 4))
+    perm = rng.permutation(4)
+    R[perm, np.arange(4)] = 1.0 + 0.2 * rng.random(4)             # channel perm[j] answers valve j
+    scaled = R * np.array([0.10197, 1.0, 9.80665, 0.1])[:, None]
+    assert commissioning.channel_map(R) == commissioning.channel_map(scaled) == list(perm)
+    fixed = [v for v in range(4) if perm[v] == v]
+    if fixed:
+        v = fixed[seed % len(fixed)]
+        sub = [j for j in range(4) if j != v]
+        assert commissioning.channel_map(scaled[:, sub], own=sub) == [int(perm[j]) for j in sub]
+
+
+def test_a_real_floor_swap_outweighs_the_wiring_as_documented():
+    """The documented wiring's weight decides only between answers that do not tell: two floor channels swapped
+    (each 1.0 under the other's mount, 0.5 elsewhere) are found swapped, over all mounts and over three of them;
+    two channels answering the other's mount a few % above their own (no peak: the floor's common part) stay."""
+    H = np.full((4, 4), 0.5)
+    for k, p in ((0, 0), (1, 1), (2, 3), (3, 2)):
+        H[k, p] = 1.0
+    assert commissioning.channel_map(H) == [0, 1, 3, 2]
+    assert commissioning.channel_map(H[:, [1, 2, 3]], own=[1, 2, 3]) == [1, 3, 2]
+    H[2:, 2:] = [[0.5, 0.52], [0.52, 0.5]]
+    assert commissioning.channel_map(H) == [0, 1, 2, 3]
+    assert commissioning.channel_map(H[:, [1, 2, 3]], own=[1, 2, 3]) == [1, 2, 3]

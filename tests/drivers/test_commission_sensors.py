@@ -10,6 +10,7 @@ import subprocess
 import sys
 import tomllib
 
+import numpy as np
 import pytest
 
 from tests.drivers.test_commission import _commission
@@ -206,3 +207,41 @@ def test_a_late_module_makes_isolation_harm_and_the_supervisor_says_so(tmp_path)
     assert run.returncode == EXIT_HARM, run.stderr[-3000:]
     figs = json.loads(run.stdout)
     assert "do-no-harm: isolation made the table worse" in figs["harm"] and figs["isolation_reduction_db"] < 0
+
+
+def test_a_stall_of_the_hosts_frames_is_no_sensors_quiet():
+    """noise_floor leaves out a window in which every channel held its sample (the host held the loop off: a stall
+    of the amplifier's frames), and keeps one in which a single channel repeats (its resolution). Measured in
+    `rig prove --commission --seed 2` (case 16): one such 0.1 s window read a transducer at 1.2 nm against 12-16 nm in
+    its other windows, and two transducers wired right were named noisy against it."""
+    from rig.commissioning import noise_floor
+    rng = np.random.default_rng(0)
+    fs, sigma = 500.0, np.array([1.0, 1.2, 0.9, 1.1])
+    x = rng.normal(0.0, 1.0, (600, 4)) * sigma
+    x[:, 3] = np.round(x[:, 3] * 1.5) / 1.5         # coarse steps: this channel alone repeats now and then
+    stalled = x.copy()
+    stalled[150:200] = stalled[149]                 # 0.1 s of the same frame on every channel
+    plain, held = noise_floor(x, fs), noise_floor(stalled, fs)
+    assert np.all(held > 0.7 * plain) and np.all(held < 1.3 * plain), (plain, held)
+    assert np.all(plain > 0.5 * sigma)
+    assert noise_floor(np.zeros((600, 2)), fs).tolist() == [0.0, 0.0]      # all held (dead at a constant): 0
+
+
+def test_two_dead_transducers_are_no_reference_for_a_sensors_noise():
+    """A dead transducer reads the amplifier's own few nm: the others' noise floors are held against the median of
+    the sensors that answer, so that two dead ones (each on its mount, as `rig prove --commission` may draw) do not
+    make two transducers wired right noisy."""
+    from rig import commissioning
+    names = ["front_left", "front_right", "rear_left", "rear_right"]
+    floors = {"front_left": 2.8e-9, "front_right": 12.4e-9, "rear_left": 12.2e-9, "rear_right": 3.0e-9}
+    channels = {"stroke": {m: {"offset_m": 0.0, "noise_rms_m": 3e-7, "noise_floor_m": floors[m], "alive": True}
+                           for m in names}}
+    verdicts, findings = {}, []
+    named = commissioning.sensor_findings(names, channels, [0, 1, 2, 3], [0, 1, 2, 3], {m: 1.0 for m in names},
+                                          {m: 1.0 for m in names}, {"front_left", "rear_right"}, verdicts, findings)
+    assert not named and not [f for f in findings if "noisy" in f], findings
+    floors["rear_left"] = 60e-9                     # a noisy one among them is still named
+    channels["stroke"]["rear_left"]["noise_floor_m"] = 60e-9
+    named = commissioning.sensor_findings(names, channels, [0, 1, 2, 3], [0, 1, 2, 3], {m: 1.0 for m in names},
+                                          {m: 1.0 for m in names}, {"front_left", "rear_right"}, {}, [])
+    assert named == {("stroke:rear_left", "noisy")}

@@ -9,20 +9,22 @@ import sys
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from rig.commands.prove_commission import (FAULTS, REFUSED, Wiring, _figures, case_config, draw, parse_kinds, place,
-                                          single_cases, single_markdown, single_summary,
-                                          single_wirings)
+from rig.commands.prove_commission import (FAULTS, FLOOR_AI, REFUSED, Wiring, _figures, _floor_fitted, case_config,
+                                          draw, fault_kinds, parse_kinds, per_fault, place, run_single, single_cases,
+                                          single_markdown, single_summary, single_wirings)
 from rig.config import MOUNTS
 from rig.errors import RigError
 from tests.paths import REPO
 
 
 @settings(max_examples=200, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.sampled_from([2, 3]))
-def test_a_draw_puts_each_fault_on_mounts_of_its_own(seed, n):
+@given(seed=st.integers(0, 2**32 - 1), n=st.sampled_from([2, 3]), floor=st.booleans())
+def test_a_draw_puts_each_fault_on_mounts_of_its_own(seed, n, floor):
     """Two or three faults, on distinct mounts (a swap takes two), each named by one (channel, kind) per mount it
-    takes; the wiring differs from a rig wired right exactly on those mounts."""
-    w, said, expected = draw(random.Random(seed), n)
+    takes; the wiring differs from a rig wired right exactly on those mounts, on the channels of the fault's kind:
+    a floor accelerometer's fault on AI ch4-7 only (and only with floor accelerometers fitted), a table
+    accelerometer's on AI ch0-3 only."""
+    w, said, expected = draw(random.Random(seed), n, floor)
     assert len(said) == n
     mounts = [c.split(":")[1] for c, _ in expected]
     assert len(mounts) == len(set(mounts)) <= len(MOUNTS)
@@ -31,8 +33,95 @@ def test_a_draw_puts_each_fault_on_mounts_of_its_own(seed, n):
     for key, vals in vars(w).items():
         for i, (a, b) in enumerate(zip(vals, getattr(right, key))):
             if a != b:
-                changed.add(MOUNTS[i % len(MOUNTS)] if key.startswith("ai_") else MOUNTS[i])
-    assert changed == set(mounts), (said, vars(w))
+                kind = ("floor" if i >= FLOOR_AI else "accel") if key.startswith("ai_") else \
+                    "stroke" if key.startswith("dt_") else "valve"
+                changed.add((kind, MOUNTS[i % len(MOUNTS)]))
+    assert changed == {tuple(c.split(":")) for c, _ in expected}, (said, vars(w))
+    assert floor or not any(c.startswith("floor:") for c, _ in expected), said
+
+
+def test_floor_faults_are_drawn_only_where_floor_accelerometers_are_fitted(tmp_path):
+    """Without floor accelerometers ([sensors] floor_accel = false) no floor fault is drawn and the draws are the
+    ones of the table without them (a seed gives the cases it gave before the floor's faults existed); with them,
+    every floor fault comes up. The proof reads the flag as the rig loads the configuration."""
+    table = [k for k in FAULTS if FAULTS[k][2] != "floor"]
+    assert fault_kinds(False) == table and fault_kinds(True) == list(FAULTS)
+    assert {k for k in FAULTS if FAULTS[k][2] == "floor"} == {"floor_swap", "floor_sign", "floor_g_range",
+                                                              "floor_offset", "floor_dead", "floor_noisy"}
+    seen = {True: set(), False: set()}
+    for floor in (True, False):
+        rng = random.Random(5)
+        for _ in range(400):
+            seen[floor] |= {s.split("(")[0] for s in draw(rng, 3, floor)[1]}
+    assert seen == {True: set(FAULTS), False: set(table)}
+    # the same seed, the same draws as a table that never had the floor's faults
+    rng_a, rng_b = random.Random(1), random.Random(1)
+    kinds = sorted(table)
+    for i in range(40):
+        n = 2 + i % 2
+        w, said, _ = draw(rng_a, n, False)
+        while True:
+            names = [rng_b.choice(kinds) for _ in range(n)]
+            if sum(FAULTS[k][0] for k in names) <= len(MOUNTS):
+                break
+        free = list(range(len(MOUNTS)))
+        rng_b.shuffle(free)
+        expect = []
+        for k in names:
+            ms, free = sorted(free[:FAULTS[k][0]]), free[FAULTS[k][0]:]
+            expect.append(place(Wiring(), k, ms, rng_b, set()))
+        assert said == expect
+    hil = (REPO / "drivers" / "devicemaps" / "hil.toml").read_text()
+    assert "floor_accel = true" in hil and _floor_fitted(tmp_path, hil)
+    assert not _floor_fitted(tmp_path, hil.replace("floor_accel = true", "floor_accel = false"))
+    # --single with a floor fault on a rig without floor accelerometers: one line, before anything runs
+    cfg = tmp_path / "nofloor.toml"
+    cfg.write_text(hil.replace("floor_accel = true", "floor_accel = false"))
+    args = type("A", (), dict(kinds="accel_sign,floor_sign", config=str(cfg), out=tmp_path / "out", seed=1))()
+    with pytest.raises(RigError, match="--kinds: floor_sign: the configuration has no floor accelerometers"):
+        run_single(args)
+
+
+def test_a_floor_fault_is_wired_on_its_floor_channel_and_named_there():
+    """Each floor fault of the table on AI ch4-7 of its mount(s), with the sizes the wiring doc gives (inverted,
+    a g range, an offset, dead (at a constant, or with the module's own noise), noisy, a swap of two floor
+    channels), and named on the floor channel: floor:<mount>."""
+    doc = (REPO / "drivers" / "devicemaps" / "hil_wiring_faults.md").read_text()
+    assert "AI ch4-7" in doc and "`[0, 1, 2, 3, 4, 5, 7, 6]`" in doc
+    for seed in range(20):
+        for k in [k for k in FAULTS if FAULTS[k][2] == "floor"]:
+            ms = [2, 3] if FAULTS[k][0] == 2 else [1]
+            w, exp = Wiring(), set()
+            place(w, k, ms, random.Random(seed), exp)
+            assert exp == {(f"floor:{MOUNTS[m]}", FAULTS[k][3]) for m in ms}
+            assert w.ai_source[:4] == [0, 1, 2, 3] and w.ai_factor[:4] == [1.0] * 4
+            assert w.ai_offset_mps2[:4] == [0.0] * 4 and w.ai_noise_mps2[:4] == [0.0] * 4
+            ch = FLOOR_AI + ms[0]
+            if k == "floor_swap":
+                assert w.ai_source == [0, 1, 2, 3, 4, 5, 7, 6]
+            elif k == "floor_sign":
+                assert w.ai_factor[ch] == -1.0
+            elif k == "floor_g_range":
+                assert w.ai_factor[ch] == pytest.approx(0.10197, abs=1e-5)
+            elif k == "floor_offset":
+                assert w.ai_offset_mps2[ch] in (-0.5, 0.3, 0.8)
+            elif k == "floor_dead":
+                assert w.ai_factor[ch] == 0.0 and w.ai_noise_mps2[ch] in (0.0, 0.002)
+            else:
+                assert w.ai_noise_mps2[ch] in (0.02, 0.05)
+
+
+def test_the_proof_counts_each_fault_of_the_table():
+    """per_fault: for each fault drawn in a judged case, whether its own channels were named with its kind, and
+    whether the whole case was right (an invented name elsewhere spoils the case, not the fault)."""
+    rows = [{"faults": ["floor_swap(rear_left, rear_right)", "accel_sign(front_left)"], "right": False,
+             "named": [["accel:front_left", "sign"], ["floor:rear_left", "swap"], ["floor:rear_right", "swap"],
+                       ["stroke:front_right", "scale"]]},
+            {"faults": ["floor_swap(front_left, front_right)", "valve_null(rear_left)"], "right": False,
+             "named": [["floor:front_left", "swap"], ["valve:rear_left", "null"]]}]
+    assert per_fault(rows) == {"accel_sign": {"drawn": 1, "named": 1, "case_right": 0},
+                               "valve_null": {"drawn": 1, "named": 1, "case_right": 0},
+                               "floor_swap": {"drawn": 2, "named": 1, "case_right": 0}}
 
 
 def test_every_documented_fault_can_be_drawn():
@@ -94,7 +183,7 @@ def test_the_single_faults_take_every_kind_of_the_table_and_every_mount():
     with pytest.raises(RigError, match="--kinds: expected fault names of .*got accel_upside_down"):
         parse_kinds("accel_sign,accel_upside_down")
     assert {k for k in FAULTS if FAULTS[k][3] in REFUSED} == {"accel_dead", "accel_noisy", "stroke_dead",
-                                                               "stroke_noisy"}
+                                                               "stroke_noisy", "floor_dead", "floor_noisy"}
 
 
 def test_a_case_config_carries_its_wiring_and_its_calibration(tmp_path):
