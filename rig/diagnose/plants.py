@@ -154,7 +154,7 @@ class AxisModel:
         return self.plant.state_space(self.values(lin), self.matrices_key(fx))
 
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None, X0=None) -> np.ndarray:
-        """Position [m] at the samples; with starts/X0 the state is set to X0[s] at sample starts[s]."""
+        """Position [m] at the samples; with starts/X0 the (drive's) state is set to X0[s] at sample starts[s]."""
         kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
         A, B, Bf, C, Cv = self.plant.state_space(self.values(lin), kw.pop("base", None))
         delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
@@ -167,11 +167,6 @@ class AxisModel:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
         rectify, bias, gap = kw.pop("rectify", False), kw.pop("bias", 0.0), kw.pop("backlash_m", 0.0)
-        if gap > 0 and X0 is not None:
-            # the states read from the data are the load's: a load that moves is pushed by the drive's near side,
-            # half the play ahead of it (a load at rest: the drive somewhere inside the play, centred)
-            X0 = np.array(X0, dtype=float)
-            X0[:, 0] += 0.5 * gap * np.sign(X0[:, 1])
         cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
         y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
                          smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
@@ -179,6 +174,18 @@ class AxisModel:
         if gap > 0:                         # the sensor on the load, behind the gear's play
             y = play(y, gap)
         return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
+
+    def drive_states(self, X0: np.ndarray, fx: dict) -> np.ndarray:
+        """The drive's start states from the load's (state_from_data reads the load): behind a play a load that
+        moves is pushed by the drive's near side, half the play ahead of it (a load at rest: the drive centred).
+        Set once from the data, not on each refinement of the states: a start velocity near 0 whose sign flipped
+        between two refinements moved the drive by the whole play, and the refinements cycled."""
+        gap = self._terms(fx).get("backlash_m", 0.0)
+        if gap <= 0:
+            return X0
+        X = np.array(X0, dtype=float)
+        X[:, 0] += 0.5 * gap * np.sign(X[:, 1])
+        return X
 
     def free_response(self, lin: dict, fx: dict, fs: float, length: int) -> np.ndarray:
         """(length, n) output response to each unit initial state (the segment-state regressors)."""

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import cho_factor, cho_solve, lu_factor, lu_solve
 
 from rig.diagnose import catalogue, sensor as sensor_mod
 from rig.diagnose.lm import lm_fit
@@ -67,6 +67,25 @@ SHOOT_GN_PLAY_STEPS = 40           # ... a fast one with a play (the load answer
                                    # so each step corrects a part; ~4 ms a step on 12 s at 1 kHz). Friction beside a
                                    # play keeps SHOOT_GN_STEPS: each of its steps is a friction simulation
 SHOOT_GN_SETTLED = 0.1             # the steps stop once no segment's start moves by more than this share of the noise
+SHOOT_GN_GAIN = 1.0                # ... or once a step lowers the fit blocks' rss by less than noise^2 (a chi^2 of 1)
+SHOOT_AITKEN_COS = 0.99            # a play's steps extrapolated where two successive ones point the same way ...
+SHOOT_AITKEN_RHO = 0.95            # ... by at most 1 / (1 - 0.95) = 20 x
+
+
+def _aitken(dX: np.ndarray, last: np.ndarray, O: np.ndarray) -> np.ndarray:
+    """Per segment, the factor that takes a state step to the end of its series where the steps shrink
+    geometrically (a play answers each correction only in part: step k+1 = rho step k, the rest of the series
+    step rho / (1 - rho), Aitken's extrapolation): 1 / (1 - rho) where two successive steps point the same way
+    (their responses' cosine above SHOOT_AITKEN_COS) and 0 < rho < 1, at most 1 / (1 - SHOOT_AITKEN_RHO); else 1.
+    The response norm: the segment states' output over a segment (O's rows)."""
+    W = O.T @ O
+    num = np.einsum("si,ij,sj->s", dX, W, last)
+    a = np.einsum("si,ij,sj->s", last, W, last)
+    b = np.einsum("si,ij,sj->s", dX, W, dX)
+    den = np.sqrt(np.maximum(a * b, 1e-300))
+    rho = num / np.maximum(a, 1e-300)
+    ok = (num / den > SHOOT_AITKEN_COS) & (rho > 0.0) & (rho < 1.0)
+    return np.where(ok, 1.0 / (1.0 - np.minimum(rho, SHOOT_AITKEN_RHO)), 1.0)
 
 
 def _n_blocks(plant, n: int, fs: float) -> int:
@@ -117,6 +136,8 @@ class Problem:
             starts[0] = min(max(starts[0], first), ends[0] - 1)
             self.shoot = Shooting(starts, ends)
         self._free = (None, None)
+        self._normal = (None, None, None)          # _project_shooting's factored normal matrix (F = None)
+        self._rows = (None, None)
         self._set_basis(sensor_mod.SensorBasis(self.n, self.fs, zero_terms=self.shoot is None))
 
     def with_(self, *, noise: float | None = None, basis: sensor_mod.SensorBasis | None = None,
@@ -176,20 +197,18 @@ class Problem:
             self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
         return self._free[1]
 
-    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray, states: bool = False):
-        """_project with the segment-wise initial states: block-sparse normal equations (each segment's state
-        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response) and,
-        with states=True, the (segments, n) initial-state corrections too."""
+    def _shooting_normal(self, E: np.ndarray, O: np.ndarray):
+        """The Jacobi-scaled normal matrix of _project_shooting, LU-factored (None: singular), and its scaling: it
+        depends on the sensor basis, F and the model's free response, not on the residual, so the segment-state
+        steps of one model reuse it (cached for F = None)."""
         w = self.mfit
-        E = self.basis.B if F is None else np.column_stack([self.basis.B, F])
         q = E.shape[1]
         nx = O.shape[1]
         sh = self.shoot
         N = q + nx * sh.count
-        G = np.zeros((N, N)); b = np.zeros(N)
+        G = np.zeros((N, N))
         Ef = E[w]
         G[:q, :q] = Ef.T @ Ef
-        b[:q] = Ef.T @ r[w]
         for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
             ws = w[a:e]
             Ow = O[:e - a][ws]
@@ -199,20 +218,57 @@ class Problem:
                 X = E[a:e][ws].T @ Ow
                 G[:q, i:i + nx] = X
                 G[i:i + nx, :q] = X.T
-            b[i:i + nx] = Ow.T @ r[a:e][ws]
         d = np.sqrt(np.maximum(np.diag(G), 1e-300))
         Gn = G / np.outer(d, d) + 1e-12 * np.eye(N)
-        try:
-            sol = np.linalg.solve(Gn, b / d) / d
-        except np.linalg.LinAlgError:
+        lu = lu_factor(Gn, check_finite=False)
+        return (lu if np.all(np.diag(lu[0]) != 0.0) else None), Gn, d
+
+    def _segment_rows(self, L: int):
+        """(segments, L) sample indices of each segment (clipped to its last sample), whether each is in the segment,
+        and whether it is a fit sample of it: the segment-wise sums as one product."""
+        key = ("rows", L)
+        if self._rows[0] != key:
+            sh = self.shoot
+            j = np.arange(L)
+            idx = sh.starts[:, None] + j[None, :]
+            inside = idx < sh.ends[:, None]
+            idx = np.minimum(idx, sh.ends[:, None] - 1)
+            self._rows = (key, (idx, inside, inside & self.mfit[idx]))
+        return self._rows[1]
+
+    def _project_shooting(self, r: np.ndarray, F: np.ndarray | None, O: np.ndarray, states: bool = False):
+        """_project with the segment-wise initial states: block-sparse normal equations (each segment's state
+        touches only its own rows), Jacobi-scaled. Returns (residual, sensor coef, F coef, state response) and,
+        with states=True, the (segments, n) initial-state corrections too."""
+        w = self.mfit
+        E = self.basis.B if F is None else np.column_stack([self.basis.B, F])
+        q = E.shape[1]
+        nx = O.shape[1]
+        sh = self.shoot
+        L = O.shape[0]
+        if F is None:
+            cached = self._normal
+            if cached[0] is not O or cached[1] is not self.basis:
+                cached = (O, self.basis, self._shooting_normal(E, O))
+                self._normal = cached
+            lu, Gn, d = cached[2]
+        else:
+            lu, Gn, d = self._shooting_normal(E, O)
+        idx, inside, fit = self._segment_rows(L)
+        b = np.empty(q + nx * sh.count)
+        b[:q] = E[w].T @ r[w]
+        b[q:] = (np.where(fit, r[idx], 0.0) @ O).ravel()
+        if lu is not None:
+            sol = lu_solve(lu, b / d, check_finite=False) / d
+        else:
             sol = np.linalg.lstsq(Gn, b / d, rcond=None)[0] / d
+        X = sol[q:].reshape(sh.count, nx)
         state = np.zeros(self.n)          # before the first segment (samples no fit uses): no state
-        for s, (a, e) in enumerate(zip(sh.starts, sh.ends)):
-            state[a:e] = O[:e - a] @ sol[q + s * nx:q + (s + 1) * nx]
+        state[idx[inside]] = (X @ O.T)[inside]
         out = r - E @ sol[:q] - state
         m = self.basis.m
         if states:
-            return out, sol[:m], (sol[m:q] if F is not None else None), state, sol[q:].reshape(sh.count, nx)
+            return out, sol[:m], (sol[m:q] if F is not None else None), state, X
         return out, sol[:m], (sol[m:q] if F is not None else None), state
 
     def model(self, lin: dict, fx: dict) -> np.ndarray:
@@ -234,7 +290,7 @@ class Problem:
         nx = self.plant.matrices(lin, fx)[0].shape[0]
         if nx not in self.shoot.X0:
             self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
-        X0 = self.shoot.X0[nx]
+        X0 = self.plant.drive_states(self.shoot.X0[nx], fx)
         y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
         if not nonlinear:
             return y            # linear in the initial state: the projection's correction is exact
@@ -242,15 +298,39 @@ class Problem:
         # and the sticking), and so does a play (where the drive starts inside it decides when the load moves):
         # Gauss-Newton steps on the segment states, the correction the projection finds from
         # the data's start applied to the simulation itself; the projection then corrects what is left
+        # Each step must lower the fit blocks' residual (the projection's, what the fits see) by more than
+        # SHOOT_GN_GAIN x noise^2: the steps end at the best states, where a step gains nothing (a model that
+        # cannot follow the data has no states to settle on; its steps wander) or they settle. A play's steps that
+        # shrink geometrically are taken to the end of their series (_aitken); one that overshoots is taken plain.
         O = self.free_response(lin, fx)
         partial = any(catalogue.get(k).state_nonlinear for k in fx) and not catalogue.slow_in(fx)
+        best = None                                   # (rss, y, X0, dX) of the best states
+        last = None                                   # the previous plain step (its ratio to this one: _aitken)
+        extrapolated = False
         for _ in range(SHOOT_GN_PLAY_STEPS if partial else SHOOT_GN_STEPS):
-            _, _, _, _, dX = self._project_shooting(self.y - y, None, O, states=True)
+            r, _, _, _, dX = self._project_shooting(self.y - y, None, O, states=True)
+            rss = float(np.sum(r[self.mfit] ** 2))
+            if best is None or rss < best[0] - SHOOT_GN_GAIN * self.noise ** 2:
+                best = (rss, y, X0, dX)
+            elif extrapolated:                        # overshot: a plain step from the best states
+                _, y, X0, dX = best
+                last = None
+            else:
+                break
             if np.max(np.abs(dX @ O[0]), initial=0.0) < SHOOT_GN_SETTLED * self.noise:
                 break
-            X0 = X0 + dX
+            step = dX
+            if partial and last is not None:
+                step = dX * _aitken(dX, last, O)[:, None]
+            extrapolated = step is not dX
+            last = None if extrapolated else dX       # the ratio is read from two plain steps
+            X0 = X0 + step
             y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
-        return y
+        else:
+            r = self._project_shooting(self.y - y, None, O)[0]
+            if float(np.sum(r[self.mfit] ** 2)) < best[0]:
+                return y
+        return best[1]
 
     def _residual_full(self, lin: dict, fx: dict):
         r = self.y - self.model(lin, fx)

@@ -97,3 +97,35 @@ def test_a_play_refines_the_segment_states_so_a_friction_of_0_n_adds_nothing():
     held_out_rms = np.sqrt(play_only.rss_hold / pb.mhold.sum())
     assert held_out_rms < 3.0 * noise_m, held_out_rms / noise_m
     assert with_zero.rss_hold > 0.98 * play_only.rss_hold, with_zero.rss_hold / play_only.rss_hold
+
+
+def test_a_plays_segment_states_settle_before_the_step_cap():
+    """The refinement of a play's segment states reaches its settling criterion (no start moved by more than
+    SHOOT_GN_SETTLED x the noise) well before SHOOT_GN_PLAY_STEPS: the drive's side of the play is set once from the
+    data (a start velocity near 0 whose sign flipped between steps had moved the drive by the whole play, and the
+    steps cycled to the cap), and steps that shrink geometrically are taken to the end of their series (Aitken).
+    Before, a play's model evaluation ran all 40 steps (rig prove --plant emps_axis.toml seed 1, a10)."""
+    from rig.diagnose import problem
+    noise_m, width_m = 2e-7, 7e-4
+    ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, backlash_m=width_m)
+    u = band_noise(1000.0, 12.0, 0.3, 30.0, PEAK_N, seed=5).cmd_V
+    cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(noise_m=noise_m, offset_m=3e-4, seed=2))
+    pb = problem.Problem(cmd, pos, 1000.0, parse_plant(PLANT, "axis.toml"), np.ones(len(pos), bool), noise=noise_m)
+    runs = []
+    simulate = pb.plant.simulate
+    pb.plant.simulate = lambda *a, **k: runs.append(1) or simulate(*a, **k)
+    for width in (0.8 * width_m, width_m, 1.2 * width_m):       # as a fit tries the width
+        runs.clear()
+        pb.simulate({"mass_kg": 20.0, "damping_n_s_per_m": 60.0}, {"backlash": {"width_m": width}})
+        assert len(runs) <= problem.SHOOT_GN_PLAY_STEPS // 2, (width, len(runs))
+
+
+def test_aitken_takes_geometric_steps_to_the_end_of_their_series():
+    from rig.diagnose.problem import SHOOT_AITKEN_RHO, _aitken
+    O = np.column_stack([np.ones(50), np.arange(50) / 1000.0])
+    last = np.array([[1e-4, 2e-3], [1e-4, 2e-3], [1e-4, 2e-3], [1e-4, 0.0]])
+    dX = np.array([0.5 * last[0], 0.999 * last[1], -0.5 * last[2], [0.0, 1e-3]])   # rho 0.5, 0.999, -0.5, turned
+    f = _aitken(dX, last, O)
+    assert np.isclose(f[0], 2.0)                                 # 1 / (1 - 0.5): the rest of the series
+    assert np.isclose(f[1], 1.0 / (1.0 - SHOOT_AITKEN_RHO))      # capped
+    assert f[2] == 1.0 and f[3] == 1.0                           # no geometric series: a plain step
