@@ -225,6 +225,9 @@ class HilConfig:
     # SCHED_FIFO of the emulated devices (0 = normal): above the drivers' I/O processes ([drivers] thread_priority),
     # below the loop: real devices are never held up by the host's drivers
     device_priority: int = _f(60, "", ge=0, le=99)
+    # the CAN between the valves' I/O and the emulated valve nodes: binary frames on a local socket (rig_stream,
+    # drivers/can_stream.py) or python-can's socketcand text protocol over 127.0.0.1 (drivers/README.md: the cost)
+    can_transport: str = _f("rig_stream", "", choices=("rig_stream", "socketcand"))
     # wiring faults to rehearse (drivers/devicemaps/hil_wiring_faults.md), per analog input channel ch0-7 of the
     # emulated module: which signal it carries (0-3 the mounts' table accelerometers, 4-7 the floor's, MOUNTS
     # order: a swap exchanges two), a factor (-1 its sign inverted, 0.10197 an input range in g read as m/s^2)
