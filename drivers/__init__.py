@@ -38,7 +38,7 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
     ch i, transducer channel i + 1 (drivers/devicemaps/: the four-mount map in README.md, the prototype's in
     prototype.md). With floor accelerometers ([sensors] floor_accel) the analog module also reads [sensors]
     floor_channels, one per mount. can_options: further python-can arguments of the bus (a socketcand
-    gateway's host and port); silent_s: how long an I/O process may go without reporting (default stale_s);
+    gateway's host and port, rig_stream's address); silent_s: how long an I/O process may go without reporting (default stale_s);
     period_s: the loop's period (default [loop] rate_hz's): the valves' SYNC and the module's fetch follow it."""
     d = cfg.drivers
     names = list(layout_mounts(cfg))

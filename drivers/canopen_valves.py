@@ -45,21 +45,30 @@ def _no_delay(bus):
 
 
 class _Burst:
-    """The RPDOs and the SYNC of one period leave a socketcand gateway's socket in one TCP segment (TCP_CORK
-    while python-can writes them, one frame each): the gateway wakes once per SYNC, not once per frame. On a
-    CAN bus (socketcan) the frames go out one by one as always: nothing to do."""
+    """The RPDOs and the SYNC of one period leave together: a bus that offers `burst()` (the HIL's rig_stream,
+    drivers/can_stream.py) writes them at once; a socketcand gateway's socket sends them in one TCP segment
+    (TCP_CORK while python-can writes them, one frame each). The gateway wakes once per SYNC, not once per
+    frame. On a CAN bus (socketcan) the frames go out one by one as always: nothing to do."""
 
-    def __init__(self, sock) -> None:
+    def __init__(self, sock, bus=None) -> None:
         import socket
         self.sock, self.cork = sock, getattr(socket, "TCP_CORK", None)
         self.ip = socket.IPPROTO_TCP
+        self.burst = getattr(bus, "burst", None)
+        self._ctx = None
 
     def __enter__(self):
-        if self.sock is not None and self.cork is not None:
+        if self.burst is not None:
+            self._ctx = self.burst()
+            self._ctx.__enter__()
+        elif self.sock is not None and self.cork is not None:
             self.sock.setsockopt(self.ip, self.cork, 1)
 
     def __exit__(self, *exc):
-        if self.sock is not None and self.cork is not None:
+        if self._ctx is not None:
+            ctx, self._ctx = self._ctx, None
+            ctx.__exit__(*exc)
+        elif self.sock is not None and self.cork is not None:
             self.sock.setsockopt(self.ip, self.cork, 0)       # uncorked: the segment goes now
 
 
@@ -114,7 +123,7 @@ class ValveIO(IODevice):
         net = canopen.Network()
         net.NOTIFIER_CYCLE = 0.01              # the notifier (set-up only) stops within 10 ms when run() begins
         kw = {"interface": self.interface, "channel": self.channel, **self.bus_kw}
-        if self.bitrate and self.interface not in ("virtual", "socketcand"):
+        if self.bitrate and self.interface not in ("virtual", "socketcand", "rig_stream"):
             kw["bitrate"] = self.bitrate
         if self.interface == "virtual":
             kw["receive_own_messages"] = False
@@ -123,7 +132,7 @@ class ValveIO(IODevice):
         except (can.CanError, OSError, ValueError, ImportError, TimeoutError) as e:
             raise DeviceError(f"{self.where}: cannot open the CAN bus ({e.__class__.__name__}: {e})") from None
         self.network = net
-        self._burst = _Burst(_no_delay(net.bus))
+        self._burst = _Burst(_no_delay(net.bus), net.bus)
         self._bus = net.bus
         self._rpdo = [can.Message(arbitration_id=0x200 + nid, data=bytearray(4), is_extended_id=False)
                       for nid in self.node_ids]

@@ -79,8 +79,9 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
     plant: default the layout's, stepped at the loop period: the four-mount RigPlant under the configured floor
     vibration, or on the stand layout the actuators on their stands (the prototype: one) on the floor of
     [stand] base_motion_rms_m. The emulated module converts at each plant step (each SYNC), so the port is
-    sample-driven. The valves' bus reaches the emulated nodes through a socketcand gateway on 127.0.0.1
-    (python-can's socketcand interface: sim_backend/emulators/canopen_valve.py says why). trace_s: seconds of the
+    sample-driven. The valves' bus reaches the emulated nodes through their gateway ([hil] can_transport: binary
+    frames on a local socket, python-can interface rig_stream, drivers/can_stream.py; or socketcand on
+    127.0.0.1: sim_backend/emulators/canopen_valve.py says why). trace_s: seconds of the
     plant's table motion kept for band-limited isolation figures (EmulatedRig.trace)."""
     from drivers import build_driver_port
     from sim_backend.backend import stand_bank
@@ -104,8 +105,10 @@ def make_hil_port(cfg, plant=None, *, dt: float | None = None, clock=None, stale
                       extra_delay_s=cfg.hil.extra_delay_s, valve_faults=_valve_faults(cfg)).start()
     try:
         stale = stale_s if stale_s is not None else cfg.hil.stale_s
-        port = build_driver_port(cfg, "hil", can_interface="socketcand", can_channel="can0",
-                                 can_options={"host": "127.0.0.1", "port": emu.can_port},
+        stream = cfg.hil.can_transport == "rig_stream"
+        port = build_driver_port(cfg, "hil", can_interface=cfg.hil.can_transport,
+                                 can_channel="can0", can_options={"address": emu.can_stream} if stream else
+                                 {"host": "127.0.0.1", "port": emu.can_port},
                                  modbus_host="127.0.0.1", modbus_port=emu.modbus_port, serial_port=emu.serial_path,
                                  stale_s=stale, serial_stale_s=serial_stale_s if serial_stale_s is not None else
                                  (stale_s if stale_s is not None else cfg.hil.serial_stale_s),

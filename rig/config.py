@@ -200,6 +200,10 @@ class DriversConfig:
     # conversion time)
     accel_fetch_every: int = _f(1, "", ge=1, le=32)
     accel_fetch_delay_s: float = _f(0.0001, "s", ge=0, le=0.1)
+    # periods from a conversion's SYNC to the SYNC whose commands it changes: 1 when the conversion reaches the
+    # loop within the period (SYNC early in it), 2 when sync_offset_s puts the SYNC late in the period and the
+    # conversion is taken at the period after next (a 2 kHz period is shorter than SYNC -> module -> loop here)
+    accel_delay_periods: int = _f(1, "", ge=1, le=4)
     # the transducer amplifier: asked at serial_rate_hz (its line carries up to about 1 kHz: a frame of about 75
     # bytes takes 0.8 ms at 921600 baud; the stroke serves the slow centring and the limits), its frame in
     # serial_latency_s after its sample; held between frames
@@ -225,6 +229,9 @@ class HilConfig:
     # SCHED_FIFO of the emulated devices (0 = normal): above the drivers' I/O processes ([drivers] thread_priority),
     # below the loop: real devices are never held up by the host's drivers
     device_priority: int = _f(60, "", ge=0, le=99)
+    # the CAN between the valves' I/O and the emulated valve nodes: binary frames on a local socket (rig_stream,
+    # drivers/can_stream.py) or python-can's socketcand text protocol over 127.0.0.1 (drivers/README.md: the cost)
+    can_transport: str = _f("rig_stream", "", choices=("rig_stream", "socketcand"))
     # wiring faults to rehearse (drivers/devicemaps/hil_wiring_faults.md), per analog input channel ch0-7 of the
     # emulated module: which signal it carries (0-3 the mounts' table accelerometers, 4-7 the floor's, MOUNTS
     # order: a swap exchanges two), a factor (-1 its sign inverted, 0.10197 an input range in g read as m/s^2)
@@ -635,12 +642,12 @@ def hil_run_config(cfg: Config, rate_hz: float | None = None) -> Config:
 def channel_delays(cfg: Config, rate_hz: float | None = None) -> tuple[int, int]:
     """The delay in loop periods from a sensor's sample to the command it changes acting, per channel, through
     the drivers' timing ([drivers]): the accelerometers' conversion at SYNC k reaches the commands sent with SYNC
-    k + 1, or with blocks of conversions (accel_fetch_every) the last of the block; the transducer's sample is
-    held between frames (serial_rate_hz) and arrives serial_latency_s after it was taken. (accel, stroke); the
+    k + accel_delay_periods, or with blocks of conversions (accel_fetch_every) the last of the block; the
+    transducer's sample is held between frames (serial_rate_hz) and arrives serial_latency_s after it was taken. (accel, stroke); the
     controller design (controllers/tune_hil.py) and the lockstep simulation of the same timing use them."""
     rate = float(rate_hz or cfg.loop.rate_hz)
     d = cfg.drivers
-    accel = d.accel_fetch_every
+    accel = d.accel_delay_periods - 1 + d.accel_fetch_every
     age = d.serial_latency_s + 0.5 / d.serial_rate_hz          # the transducer sample's mean age when used
     return accel, max(1, 1 + int(math.floor(age * rate + 0.5)))
 

@@ -65,8 +65,11 @@ def lockstep(cfg, seconds: float, modes, settle_s: float, activate_after_s: floa
     adc = (cfg.drivers.accel_V_per_mps2, cfg.sensors.floor_V_per_mps2)
     da, ds = channel_delays(cfg, rate)
     timing = (ds - da, max(1, int(round(rate / min(cfg.drivers.serial_rate_hz, rate)))))
+    # the simulated rig applies a command one period after its sample; a later conversion ([drivers]
+    # accel_delay_periods) is the same loop delay as a command applied that much later
     with Session(cfg, "sim", clock=SimClock(), isolation=False,
-                 port_options={"adc": adc, "stroke_timing": timing}) as s:
+                 port_options={"adc": adc, "stroke_timing": timing,
+                               "cmd_delay_periods": cfg.drivers.accel_delay_periods}) as s:
         loop, plant = s.loop, s.port.plant
         null = [0.0] * loop.n
         for _ in range(pre_steps):

@@ -1,11 +1,14 @@
-"""Emulated CiA 408-style valve nodes and the plant they drive, in a process of their own, behind a CAN-over-TCP
-gateway that speaks socketcand's protocol on 127.0.0.1 (python-can's `socketcand` interface is the driver's
-bus, as it would reach a remote CAN bus through a socketcand daemon).
+"""Emulated CiA 408-style valve nodes and the plant they drive, in a process of their own, behind a CAN gateway
+with two doors: binary SocketCAN-layout frames on an abstract Unix socket (python-can interface `rig_stream`,
+drivers/can_stream.py: HIL's default, [hil] can_transport) and socketcand's text protocol on 127.0.0.1
+(python-can's `socketcand` interface, as the driver would reach a remote CAN bus through a socketcand daemon).
 
-Why this transport: python-can's `virtual` bus connects only inside one process, there is no vcan here and
+Why these transports: python-can's `virtual` bus connects only inside one process, there is no vcan here and
 multicast is not allowed; python-can's `slcan` over a pty pair (a USB-CAN adapter's serial line) reads its
 frames byte by byte and drains the line after each one (measured here: SYNC -> four TPDOs p50 448 us,
-p99 1.7 ms, against 66 us / 163 us for socketcand on loopback TCP): too slow for a 2 kHz loop.
+p99 1.7 ms, against 66 us / 163 us for socketcand on loopback TCP): too slow for a 2 kHz loop. socketcand
+formats and parses each frame as text on both ends; rig_stream moves the same frames as bytes
+(drivers/README.md: the CPU budget).
 
 The nodes are canopen LocalNodes on a canopen Network whose frames go through the gateway (the network's own
 send_message and notify, canopen's documented way to a custom interface), all in this process's one thread.
@@ -33,6 +36,7 @@ import struct
 import sys
 import time
 
+from drivers import can_stream
 from drivers.protocol import valve408 as v4
 from rig.runtime.rt import raise_priority
 from sim_backend.emulators import shared as sh
@@ -227,6 +231,29 @@ class Gateway:
                 pass
 
 
+class StreamGateway:
+    """The other end of the valves' I/O's `rig_stream` bus (drivers/can_stream.py): binary SocketCAN-layout
+    frames over a local stream socket, no handshake; the same interface as Gateway."""
+
+    def __init__(self, conn: socket.socket) -> None:
+        self.conn = conn
+        self.buf = b""
+        self.out: list[bytes] = []
+        self.now = time.time()
+
+    def frames(self, data: bytes):
+        frames, self.buf = can_stream.unpack(self.buf + data)
+        for cid, _dlc, payload in frames:
+            if not cid & (can_stream.CAN_ERR_FLAG | can_stream.CAN_RTR_FLAG):
+                yield cid & (can_stream.CAN_EFF_MASK if cid & can_stream.CAN_EFF_FLAG else can_stream.CAN_SFF_MASK), \
+                    payload
+
+    def send(self, can_id: int, data: bytes) -> None:
+        self.out.append(can_stream.pack(can_id, data))
+
+    flush = Gateway.flush
+
+
 class PlantServer:
     """This process: the plant, the valve nodes, the gateway; the devices' shared state (sim_backend/emulators/
     shared.py) written at each step, the fault knobs and the metering read from it."""
@@ -312,15 +339,17 @@ class PlantServer:
             arr[b:b + 3] = (x, g, float(ph))
             arr[sh.TRACE] = k + 1
 
-    def serve(self, srv: socket.socket, parent_gone) -> None:
+    def serve(self, listeners: dict, parent_gone) -> None:
+        """listeners: {listening socket: its gateway class}; one client at a time (a new one replaces it)."""
         while not parent_gone():
-            socks = [srv] + ([self.gw.conn] if self.gw is not None else [])
+            socks = list(listeners) + ([self.gw.conn] if self.gw is not None else [])
             r, _, _ = select.select(socks, [], [], 2 * self.dt)
-            if srv in r:
-                conn, _ = srv.accept()
-                if self.gw is not None:
-                    self.gw.conn.close()
-                self.gw = Gateway(conn)
+            for srv in listeners:
+                if srv in r:
+                    conn, _ = srv.accept()
+                    if self.gw is not None:
+                        self.gw.conn.close()
+                    self.gw = listeners[srv](conn)
             if self.gw is not None and self.gw.conn in r:
                 try:
                     data = self.gw.conn.recv(65536)
@@ -342,7 +371,8 @@ class PlantServer:
 
 def serve(arr, announce, spec_path: str, priority: int = 0) -> None:
     """Process entry: the pickled spec (plant, dt, node ids, spool bandwidth, valve range, floor sensors, trace
-    length) from spec_path, listen on 127.0.0.1, announce the port, serve until the parent goes away."""
+    length) from spec_path, listen on 127.0.0.1 (socketcand) and on an abstract Unix socket (rig_stream),
+    announce `PORT NAME`, serve until the parent goes away."""
     import logging
     logging.getLogger("canopen").setLevel(logging.WARNING)
     with open(spec_path, "rb") as f:
@@ -354,10 +384,15 @@ def serve(arr, announce, spec_path: str, priority: int = 0) -> None:
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     srv.bind(("127.0.0.1", 0))
     srv.listen(2)
-    announce.send(srv.getsockname()[1])
+    name = f"@rig-hil-can-{os.getpid()}-{srv.getsockname()[1]}"     # abstract: nothing on disk, never off the host
+    local = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    local.bind(can_stream.socket_address(name))
+    local.listen(2)
+    announce.send(f"{srv.getsockname()[1]} {name}")
     parent = os.getppid()
     try:
-        server.serve(srv, lambda: os.getppid() != parent or announce.poll())
+        server.serve({srv: Gateway, local: StreamGateway}, lambda: os.getppid() != parent or announce.poll())
     finally:
         srv.close()
+        local.close()
         sys.stdout.flush()

@@ -7,8 +7,10 @@
                                           null; DELAY_STEPS: conversions the signal lags, fractional)
   serial STATE_FILE PRIORITY [FAULTS]     prints `PATH <pty>` once the pty pair is open (FAULTS: JSON
                                           [sources, factors, offsets_m, noise_m] or null)
-  plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a socketcand gateway; prints
-                                          `PORT <n>` once listening on 127.0.0.1:<n> (SPEC_FILE: pickled)
+  plant STATE_FILE SPEC_FILE PRIORITY     the plant and the valve nodes behind a CAN gateway; prints
+                                          `PORT <n> <@name>` once listening on 127.0.0.1:<n> (socketcand) and
+                                          on the abstract Unix socket @name (rig_stream, drivers/can_stream.py)
+                                          (SPEC_FILE: pickled)
 The device serves until its stdin closes (the parent closed the pipe or died) or it is terminated.
 """
 from __future__ import annotations

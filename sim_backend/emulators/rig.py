@@ -1,7 +1,8 @@
 """The emulated rig behind the real drivers: plant + CANopen valve nodes + Modbus I/O module + serial amplifier,
 each in a process of its own, none in the loop's:
 
-  process  the plant and the four valve LocalNodes behind a socketcand gateway on 127.0.0.1:<ephemeral>
+  process  the plant and the four valve LocalNodes behind a CAN gateway: binary frames on an abstract Unix
+           socket (python-can interface rig_stream, drivers/can_stream.py) or socketcand on 127.0.0.1:<ephemeral>
            (sim_backend/emulators/canopen_valve.py): the plant steps at each CAN SYNC to the SYNC instant
   process  Modbus TCP server on 127.0.0.1:<ephemeral>    (accelerometers, ADAM-6024-style map)
   process  DTA-4 amplifier on a pty pair                    (displacement transducers, ASCII)
@@ -55,7 +56,8 @@ class EmulatedRig:
         self.priority = priority              # SCHED_FIFO of the device processes (0 = normal)
         self.state = sh.SharedFile(trace_steps=int(math.ceil(trace_s / self.dt)) if trace_s else 0)
         self.arr = self.state.arr
-        self.can_port: int | None = None
+        self.can_port: int | None = None          # the valve nodes' socketcand gateway (127.0.0.1)
+        self.can_stream: str | None = None        # ... and their rig_stream socket (drivers/can_stream.py)
         self.modbus_port: int | None = None
         self.serial_path: str | None = None
         self._procs: list[tuple[subprocess.Popen, str]] = []
@@ -69,7 +71,8 @@ class EmulatedRig:
                 pickle.dump({"plant": self.plant, "dt": self.dt, "node_ids": self.node_ids, "w_spool": self.w_spool,
                              "max_V": self.max_V, "floor_sensors": self.floor_sensors,
                              "trace_steps": self.state.trace_steps, "valve_faults": self.valve_faults}, f)
-            self.can_port = int(self._spawn("plant", spec, str(self.priority)))
+            port, self.can_stream = self._spawn("plant", spec, str(self.priority)).split()
+            self.can_port = int(port)
             wiring = json.dumps([list(f) for f in self.ai_faults] if self.ai_faults is not None else None)
             self.modbus_port = int(self._spawn("modbus", str(self.accel_V_per_mps2), str(self.priority),
                                                str(self.floor_V_per_mps2), ",".join(map(str, self.floor_channels)),

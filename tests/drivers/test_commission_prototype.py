@@ -1,6 +1,6 @@
 """`rig commission --layout prototype`: the prototype alone on its stand, commissioned as a user runs it.
 
-On the emulated stand over the real drivers (`--backend hil`: the canopen stack through the emulator's socketcand
+On the emulated stand over the real drivers (`--backend hil`: the canopen stack through the emulator's CAN
 gateway, Modbus TCP and the DTA-4's pty on 127.0.0.1): wired right, every channel ok (no fault invented), the
 report, calibration, plot and recording written, the stroke far inside +-50 % of its limit and the wall time
 printed. With three wiring faults at once from [hil] (the accelerometer's sign inverted, the valve's null at

@@ -1,7 +1,7 @@
 """The valves' side of `rig commission`: each valve's null offset, DC gain and CAN node.
 
 On the emulated rig over the real drivers (`--backend hil`, the real canopen stack through the emulator's
-socketcand gateway) with one valve fault per mount from [hil] (front_left's null at 0.3 V, front_right's flow gain
+gateway) with one valve fault per mount from [hil] (front_left's null at 0.3 V, front_right's flow gain
 halved, rear_left's and rear_right's CAN nodes swapped): each named on its valve, nothing else named, the
 calibration file holding the valve map, null and gain; that file applied (`[drivers] calibration`, the valves'
 conversion), commissioning the same miswired rig again finds every valve ok, its null gone from the stroke.

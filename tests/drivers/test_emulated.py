@@ -1,10 +1,10 @@
-"""The three drivers against the emulated devices over real stacks (python-can's socketcand interface + canopen
-to the emulated nodes' gateway, Modbus TCP on 127.0.0.1, a pty), each driver in its I/O process and each
-device in its own: setpoint scaling and the safe state through the PDOs, every fault knob ending in a one-line
-device fault, a killed device or I/O process named; and each device end alone (its entry point in a thread
-here: the test sets its values exactly) with the driver's conversion handling in this process: register
-scaling, exceptions, the conversion FIFO and every conversion handed over in order, the serial frames. The
-plant is the deterministic stand-in (protocol level)."""
+"""The three drivers against the emulated devices over real stacks (python-can's rig_stream interface, drivers/
+can_stream.py, + canopen to the emulated nodes' gateway, socketcand's in test_startup_faults.py; Modbus TCP on
+127.0.0.1, a pty), each driver in its I/O process and each device in its own: setpoint scaling and the safe state
+through the PDOs, every fault knob ending in a one-line device fault, a killed device or I/O process named; and
+each device end alone (its entry point in a thread here: the test sets its values exactly) with the driver's
+conversion handling in this process: register scaling, exceptions, the conversion FIFO and every conversion
+handed over in order, the serial frames. The plant is the deterministic stand-in (protocol level)."""
 from __future__ import annotations
 
 import dataclasses
@@ -132,7 +132,7 @@ KNOBS = [
     ("serial", "stale", r"serial DTA-4 /dev/pts/\d+: no new sample .*sequence number not advancing"),
     ("serial_ch", "NP", r"serial DTA-4 /dev/pts/\d+ ch3 \(rear_left\): no probe"),
     ("serial_ch", "OR", r"serial DTA-4 /dev/pts/\d+ ch3 \(rear_left\): over range"),
-    ("valve", "silence", r"canopen socketcand:can0 valve front_right \(node 2\): no new TPDO"),
+    ("valve", "silence", r"canopen rig_stream:can0 valve front_right \(node 2\): no new TPDO"),
     ("valve", "garbage", r"valve front_right \(node 2\): garbled TPDO: TPDO of 1 bytes"),
     ("valve", "stale", r"valve front_right \(node 2\): no new TPDO"),
     ("valve", "fault", r"valve front_right \(node 2\): valve in FAULT \(statusword 0x0007\)"),
