@@ -41,7 +41,7 @@ backend; any config with [layout] plant = "stand"): the actuator alone on its st
   kill -USR1 / -USR2 <pid>         isolate <-> hold / off <-> hold
 A reference the actuator cannot follow (outside the stroke limit or the static range of about +-24 um that
 leakage leaves at 90 % of the valve clamp, faster than the rate limit, more volts than the clamp allows) is
-refused with one line, never clamped. After the run: the tracking figures per segment (with --record), and
+refused with one line, never clamped. After a run with --seconds or --record: the tracking figures per segment;
 --plot PNG draws reference, position and error.
 Do no harm: while isolation is on the loop compares the table's vibration with isolation off (or the floor's);
 isolation that makes it worse by more than [supervisor] margin_db is said in one line, recorded as an event and
@@ -300,7 +300,8 @@ class _RunPlan:
         if stand:
             check_start_stroke(args, cfg)
         self.record, self.tmp = args.record, None
-        if args.plot and self.record is None:
+        # the stand's tracking figures need the run's samples: a timed run keeps them in a temporary recording
+        if self.record is None and (args.plot or (stand and args.seconds is not None)):
             fd, self.tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
             os.close(fd)
             self.record = self.tmp

@@ -32,6 +32,15 @@ def test_run_tracks_a_sine_and_prints_the_figures_and_the_plot(tmp_path):
     assert (tmp_path / "r.png").stat().st_size > 10000
 
 
+def test_a_timed_run_without_record_still_says_how_well_it_tracked(tmp_path):
+    """A run with --seconds and no --record prints its tracking figures (it printed none)."""
+    out = rig("run", "--layout", "prototype", "--sim-time", "--seconds", "1", "--mode", "track",
+              "--reference", "sine:amp=10um,freq=5")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "tracking error rms" in out.stdout and "% of 10.00 um" in out.stdout
+    assert "recorded to" not in out.stderr
+
+
 @pytest.mark.parametrize("args,match", [
     (["--position", "30um"], "outside what the actuator can hold: +-24.1 um"),
     (["--reference", "sine:amp=10um,freq=30"], "above the reference rate limit"),
