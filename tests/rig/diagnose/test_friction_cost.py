@@ -53,7 +53,7 @@ def test_a_sliding_root_with_stribeck_is_found_to_the_tolerance():
 def test_a_friction_fits_columns_are_one_simulation_each():
     """The Jacobian's columns start from the segment states refined at the point the fit stands on and are not
     refined again: one friction simulation each. Before, each column refined its states from the data's, two or
-    three simulations (rig prove --plant emps_axis.toml seed 1, a03: 1284 friction simulations, now ~880)."""
+    three simulations (rig prove --plant emps_axis.toml seed 1, a03: 1284 friction simulations, now 893)."""
     pb = _friction_problem()
     in_column = threading.local()
     column_runs, other_runs, columns = [], [], []
@@ -95,3 +95,19 @@ def test_from_the_refined_states_a_model_is_the_refined_one():
     assert X2 is X0
     assert np.array_equal(r, r2)
     assert np.sqrt(np.mean(r ** 2)) < 3 * NOISE_M
+
+
+def test_a_play_alone_is_refined_at_every_column():
+    """A play without friction is refined from the data's states even when given refined ones: from states as they
+    are, a play's fit named a base resonance beside it (rig prove --plant emps_axis.toml seed 1, a10)."""
+    ax = Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, backlash_m=7e-4)
+    u = band_noise(1000.0, 12.0, 0.3, 30.0, 40.0, seed=5).cmd_V
+    cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(noise_m=NOISE_M, offset_m=3e-4, seed=2))
+    pb = problem.Problem(cmd, pos, 1000.0, parse_plant(PLANT, "axis.toml"), np.ones(len(pos), bool), noise=NOISE_M)
+    lin, fx = {"mass_kg": 20.0, "damping_n_s_per_m": 60.0}, {"backlash": {"width_m": 7e-4}}
+    _, X0 = pb._residual_fit(lin, fx)
+    runs = []
+    simulate = pb.plant.simulate
+    pb.plant.simulate = lambda *a, **k: runs.append(1) or simulate(*a, **k)
+    pb._residual_fit({**lin, "mass_kg": 20.1}, fx, states=X0)
+    assert len(runs) > 1
