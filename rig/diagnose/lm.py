@@ -10,8 +10,10 @@ import numpy as np
 _POOL = ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1))
 
 
-def lm_fit(fun, x0, lo, hi, step, *, max_iter: int = 20, rtol: float = 1e-5):
-    """Minimise sum(fun(x)^2) within [lo, hi]. step: forward-difference step per parameter (its own units)."""
+def lm_fit(fun, x0, lo, hi, step, *, max_iter: int = 20, rtol: float = 1e-5, near=None):
+    """Minimise sum(fun(x)^2) within [lo, hi]. step: forward-difference step per parameter (its own units).
+    near(xp, x), if given, is fun at xp, one difference step from the point x the fit stands on (which fun has
+    evaluated): the Jacobian's columns, which may reuse what fun found at x."""
     lo = np.asarray(lo, float); hi = np.asarray(hi, float); step = np.asarray(step, float)
     x = np.clip(np.asarray(x0, float), lo, hi)
     r = fun(x); c = float(r @ r)
@@ -23,7 +25,7 @@ def lm_fit(fun, x0, lo, hi, step, *, max_iter: int = 20, rtol: float = 1e-5):
         def column(i):
             h = step[i] if x[i] + step[i] <= hi[i] else -step[i]
             xp = x.copy(); xp[i] += h
-            J[:, i] = (fun(xp) - r) / h
+            J[:, i] = ((fun(xp) if near is None else near(xp, x)) - r) / h
         list(_POOL.map(column, range(n)))       # the simulators release the GIL: two cores share the columns
         g = J.T @ r
         A = J.T @ J

@@ -272,28 +272,43 @@ class Problem:
         return out, sol[:m], (sol[m:q] if F is not None else None), state
 
     def model(self, lin: dict, fx: dict) -> np.ndarray:
+        return self._model(lin, fx)[0]
+
+    def _model(self, lin: dict, fx: dict, states: np.ndarray | None = None):
+        """The model and the segment states it was simulated from (simulate_from)."""
         sfx = catalogue.simulated(fx)
         if self.proxy is not None:
             # superposition proxy: the exact slow model at its fit plus the change that the fast linear-sim
             # effects (delay, base, clip) and linear parameters make
             y_cur, base_c = self.proxy
             fl = catalogue.fast(sfx)
-            return y_cur + self.simulate(lin, fl) - base_c
-        return self.simulate(lin, sfx)
+            return y_cur + self.simulate(lin, fl) - base_c, None
+        return self.simulate_from(lin, sfx, states)
 
     def simulate(self, lin: dict, fx: dict) -> np.ndarray:
         """The plant with the effects fx (no disturbance) from the recorded command; a segmented plant from the
         data's state at each segment start."""
+        return self.simulate_from(lin, fx)[0]
+
+    def simulate_from(self, lin: dict, fx: dict, states: np.ndarray | None = None):
+        """simulate, and the segment states its refinement ended at (None: no refinement). states: those refined
+        at a nearby model (the fit's current point, Problem.fit), simulated from as they are (no refinement) where
+        friction is in; a play alone is refined as ever (from its states as they are, a play's fit named a base
+        resonance beside it: rig prove --plant emps_axis.toml seed 1, a10)."""
         if self.shoot is None:
-            return self.plant.simulate(lin, self.cmd, self.fs, fx)
+            return self.plant.simulate(lin, self.cmd, self.fs, fx), None
         nonlinear = catalogue.state_nonlinear_in(fx)
         nx = self.plant.matrices(lin, fx)[0].shape[0]
         if nx not in self.shoot.X0:
             self.shoot.X0[nx] = self.plant.state_from_data(self.y, self.fs, self.shoot.starts, fx)
         X0 = self.plant.drive_states(self.shoot.X0[nx], fx)
+        # a play without friction: the load answers the drive's state only outside the play
+        partial = nonlinear and not catalogue.slow_in(fx)
+        if nonlinear and not partial and states is not None and states.shape == X0.shape:
+            return self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, states), states
         y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
         if not nonlinear:
-            return y            # linear in the initial state: the projection's correction is exact
+            return y, None      # linear in the initial state: the projection's correction is exact
         # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
         # and the sticking), and so does a play (where the drive starts inside it decides when the load moves):
         # Gauss-Newton steps on the segment states, the correction the projection finds from
@@ -303,7 +318,6 @@ class Problem:
         # cannot follow the data has no states to settle on; its steps wander) or they settle. A play's steps that
         # shrink geometrically are taken to the end of their series (_aitken); one that overshoots is taken plain.
         O = self.free_response(lin, fx)
-        partial = any(catalogue.get(k).state_nonlinear for k in fx) and not catalogue.slow_in(fx)
         best = None                                   # (rss, y, X0, dX) of the best states
         last = None                                   # the previous plain step (its ratio to this one: _aitken)
         extrapolated = False
@@ -329,11 +343,12 @@ class Problem:
         else:
             r = self._project_shooting(self.y - y, None, O)[0]
             if float(np.sum(r[self.mfit] ** 2)) < best[0]:
-                return y
-        return best[1]
+                return y, X0
+        return best[1], best[2]
 
-    def _residual_full(self, lin: dict, fx: dict):
-        r = self.y - self.model(lin, fx)
+    def _residual_full(self, lin: dict, fx: dict, states: np.ndarray | None = None):
+        y, X0 = self._model(lin, fx, states)
+        r = self.y - y
         f_line = catalogue.line_frequency(fx)
         F = self.force_basis(lin, fx) if f_line is not None else None
         state = None
@@ -344,25 +359,30 @@ class Problem:
         dist = None
         if F is not None:
             dist = (f_line, float(d[0]), float(d[1]))      # force amplitudes [N] of sin and cos
-        return r, dist, c, state
+        return r, dist, c, state, X0
 
     def residual(self, lin: dict, fx: dict):
         """Full-length residual with the sensor terms (and the disturbance) projected out on the fit blocks,
         the disturbance coefficients and the sensor coefficients."""
-        r, dist, c, _ = self._residual_full(lin, fx)
+        r, dist, c, _, _ = self._residual_full(lin, fx)
         return r, dist, c
 
     def residual_fit(self, lin: dict, fx: dict) -> np.ndarray:
         """The residual on the fit blocks only (what the least squares see)."""
+        return self._residual_fit(lin, fx)[0]
+
+    def _residual_fit(self, lin: dict, fx: dict, states: np.ndarray | None = None):
+        """residual_fit and the segment states the model was simulated from (simulate_from)."""
         if self.shoot is not None:
-            return self._residual_full(lin, fx)[0][self.mfit]
+            r, _, _, _, X0 = self._residual_full(lin, fx, states)
+            return r[self.mfit], X0
         rf = self.y[self.mfit] - self.model(lin, fx)[self.mfit]
         Ff = self.force_basis(lin, fx)[self.mfit] if catalogue.projected(fx) else None
         c, d = self._coef(rf, Ff)
         rf = rf - self._Bf @ c
         if Ff is not None:
             rf = rf - Ff @ d
-        return rf
+        return rf, None
 
     def force_basis(self, lin: dict, fx: dict) -> np.ndarray:
         """Position responses to a unit sin/cos load force at the disturbance frequency (linear model with
@@ -422,13 +442,24 @@ class Problem:
         """Least squares on the fit blocks over free linear keys (log scale where positive) and the free effect
         keys."""
         names, lo, hi, x0, step, unpack = self.space(lin0, fx0, free_lin, free_fx)
+        # with friction the Jacobian's columns (lm_fit's near) are simulated from the segment states refined at the
+        # point the fit stands on, as they are: one simulation, not the refinement's two or three. The projection
+        # still corrects the states linearly, as it does there; keyed on that point, so the columns' two threads and
+        # their order change nothing. Every point the fit stands on, and its result, is refined from the data's
+        # states as any other model.
+        refined = {}
 
         def fun(x):
-            lin, fx = unpack(x)
-            return self.residual_fit(lin, fx) / self.noise
+            rf, X0 = self._residual_fit(*unpack(x))
+            if X0 is not None:
+                refined[x.tobytes()] = X0
+            return rf / self.noise
+
+        def near(xp, x):
+            return self._residual_fit(*unpack(xp), states=refined.get(x.tobytes()))[0] / self.noise
 
         if names:
-            x, _ = lm_fit(fun, x0, lo, hi, step, max_iter=max_iter, rtol=rtol)
+            x, _ = lm_fit(fun, x0, lo, hi, step, max_iter=max_iter, rtol=rtol, near=near)
             lin, fx = unpack(x)
         else:
             lin, fx = dict(lin0), {n: dict(v) for n, v in fx0.items()}
@@ -442,7 +473,7 @@ class Problem:
         return [self.base_band] + list(bnd[1:]) if effect.in_band else bnd
 
     def evaluate(self, lin: dict, fx: dict, k: int) -> ModelFit:
-        r, dist, c, state = self._residual_full(lin, fx)
+        r, dist, c, state, _ = self._residual_full(lin, fx)
         # a plant file's plant: how correlated the held-out residual is (the tests count independent samples);
         # the eha plant's tests stay as its proofs measured them
         tau = correlation_time(r, self.mhold, self.n // (2 * int(self.blk[-1] + 1))) \

@@ -166,6 +166,9 @@ def run(Ad, G0, G1, Cm, u, m, out) -> np.ndarray:
     return out
 
 
+SLIP_OVER_VS = 20.0          # |v| above 20 v_s: sliding (tanh saturated); below: stuck (the stiff tanh holds it)
+
+
 @numba.njit(cache=True, nogil=True)
 def friction_velocity(c0, c1, fric, vs, guess, atol, rtol, sx=0.0, vst=1.0):
     """The velocity v solving c0 - c1 v - F(v) = 0, F(v) = (fric + sx exp(-(v / vst)^2)) tanh(v / vs): a sub-step's
@@ -175,6 +178,26 @@ def friction_velocity(c0, c1, fric, vs, guess, atol, rtol, sx=0.0, vst=1.0):
     saturated friction. The one friction solve of every simulator (rig.diagnose.models for the actuator,
     run_segments here)."""
     top = fric + sx
+    if abs(c0) > top:
+        # sliding (the one root, of c0's sign) with tanh saturated, 1.0 in double precision above 19.1 v_s: without
+        # Stribeck the slip solution is the root; with it, Newton on the smooth saturated equation from there (its
+        # slope within 0.2 % of c1). Such a root sits at or next to the bracket's edge, where the bracketed Newton
+        # below has its step refused and bisects: ~20 steps a sub-step
+        s = 1.0 if c0 > 0 else -1.0
+        vv = (c0 - s * fric) / c1
+        done = sx <= 0.0
+        for it in range(8):
+            if done:
+                break
+            ex = sx * math.exp(-(vv / vst) ** 2)
+            dg = -c1 + s * ex * 2.0 * vv / (vst * vst)
+            if dg >= 0.0:
+                break
+            vn = vv - (c0 - c1 * vv - s * (fric + ex)) / dg
+            done = abs(vn - vv) < atol + rtol * abs(vv)
+            vv = vn
+        if done and s * vv > SLIP_OVER_VS * vs:
+            return vv
     lo = (c0 - top) / c1; hi = (c0 + top) / c1
     vv = guess
     if vv <= lo or vv >= hi:
@@ -201,9 +224,6 @@ def friction_velocity(c0, c1, fric, vs, guess, atol, rtol, sx=0.0, vst=1.0):
             break
         vv = vn
     return vv
-
-
-SLIP_OVER_VS = 20.0          # |v| above 20 v_s: sliding (tanh saturated); below: stuck (the stiff tanh holds it)
 
 
 @numba.njit(cache=True, nogil=True)
