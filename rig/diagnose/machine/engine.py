@@ -22,7 +22,7 @@ import numpy as np
 from rig.config import Config
 from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.fitting import FitResult, Slot, compare, fit, grid_search, put
-from rig.diagnose.machine.residual import Evaluation, Replay, faithful
+from rig.diagnose.machine.residual import FIDELITY, Evaluation, Replay
 from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, copy_theta, neutral, responses
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra, spectra_of
@@ -36,7 +36,7 @@ EXPLAINED = 1.25                # held-out whitened residual power over what the
                                 # channel and band (spectra.BANDS_HZ): below it nothing is left to explain
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
 OVER_FIDELITY = 2.0             # an effect's change to the replay over what two faithful models differ by
-                                # (residual.faithful, a typical difference, not a bound): below twice it the
+                                # (residual.FIDELITY, a typical difference, not a bound): below twice it the
                                 # change cannot be told from the model's own error
 
 
@@ -62,7 +62,6 @@ class Context:
     spools: Spools
     floor: bool
     valves_driven: bool
-    faithful: np.ndarray                       # (K, 8) what two faithful models differ by (residual.faithful)
     s2_expected: np.ndarray | None = None      # the weights before any inflation (weights.expected)
 
     @property
@@ -100,7 +99,7 @@ def prepare(run: RunRecording, cfg: Config) -> Context:
     R = responses(base, th, sp.w)
     rp = Replay(sp, base, expected(sp, R))
     spools = Spools(run.valve_cmd_V, sp.bin_index, base, sp.U)
-    return Context(run, sp, base, rp, spools, sp.G is not None, valves_driven(run), faithful(sp, R))
+    return Context(run, sp, base, rp, spools, sp.G is not None, valves_driven(run))
 
 
 def valves_driven(run: RunRecording) -> bool:
@@ -275,8 +274,7 @@ def at_bound(th: dict, slots) -> str:
 
 def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> float:
     """How far the instance moves theta's prediction (theta against theta without it), over what two faithful
-    models of the rig differ by (residual.faithful: FIDELITY of each part of the reading, the commands' and the
-    floor's, which under isolation nearly cancel): the largest over channels and bands of the
+    models of the rig differ by (residual.FIDELITY x the measured): the largest over channels and bands of the
     rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there;
     without floor accelerometers both what the floor's projection leaves).
     Below OVER_FIDELITY the effect moves the replay about as much as the model's own error: a statistically sure
@@ -284,13 +282,13 @@ def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> 
     likelihood ratio over thousands of bins."""
     wo = without_effect(th, inst, ctx.base)
     change = np.abs((ctx.rp.linear(th, at, U=u_of(ctx)(th)) - ctx.rp.linear(wo, at, U=u_of(ctx)(wo))) * at.sd) ** 2
-    fid = ctx.faithful[ctx.sp.hold] * at.keep
+    faithful = (FIDELITY[None, :] * np.abs(ctx.sp.Y[ctx.sp.hold])) ** 2 * at.keep
     f = ctx.sp.f_hz[ctx.sp.hold]
     out = 0.0
     for lo, hi in BANDS_HZ:
         sel = (f >= lo) & (f < hi)
         if sel.sum() >= 8:
-            out = max(out, float(np.max(np.sum(change[sel], axis=0) / np.sum(fid[sel], axis=0))))
+            out = max(out, float(np.max(np.sum(change[sel], axis=0) / np.sum(faithful[sel], axis=0))))
     return math.sqrt(out)
 
 

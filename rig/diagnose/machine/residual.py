@@ -23,24 +23,13 @@ import numba
 import numpy as np
 import scipy.linalg
 
-from rig.diagnose.machine.rigmodel import Base, Responses, modal, predict, responses
+from rig.diagnose.machine.rigmodel import Base, modal, predict, responses
 from rig.diagnose.machine.spectra import Spectra
 
 # relative: what two faithful models of the same rig differ by (a floor held linearly between samples or moving
 # continuously): the accelerometers' 0.1 %, the strokes' up to 1 % (a stroke is the small difference of the
 # machine's and the floor's large motions, so the floor's discretisation shows more in it)
 FIDELITY = np.array([2e-3] * 4 + [1e-2] * 4)
-
-
-def faithful(sp: Spectra, R: Responses) -> np.ndarray:
-    """(K, 8) what two faithful models of the rig differ by, per bin and channel (a variance): FIDELITY of each
-    part of the reading, the commands' (R's response to the recorded commands) and the rest (the floor's: the
-    reading less the commands' part), not of their sum. Under isolation the two parts nearly cancel (the loop
-    drives the valves against the floor): the reading is their small difference, and a model reproducing
-    each part to FIDELITY of itself errs by FIDELITY of the parts, the isolation's factor over FIDELITY of the
-    reading. With isolation off the commands' part is nil and this is FIDELITY of the reading."""
-    commanded = np.einsum("kci,ki->kc", R.Hu, sp.U) * R.gain_out[None, :]
-    return FIDELITY[None, :] ** 2 * (np.abs(commanded) ** 2 + np.abs(sp.Y - commanded) ** 2)
 
 
 @dataclass

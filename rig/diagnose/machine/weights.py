@@ -4,10 +4,6 @@
      + with floor accelerometers, their noise carried into the prediction by the floor's response
        (sum over mounts of |gain Hg|^2 sigma_g^2 / w^4: the floor is an input known only through them)
      + FIDELITY^2 |measured|^2 (two faithful models of one rig differ by about that much; residual.py)
-       (under isolation the model errs by more: FIDELITY of the reading's parts, residual.faithful. Weights of
-       the parts overstate its error at low frequencies, where the floor's discretisation leaves little, and
-       hide small effects; whether an effect stands above the model's error is the fidelity test's,
-       engine.over_fidelity; docs/DIAGNOSIS.md)
 then raised band by band where the refit's whitened residual is larger (the robust median: noise that is not
 white, a sensor filter, what no catalogue effect explains) -- never lowered.
 """
