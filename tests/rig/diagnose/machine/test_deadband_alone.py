@@ -43,7 +43,8 @@ def test_a_deadband_alone_names_the_deadband_and_no_sensor_gain(named):
 
 
 @pytest.mark.xfail(strict=True, reason="open: with the gain refused, the deadband's mount's viscous term (x3) is "
-                   "named in its place (what the deadband's model leaves at its mount)")
+                   "named in its place: the model's own error under isolation is its fidelity of the reading's parts "
+                   "(test_fidelity.py), the fidelity test judges against the reading (docs/DIAGNOSIS.md)")
 def test_a_deadband_alone_names_nothing_else(named):
     effects, candidates = named
     assert set(effects) == {("valve_deadband", "rear_left")}, (effects, candidates)
