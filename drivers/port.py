@@ -6,8 +6,8 @@ SYNC/PDO traffic and decoding, the module's Modbus requests, the amplifier's ser
 shares the loop's interpreter. They meet the loop in one exchange block in shared memory
 (rig/runtime/exchange.py): the loop's kernel takes the newest conversions and transducer sample from it and
 writes its commands into it; nothing in the period waits for a device or a lock another process holds. The
-loop's only call per period is `commit` after the kernel: when the valves' I/O is waiting for this period's
-commands (the loop ran late), a futex wake; otherwise one load.
+port has no call in the period: when the valves' I/O is waiting for the period's commands (the loop ran late),
+the kernel says so and the loop wakes it (a futex wake).
 
 Timing (the loop's period P): the valves' I/O sends the period's commands and then SYNC at `sync_offset_s`
 after the period starts; the valves apply them from that SYNC on; the module converts on the SYNC (the
@@ -50,7 +50,6 @@ class DriverPort(PortContext):
         io = self.exchange.io
         io[self.exchange.part("accel") + ex.A_COUNTED] = 1.0 if counted else 0.0
         io[self.exchange.part("stroke") + ex.S_STALE] = stroke_stale_s * 1e9
-        self._cmd = self.exchange.part("cmd")
         self.specs = [dict(s, block=self.exchange.path, devices=list(DEVICES)) for s in specs]
         self._procs: list[subprocess.Popen | None] = [None] * len(self.specs)
         self._on_close = on_close
@@ -144,17 +143,13 @@ class DriverPort(PortContext):
             return f"its I/O process ended (exit code {p.returncode})"
         return None
 
-    # ---- the period ---------------------------------------------------------------------------------------
-    def commit(self, t_ns: int) -> None:
-        """After the kernel wrote the period's commands: wake the valves' I/O if it waits for them."""
-        io = self.exchange.io
-        if io[self._cmd + ex.C_WAITER]:
-            io[self._cmd + ex.C_WAITER] = 0.0
-            self.exchange.wake(ex.FUTEX_CMD)
-
+    # ---- the Port protocol, for callers of their own (the loop's kernel reads and writes the block itself) ----
     def write(self, t_ns: int, commands: Commands) -> None:
-        ex.put_commands(self.exchange.io, float(t_ns), np.asarray(commands.valve_cmd_V, dtype=np.float64))
-        self.commit(t_ns)
+        """The commands into the block; the valves' I/O woken if it waits for them."""
+        io = self.exchange.io
+        ex.put_commands(io, float(t_ns), np.asarray(commands.valve_cmd_V, dtype=np.float64))
+        if ex.take_waiter(io):
+            self.exchange.wake(ex.FUTEX_CMD)
 
     def read(self, t_ns: int) -> Measurements:
         """The newest values in the block (the Port protocol, for callers of their own: the loop's kernel

@@ -726,11 +726,13 @@ def _kernel_us(cfg, mode) -> float:
         k, m = s.loop.kernel, s.loop.last_meas
         feed = MeasuredBlock(k.n, k.nf)                 # the last measurement as a latest value: every call steps
         feed.put(m)
-        args = (feed.io, 0.0, 0.0, 0.0, 0.0, float(MODE_ACTIVE), 2.0, 1.0, 0.0, 0.0)
+        k.bind_io(feed.io)
+        k.bind_ring(k.no_ring, k.no_hdr)
+        args = (k.at, 0.0, 0.0, 0.0, 0.0, float(MODE_ACTIVE), 2.0, 1.0, 0.0, 0.0)
         best = math.inf
         for _ in range(5):
             t = time.perf_counter_ns()
             for _ in range(20000):
-                k.call(k.mem, k.no_ring, k.no_hdr, *args)
+                k.call(*args)
             best = min(best, (time.perf_counter_ns() - t) / 20000 / 1e3)
     return round(best, 4)

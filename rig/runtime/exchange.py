@@ -340,6 +340,18 @@ def put_commands(io, t_ns, values):
 
 
 @numba.njit(cache=True)
+def take_waiter(io):
+    """After the commands were written: whether the valves' I/O sleeps waiting for them (ask_wake), the flag
+    cleared; the writer then wakes it (Block.wake(FUTEX_CMD)). The kernel runs this after every period that
+    faulted on no rule, as drivers/port.py's write does after its commands."""
+    w = int(io[H_CMD]) + C_WAITER
+    if io[w] != 0.0:
+        io[w] = 0.0
+        return True
+    return False
+
+
+@numba.njit(cache=True)
 def get_commands(io, out):
     """The newest consistent commands into `out`: (sequence, the period's deadline ns, null: the port's safe
     state came after them). Retries while the writer is in the middle (the loop writes for a microsecond);
@@ -410,6 +422,7 @@ def _warm() -> None:
     put_commands(io, 0.0, one)
     get_commands(io, one)
     ask_wake(io)
+    take_waiter(io)
     beat(io, 0, 0.0)
     add_stat(io, 0, 0.0)
     fence_store(io, 0, io[0])

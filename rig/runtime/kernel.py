@@ -15,11 +15,13 @@ it (check_floor) and runs each mount's floor feedforward (controllers/feedforwar
 its controller, whatever the controller's kind: the feedforward's command is added to the controller's before
 the limits. Its filters always run; switching it (set_feedforward) fades its output in or out.
 
-The block (`mem`), its parts named by the header below: the inputs of the period (packed by
-PeriodKernel.period in one struct call), the older conversions, the previous measurement, the safety limits
-and states, the mount table (kind, coefficients, state per mount), the coefficients, the controller states
-and the recording row (rig/runtime/layout.py RowLayout offsets). Passing one block instead of many scalars or arrays
-keeps numba's argument unboxing small: it is most of the cost of a call this size.
+The block (`mem`), its parts named by the header below: the inputs of the period, the older conversions, the
+previous measurement, the safety limits and states, the mount table (kind, coefficients, state per mount), the
+coefficients, the controller states and the recording row (rig/runtime/layout.py RowLayout offsets); its header
+also holds the addresses of the exchange block and of the recorder's ring the period reads and writes
+(bind_io, bind_ring). The period's call takes the block's address and the period's numbers only: numba
+unboxes an array argument through a reference-counted wrapper, allocated and freed per call, and the call's
+unboxing is most of the cost of a period this size.
 """
 from __future__ import annotations
 
@@ -30,6 +32,8 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 from controllers import isolation, modes, playback, tracking
 from controllers.feedforward import feedforward_step
@@ -94,16 +98,19 @@ MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
           "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
-          "r_ff_on", "r_flags", "dt_ns", "a_last", "t_prev", "held_up", "x_age")
+          "r_ff_on", "r_flags", "dt_ns", "a_last", "t_prev", "held_up", "x_age", "size", "io_at", "ring_at",
+          "ring_rows", "hdr_at")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
  _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
- _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS, _H_DTNS, _H_ALAST, _H_TPREV, _H_HELD, _H_XAGE) = range(len(HEADER))
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS, _H_DTNS, _H_ALAST, _H_TPREV, _H_HELD, _H_XAGE, _H_SIZE, _H_IOAT,
+ _H_RINGAT, _H_RINGROWS, _H_HDRAT) = range(len(HEADER))
 # The period's input rules over the exchange block (codes beside the safety rules' of rig/runtime/safety.py)
 CHECK_STROKE_STALE = 1000   # the transducer's newest sample older than its own limit (it is held between frames)
 DEVICE_FAULT = 1100         # + device: a device reported a fault (its line: the block's text part)
 DEVICE_SILENT = 1200        # + device: a device's I/O has not reported for longer than its limit
 BEHIND = 1300               # the loop fell further behind the accelerometer module than it replays
 NO_SAMPLE = 1400            # no conversion (or no transducer sample) published yet
+WAKE_COMMANDS = -1          # not a rule: the valves' I/O waits for the period's commands (the caller wakes it)
 _OSC_KINDS = (isolation.KIND, tracking.KIND, modes.KIND)      # feedback kinds the oscillation rule checks
 # The feedforward part of the block: the floor range, then per mount FF_TABLE
 FF_TABLE = ("coef", "n_sections", "state", "fade")
@@ -387,16 +394,13 @@ def _take(mem, io, t_ns):
     return 0
 
 
-_IO_SIG = ("int64(float64[::1], float64[:, ::1], int64[::1], float64[::1], float64, float64, float64, float64, "
-           "float64, float64, float64, float64, float64)")
-
-
 @numba.njit(cache=True)
 def period_io(mem, ring, hdr, io, t_ns, t_s, wake_us, comp_us, mode, state, isolation, overruns, skipped):
     """One period over the exchange block: take the inputs (_take), run_period, and outside FAULT, when no rule
     fired, write the period's commands (the limited ones ACTIVE, the null INACTIVE) into the block for the port
-    (rig/runtime/exchange.py put_commands). 0 or the code of the rule that fired (an input rule's: the period
-    recorded as FAULT, nothing written)."""
+    (rig/runtime/exchange.py put_commands). 0, WAKE_COMMANDS (no rule fired and the valves' I/O sleeps waiting
+    for the commands: the caller wakes it, exchange.take_waiter) or the code of the rule that fired (an input
+    rule's: the period recorded as FAULT, nothing written)."""
     i = int(mem[_H_IN])
     mem[i + _IN_T_NS] = t_ns
     mem[i + _IN_T_S] = t_s
@@ -416,26 +420,61 @@ def period_io(mem, ring, hdr, io, t_ns, t_s, wake_us, comp_us, mode, state, isol
     if code == 0 and mode != MODE_FAULT:
         rc = int(mem[_H_ROW]) + int(mem[_H_RC])
         ex.put_commands(io, t_ns, mem[rc:rc + int(mem[_H_N])])
+    if code == 0 and ex.take_waiter(io):
+        return WAKE_COMMANDS
     return code
+
+
+@intrinsic
+def _f64_at(typingctx, addr):
+    """The float64 buffer at an address (an int64 word: the views the kernel binds, kept alive by it)."""
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.float64)))
+    return types.CPointer(types.float64)(types.int64), codegen
+
+
+@intrinsic
+def _i64_at(typingctx, addr):
+    """The int64 buffer at an address (the recorder ring's header)."""
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], context.get_value_type(types.CPointer(types.int64)))
+    return types.CPointer(types.int64)(types.int64), codegen
+
+
+_AT_SIG = "int64(int64, float64, float64, float64, float64, float64, float64, float64, float64, float64)"
+
+
+@numba.njit(cache=True)
+def period_at(at, t_ns, t_s, wake_us, comp_us, mode, state, isolation, overruns, skipped):
+    """period_io over the block at address `at` (PeriodKernel.at) and the exchange block, the recorder's ring
+    and its header at the addresses in its header (PeriodKernel.bind_io, bind_ring): the call's arguments are
+    plain numbers, so calling it unboxes no array (numba makes a reference-counted wrapper per array argument,
+    an allocation each, every period)."""
+    mem = numba.carray(_f64_at(at), len(HEADER))
+    mem = numba.carray(_f64_at(at), int(mem[_H_SIZE]))
+    io = numba.carray(_f64_at(int(mem[_H_IOAT])), len(ex.HEADER))
+    io = numba.carray(_f64_at(int(mem[_H_IOAT])), int(io[ex.H_FUTEX]) // 8)
+    ring = numba.carray(_f64_at(int(mem[_H_RINGAT])), (int(mem[_H_RINGROWS]), int(mem[_H_NROW])))
+    hdr = numba.carray(_i64_at(int(mem[_H_HDRAT])), len(ring_rule.HEADER))
+    return period_io(mem, ring, hdr, io, t_ns, t_s, wake_us, comp_us, mode, state, isolation, overruns, skipped)
 
 
 _ENTRY: list = []
 
 
 def io_entry():
-    """The compiled period over an exchange block (period_io), its native entry: compiled (or loaded from
-    numba's cache) on the first call, which a Session makes before its port starts any device."""
+    """The compiled period over the blocks (period_at), its native entry: compiled (or loaded from numba's
+    cache) on the first call, which a Session makes before its port starts any device."""
     if not _ENTRY:
-        period_io.compile(_IO_SIG)
-        _ENTRY.append(native_entry(period_io))
+        period_at.compile(_AT_SIG)
+        _ENTRY.append(native_entry(period_at))
     return _ENTRY[0]
 
 
 def native_entry(dispatcher):
     """The compiled function's own entry point (argument unboxing only) for its one compiled signature,
-    skipping the dispatcher's type resolution. The caller must pass exactly those types (a C-contiguous
-    float64 block, a 2-D C-contiguous float64 ring: ring_ok, its int64 header). Falls back to the dispatcher where
-    numba does not offer this."""
+    skipping the dispatcher's type resolution. The caller must pass exactly those types (period_at: an int and
+    floats). Falls back to the dispatcher where numba does not offer this."""
     try:
         (sig,) = dispatcher.signatures
         return dispatcher.overloads[sig].entry_point
@@ -445,7 +484,7 @@ def native_entry(dispatcher):
 
 def ring_ok(ring, hdr) -> bool:
     """A recorder ring the kernel may write: 2-D C-contiguous float64 rows, and its header: C-contiguous
-    int64 of rig/runtime/ring.py HEADER's words (native_entry checks nothing)."""
+    int64 of rig/runtime/ring.py HEADER's words (the kernel takes their addresses: it checks nothing)."""
     return (isinstance(ring, np.ndarray) and ring.ndim == 2 and ring.dtype == np.float64
             and ring.flags.c_contiguous and ring.flags.writeable
             and isinstance(hdr, np.ndarray) and hdr.ndim == 1 and hdr.dtype == np.int64
@@ -495,6 +534,7 @@ class PeriodKernel:
         for part, size in parts.items():
             off[part] = at
             at += size
+        off["size"] = at
         self.mem = mem = np.zeros(at)
         lay = self.layout
         mem[:len(HEADER)] = self._header(off, max_held_steps, sum(nst))
@@ -512,6 +552,9 @@ class PeriodKernel:
         self.row = mem[off["row"]:off["row"] + lay.ncols]
         self.no_ring = np.zeros((0, lay.ncols))       # stands in for the ring without a recorder (no rows) ...
         self.no_hdr = np.zeros(len(ring_rule.HEADER), dtype=np.int64)     # ... and for its header
+        self.at = mem.ctypes.data                       # the block's address: the compiled period's argument
+        self.io = None                                  # the exchange block the period takes and writes (bind_io)
+        self.bind_ring(self.no_ring, self.no_hdr)
         self._in = off["inputs"] + len(INPUTS)          # the measurement inputs: accel, stroke, sample_t, floor
         self._in_t = off["inputs"] + _IN_T_NS
         self._prev_x = off["prev"] + n                  # the last checked stroke per mount
@@ -537,7 +580,8 @@ class PeriodKernel:
                 off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
                 nf, off["ff"],
                 *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                  else (lay.ncols,) * 3), lay["lifecycle_state"], round(self.dt * 1e9), -1.0, -1.0, 0.0, 0.0)
+                  else (lay.ncols,) * 3), lay["lifecycle_state"], round(self.dt * 1e9), -1.0, -1.0, 0.0, 0.0,
+                off["size"], 0.0, 0.0, 0.0, 0.0)
 
     def _place_controllers(self, off: dict, coefs: list, nst: list) -> None:
         """Each mount's controller: its table entry, its coefficients and state in the block, and where its
@@ -572,6 +616,26 @@ class PeriodKernel:
             so += ff_nst[m]
 
     # ---- the period -----------------------------------------------------------------------------------
+    def bind_io(self, io) -> None:
+        """The exchange block (rig/runtime/exchange.py Block.io) the period takes its inputs from and writes its
+        commands into, from the next call on; held here while its address is in the block."""
+        if not (isinstance(io, np.ndarray) and io.ndim == 1 and io.dtype == np.float64 and io.flags.c_contiguous
+                and io.flags.writeable and io.size >= len(ex.HEADER) and io.size >= int(io[ex.H_FUTEX]) // 8):
+            raise ConfigError("loop: the port's exchange block is not a writable C-contiguous float64 block of "
+                              "its own header's size (rig/runtime/exchange.py)")
+        self.io = io
+        self.mem[_H_IOAT] = io.ctypes.data
+
+    def bind_ring(self, ring, hdr) -> None:
+        """The recorder's ring and its header (ring_ok) the period writes its row into, from the next call on;
+        held here while their addresses are in the block."""
+        if not ring_ok(ring, hdr) or ring.shape[1] != self.layout.ncols:
+            raise ConfigError("loop: a recorder ring the period cannot write (rig/runtime/kernel.py ring_ok, "
+                              f"{self.layout.ncols} columns)")
+        self.ring, self.hdr = ring, hdr
+        mem = self.mem
+        mem[_H_RINGAT], mem[_H_RINGROWS], mem[_H_HDRAT] = ring.ctypes.data, ring.shape[0], hdr.ctypes.data
+
     def measurements(self):
         """The period's measurement as the kernel took it (rig.port.Measurements): accelerations, strokes, the
         accelerometers' time stamps, the floor accelerations."""
@@ -592,10 +656,15 @@ class PeriodKernel:
         if m.new_samples is None:
             self.mem[_H_TPREV] = t_ns - (miss + 1) * self.mem[_H_DTNS]
         self._local.put(m)
-        if ring is None:
-            ring, hdr = self.no_ring, self.no_hdr
-        return self.call(self.mem, ring, hdr, self._local.io, float(t_ns), t_s, wake_us, comp_us, float(mode),
-                         *(float(f) for f in flags))
+        bound = self.io, self.ring, self.hdr
+        self.bind_io(self._local.io)
+        self.bind_ring(*((ring, hdr) if ring is not None else (self.no_ring, self.no_hdr)))
+        try:
+            return self.call(self.at, float(t_ns), t_s, wake_us, comp_us, float(mode), *(float(f) for f in flags))
+        finally:                                        # a loop's blocks, as they were
+            if bound[0] is not None:
+                self.bind_io(bound[0])
+            self.bind_ring(*bound[1:])
 
     @staticmethod
     def mem_index(name: str) -> int:

@@ -28,6 +28,7 @@ from controllers.modes import ModeRequest
 from rig.runtime.clock import MonotonicClock
 from rig.config import Config, mount_names
 from rig.errors import ConfigError
+from rig.runtime.exchange import FUTEX_CMD
 from rig.runtime.gate import LifecycleGate
 from rig.runtime.kernel import (BEHIND, CHECK_STROKE_STALE, DEVICE_FAULT, DEVICE_SILENT, MODE_ACTIVE, MODE_FAULT,
                                 MODE_INACTIVE, OLDER_CAP, PeriodKernel)
@@ -75,6 +76,7 @@ class Loop:
             raise ConfigError(f"loop: the floor feedforward needs floor accelerometers, and the {port.name} port "
                               f"has none ([sensors] floor_accel)")
         self.kernel = PeriodKernel(cfg, self.ctrls, self.names, self.dt, self.MAX_HELD_STEPS, feedforward)
+        self._call, self._at = self.kernel.call, self.kernel.at      # the compiled period, bound once
         self.channels = self.kernel.layout.channels         # the recording layout of this loop
         self.tap = RecordingTap(self.kernel)
         self.gate = LifecycleGate(self.kernel, port, self._event, isolation=isolation,
@@ -116,7 +118,7 @@ class Loop:
             raise ConfigError(f"loop: the {port.name} port's exchange block has {block.n} mounts and {block.nf} floor "
                               f"accelerometers; the loop has {self.n} and {self.kernel.nf}")
         self.exchange = block
-        self._io = block.io
+        self.kernel.bind_io(block.io)
 
     def slow_down(self, extra) -> None:
         """extra() runs in every period before the port's update (fault rehearsal: rig/runtime/inject.py)."""
@@ -132,38 +134,52 @@ class Loop:
     def cycle(self, t_ns: int, wake_lat_ns: int = 0, compute_prev_ns: int = 0) -> None:
         """The port's update -> kernel (takes the inputs from the exchange block, checks, controls, limits,
         writes the commands there, records) -> the port's commit, for the period starting at t_ns."""
-        gate, kernel, tap, sched = self.gate, self.kernel, self.tap, self.sched
+        gate = self.gate
         gate.t_ns = t_ns
         if gate.pending:
             gate.apply_requests()
         self._susp_count -= 1
         if self._susp_count <= self._watch_late:    # 10 Hz: suspension events; the recorder's writer alive
             self._watch()
-        update = self._update
-        if update is not None:
-            try:
-                update(t_ns)
-            except MalformedMeasurement as e:       # a driver bug
-                gate.fault(f"malformed measurement from the port: {e}")
-                return
-            except Exception as e:          # noqa: BLE001 - a driver error is a fault, not a dead loop
-                gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
-                return
-        wd = sched.wd
-        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
-            gate.fault(wd.tripped)              # (in this period: its line, not the aftermath)
+        if self._update is not None and not self._updated(t_ns):
+            return
         st = gate.lc.state
-        recording = tap.recorder is not None
+        tap, sched = self.tap, self.sched
         if tap.waits:
             tap.wait_room()                 # simulated time: the writer's room for the row
         t0 = sched.t0_ns
-        code = kernel.call(kernel.mem, tap.ring, tap.hdr, self._io, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0,
-                           wake_lat_ns * 1e-3, compute_prev_ns * 1e-3, _MODE[st], st, gate.isolation, sched.overruns,
-                           sched.skipped)
+        code = self._call(self._at, t_ns, (t_ns - t0) * 1e-9 if t0 is not None else 0.0, wake_lat_ns * 1e-3,
+                          compute_prev_ns * 1e-3, _MODE[st], st, gate.isolation, sched.overruns, sched.skipped)
         self._read = True
+        if code or self._commit is not None or tap.pushes:     # else nothing more to do in the period
+            self._after(code, st, t_ns)
+
+    def _updated(self, t_ns: int) -> bool:
+        """The port's update before the kernel (a port that steps in the period: the simulated plant), and the
+        watchdog's trip meanwhile; False: the period faulted."""
+        gate = self.gate
+        try:
+            self._update(t_ns)
+        except MalformedMeasurement as e:       # a driver bug
+            gate.fault(f"malformed measurement from the port: {e}")
+            return False
+        except Exception as e:          # noqa: BLE001 - a driver error is a fault, not a dead loop
+            gate.fault(f"port read failed: {e.__class__.__name__}: {e}")
+            return False
+        wd = self.sched.wd
+        if wd is not None and wd.tripped and gate.lc.state is not _FAULT:
+            gate.fault(wd.tripped)              # (in this period: its line, not the aftermath)
+        return True
+
+    def _after(self, code: int, st, t_ns: int) -> None:
+        """After the compiled call, when it has more to do: a rule fired (fault), the valves' I/O waits for the
+        commands (wake it), the port commits, the row goes to a recorder without a ring."""
+        gate, kernel, tap, sched = self.gate, self.kernel, self.tap, self.sched
         if code > 0:
             gate.fault(self._reason(code, t_ns))
-        elif self._commit is not None:
+        elif code:                          # WAKE_COMMANDS: the valves' I/O waits for this period's commands
+            self.exchange.wake(FUTEX_CMD)
+        if code <= 0 and self._commit is not None:
             try:
                 self._commit(t_ns)
             except Exception as e:          # noqa: BLE001
@@ -172,7 +188,7 @@ class Loop:
         if faulted:                          # the period is recorded with its fault and nothing written
             kernel.null_commands()
             kernel.record_flags(gate.lc.state, gate.isolation, sched.overruns, sched.skipped)
-        if recording and (faulted or code or tap.pushes):    # the kernel recorded the row as it stands
+        if tap.recorder is not None and (faulted or code > 0 or tap.pushes):    # the kernel recorded the row
             tap.close(True)
 
     @property

@@ -38,6 +38,7 @@ class RecordingTap:
                 ring = hdr = None
         if ring is None:
             ring, hdr = self.kernel.no_ring, self.kernel.no_hdr
+        self.kernel.bind_ring(ring, hdr)
         self.ring, self.hdr = ring, hdr
         self.pushes = recorder is not None and ring is self.kernel.no_ring
         self.waits = bool(getattr(recorder, "wait_when_full", False)) and not self.pushes
