@@ -72,6 +72,7 @@ from rig.errors import EXIT_HARM, RecordingError, RigError
 if TYPE_CHECKING:
     from rig.runtime.session import Session
 
+TRACK_TEMP_S = 600.0        # the longest timed stand run kept in a temporary recording for its figures
 # the package's folder, found without importing it (its drivers load numba: `rig run --help` stays quick)
 DEVICEMAPS = Path(importlib.util.find_spec("drivers").submodule_search_locations[0]) / "devicemaps"
 LAYOUTS = {"prototype": {"hil": DEVICEMAPS / "prototype_hil.toml", None: DEVICEMAPS / "prototype.toml"}}
@@ -301,7 +302,12 @@ class _RunPlan:
             check_start_stroke(args, cfg)
         self.record, self.tmp = args.record, None
         # the stand's tracking figures need the run's samples: a timed run keeps them in a temporary recording
-        if self.record is None and (args.plot or (stand and args.seconds is not None)):
+        # (up to TRACK_TEMP_S: a longer run without --record says where its figures are)
+        timed = stand and args.seconds is not None
+        if self.record is None and timed and args.seconds > TRACK_TEMP_S and not args.plot:
+            log.info("no tracking figures after this run: over %g s they need --record FILE (a temporary recording "
+                     "of it would grow large)", TRACK_TEMP_S)
+        elif self.record is None and (args.plot or timed):
             fd, self.tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-run-")
             os.close(fd)
             self.record = self.tmp

@@ -41,6 +41,18 @@ def test_a_timed_run_without_record_still_says_how_well_it_tracked(tmp_path):
     assert "recorded to" not in out.stderr
 
 
+def test_a_run_longer_than_the_temporary_recording_holds_says_where_its_figures_are(monkeypatch, capsys, caplog):
+    """Over TRACK_TEMP_S without --record no temporary recording is made (it would grow large): the run says so."""
+    from rig.cli import main
+    from rig.commands import run
+    monkeypatch.setattr(run, "TRACK_TEMP_S", 0.5)
+    with caplog.at_level("INFO", logger="rig.run"):
+        assert main(["run", "--layout", "prototype", "--sim-time", "--seconds", "1", "--mode", "track",
+                     "--reference", "sine:amp=10um,freq=5"]) == 0
+    assert "tracking error rms" not in capsys.readouterr().out
+    assert "over 0.5 s they need --record FILE" in caplog.text
+
+
 @pytest.mark.parametrize("args,match", [
     (["--position", "30um"], "outside what the actuator can hold: +-24.1 um"),
     (["--reference", "sine:amp=10um,freq=30"], "above the reference rate limit"),
