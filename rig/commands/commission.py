@@ -3,7 +3,8 @@ before any loop closes.
 
 The valves stay under open-loop command (controllers/playback.py), one at a time: first QUIET_S with every valve at
 null (each channel's noise floor and offset), then per mount a bounded chirp (AMPLITUDE_V, F0-F1 Hz over CHIRP_S;
-the stroke a few um, far inside +-50 % of [safety] stroke_limit_m), the safety rules on. rig/commissioning.py then
+without floor accelerometers louder and longer: chirp_size; the stroke a few um, far inside +-50 % of [safety]
+stroke_limit_m), the safety rules on. rig/commissioning.py then
 names, per channel: alive, noise, offset; which transducer and which accelerometer answer which valve (the response
 matrix, a swap named); each accelerometer's sign and scale against the second derivative of its own mount's
 stroke; then each valve held at +-STEP_V for HOLD_S each: its DC gain against the model's, its null offset
@@ -44,6 +45,9 @@ LEAD_S = 0.2                   # null before and after each mount's chirp
 CHIRP_S = 2.0
 F0_HZ, F1_HZ = 2.0, 40.0
 AMPLITUDE_V = 2.0
+# no floor accelerometer (the stand, a machine without them): the floor's motion stays in the table's accelerometer,
+# as large as the chirp's x'' in the band, and scatters its scale (sd 0.12 over seeds at 2 V, 2 s; 0.03 at 5 V, 4 s)
+FLOOR_IN_AMPLITUDE_V, FLOOR_IN_CHIRP_S = 5.0, 4.0
 STEP_V, HOLD_S = 2.0, 0.6      # then one valve at a time held at +STEP_V and -STEP_V (its DC gain and null offset)
 EXIT_FINDINGS = 4
 SAFE_SHARE = 0.5               # the stroke the procedure may ask for, of [safety] stroke_limit_m (issue 27)
@@ -81,13 +85,19 @@ def process_age_s() -> float:
         return 0.0
 
 
+def chirp_size(cfg) -> tuple[float, float]:
+    """The chirp's amplitude (V) and duration (s): louder and longer where no floor accelerometer is fitted."""
+    return (AMPLITUDE_V, CHIRP_S) if cfg.sensors.floor_accel else (FLOOR_IN_AMPLITUDE_V, FLOOR_IN_CHIRP_S)
+
+
 def check_bounded(cfg, dc_gain_m_per_V: float) -> None:
     """The commands are bounded: held at the larger of the chirp's and the steps' amplitude, the model's stroke
     (Eq. 9 at DC) must stay inside SAFE_SHARE of the stroke limit, or nothing moves (RigError naming the field)."""
-    asked = abs(dc_gain_m_per_V) * max(AMPLITUDE_V, STEP_V)
+    volts = max(chirp_size(cfg)[0], STEP_V)
+    asked = abs(dc_gain_m_per_V) * volts
     if asked > SAFE_SHARE * cfg.safety.stroke_limit_m:
         raise RigError(f"{cfg.source}: safety.stroke_limit_m: {cfg.safety.stroke_limit_m:g} m; commissioning's "
-                       f"{max(AMPLITUDE_V, STEP_V):g} V would move the stroke {asked * 1e6:.1f} um, beyond "
+                       f"{volts:g} V would move the stroke {asked * 1e6:.1f} um, beyond "
                        f"{100 * SAFE_SHARE:g} % of it")
 
 
@@ -112,8 +122,9 @@ def run(args) -> int:
     dc_gain = ActuatorParams.from_config(cfg).dc_gain_m_per_V
     check_bounded(cfg, dc_gain)
     dt = 1.0 / rate
-    slot_s = CHIRP_S + 2 * LEAD_S
-    chirp = chirp_samples(AMPLITUDE_V, F0_HZ, F1_HZ, CHIRP_S, dt)
+    chirp_V, chirp_s = chirp_size(cfg)
+    slot_s = chirp_s + 2 * LEAD_S
+    chirp = chirp_samples(chirp_V, F0_HZ, F1_HZ, chirp_s, dt)
     n_lead, n_slot = int(round(LEAD_S / dt)), int(round(slot_s / dt))
     # the playback starts at activation (after QUIET_S): mount j's chirp in its own slot, the others at null
     n_hold, n_step = int(round(HOLD_S / dt)), int(round((2 * HOLD_S + LEAD_S) / dt))
@@ -127,7 +138,7 @@ def run(args) -> int:
     if not args.json:
         mounts = f"{len(names)} mounts" if len(names) > 1 else f"the {names[0]} alone"
         print(f"rig commission: {args.backend}, {mounts} at {rate:g} Hz: {QUIET_S:g} s at null, then one "
-              f"valve at a time a {AMPLITUDE_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {CHIRP_S:g} s, then held at "
+              f"valve at a time a {chirp_V:g} V chirp {F0_HZ:g}-{F1_HZ:g} Hz over {chirp_s:g} s, then held at "
               f"+-{STEP_V:g} V for {HOLD_S:g} s each ({total:.1f} s)",
               file=sys.stderr)
     through = cfg.drivers.calibration if args.backend != "sim" else ""     # (the drivers apply it; sim has none)

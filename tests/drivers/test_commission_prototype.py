@@ -22,7 +22,7 @@ import pytest
 from tests.hosttiming import skip_if_noisy_from_the_host, skip_unless_commissioned_on_time, skip_unless_on_time
 
 from rig import commissioning
-from rig.commands.commission import EXIT_FINDINGS
+from rig.commands.commission import EXIT_FINDINGS, FLOOR_IN_AMPLITUDE_V
 from rig.commands.run import LAYOUTS
 from rig.config import load_config
 from rig.runtime.recorder import read_recording
@@ -126,13 +126,32 @@ def test_a_config_of_the_other_layout_is_refused_in_one_line(tmp_path):
 
 def test_a_stroke_limit_the_procedure_would_pass_half_of_is_refused_before_anything_moves(tmp_path):
     cfg = tmp_path / "short.toml"
-    cfg.write_text(PROTOTYPE_HIL.read_text().replace("[safety]\n", "[safety]\nstroke_limit_m = 8e-6\n", 1))
+    # 20 um: the machine's 2 V (5.4 um at DC) would pass half of it, the stand's louder chirp (13.4 um) not
+    cfg.write_text(PROTOTYPE_HIL.read_text().replace("[safety]\n", "[safety]\nstroke_limit_m = 20e-6\n", 1))
     argv = [sys.executable, "-m", "rig.cli", "commission", "--backend", "sim", "--config", str(cfg), "--out",
             str(tmp_path / "out")]
     run = subprocess.run(argv, capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "Traceback" not in run.stderr
     assert "safety.stroke_limit_m" in run.stderr and "beyond 50 % of it" in run.stderr
+    assert f"commissioning's {FLOOR_IN_AMPLITUDE_V:g} V would move" in run.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_the_floors_motion_does_not_scatter_the_stands_accelerometer_scale(tmp_path):
+    """No floor accelerometer on the stand: the floor's motion stays in its accelerometer, as large as a 2 V chirp's
+    x''. Over floors of other seeds the scale stays near the one a still floor gives (the 2 V, 2 s chirp scattered
+    0.85-1.15 over these, and once on the emulated stand a sign fault was refused instead of corrected)."""
+    def scale(name, text):
+        cfg = tmp_path / f"{name}.toml"
+        cfg.write_text(text)
+        run = _commission(tmp_path / name, "--backend", "sim", "--config", str(cfg))
+        assert run.returncode == 0, run.stderr[-2000:]
+        return json.loads(run.stdout)["accel_scale"]["stand"]
+    text = PROTOTYPE_HIL.read_text()
+    assert "base_motion_rms_m = 3e-6" in text
+    still = scale("still", text.replace("base_motion_rms_m = 3e-6", "base_motion_rms_m = 0.0"))
+    for seed in (1, 2, 5):
+        assert abs(scale(f"seed{seed}", text + f"\n[vibration]\nseed = {seed}\n") - still) < 0.1, seed
 
 
 def _quiet(noise_mps2, n=600, fs=500.0, seed=1):
