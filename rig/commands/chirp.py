@@ -32,7 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--f1", type=cliargs.Number(gt=0, unit="Hz"), default=100.0, metavar="HZ",
                    help="end frequency, Hz (default 100)")
     p.add_argument("--duration", "--seconds", dest="duration", type=cliargs.seconds(le=cliargs.MAX_CHIRP_S),
-                   default=100.0, metavar="S", help="chirp length, s (default 100; --seconds as in rig run and hil)")
+                   default=100.0, metavar="S", help="the whole chirp's length, s, as --seconds is the whole run in "
+                   "rig run and hil (default 100; --settle comes before it)")
     p.add_argument("--rate", type=cliargs.rate_hz(), default=None, metavar="HZ",
                    help="loop (and recording) rate, Hz (default: [loop] rate_hz; hil: [hil] rate_hz)")
     p.add_argument("--mount", default="front_left",

@@ -27,7 +27,8 @@ from rig import cliargs
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
-                   help="simulated seconds metered per mode (off, feedback, feedback + feedforward; default 10)")
+                   help="seconds PER MODE: three simulated runs of N s each (off, feedback, feedback + feedforward), "
+                        "each after --settle; unlike run, hil and chirp, where --seconds is the whole run (default 10)")
     p.add_argument("--settle", type=cliargs.seconds(ge=0, le=60), default=1.0, metavar="S",
                    help="seconds run before metering in each mode (default 1)")
     p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",

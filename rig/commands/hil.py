@@ -68,8 +68,8 @@ CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/h
 
 def add_arguments(p) -> None:
     p.add_argument("--seconds", type=cliargs.seconds(le=3600), default=None, metavar="N",
-                   help="run length, split evenly into the modes: off, feedback (and feedback + feedforward with "
-                        "floor accelerometers) (default [hil] seconds)")
+                   help="the WHOLE run's length, split evenly into the modes: off, feedback (and feedback + "
+                        "feedforward with floor accelerometers), so 15 gives 5 s each (default [hil] seconds)")
     p.add_argument("--rate", type=cliargs.rate_hz(le=5000), default=None, metavar="HZ",
                    help="loop rate (default [hil] rate_hz)")
     cliargs.output_arg(p, "--record", metavar="FILE", default=None,

@@ -93,7 +93,8 @@ def add_arguments(p) -> None:
     p.add_argument("--backend", choices=tuple(BACKENDS), default=None,
                    help="backend (default: [backend] name in the config, else sim)")
     p.add_argument("--seconds", type=cliargs.seconds(), default=None, metavar="N",
-                   help="run for N seconds of loop time (default: until Ctrl-C / SIGTERM / `stop`)")
+                   help="the whole run's length: N seconds of loop time, --settle included (default: until Ctrl-C / "
+                        "SIGTERM / `stop`)")
     p.add_argument("--isolation", choices=("on", "off"), default="on",
                    help="isolation at start (toggle while running: SIGUSR1 or --control FILE)")
     p.add_argument("--feedforward", action="store_true",
