@@ -155,6 +155,19 @@ class AxisModel:
 
     def simulate(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None, X0=None) -> np.ndarray:
         """Position [m] at the samples; with starts/X0 the (drive's) state is set to X0[s] at sample starts[s]."""
+        return self.read(self.simulate_drive(lin, cmd, fs, fx, starts, X0), fx)
+
+    def read(self, y: np.ndarray, fx: dict) -> np.ndarray:
+        """What the sensor reads of the drive's output y (simulate_drive): through a gear's play, or its magnitude."""
+        kw = self._terms(fx)
+        gap = kw.get("backlash_m", 0.0)
+        if gap > 0:                         # the sensor on the load, behind the gear's play
+            y = play(y, gap)
+        return np.abs(y) if kw.get("rectify", False) else y  # a sensor blind to the sign reads the magnitude
+
+    def simulate_drive(self, lin: dict, cmd: np.ndarray, fs: float, fx: dict, starts=None,
+                       X0=None) -> np.ndarray:
+        """The drive's output before the sensor's reading (read): linear in X0 unless friction is in."""
         kw = self._terms(fx)                   # each effect's term: its keyword arguments, passed on below
         A, B, Bf, C, Cv = self.plant.state_space(self.values(lin), kw.pop("base", None))
         delay, fric, f0 = kw.pop("delay_s", 0.0), kw.pop("friction_n", 0.0), kw.pop("force_n", 0.0)
@@ -166,14 +179,12 @@ class AxisModel:
         if sliding:
             K = FRICTION_REFINE
             fine = (*substeps(A, B, 1.0 / fs, n_sub * K, delay)[:3], phi(A, Bf, 1.0 / (fs * n_sub * K))[1])
-        rectify, bias, gap = kw.pop("rectify", False), kw.pop("bias", 0.0), kw.pop("backlash_m", 0.0)
-        cmd = self.shaped_command(np.asarray(cmd, float) + bias, kw.pop("saturation", 0.0), kw.pop("deadband", 0.0))
-        y = run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
-                         smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
-                         fine=fine, **kw)   # a new effect's term: run_segments' own keyword
-        if gap > 0:                         # the sensor on the load, behind the gear's play
-            y = play(y, gap)
-        return np.abs(y) if rectify else y  # a sensor blind to the sign reads the magnitude
+        kw.pop("rectify", False), kw.pop("backlash_m", 0.0)            # the sensor's (read)
+        cmd = self.shaped_command(np.asarray(cmd, float) + kw.pop("bias", 0.0), kw.pop("saturation", 0.0),
+                                  kw.pop("deadband", 0.0))
+        return run_segments(Ah, Bnew, Bold, Gf, Cv, C, cmd, m, friction_n=fric,
+                            smoothing_m_per_s=FRICTION_SMOOTHING_M_PER_S, force_n=f0, starts=starts, X0=X0,
+                            fine=fine, **kw)   # a new effect's term: run_segments' own keyword
 
     def drive_states(self, X0: np.ndarray, fx: dict) -> np.ndarray:
         """The drive's start states from the load's (state_from_data reads the load): behind a play a load that

@@ -192,10 +192,12 @@ class Problem:
     def free_response(self, lin: dict, fx: dict) -> np.ndarray:
         """The segment-state regressors' shape (response to each unit initial state), cached per model."""
         key = (tuple(sorted(lin.items())), repr(self.plant.matrices_key(fx)))
-        if self._free[0] != key:
+        cached = self._free                 # read once: the Jacobian's two threads share the cache
+        if cached[0] != key:
             L = int(np.max(self.shoot.ends - self.shoot.starts))
-            self._free = (key, self.plant.free_response(lin, fx, self.fs, L))
-        return self._free[1]
+            cached = (key, self.plant.free_response(lin, fx, self.fs, L))
+            self._free = cached
+        return cached[1]
 
     def _shooting_normal(self, E: np.ndarray, O: np.ndarray):
         """The Jacobi-scaled normal matrix of _project_shooting, LU-factored (None: singular), and its scaling: it
@@ -306,9 +308,12 @@ class Problem:
         partial = nonlinear and not catalogue.slow_in(fx)
         if nonlinear and not partial and states is not None and states.shape == X0.shape:
             return self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, states), states
-        y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
-        if not nonlinear:
-            return y, None      # linear in the initial state: the projection's correction is exact
+        if not nonlinear:       # linear in the initial state: the projection's correction is exact
+            return self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0), None
+        O = self.free_response(lin, fx)
+        sim = self._play_reading(lin, fx, O) if partial else \
+            (lambda X: self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X))
+        y = sim(X0)
         # friction makes the response nonlinear in the initial state (a wrong start velocity moves the reversals
         # and the sticking), and so does a play (where the drive starts inside it decides when the load moves):
         # Gauss-Newton steps on the segment states, the correction the projection finds from
@@ -317,7 +322,6 @@ class Problem:
         # SHOOT_GN_GAIN x noise^2: the steps end at the best states, where a step gains nothing (a model that
         # cannot follow the data has no states to settle on; its steps wander) or they settle. A play's steps that
         # shrink geometrically are taken to the end of their series (_aitken); one that overshoots is taken plain.
-        O = self.free_response(lin, fx)
         best = None                                   # (rss, y, X0, dX) of the best states
         last = None                                   # the previous plain step (its ratio to this one: _aitken)
         extrapolated = False
@@ -339,12 +343,27 @@ class Problem:
             extrapolated = step is not dX
             last = None if extrapolated else dX       # the ratio is read from two plain steps
             X0 = X0 + step
-            y = self.plant.simulate(lin, self.cmd, self.fs, fx, self.shoot.starts, X0)
+            y = sim(X0)
         else:
             r = self._project_shooting(self.y - y, None, O)[0]
             if float(np.sum(r[self.mfit] ** 2)) < best[0]:
                 return y, X0
         return best[1], best[2]
+
+    def _play_reading(self, lin: dict, fx: dict, O: np.ndarray):
+        """X0 -> the reading of a drive without friction from segment states X0: linear in them until the sensor's
+        reading (the play), so the drive is simulated once from zero states and each X0 adds its free response O
+        (superposition; the same to rounding as simulating from X0: a play's ~10 refinement steps, one simulation)."""
+        forced = self.plant.simulate_drive(lin, self.cmd, self.fs, fx, self.shoot.starts,
+                                           np.zeros((self.shoot.count, O.shape[1])))
+        idx, inside, _ = self._segment_rows(O.shape[0])
+        rows = idx[inside]
+
+        def reading(X: np.ndarray) -> np.ndarray:
+            drive = forced.copy()
+            drive[rows] += (X @ O.T)[inside]
+            return self.plant.read(drive, fx)
+        return reading
 
     def _residual_full(self, lin: dict, fx: dict, states: np.ndarray | None = None):
         y, X0 = self._model(lin, fx, states)

@@ -111,13 +111,37 @@ def test_a_plays_segment_states_settle_before_the_step_cap():
     u = band_noise(1000.0, 12.0, 0.3, 30.0, PEAK_N, seed=5).cmd_V
     cmd, pos = simulate_axis(ax, 1000.0, command=u, sensor=Sensor(noise_m=noise_m, offset_m=3e-4, seed=2))
     pb = problem.Problem(cmd, pos, 1000.0, parse_plant(PLANT, "axis.toml"), np.ones(len(pos), bool), noise=noise_m)
-    runs = []
-    simulate = pb.plant.simulate
-    pb.plant.simulate = lambda *a, **k: runs.append(1) or simulate(*a, **k)
+    steps, drives = [], []
+    read, simulate_drive = pb.plant.read, pb.plant.simulate_drive
+    pb.plant.read = lambda *a, **k: steps.append(1) or read(*a, **k)            # one a step of the states
+    pb.plant.simulate_drive = lambda *a, **k: drives.append(1) or simulate_drive(*a, **k)
     for width in (0.8 * width_m, width_m, 1.2 * width_m):       # as a fit tries the width
-        runs.clear()
+        steps.clear(); drives.clear()
         pb.simulate({"mass_kg": 20.0, "damping_n_s_per_m": 60.0}, {"backlash": {"width_m": width}})
-        assert len(runs) <= problem.SHOOT_GN_PLAY_STEPS // 2, (width, len(runs))
+        assert 1 < len(steps) <= problem.SHOOT_GN_PLAY_STEPS // 2, (width, len(steps))
+        assert len(drives) == 1, (width, len(drives))           # the steps add free responses (superposition)
+
+
+@pytest.mark.parametrize("fx", [{"backlash": {"width_m": 7e-4}},
+                                {"backlash": {"width_m": 7e-4}, "transport_delay": {"delay_s": 0.0037}},
+                                {"backlash": {"width_m": 7e-4}, "constant_force": {"force_n": 3.0}},
+                                {"backlash": {"width_m": 7e-4},
+                                 "base_resonance": {"frequency_hz": 40.0, "damping_ratio": 0.05, "mass_kg": 200.0}}])
+def test_a_plays_reading_by_superposition_is_the_simulation_from_the_same_states(fx):
+    """A drive without friction is linear in its segment states until the play: the one simulation from zero states
+    plus each state's free response reads what the simulation from those states reads (to rounding)."""
+    from rig.diagnose.problem import Problem
+    u = band_noise(1000.0, 12.0, 0.3, 30.0, PEAK_N, seed=5).cmd_V
+    cmd, pos = simulate_axis(Axis(mass_kg=20.0, damping_n_s_per_m=60.0, gain_n_per_unit=1.0, backlash_m=7e-4),
+                             1000.0, command=u, sensor=Sensor(noise_m=2e-7, offset_m=3e-4, seed=2))
+    pb = Problem(cmd, pos, 1000.0, parse_plant(PLANT, "axis.toml"), np.ones(len(pos), bool), noise=2e-7)
+    lin = {"mass_kg": 20.0, "damping_n_s_per_m": 60.0}
+    O = pb.free_response(lin, fx)
+    X = np.random.default_rng(3).normal(scale=1e-2, size=(pb.shoot.count, O.shape[1]))
+    simulated = pb.plant.simulate(lin, pb.cmd, pb.fs, fx, pb.shoot.starts, X)
+    superposed = pb._play_reading(lin, fx, O)(X)
+    assert np.max(np.abs(simulated)) > 1e-3
+    assert np.max(np.abs(superposed - simulated)) < 1e-12 * np.max(np.abs(simulated))
 
 
 def test_aitken_takes_geometric_steps_to_the_end_of_their_series():
