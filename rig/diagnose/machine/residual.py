@@ -11,7 +11,9 @@ Nuisance terms, fitted by linear least squares inside every evaluation (variable
   - a drift on each channel (a sensor's slow zero, or a jump between the record's ends), 1 / (1 - 1/z);
   - without floor accelerometers: the floor itself, four unknowns per bin, projected out bin by bin. What the
     floor can absorb is not seen; what it cannot is the evidence (floor.py says what can be told).
-Weights: weights.py. Under the right model the whitened residual has unit variance per bin and channel.
+Weights: weights.py, with the model's own error (own_error: the floor held between samples, as the simulated rig
+holds it, against the continuous floor the replay takes). Under the right model the whitened residual has unit
+variance per bin and channel.
 A fit's Jacobian holds the nuisance terms of its base point (Kaufman's approximation of variable projection):
 `Replay.linear` projects a perturbed model's residual with the base point's projector, without a new solve.
 """
@@ -25,6 +27,7 @@ import scipy.linalg
 
 from rig.diagnose.machine.rigmodel import N_OUT, Base, Modal, modal, predict, responses
 from rig.diagnose.machine.spectra import Spectra
+
 
 def floor_hold_error(md: Modal, w: np.ndarray) -> np.ndarray:
     """(K, 8, 4) per metre of the floor as the replay takes it at each mount (-a_g / w^2, a_g its accelerometer's
@@ -189,7 +192,7 @@ class Replay:
 
     def faithful(self, th: dict, at: Evaluation, *, U: np.ndarray | None = None) -> np.ndarray:
         """(Kset, 8) the model's own error at theta (own_error) on at's bins after at's nuisance terms, in the
-        channels' units: what the two readings of the floor differ by, whichever the replay takes."""
+        channels' units: what the two readings of the floor differ by (the replay takes the continuous one)."""
         b = self.bins(at.mask)
         U = b.U if U is None else U[b.mask]
         e = own_error(self.base, modal(self.base, th), th, b.w, b.Y, U, b.G, b.sd) / b.sd
