@@ -22,8 +22,8 @@ import numpy as np
 from rig.config import Config
 from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.fitting import FitResult, Slot, compare, fit, grid_search, put
-from rig.diagnose.machine.residual import FIDELITY, Evaluation, Replay
-from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, copy_theta, neutral, responses
+from rig.diagnose.machine.residual import Evaluation, Replay
+from rig.diagnose.machine.rigmodel import ACT_KEYS, Base, copy_theta, neutral
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra, spectra_of
 from rig.diagnose.machine.spool import Spools
@@ -35,9 +35,9 @@ MAX_FITS = 2 * FULL_FITS        # with those refused below their least size (eff
 EXPLAINED = 1.25                # held-out whitened residual power over what the right model leaves, in every
                                 # channel and band (spectra.BANDS_HZ): below it nothing is left to explain
 VALVES_DRIVEN_V = 0.05          # rms of the commands' part above 1 Hz: below it the valves are not excited
-OVER_FIDELITY = 2.0             # an effect's change to the replay over what two faithful models differ by
-                                # (residual.FIDELITY, a typical difference, not a bound): below twice it the
-                                # change cannot be told from the model's own error
+OVER_FIDELITY = 2.0             # an effect's change to the replay over the model's own error (residual.own_error:
+                                # a floor held between samples or continuous): below twice it the change cannot
+                                # be told from that error
 
 
 PASSIVE_KEYS = ("K_L", "K_C")    # what the mounts show with the valves at null (their stiffness and its leak)
@@ -96,8 +96,7 @@ def prepare(run: RunRecording, cfg: Config) -> Context:
     sp = spectra_of(run)
     base = Base.of(cfg, 1.0 / run.fs_hz)
     th = nominal_theta(base)
-    R = responses(base, th, sp.w)
-    rp = Replay(sp, base, expected(sp, R))
+    rp = Replay(sp, base, expected(sp, base, th))
     spools = Spools(run.valve_cmd_V, sp.bin_index, base, sp.U)
     return Context(run, sp, base, rp, spools, sp.G is not None, valves_driven(run))
 
@@ -274,15 +273,16 @@ def at_bound(th: dict, slots) -> str:
 
 def over_fidelity(ctx: Context, at: Evaluation, th: dict, inst: fx.Instance) -> float:
     """How far the instance moves theta's prediction (theta against theta without it), over what two faithful
-    models of the rig differ by (residual.FIDELITY x the measured): the largest over channels and bands of the
-    rms change over the rms fidelity on the held-out bins, with the nuisance terms of at (the round's base there;
-    without floor accelerometers both what the floor's projection leaves).
+    models of the rig differ by (Replay.faithful: the model's own error, from the floor's part per bin): the
+    largest over channels and bands of the rms change over the rms own error on the held-out bins, both with the
+    nuisance terms of at (the round's base there; without floor accelerometers both what the floor's projection
+    leaves).
     Below OVER_FIDELITY the effect moves the replay about as much as the model's own error: a statistically sure
     but physically empty change (an accelerometer at x1.002 taking up what another effect's model leaves), whatever its
     likelihood ratio over thousands of bins."""
     wo = without_effect(th, inst, ctx.base)
     change = np.abs((ctx.rp.linear(th, at, U=u_of(ctx)(th)) - ctx.rp.linear(wo, at, U=u_of(ctx)(wo))) * at.sd) ** 2
-    faithful = (FIDELITY[None, :] * np.abs(ctx.sp.Y[ctx.sp.hold])) ** 2 * at.keep
+    faithful = ctx.rp.faithful(th, at, U=u_of(ctx)(th)) ** 2
     f = ctx.sp.f_hz[ctx.sp.hold]
     out = 0.0
     for lo, hi in BANDS_HZ:

@@ -11,7 +11,9 @@ Nuisance terms, fitted by linear least squares inside every evaluation (variable
   - a drift on each channel (a sensor's slow zero, or a jump between the record's ends), 1 / (1 - 1/z);
   - without floor accelerometers: the floor itself, four unknowns per bin, projected out bin by bin. What the
     floor can absorb is not seen; what it cannot is the evidence (floor.py says what can be told).
-Weights: weights.py. Under the right model the whitened residual has unit variance per bin and channel.
+Weights: weights.py, with the model's own error (own_error: the floor held between samples, as the simulated rig
+holds it, against the continuous floor the replay takes). Under the right model the whitened residual has unit
+variance per bin and channel.
 A fit's Jacobian holds the nuisance terms of its base point (Kaufman's approximation of variable projection):
 `Replay.linear` projects a perturbed model's residual with the base point's projector, without a new solve.
 """
@@ -23,13 +25,57 @@ import numba
 import numpy as np
 import scipy.linalg
 
-from rig.diagnose.machine.rigmodel import Base, modal, predict, responses
+from rig.diagnose.machine.rigmodel import N_OUT, Base, Modal, modal, predict, responses
 from rig.diagnose.machine.spectra import Spectra
 
-# relative: what two faithful models of the same rig differ by (a floor held linearly between samples or moving
-# continuously): the accelerometers' 0.1 %, the strokes' up to 1 % (a stroke is the small difference of the
-# machine's and the floor's large motions, so the floor's discretisation shows more in it)
-FIDELITY = np.array([2e-3] * 4 + [1e-2] * 4)
+
+def floor_hold_error(md: Modal, w: np.ndarray) -> np.ndarray:
+    """(K, 8, 4) per metre of the floor as the replay takes it at each mount (-a_g / w^2, a_g its accelerometer's
+    samples): what reading the same samples as a floor held linearly between them (displacement, and velocity
+    from its central difference, each interpolated over the period; the acceleration its central second
+    difference) moves the outputs by beyond the continuous floor's response. A floor known only at its samples
+    is either; the replay takes it continuous (a real floor is), and the two differ by this much: the model's
+    own error on the floor's path, exact per frequency (the commands' path is a true hold in both)."""
+    w = np.asarray(w, dtype=float)
+    T = md.T
+    z = np.exp(1j * w * T)
+    jw = 1j * w
+    lam = md.lam
+    lt = lam * T
+    small = np.abs(lt) < 1e-6
+    lts = np.where(small, 1.0, lt)
+    g1 = np.where(small, T * (0.5 + lt / 6), (md.mu - 1.0 - lt) / (lts * lts / T))     # late part (x g[k+1])
+    g0 = np.where(small, T * (1.0 + lt / 2), (md.mu - 1.0) * T / lts) - g1             # early part (x g[k])
+    Pd = (g0[None, :] + g1[None, :] * z[:, None]) / (z[:, None] - md.mu[None, :])
+    Pc = 1.0 / (jw[:, None] - lam[None, :])
+    v_held = 1j * np.sin(w * T) / T                        # the central difference's velocity per metre
+    sinc2 = np.sinc(w * T / (2 * np.pi)) ** 2              # the second difference's acceleration over -w^2
+    CVT = md.CV.T
+    out = np.empty((len(w), N_OUT, 4), dtype=complex)
+    for i in range(4):
+        held = (Pd * (md.VBx[:, i][None, :] + v_held[:, None] * md.VBv[:, i][None, :])) @ CVT \
+            + md.Dx[None, :, i] + v_held[:, None] * md.Dv[None, :, i]
+        smooth = (Pc * (md.VBx[:, i][None, :] + jw[:, None] * md.VBv[:, i][None, :])) @ CVT \
+            + md.Dx[None, :, i] + jw[:, None] * md.Dv[None, :, i]
+        out[:, :, i] = held / sinc2[:, None] - smooth
+    return out
+
+
+def own_error(base: Base, md: Modal, th: dict, w: np.ndarray, Y: np.ndarray, U: np.ndarray, G: np.ndarray | None,
+              sd: np.ndarray) -> np.ndarray:
+    """(K, 8) the model's own error at theta per bin and channel, in the channels' units: the floor's path read
+    held or continuous (floor_hold_error) times the floor, the floor accelerometers' (without them its estimate
+    from what the commands' response leaves, least squares bin by bin, weighted by sd). It follows the floor's
+    part per band, not the reading: under isolation the valves' part cancels most of the floor's, and a reading
+    is their small difference (a constant share of the reading took the model's error for 1/28 of itself)."""
+    g = md.gain_out[None, :, None]
+    if G is not None:
+        X = -(G / md.gain_floor[None, :]) / (w ** 2)[:, None]
+    else:
+        H = responses(base, th, w, md=md, valves=False, ends=False).Hg * (g / sd[:, :, None])
+        rest = (Y - predict(md, w, U, None) * md.gain_out[None, :]) / sd
+        X = np.einsum("kic,kc->ki", np.linalg.pinv(H), rest)
+    return np.einsum("kci,ki->kc", floor_hold_error(md, w) * g, X)
 
 
 @dataclass
@@ -143,6 +189,14 @@ class Replay:
         coef = scale * scipy.linalg.cho_solve(chol, (NwH @ eb) * scale)
         r = (eb - Nw @ coef).reshape(e.shape)
         return Evaluation(r, b.sd, coef, keep, b.mask, Q, Nw, NwH, chol, scale, (Nw @ coef).reshape(e.shape))
+
+    def faithful(self, th: dict, at: Evaluation, *, U: np.ndarray | None = None) -> np.ndarray:
+        """(Kset, 8) the model's own error at theta (own_error) on at's bins after at's nuisance terms, in the
+        channels' units: what the two readings of the floor differ by (the replay takes the continuous one)."""
+        b = self.bins(at.mask)
+        U = b.U if U is None else U[b.mask]
+        e = own_error(self.base, modal(self.base, th), th, b.w, b.Y, U, b.G, b.sd) / b.sd
+        return np.abs(at.project(e)) * b.sd
 
     def linear(self, th: dict, at: Evaluation, *, U: np.ndarray | None = None) -> np.ndarray:
         """theta's whitened residual on at's bins with at's nuisance terms (Kaufman): for Jacobians and screens.

@@ -12,7 +12,7 @@ import numpy as np
 
 from rig.config import MOUNTS
 from rig.diagnose.machine.residual import Replay
-from rig.diagnose.machine.rigmodel import Base, responses
+from rig.diagnose.machine.rigmodel import Base
 from rig.recordings.runfile import RunRecording
 from rig.diagnose.machine.spectra import spectra_of
 from rig.diagnose.machine.spool import Spools
@@ -22,7 +22,7 @@ from rig.diagnose.machine.weights import expected
 def replay_series(run: RunRecording, base: Base, thetas: dict, th_weights: dict) -> dict:
     """{"time_s": ..., "<mount>_accel_mps2_measured": ..., "<mount>_accel_mps2_<model>": ..., strokes alike}."""
     sp = spectra_of(run, max_bins=10 ** 9)
-    rp = Replay(sp, base, expected(sp, responses(base, th_weights, sp.w)))
+    rp = Replay(sp, base, expected(sp, base, th_weights))
     spools = Spools(run.valve_cmd_V, sp.bin_index, base, sp.U)
     nfreq = run.n // 2 + 1
     hi = float(sp.f_hz.max())

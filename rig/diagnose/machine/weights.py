@@ -3,7 +3,8 @@
   s2 = the sensor's own noise (its top band, spectra.Spectra.noise)
      + with floor accelerometers, their noise carried into the prediction by the floor's response
        (sum over mounts of |gain Hg|^2 sigma_g^2 / w^4: the floor is an input known only through them)
-     + FIDELITY^2 |measured|^2 (two faithful models of one rig differ by about that much; residual.py)
+     + |the model's own error|^2 (residual.own_error: the floor's path held between samples or continuous; two
+       faithful models of one rig differ by that much)
 then raised band by band where the refit's whitened residual is larger (the robust median: noise that is not
 white, a sensor filter, what no catalogue effect explains) -- never lowered.
 """
@@ -13,19 +14,21 @@ import math
 
 import numpy as np
 
-from rig.diagnose.machine.residual import FIDELITY, Evaluation
-from rig.diagnose.machine.rigmodel import Responses
+from rig.diagnose.machine.residual import Evaluation, own_error
+from rig.diagnose.machine.rigmodel import Base, modal, responses
 from rig.diagnose.machine.spectra import BANDS_HZ, Spectra
 
 
-def expected(sp: Spectra, R: Responses) -> np.ndarray:
-    """s2 (K, 8) before the band inflation; R: the model's responses at all of sp's bins."""
+def expected(sp: Spectra, base: Base, th: dict) -> np.ndarray:
+    """s2 (K, 8) before the band inflation, from the model at theta at all of sp's bins."""
+    md = modal(base, th)
+    R = responses(base, th, sp.w, md=md)
     s2 = np.broadcast_to(sp.noise[:8], sp.Y.shape).copy()
     if sp.G is not None:
         g = R.gain_out[None, :, None]
         sg = sp.noise[8:12][None, None, :] / np.abs(R.gain_floor[None, None, :]) ** 2
         s2 += np.sum(np.abs(g * R.Hg) ** 2 * sg, axis=2) / (sp.w ** 4)[:, None]
-    return s2 + (FIDELITY[None, :] * np.abs(sp.Y)) ** 2
+    return s2 + np.abs(own_error(base, md, th, sp.w, sp.Y, sp.U, sp.G, np.sqrt(s2))) ** 2
 
 
 def inflation(ev: Evaluation, f_hz: np.ndarray) -> np.ndarray:

@@ -1,9 +1,11 @@
-"""An effect is named only where it moves the replay by more than twice the model's own fidelity
-(engine.over_fidelity, OVER_FIDELITY: what two faithful models of the rig differ by, residual.FIDELITY): an
-accelerometer read x1.002 is a change the model cannot tell from its own error, whatever its likelihood ratio;
-one read x1.01, or a valve's 0.3 ms delay, stands well above it. Under isolation that error is FIDELITY of the
-reading's parts (the floor's and the valves' cancelling one), several times FIDELITY of the reading (the fidelity
-test's figure: at a deadband's mount it let the viscous term pass, test_deadband_alone.py)."""
+"""The model's own error, and an effect named only where it moves the replay by more than twice it
+(engine.over_fidelity, OVER_FIDELITY). The simulated rig holds the floor linearly between samples, the replay takes
+it continuous (a real floor is): residual.own_error computes what that leaves per bin from the floor's part, and
+without noise it is the whole of the replay's residual, in open loop and under isolation. Under isolation an
+accelerometer reads the small difference of the floor's part and the valves' cancelling one, and the error is
+several times a share of the reading (0.2 %, the figure the fidelity test and the weights took before: it let a
+deadband's mount's viscous term pass, test_deadband_alone.py).
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -16,19 +18,48 @@ from rig.config import config_from_dict
 from rig.diagnose.machine import effects as fx
 from rig.diagnose.machine.engine import OVER_FIDELITY, nominal_theta, over_fidelity, prepare
 from rig.diagnose.machine.prove import RigCase
-from rig.diagnose.machine.residual import FIDELITY
-from rig.diagnose.machine.rigmodel import copy_theta, responses
+from rig.diagnose.machine.rigmodel import copy_theta
 from rig.diagnose.machine.spectra import BANDS_HZ
 from rig.recordings.runfile import read_run
 from sim_backend.rig_plant import FloorMotion, RigPlant
 from tests.rig.diagnose.machine.support import DT, open_loop_run, rig_cfg, write_run
 
+READING_SHARE = 2e-3            # the constant share of an accelerometer's reading the fidelity test took before
+
+
+def _per_band(ctx, num: np.ndarray, den: np.ndarray, mask) -> np.ndarray:
+    """(bands, 8) rms of num over rms of den per channel, in each band of at least 8 of mask's bins."""
+    f = ctx.sp.f_hz[mask]
+    out = []
+    for lo, hi in BANDS_HZ:
+        sel = (f >= lo) & (f < hi)
+        if sel.sum() >= 8:
+            out.append(np.sqrt(np.sum(np.abs(num[sel]) ** 2, axis=0) / np.sum(np.abs(den[sel]) ** 2, axis=0)))
+    return np.array(out)
+
+
+def _open_loop(tmp_path_factory, noise: bool):
+    path = tmp_path_factory.mktemp("fidelity") / "run.h5"
+    write_run(path, open_loop_run(rig_cfg(True), 6.0, noise=noise))
+    return prepare(read_run(path), rig_cfg(True))
+
+
+@pytest.fixture(scope="module")
+def quiet(tmp_path_factory):
+    return _open_loop(tmp_path_factory, False)
+
 
 @pytest.fixture(scope="module")
 def ctx(tmp_path_factory):
-    path = tmp_path_factory.mktemp("fidelity") / "run.h5"
-    write_run(path, open_loop_run(rig_cfg(True), 6.0, noise=False))
-    return prepare(read_run(path), rig_cfg(True))
+    return _open_loop(tmp_path_factory, True)
+
+
+def test_without_noise_the_replays_residual_is_the_models_own_error(quiet):
+    ctx = quiet
+    th = nominal_theta(ctx.base)
+    ev = ctx.rp.evaluate(th, None)
+    ratio = _per_band(ctx, ev.r * ev.sd, ctx.rp.faithful(th, ev), ev.mask)
+    assert np.all(np.abs(ratio - 1.0) < 0.02), np.round(ratio, 3)
 
 
 def _instance(ctx, key: str) -> fx.Instance:
@@ -36,20 +67,22 @@ def _instance(ctx, key: str) -> fx.Instance:
 
 
 @pytest.mark.parametrize("key, slot, value, above", [
-    ("sensor_gain[accelerometer at rear_right]", ("gain_a", 3), 1.0 + 1.5 * FIDELITY[0], False),
-    ("sensor_gain[accelerometer at rear_right]", ("gain_a", 3), 1.0 + 5.0 * FIDELITY[0], True),
-    ("sensor_gain[stroke transducer at front_left]", ("gain_s", 0), 1.0 - 1.5 * FIDELITY[4], False),
+    ("sensor_gain[accelerometer at rear_right]", ("gain_a", 3), 1.0005, False),
+    ("sensor_gain[accelerometer at rear_right]", ("gain_a", 3), 1.003, True),
+    ("mount_damping[rear_left]", ("mount_C", 2), 1.5, False),
     ("transport_delay[front_left]", ("delay_s", 0), 3e-4, True),
 ])
-def test_an_effect_counts_only_above_the_models_fidelity(ctx, key, slot, value, above):
+def test_an_effect_counts_only_above_the_models_own_error(ctx, key, slot, value, above):
+    """In open loop (the sensors' noise as configured) the floor's part is most of a reading: the two readings of
+    the floor differ by 0.05-0.2 % of an accelerometer's (more at higher frequencies); a gain of 1.0005 moves it
+    by less, one of 1.003 by more. A mount's viscous term (1e-4 of the hydraulic force) half as large again
+    moves it by a small part of that."""
     th0 = nominal_theta(ctx.base)
     th = copy_theta(th0)
     th[slot[0]][slot[1]] = value
     at = ctx.rp.evaluate(th0, ctx.sp.hold)
     ratio = over_fidelity(ctx, at, th, _instance(ctx, key))
     assert (ratio > OVER_FIDELITY) == above, ratio
-    if not above:
-        assert 0.5 < ratio < OVER_FIDELITY, ratio     # the gain's own change (1.5 x the fidelity), measured so
 
 
 @pytest.fixture(scope="module")
@@ -77,28 +110,18 @@ def isolated(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_under_isolation_the_model_errs_by_its_fidelity_of_the_parts_not_of_the_reading(isolated):
+def test_under_isolation_the_models_error_follows_the_floors_part_not_the_reading(isolated):
     """The recorded commands give the loop's readings back exactly; without noise the replay's residual is the
-    model's own error (the floor's discretisation). Under isolation an accelerometer reads the small difference
-    of the floor's part and the valves' cancelling one: the error is within FIDELITY of the parts (the commands'
-    response and the rest), several times FIDELITY of the reading."""
+    model's own error per band and channel, and a share of the reading would take it for several times smaller
+    than it is."""
     run, noisy, quiet, model = isolated
     assert np.array_equal(noisy[:, 0:4], run.accel_mps2) and np.array_equal(noisy[:, 4:8], run.stroke_m)
     ctx = prepare(dataclasses.replace(run, accel_mps2=quiet[:, 0:4], stroke_m=quiet[:, 4:8],
                                       floor_accel_mps2=quiet[:, 8:12]), model)
     th = nominal_theta(ctx.base)
     ev = ctx.rp.evaluate(th, None)
-    err = np.abs(ev.r * ev.sd) ** 2
-    R = responses(ctx.base, th, ctx.sp.w, floor=False)
-    commanded = np.einsum("kci,ki->kc", R.Hu, ctx.sp.U) * R.gain_out[None, :]
-    of_parts = FIDELITY[None, :] ** 2 * (np.abs(commanded) ** 2 + np.abs(ctx.sp.Y - commanded) ** 2)
-    of_reading = (FIDELITY[None, :] * np.abs(ctx.sp.Y)) ** 2
-    parts, reading = [], []
-    for lo, hi in BANDS_HZ:
-        sel = (ctx.sp.f_hz >= lo) & (ctx.sp.f_hz < hi)
-        if sel.sum() >= 8:
-            e = err[sel, 0:4].sum(axis=0)
-            parts.append(np.sqrt(e / of_parts[sel, 0:4].sum(axis=0)))
-            reading.append(np.sqrt(e / of_reading[sel, 0:4].sum(axis=0)))
-    assert np.max(parts) < OVER_FIDELITY, np.round(parts, 2)
+    own = ctx.rp.faithful(th, ev)
+    ratio = _per_band(ctx, ev.r * ev.sd, own, ev.mask)
+    assert np.all(np.abs(ratio - 1.0) < 0.05), np.round(ratio, 3)
+    reading = _per_band(ctx, own[:, 0:4], READING_SHARE * np.abs(ctx.sp.Y[:, 0:4]), ev.mask)
     assert np.max(reading) > 2.5 * OVER_FIDELITY, np.round(reading, 2)

@@ -10,11 +10,15 @@ import numpy as np
 import pytest
 
 from rig.diagnose.machine.engine import nominal_theta
-from rig.diagnose.machine.residual import FIDELITY, Replay
+from rig.diagnose.machine.residual import Replay
 from rig.diagnose.machine.rigmodel import Base, copy_theta
 from rig.recordings.runfile import read_run
 from rig.diagnose.machine.spectra import spectra_of
 from tests.rig.diagnose.machine.support import DT, open_loop_run, rig_cfg, write_run
+
+# the replay's residual over the signal in open loop (rms over the band): accelerometers 0.2 %, strokes 1 % (a
+# stroke is the small difference of the machine's and the floor's motions); what it is per bin: test_fidelity.py
+FIDELITY = np.array([2e-3] * 4 + [1e-2] * 4)
 
 
 def _relative_residual(tmp_path, cfg, th_changes: dict, *, floor: bool = True) -> np.ndarray:
@@ -39,8 +43,8 @@ def test_the_commands_replay_exactly(tmp_path):
 
 
 def test_the_floor_replays_to_the_models_fidelity(tmp_path):
-    """The simulator holds the floor linearly between samples, the model takes it continuous: they differ by
-    less than the fidelity the weights allow (residual.FIDELITY: accelerometers 0.2 %, strokes 1 %)."""
+    """The simulator holds the floor linearly between samples, the model takes it continuous: in open loop they
+    differ by under 0.2 % of an accelerometer's signal, 1 % of a stroke's."""
     assert np.all(_relative_residual(tmp_path, rig_cfg(True), {}) < FIDELITY)
 
 
