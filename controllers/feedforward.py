@@ -16,9 +16,8 @@ made realisable as one cascade of second-order sections, designed in continuous 
     F(s) = u_ff / a_g = -s / (s + w_dc)                           the floor accelerometer's offset decays
                         x [1 / (s^2 + sqrt2 w_hp s + w_hp^2)]     band-limited double integration: the
                                                                   2nd-order Butterworth high-pass over s^2
-                                                                  (an accelerometer offset then gives a
-                                                                  bounded command, not a ramp; the first
-                                                                  section takes that to 0)
+                                                                  (an accelerometer offset or drift then
+                                                                  gives a bounded transient, not a ramp)
                         x (s^2 + 2 zeta w_nv s + w_nv^2)/(K_v w_nv^2)         inverse valve, Eq. 1
                         x (A_p/K_Q) (d3 s^3 + d2 s^2 + d1 s + d0)             inverse actuator, Eq. 8
                         x (1 + tau s + (tau s)^2 / 2)                        phase lead for the delays
