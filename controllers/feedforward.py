@@ -13,8 +13,7 @@ one cost 12-15 dB of cancellation at 20-100 Hz on the simulated rig. With that m
 made realisable as one cascade of second-order sections, designed in continuous time and discretised once
 (Tustin, prewarped in the band, explicit dt):
 
-    F(s) = u_ff / a_g = -s / (s + w_dc)                           the floor accelerometer's offset decays
-                        x [1 / (s^2 + sqrt2 w_hp s + w_hp^2)]     band-limited double integration: the
+    F(s) = u_ff / a_g = -[1 / (s^2 + sqrt2 w_hp s + w_hp^2)]     band-limited double integration: the
                                                                   2nd-order Butterworth high-pass over s^2
                                                                   (an accelerometer offset or drift then
                                                                   gives a bounded transient, not a ramp)
@@ -23,15 +22,9 @@ made realisable as one cascade of second-order sections, designed in continuous 
                         x (1 + tau s + (tau s)^2 / 2)                        phase lead for the delays
                         x LP6(s)                                             6th-order Butterworth roll-off
 
-The offset section: without it the rest holds a DC gain of G^-1(0) / w_hp^2 (-9.45e5 V per m/s^2 with Table 1
-and 0.1 Hz), so a floor accelerometer's offset of 2e-5 m/s^2 (a calibration's residual) held the valve at -18.9 V
-for ever. At 0.05 Hz its command decays to 0.3 V in 15 s, while the feedforward is still faded out in a run that
-starts it after the feedback. It cannot start at the first sample's value: a moving floor's sample is its motion
-(cm/s^2), not its offset (um/s^2).
-
 The lead (e^{s tau} to second order) gives back what the path delays: the zero-order hold (half a period),
 the loop's one period of computation delay and the roll-off's own group delay at low frequency
-(3.8637 / w_lp). Eight zeros over nine poles: the filter is strictly proper and rolls off above w_lp.
+(3.8637 / w_lp). Seven zeros over eight poles: the filter is strictly proper and rolls off above w_lp.
 
 Why it stops working: the residual is |1 - (1 + e) e^{j phi}| of the floor motion for a gain error e and a
 phase error phi (2 sin(phi/2) for phi alone), so a 10 % gain error alone limits the cancellation to 20 dB;
@@ -80,7 +73,6 @@ class FeedforwardParams:
     V_t: float = 5.39e-4              # m^3 (Eq. 6)
     beta: float = 1.4e9               # Pa (Eq. 6)
     M_kg: float = 56.0                # moving mass of the piston (Eq. 7)
-    dc_hz: float = 0.05               # floor accelerometer's offset: first-order high-pass before the rest
     hp_hz: float = 0.1                # floor accelerometer high-pass (2nd-order Butterworth)
     lowpass_hz: float = 600.0         # Butterworth roll-off corner
     lowpass_order: int = 6            # its order (even, >= 6: the inverse has 7 zeros, HP/s^2 2 poles)
@@ -147,7 +139,6 @@ class FeedforwardFilter:
         # where the first-order lead 1 + tau s is already 30 % high at w tau = 0.83 (100 Hz)
         lead = [0.5 * tau * tau, tau, 1.0] if p.lead_order == 2 else [0.0, tau, 1.0]
         self.continuous = [
-            ([1.0, 0.0], [1.0, 2 * math.pi * p.dc_hz]),                                  # the offset out
             ([1.0, 2 * p.zeta * wnv, wnv * wnv], [1.0, math.sqrt(2.0) * whp, whp * whp]),   # valve^-1 / (s^2 HP)
             ([w2 * c for c in second], [1.0, zl[0] * wlp, w2]),                          # actuator pair / LP
             ([w2 * c for c in lead], [1.0, zl[1] * wlp, w2]),                            # lead / LP

@@ -121,18 +121,6 @@ def test_switching_fades_without_a_jump(ff):
         ff.step(sw, 0.0, 2 * DT)
 
 
-def test_a_floor_accelerometers_offset_does_not_hold_the_valve(ff):
-    """A constant offset on the floor accelerometer (2e-5 m/s^2: a calibration's residual) is no floor motion:
-    its command dies out within the time a run spends before the feedforward starts (without the offset section
-    it settled at -18.9 V, the double integration's DC gain, beyond the valve's 10 V), and it never reaches the
-    clamp on the way; the band's cancellation is kept (test_it_inverts_the_actuator_model_in_band)."""
-    st = ff.initial_state(on=True)
-    u = np.array([feedforward_step(ff.coef, ff.fade, st, 2e-5) for _ in range(int(30.0 / DT))])
-    assert np.abs(u).max() < 10.0
-    assert abs(u[int(15.0 / DT)]) < 0.5 and abs(u[-1]) < 0.05
-    assert abs(ff.frf(np.array([0.0]))[0]) < 1e-6
-
-
 def test_bad_roll_off_order():
     with pytest.raises(ValueError, match="lowpass_order"):
         FeedforwardFilter(feedforward_params_from_config(CFG).with_(lowpass_order=4), DT)
