@@ -21,6 +21,15 @@ made realisable as one cascade of second-order sections, designed in continuous 
                         x (A_p/K_Q) (d3 s^3 + d2 s^2 + d1 s + d0)             inverse actuator, Eq. 8
                         x (1 + tau s + (tau s)^2 / 2)                        phase lead for the delays
                         x LP6(s)                                             6th-order Butterworth roll-off
+                        x s / (s + w_dc)                                     DC block on the command
+
+The DC block: the double integration's DC gain is 1/w_hp^2, so a floor-accelerometer offset of 1e-5 m/s^2 would
+hold the valve volts off null (the stroke 25 um off, beyond what the valve holds against leakage). It is a first-
+order section, out = y - z with z the command's slow level, at w_dc (0.05 Hz) once settled. It starts at switch-on:
+z = y there (the output starts at 0, bumpless), then z is the mean of y since switch-on until that mean's window
+reaches 1/w_dc. So neither the offset nor the start transient (the floor already moving when the filters start,
+read by the double integration as an initial velocity) carries into the command, and a slow mode of its own never
+runs from the loop's start.
 
 The lead (e^{s tau} to second order) gives back what the path delays: the zero-order hold (half a period),
 the loop's one period of computation delay and the roll-off's own group delay at low frequency
@@ -47,9 +56,10 @@ from controllers.discrete import sections_step, sos_frf, tustin_section
 from controllers.timebase import check_step
 from rig.config import MOUNTS
 
-# state after the sections: output gain (fades between 0 and 1 when switched), switch request
-_G, _ON = 0, 1
-_N = 2
+# state after the sections: output gain (fades between 0 and 1 when switched), switch request, periods since the
+# DC block started (0: not started)
+_G, _ON, _K = 0, 1, 2
+STATE_EXTRA = 3
 
 
 def butterworth_pairs(order: int) -> list[float]:
@@ -81,6 +91,7 @@ class FeedforwardParams:
     prewarp_hz: float = 50.0          # Tustin prewarp: exact in the middle of the floor band
     gain: float = 1.0                 # trim on the whole path (1 = cancel as modelled)
     fade_s: float = 0.1               # on/off: the output gain fades with this time constant
+    dc_hz: float = 0.05               # the command's DC block, once settled (an accelerometer offset decays)
 
     def with_(self, **kw) -> "FeedforwardParams":
         return replace(self, **kw)
@@ -145,12 +156,16 @@ class FeedforwardFilter:
             ([k * w2 * c for c in first], [1.0, zl[2] * wlp, w2]),                       # actuator root / LP
         ] + [([w2], [1.0, z * wlp, w2]) for z in zl[3:]]                                # rest of the roll-off
         self.sections = tuple(tustin_section(n, d, dt, p.prewarp_hz) for n, d in self.continuous)
+        # the DC block, last: z += alpha (y - z), out = y - z, exactly as feedforward_step runs it once settled
+        wdc = 2 * math.pi * p.dc_hz
+        self.continuous.append(([1.0, 0.0], [1.0, wdc]))
+        self.sections += ((1.0, -1.0, 0.0, -math.exp(-wdc * dt), 0.0),)
         self.coef = np.ravel(np.array(self.sections, dtype=float))      # (b0, b1, b2, a1, a2) per section
         self.fade = math.exp(-dt / p.fade_s)
         self._o = 2 * len(self.sections)
 
     def initial_state(self, on: bool = False) -> np.ndarray:
-        s = np.zeros(self._o + _N)
+        s = np.zeros(self._o + STATE_EXTRA)
         s[self._o + _G] = s[self._o + _ON] = 1.0 if on else 0.0
         return s
 
@@ -181,14 +196,27 @@ class FeedforwardFilter:
 @numba.njit(cache=True)
 def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_floor_mps2: float) -> float:
     """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain,
-    which moves towards the switch request (0 or 1) with factor `fade` per period. Compiled (numba): the runtime's
-    period (rig/runtime/kernel.py) calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
+    which moves towards the switch request (0 or 1) with factor `fade` per period. The last section, the DC block,
+    starts at switch-on from the command it meets (z = y) and averages from there until its window reaches its
+    settled corner (alpha = max(1/k, alpha_dc)). Compiled (numba): the runtime's period (rig/runtime/kernel.py)
+    calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
     n = coef.shape[0] // 5
     o = 2 * n
-    y, _, _ = sections_step(state, coef, 0, 0, n, accel_floor_mps2)
+    y, i, c = sections_step(state, coef, 0, 0, n - 1, accel_floor_mps2)
+    on = state[o + 1] > 0.5
+    k = state[o + 2]
+    if on and k == 0.0:
+        state[i] = -y                                   # transposed direct form: the state is -z
+    k = k + 1.0 if on else 0.0
+    state[o + 2] = k
+    alpha = 1.0 + coef[c + 3]
+    if k > 0.0 and 1.0 / k > alpha:
+        alpha = 1.0 / k
+    out = y + state[i]
+    state[i] -= alpha * out
     g = state[o + 1] + (state[o] - state[o + 1]) * fade
     state[o] = g
-    return g * y
+    return g * out
 
 
 def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None,

@@ -36,7 +36,7 @@ from numba.core import types
 from numba.extending import intrinsic
 
 from controllers import isolation, modes, playback, tracking
-from controllers.feedforward import feedforward_step
+from controllers.feedforward import STATE_EXTRA as FF_STATE_EXTRA, feedforward_step
 from controllers.isolation import isolation_step
 from controllers.modes import modes_step
 from controllers.playback import playback_step
@@ -160,7 +160,7 @@ def _ff_mount(mem, m, g):
     co = int(mem[b])
     ns = int(mem[b + 1])
     so = int(mem[b + 2])
-    return feedforward_step(mem[co:co + 5 * ns], mem[b + 3], mem[so:so + 2 * ns + 2], g)
+    return feedforward_step(mem[co:co + 5 * ns], mem[b + 3], mem[so:so + 2 * ns + FF_STATE_EXTRA], g)
 
 
 @numba.njit(cache=True)

@@ -102,13 +102,27 @@ def isolation_step(c, state: list, meas, dt: float):
 
 
 def feedforward_step(f, state: list, g: float) -> float:
-    """FeedforwardFilter f, one period, the plain way: the sections on the floor acceleration g, times the
-    output gain, which moves towards the switch request with factor f.fade (state a list, updated in place)."""
-    o = 2 * len(f.sections)
-    y = _sos_step(f.sections, state, 0, g)
+    """FeedforwardFilter f, one period, the plain way: the sections but the last on the floor acceleration g; the
+    last, the DC block, as out = y - z with z the command's level: set to y at switch-on, then the mean of y since
+    switch-on until that window reaches 1 / (1 - pole) periods; times the output gain, which moves towards the
+    switch request with factor f.fade (state a list, updated in place; the block keeps -z, as the cascade would)."""
+    n = len(f.sections)
+    o = 2 * n
+    y = _sos_step(f.sections[:-1], state, 0, g)
+    i = 2 * (n - 1)
+    on = state[o + 1] > 0.5
+    if on and state[o + 2] == 0.0:
+        state[i] = -y
+    state[o + 2] = state[o + 2] + 1.0 if on else 0.0
+    z = -state[i]
+    out = y - z
+    weight = 1.0 + f.sections[-1][3]                    # 1 - pole: the settled block's step
+    if state[o + 2] > 0.0:
+        weight = max(weight, 1.0 / state[o + 2])
+    state[i] = -(z + weight * out)
     gain = state[o + 1] + (state[o] - state[o + 1]) * f.fade
     state[o] = gain
-    return gain * y
+    return gain * out
 
 
 def track_step(c, state: list, x: float, cf=None) -> float:
