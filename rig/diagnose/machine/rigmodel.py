@@ -12,7 +12,9 @@ Parameters (`Theta`, named arrays; 1 / 0 = as configured):
 
 Responses (`Responses`), from the modal decomposition of the continuous state space:
   valve commands   exact for a zero-order hold of each command delayed by latency_s + delay_s[i] (fractions of
-                   a period included: the hold's two parts, Eq. 1 onwards), z = exp(j w T)
+                   a period included: the hold's two parts, Eq. 1 onwards), z = exp(j w T); in the replay's
+                   prediction (predict) a deadband valve's chamber is fed from its spool's samples interpolated
+                   linearly (Eq. 3's K_Q x_v past the overlap, spool.py), as the simulated rig steps it
   floor motion     continuous (x_g and v_g = j w x_g: the floor moves smoothly), per metre at each mount
   transient        one column per mode: what the states at the record's two ends add to its DFT
 """
@@ -207,7 +209,8 @@ def linear_hold(md: Modal, z: np.ndarray) -> np.ndarray:
 
 def predict(md: Modal, w: np.ndarray, U: np.ndarray, X: np.ndarray | None) -> np.ndarray:
     """The physics' prediction (K, 8) before the sensors' gains: sum_i Hu U_i (+ sum_j Hg X_j), mode by mode
-    (K x modes) without forming Hu and Hg."""
+    (K x modes) without forming Hu and Hg; a deadband valve's U_i (its effective command) through its spool's
+    samples, held linearly into its chamber (Hu holds the valve's response to the command between samples)."""
     w = np.asarray(w, dtype=float)
     z = np.exp(1j * w * md.T)
     zU = U * np.exp(-1j * np.outer(w * md.T, md.d))               # each valve's whole periods of delay
