@@ -216,10 +216,11 @@ def predict(md: Modal, w: np.ndarray, U: np.ndarray, X: np.ndarray | None) -> np
     zU = U * np.exp(-1j * np.outer(w * md.T, md.d))               # each valve's whole periods of delay
     P = 1.0 / (z[:, None] - md.mu[None, :])
     q = ((zU @ (md.E * md.VBu.T)) / z[:, None] + zU @ (md.F * md.VBu.T)) * P
+    lin = linear_hold(md, z) if np.any(md.overlap) else None
     for i in np.flatnonzero(md.overlap):   # a deadband valve's chamber fed from its spool's samples, held linearly
         held = (zU[:, i:i + 1] * (md.E[i][None, :] / z[:, None] + md.F[i][None, :])) * P * md.VBu[:, i][None, :]
         spool = held @ md.CVs[i]                                    # its spool at the samples (mA)
-        q += linear_hold(md, z) * (spool[:, None] * md.VBs[:, i][None, :]) - held
+        q += lin * (spool[:, None] * md.VBs[:, i][None, :]) - held
     out = q @ md.CV.T
     if X is not None:
         jw = 1j * w
