@@ -117,7 +117,8 @@ class Modal:
     T: float
     gain_out: np.ndarray        # (8,) accelerometers then strokes
     gain_floor: np.ndarray      # (4,)
-    VBs: np.ndarray             # (n, 4) each chamber's flow per mA of its spool (Eq. 3's K_Q x_v as an input)
+    VBs: np.ndarray             # (n, 4) each chamber's flow per mA of its spool (Eq. 3's K_Q x_v as an input: nothing
+                                # drives a valve back, so it excites the chamber's and machine's modes only)
     CVs: np.ndarray             # (4, n) the spools (x_v, mA)
     overlap: np.ndarray         # (4,) bool: the valves with a deadband (their chambers fed from the spool's samples)
 
