@@ -388,8 +388,10 @@ def polish(sel: Selection, progress=None) -> Selection:
         slots = base_slots + [s for t in chosen for s in t.instance.slots]
         return fit(ctx.rp, th, slots, ctx.sp.fit, U_of=u_of(ctx), max_nfev=20).th
     th = polished(sel.chosen, sel.th_final)
-    for t in sel.chosen:                # polished below its least size: within its part's tolerance after all
-        small = fx.shortfall(t.instance.effect, fx.parameters(t.instance, th, ctx))
+    for t in sel.chosen:                # polished below its least size or onto a bound: as refused when chosen
+        pinned = at_bound(th, t.instance.slots)
+        small = fx.shortfall(t.instance.effect, fx.parameters(t.instance, th, ctx)) or (
+            f"{pinned} at the bound of its range" if pinned else "")
         if small:
             say(f"{t.instance.key}: polished, {small}: dropped")
             sel.chosen = [c for c in sel.chosen if c is not t]

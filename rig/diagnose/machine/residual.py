@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import scipy.linalg
 
-from rig.diagnose.machine.rigmodel import N_OUT, Base, Modal, modal, predict, responses
+from rig.diagnose.machine.rigmodel import N_OUT, Base, Modal, linear_hold, modal, predict, responses
 from rig.diagnose.machine.spectra import Spectra
 
 
@@ -40,14 +40,8 @@ def floor_hold_error(md: Modal, w: np.ndarray) -> np.ndarray:
     T = md.T
     z = np.exp(1j * w * T)
     jw = 1j * w
-    lam = md.lam
-    lt = lam * T
-    small = np.abs(lt) < 1e-6
-    lts = np.where(small, 1.0, lt)
-    g1 = np.where(small, T * (0.5 + lt / 6), (md.mu - 1.0 - lt) / (lts * lts / T))     # late part (x g[k+1])
-    g0 = np.where(small, T * (1.0 + lt / 2), (md.mu - 1.0) * T / lts) - g1             # early part (x g[k])
-    Pd = (g0[None, :] + g1[None, :] * z[:, None]) / (z[:, None] - md.mu[None, :])
-    Pc = 1.0 / (jw[:, None] - lam[None, :])
+    Pd = linear_hold(md, z)
+    Pc = 1.0 / (jw[:, None] - md.lam[None, :])
     v_held = 1j * np.sin(w * T) / T                        # the central difference's velocity per metre
     sinc2 = np.sinc(w * T / (2 * np.pi)) ** 2              # the second difference's acceleration over -w^2
     CVT = md.CV.T

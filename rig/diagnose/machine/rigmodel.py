@@ -12,7 +12,9 @@ Parameters (`Theta`, named arrays; 1 / 0 = as configured):
 
 Responses (`Responses`), from the modal decomposition of the continuous state space:
   valve commands   exact for a zero-order hold of each command delayed by latency_s + delay_s[i] (fractions of
-                   a period included: the hold's two parts, Eq. 1 onwards), z = exp(j w T)
+                   a period included: the hold's two parts, Eq. 1 onwards), z = exp(j w T); in the replay's
+                   prediction (predict) a deadband valve's chamber is fed from its spool's samples interpolated
+                   linearly (Eq. 3's K_Q x_v past the overlap, spool.py), as the simulated rig steps it
   floor motion     continuous (x_g and v_g = j w x_g: the floor moves smoothly), per metre at each mount
   transient        one column per mode: what the states at the record's two ends add to its DFT
 """
@@ -30,7 +32,7 @@ from controllers.isolation import IsolationController, make_isolation_controller
 from rig.config import Config
 from sim_backend.machine import ModalModel, modal_model_from_config
 from sim_backend.rig_error import RigDeviation
-from sim_backend.rig_plant import I_ACCEL, rig_state_space
+from sim_backend.rig_plant import I_ACCEL, rig_state_space, state_index
 
 ACT_KEYS = ("K_L", "K_Q", "K_C", "w_nv", "zeta")
 N_OUT = 8                        # accelerometers (4), stroke transducers (4)
@@ -115,6 +117,10 @@ class Modal:
     T: float
     gain_out: np.ndarray        # (8,) accelerometers then strokes
     gain_floor: np.ndarray      # (4,)
+    VBs: np.ndarray             # (n, 4) each chamber's flow per mA of its spool (Eq. 3's K_Q x_v as an input: nothing
+                                # drives a valve back, so it excites the chamber's and machine's modes only)
+    CVs: np.ndarray             # (4, n) the spools (x_v, mA)
+    overlap: np.ndarray         # (4,) bool: the valves with a deadband (their chambers fed from the spool's samples)
 
 
 def modal(base: Base, th: dict) -> Modal:
@@ -122,6 +128,10 @@ def modal(base: Base, th: dict) -> Modal:
     the valve's own delay: the hold's two parts, early u[k-d-1] over phi T and late u[k-d] over (1-phi) T)."""
     ss, dev = base.state_space(th)
     A, B = ss.A, ss.B
+    at = state_index(len(ss.modal.w_n))
+    ixv, ipl = at["x_v"], at["P_L"]
+    Bs = np.zeros((A.shape[0], 4))
+    Bs[ipl:ipl + 4] = np.diag(np.diag(A[ipl:ipl + 4, ixv:ixv + 4]))
     C = ss.C[I_ACCEL:I_ACCEL + N_OUT]
     D = ss.D[I_ACCEL:I_ACCEL + N_OUT]
     lam, V = np.linalg.eig(A)
@@ -137,7 +147,8 @@ def modal(base: Base, th: dict) -> Modal:
     return Modal(lam.astype(complex), mu.astype(complex), c(C @ V, dtype=complex),
                  *(c(Vi @ B[:, a:a + 4], dtype=complex) for a in (0, 4, 8)), c(E, dtype=complex),
                  c(F, dtype=complex), d, c(D[:, 4:8]), c(D[:, 8:12]), T,
-                 np.concatenate([dev.accel_gain, dev.stroke_gain]), np.asarray(dev.floor_gain, dtype=float))
+                 np.concatenate([dev.accel_gain, dev.stroke_gain]), np.asarray(dev.floor_gain, dtype=float),
+                 c(Vi @ Bs, dtype=complex), c(V[ixv:ixv + 4], dtype=complex), np.asarray(dev.valve_deadband_ma) > 0)
 
 
 @dataclass
@@ -184,13 +195,33 @@ def responses(base: Base, th: dict, w: np.ndarray, *, floor: bool = True, valves
                      a.valve.K_v, md.lam)
 
 
+def linear_hold(md: Modal, z: np.ndarray) -> np.ndarray:
+    """(K, n) per mode: the state's response to an input known at its samples and interpolated linearly between
+    them (a first-order hold: x[k+1] = mu x[k] + g0 s[k] + g1 s[k+1]), as the simulated rig steps its floor and a
+    deadband valve's flow."""
+    T, lam = md.T, md.lam
+    lt = lam * T
+    small = np.abs(lt) < 1e-6
+    lts = np.where(small, 1.0, lt)
+    g1 = np.where(small, T * (0.5 + lt / 6), (md.mu - 1.0 - lt) / (lts * lts / T))     # late part (x s[k+1])
+    g0 = np.where(small, T * (1.0 + lt / 2), (md.mu - 1.0) * T / lts) - g1             # early part (x s[k])
+    return (g0[None, :] + g1[None, :] * z[:, None]) / (z[:, None] - md.mu[None, :])
+
+
 def predict(md: Modal, w: np.ndarray, U: np.ndarray, X: np.ndarray | None) -> np.ndarray:
     """The physics' prediction (K, 8) before the sensors' gains: sum_i Hu U_i (+ sum_j Hg X_j), mode by mode
-    (K x modes) without forming Hu and Hg."""
+    (K x modes) without forming Hu and Hg; a deadband valve's U_i (its effective command) through its spool's
+    samples, held linearly into its chamber (Hu holds the valve's response to the command between samples)."""
     w = np.asarray(w, dtype=float)
     z = np.exp(1j * w * md.T)
     zU = U * np.exp(-1j * np.outer(w * md.T, md.d))               # each valve's whole periods of delay
-    q = ((zU @ (md.E * md.VBu.T)) / z[:, None] + zU @ (md.F * md.VBu.T)) / (z[:, None] - md.mu[None, :])
+    P = 1.0 / (z[:, None] - md.mu[None, :])
+    q = ((zU @ (md.E * md.VBu.T)) / z[:, None] + zU @ (md.F * md.VBu.T)) * P
+    lin = linear_hold(md, z) if np.any(md.overlap) else None
+    for i in np.flatnonzero(md.overlap):   # a deadband valve's chamber fed from its spool's samples, held linearly
+        held = (zU[:, i:i + 1] * (md.E[i][None, :] / z[:, None] + md.F[i][None, :])) * P * md.VBu[:, i][None, :]
+        spool = held @ md.CVs[i]                                    # its spool at the samples (mA)
+        q += lin * (spool[:, None] * md.VBs[:, i][None, :]) - held
     out = q @ md.CV.T
     if X is not None:
         jw = 1j * w

@@ -5,7 +5,9 @@ The deadband acts on the spool (Eq. 1's x_v, in mA-equivalent): no flow while |x
 spool, so the spool of the recorded command is computed in the time domain (the valve's exact zero-order-hold
 recursion), passed through the overlap, and taken back to an effective command in the frequency domain
 (dividing by the same recursion's response): the rest of the replay stays linear. At width 0 the effective
-command is the recorded one.
+command is the recorded one. Between samples the spool past the overlap is known only at them: the model feeds
+the chamber from them interpolated linearly (rigmodel.predict), as the simulated rig steps it, not through the
+valve's response to the held effective command (whose error at that mount a viscous term took up).
 """
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ import pytest
 from rig.commands.prove_rig import record_case
 from rig.config import config_from_dict
 from rig.diagnose.machine import effects as fx
-from rig.diagnose.machine.engine import OVER_FIDELITY, nominal_theta, over_fidelity, prepare
+from rig.diagnose.machine.engine import OVER_FIDELITY, nominal_theta, over_fidelity, prepare, u_of
 from rig.diagnose.machine.prove import RigCase
 from rig.diagnose.machine.rigmodel import copy_theta
 from rig.diagnose.machine.spectra import BANDS_HZ
@@ -85,12 +85,11 @@ def test_an_effect_counts_only_above_the_models_own_error(ctx, key, slot, value,
     assert (ratio > OVER_FIDELITY) == above, ratio
 
 
-@pytest.fixture(scope="module")
-def isolated(tmp_path_factory):
-    """A closed-loop run with feedforward (the rig as the model says), recorded as `rig prove --rig` records its
-    cases; and the simulated rig driven open loop by the recorded commands, once with its sensors' noise (it
-    must give the recording back) and once without."""
-    case = RigCase("isolated", {}, "feedback_feedforward", True, 6.0, 3.5e-6, 4242, {}, {})
+def _isolated(tmp_path_factory, rig_error: dict):
+    """A closed-loop run with feedforward, recorded as `rig prove --rig` records its cases; and the simulated rig
+    driven open loop by the recorded commands, once with its sensors' noise (it must give the recording back) and
+    once without."""
+    case = RigCase("isolated", {}, "feedback_feedforward", True, 6.0, 3.5e-6, 4242, {}, rig_error)
     path = tmp_path_factory.mktemp("isolated") / "run.h5"
     record_case(case, path)
     run = read_run(path)
@@ -109,6 +108,18 @@ def isolated(tmp_path_factory):
     return run, driven(True), driven(False), config_from_dict(case.model_sections(), source="<the model>")
 
 
+@pytest.fixture(scope="module")
+def isolated(tmp_path_factory):
+    """The rig as the model says."""
+    return _isolated(tmp_path_factory, {})
+
+
+@pytest.fixture(scope="module")
+def overlapped(tmp_path_factory):
+    """The rig with a 0.3 mA spool deadband at rear_left (test_deadband_alone.py's)."""
+    return _isolated(tmp_path_factory, {"valve_deadband_ma": [0.0, 0.0, 0.3, 0.0]})
+
+
 @pytest.mark.slow
 def test_under_isolation_the_models_error_follows_the_floors_part_not_the_reading(isolated):
     """The recorded commands give the loop's readings back exactly; without noise the replay's residual is the
@@ -125,3 +136,24 @@ def test_under_isolation_the_models_error_follows_the_floors_part_not_the_readin
     assert np.all(np.abs(ratio - 1.0) < 0.05), np.round(ratio, 3)
     reading = _per_band(ctx, own[:, 0:4], READING_SHARE * np.abs(ctx.sp.Y[:, 0:4]), ev.mask)
     assert np.max(reading) > 2.5 * OVER_FIDELITY, np.round(reading, 2)
+
+
+@pytest.mark.slow
+def test_a_deadband_valves_path_adds_no_error_of_its_own(overlapped):
+    """The simulated rig feeds a deadband valve's chamber from its spool's samples past the overlap, interpolated
+    linearly between them; so does the replay (rigmodel.predict). At the true deadband the residual at its mount is
+    then the floor's own error alone, as at the others (the valve's response to a held effective command took it
+    for 0.64-0.98 of it at 5-150 Hz on a 12 s run: the two discretisations' difference, up to 0.68 of the floor's error)."""
+    run, noisy, quiet, model = overlapped
+    assert np.array_equal(noisy[:, 0:4], run.accel_mps2) and np.array_equal(noisy[:, 4:8], run.stroke_m)
+    ctx = prepare(dataclasses.replace(run, accel_mps2=quiet[:, 0:4], stroke_m=quiet[:, 4:8],
+                                      floor_accel_mps2=quiet[:, 8:12]), model)
+    th = nominal_theta(ctx.base)
+    th["deadband_ma"][2] = 0.3
+    U = u_of(ctx)(th)
+    ev = ctx.rp.evaluate(th, None, U=U)
+    above = ctx.sp.f_hz[ev.mask] >= 5.0             # below, a few bins a band and the record's ends
+    mask = ev.mask.copy()
+    mask[ev.mask] = above
+    ratio = _per_band(ctx, (ev.r * ev.sd)[above], ctx.rp.faithful(th, ev, U=U)[above], mask)
+    assert np.all(np.abs(ratio - 1.0) < 0.05), np.round(ratio, 3)
