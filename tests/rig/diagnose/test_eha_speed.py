@@ -3,6 +3,8 @@ state in registers gives the same numbers bit for bit; the twin's stand simulati
 near rest, within a tiny fraction of the noise of the fixed step; a model simulated again is taken from the last
 few, as a copy."""
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from rig.plant import zoh
 from sim_backend.actuator import (Effects, _simulate_near_rest, inner_step_s, linear_chirp, simulate_stand,
                                   stand_prm)
 from sim_backend.linear import ActuatorParams
+from tests.paths import RECORDINGS
 
 P = ActuatorParams()
 
@@ -43,11 +46,12 @@ def test_the_scalar_rk4_is_the_stands_own_at_one_step():
     assert np.array_equal(ref["spool_mA"], spool)
 
 
-@pytest.mark.parametrize("force_n", [450.0, 800.0])
-def test_friction_near_rest_only_stays_on_the_fixed_steps_path(force_n):
-    """The piston sticks at every reversal of the chirp: the short step is taken there, and the positions stay
-    within 1e-4 of the recordings' noise (2e-8 m) of the fixed short step's."""
-    fx = Effects(friction_force_n=force_n)
+@pytest.mark.parametrize("fx", [Effects(friction_force_n=450.0), Effects(friction_force_n=800.0),
+                                Effects(friction_force_n=300.0, delay_s=1.3e-3)])
+def test_friction_near_rest_only_stays_on_the_fixed_steps_path(fx):
+    """The piston sticks at every reversal of the chirp: the short step is taken there (and where a delayed
+    command switches inside a step), and the positions stay within 1e-4 of the recordings' noise (2e-8 m) of the
+    fixed short step's."""
     cmd = linear_chirp(2000.0, 10.0, 0.1, 100.0, 2.2)[1]
     fixed = simulate_stand(P, cmd, 2000.0, fx)["position_m"]
     near = simulate_stand(P, cmd, 2000.0, fx, fine_near_rest=True)["position_m"]
@@ -70,3 +74,18 @@ def test_a_model_simulated_again_is_a_copy_of_the_last():
     other = pb.simulate(lin, {"valve_deadband": {"width_ma": 0.31}})
     assert len(calls) == 2 and not np.array_equal(other, again)
     assert catalogue.slow_in(fx)
+
+
+def test_the_bench_runs_one_case_a_process(tmp_path):
+    """`python -m rig.diagnose.bench RECORDING... --only I`: the I-th case alone (two versions compared case by
+    case, alternately); an I beyond the cases is one line naming them."""
+    rec = RECORDINGS / "p01_nominal.csv.gz"
+    run = subprocess.run([sys.executable, "-m", "rig.diagnose.bench", str(rec), str(rec), "--only", "1"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    rows = [l for l in run.stdout.splitlines() if l.startswith("p01_nominal")]
+    assert len(rows) == 1 and "(n = 1)" in run.stdout
+    bad = subprocess.run([sys.executable, "-m", "rig.diagnose.bench", str(rec), "--only", "3"],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "--only 3: there are only 1 cases" in bad.stderr
+    assert "Traceback" not in bad.stderr
