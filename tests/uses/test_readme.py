@@ -44,6 +44,29 @@ def test_the_readme_is_a_front_page():
     assert "make demo" in text and "make test" in text and ".venv/bin/rig" in text
 
 
+def _slug(heading: str) -> str:
+    """A markdown heading's anchor as GitHub makes it: lower case, punctuation dropped, spaces as hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+@pytest.mark.parametrize("page", [README, REPO / "docs" / "CLI.md"], ids=lambda p: p.name)
+def test_the_guides_named_are_links_that_resolve(page):
+    """Every link of the page leads to a file of the repository (and a heading there, when it names one); a guide
+    named in the text is a link, not a bare path (issue 29: readers could not follow `docs/X.md`)."""
+    text = page.read_text()
+    links = re.findall(r"\]\(([^)\s]+)\)", text)
+    assert links, page
+    for link in links:
+        path, _, anchor = link.partition("#")
+        target = (page.parent / path).resolve() if path else page
+        assert target.is_file(), f"{page.name}: link {link}: no file {target}"
+        if anchor:
+            slugs = {_slug(h) for h in re.findall(r"^#+ (.+)$", target.read_text(), re.M)}
+            assert anchor in slugs, f"{page.name}: link {link}: no heading with that anchor in {target.name}"
+    bare = [m.group() for m in re.finditer(r"(?:docs|drivers)/[\w/.-]*\.md", text) if text[m.start() - 1] not in "[(/"]
+    assert not bare, f"{page.name}: guides named without a link: {bare}"
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(1800)        # every quick start in turn: about 5 min on an idle 2-core machine, 11 at load 15
 def test_every_readme_command_runs_as_written(tmp_path):
