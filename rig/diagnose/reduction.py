@@ -33,7 +33,7 @@ def bias(pb: Problem, f: ModelFit) -> dict[str, dict[str, float]]:
         return {}
     fx = catalogue.simulated(f.fx)
     truth = simulate_stand(pb.plant.params(f.lin), pb.cmd, pb.fs, catalogue.stand_effects(fx),
-                           fine_near_rest=True)["position_m"]     # friction's short step only near rest: 2x faster
+                           fine_near_rest=True)["position_m"]     # friction's short step only near rest: 1.5x faster
     twin = pb.with_(y=truth)
     g = twin.fit(f.lin, f.fx, max_iter=MAX_ITER, rtol=GAIN / max(int(pb.mfit.sum()), 1))
     return {n: {k: float(g.fx[n][k] - v) for k, v in f.fx[n].items() if np.isfinite(v)} for n in fx}
