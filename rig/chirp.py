@@ -23,7 +23,7 @@ from pathlib import Path
 from controllers.playback import SignalPlayback
 from rig import cliargs, excitation
 from rig.config import hil_run_config, layout_mounts
-from rig.errors import RigError
+from rig.errors import FaultError, RigError
 from rig.recordings.rigformat import save_columns_csv
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.runtime.lifecycle import State
@@ -148,7 +148,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
             progress(min(total, (loop.t_ns - loop.t0_ns) * 1e-9 + loop.dt), total)
         wall = time.perf_counter() - wall0
         if loop.lc.state is State.FAULT:
-            raise RigError(f"chirp stopped by a FAULT after {loop.iterations} periods: {loop.lc.fault_reason} "
+            raise FaultError(f"chirp stopped by a FAULT after {loop.iterations} periods: {loop.lc.fault_reason} "
                            f"(nothing kept: run the chirp again once the cause is cleared)")
         if reason != "time":      # stopped before the sweep ended: a part of a chirp identifies nothing well
             raise RigError(f"chirp stopped early ({reason}) at t = {loop.iterations * loop.dt:.1f} s of "

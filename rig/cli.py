@@ -6,7 +6,7 @@ import importlib
 import sys
 
 from rig.cliargs import ArgumentParser, check_outputs
-from rig.errors import RigError
+from rig.errors import EXIT_FAULT, EXIT_INPUT, FaultError, RigError
 from rig.runtime.signals import hold_early
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
@@ -77,9 +77,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_outputs(args)                 # before anything is opened, started or truncated
         return int(importlib.import_module(COMMANDS[args.command][0]).run(args) or 0)
+    except FaultError as e:
+        print(f"rig {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_FAULT
     except RigError as e:
         print(f"rig {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_INPUT
     except KeyboardInterrupt:
         print(f"rig {args.command}: interrupted", file=sys.stderr)
         return 130

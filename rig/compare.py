@@ -18,7 +18,7 @@ from controllers.feedforward import make_feedforward_filters
 from controllers.isolation import make_isolation_controllers
 from controllers.vibration_criteria import vc_report
 from rig.config import load_config
-from rig.errors import RigError
+from rig.errors import FaultError, RigError
 from rig.runtime.clock import SimClock
 from rig.runtime.gate import ISOLATION_MODES as MODES
 from rig.runtime.lifecycle import State
@@ -103,7 +103,7 @@ def simulate_mode(cfg, n: int, mode: str):
         for k in range(n):
             loop.cycle(k * loop.period_ns)
             if loop.state is State.FAULT:
-                raise RigError(f"demo: the loop faulted at t = {k * dt:.3f} s ({LABELS[mode]}): "
+                raise FaultError(f"demo: the loop faulted at t = {k * dt:.3f} s ({LABELS[mode]}): "
                                f"{loop.lc.fault_reason}")
             tr["table"][k] = plant.table_m
             tr["tool"][k] = plant.tool_m

@@ -17,4 +17,14 @@ class DeviceError(RigError):
     """A device that does not answer or reports a fault: the message names the device."""
 
 
-EXIT_HARM = 3          # a command's exit status when the do-no-harm supervisor switched isolation off
+class FaultError(RigError):
+    """The safety rules stopped a run (valves at null): the message says which rule and when. Exit EXIT_FAULT."""
+
+
+# The commands' exit statuses (README "Exit statuses"), one table for all of them.
+EXIT_FAULT = 1         # the safety rules stopped the run
+EXIT_INPUT = 2         # bad input, or refused at start: nothing was run
+EXIT_HARM = 3          # isolation made the table worse: do-no-harm switched it off, or a mode metered worse than off
+EXIT_FINDINGS = 4      # rig commission: a channel needs the calibration file or is refused
+EXIT_SUSPECT = 5       # finished and wrote its results, but they fall short as said in a warning line: the host
+                       # did not keep time, the recording has gaps, or the model fits poorly

@@ -12,7 +12,7 @@ import sys
 from rig import cliargs
 from rig.backends import BACKENDS
 from rig.config import load_config
-from rig.errors import RigError
+from rig.errors import EXIT_SUSPECT, RigError
 
 
 class _Renamed(argparse.Action):
@@ -119,4 +119,4 @@ def run(args) -> int:
               f"samples and otherwise uses the longest stretch without one. Lower --rate or free the CPU for a "
               f"whole recording", file=sys.stderr)
     print(f"next: rig identify {s['recording']}", file=sys.stderr)     # a hint, not a figure
-    return 0
+    return EXIT_SUSPECT if missing else 0

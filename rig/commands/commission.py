@@ -11,7 +11,7 @@ stroke; then each valve held at +-STEP_V for HOLD_S each: its DC gain against th
 (rig/commissioning.py valve_checks) and which mount it moves (swapped CAN nodes). Out: DIR/report.txt, report.json,
 commissioning.toml (per channel mount, sign, scale, offset; per valve the mount it moves, null, gain), one PNG
 per mount, and the recording. Exit 0 when every channel is ok, 4 when
-a channel needs the calibration file or is refused, 1 after a fault.
+a channel needs the calibration file or is refused, 1 after a fault (rig/errors.py).
 Rehearse wiring faults on the emulated rig: drivers/devicemaps/hil_wiring_faults.md.
 
 The prototype (`--layout prototype`: drivers/devicemaps/prototype_hil.toml, the actuator alone on its stand; any
@@ -34,7 +34,7 @@ import numpy as np
 
 from rig import cliargs
 from rig.config import hil_run_config, layout_mounts
-from rig.errors import RigError
+from rig.errors import EXIT_FINDINGS, FaultError, RigError
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.runtime.recorder import read_recording
 
@@ -49,7 +49,6 @@ AMPLITUDE_V = 2.0
 # as large as the chirp's x'' in the band, and scatters its scale (sd 0.12 over seeds at 2 V, 2 s; 0.03 at 5 V, 4 s)
 FLOOR_IN_AMPLITUDE_V, FLOOR_IN_CHIRP_S = 5.0, 4.0
 STEP_V, HOLD_S = 2.0, 0.6      # then one valve at a time held at +STEP_V and -STEP_V (its DC gain and null offset)
-EXIT_FINDINGS = 4
 SAFE_SHARE = 0.5               # the stroke the procedure may ask for, of [safety] stroke_limit_m (issue 27)
 ADC_LSB_V = 20.0 / 65535       # the analog module: raw 0..65535 = -10..+10 V (drivers/devicemaps/adam6024_modbus.md)
 TRANSDUCER_LSB_M = 1e-9        # the DTA-4 reports um with three decimals (drivers/devicemaps/dta4_serial.md)
@@ -158,7 +157,7 @@ def run(args) -> int:
         fault = s.loop.lc.fault_reason
         moved = time.monotonic()
     if fault:
-        raise RigError(f"commission: the run faulted ({fault}): nothing judged")
+        raise FaultError(f"commission: the run faulted ({fault}): nothing judged")
     rec = read_recording(rec_path)
     steps = (QUIET_S + len(names) * slot_s + LEAD_S, HOLD_S, LEAD_S)
     res = commissioning.analyse(rec, names, rate, QUIET_S, slot_s, LEAD_S, dc_gain, steps=steps,

@@ -23,6 +23,7 @@ import sys
 import numpy as np
 from controllers.vibration_criteria import plot_vc
 from rig import cliargs
+from rig.errors import EXIT_HARM
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -62,7 +63,7 @@ def run(args) -> int:
         _plot(args.out / "demo.png", 1.0 / cfg.loop.rate_hz, traces, slice(s, s + int(round(args.seconds * cfg.loop.rate_hz))), res)
         (args.out / "demo.json").write_text(json.dumps(res, indent=2))
         _log(f"wrote {args.out / 'demo.png'} and {args.out / 'demo.json'}")
-    return 0
+    return EXIT_HARM if res["harm"] else 0
 
 
 def _log(text: str) -> None:

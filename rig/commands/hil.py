@@ -52,7 +52,7 @@ from rig.runtime import inject
 from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
-from rig.errors import EXIT_HARM, RecordingError, RigError
+from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_SUSPECT, RecordingError, RigError
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -211,8 +211,9 @@ LATE_WARN = 0.01        # issue 24: at most 1 % of a mode's periods late; beyond
 
 
 def _exit_code(res) -> int:
-    """1 after a fault, 3 when the do-no-harm supervisor switched isolation off; a mode that made the table
-    worse than isolation off (below the supervisor's margin) is said in one line."""
+    """EXIT_FAULT after a fault; EXIT_HARM when the do-no-harm supervisor switched isolation off or a mode made
+    the table worse than isolation off (below the supervisor's margin); EXIT_SUSPECT when the host let more than
+    LATE_WARN of a mode's periods come late. Each is said in one line."""
     worse = {m: -res[k] for k, m in (("isolation_reduction_db", "feedback"),
                                      ("feedforward_reduction_db", "feedback_feedforward"))
              if res.get(k) is not None and res[k] < 0}
@@ -226,11 +227,11 @@ def _exit_code(res) -> int:
             f"{100 * LATE_WARN:g} %): isolation through the drivers falls with that, so these figures are below what "
             "this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
     if res["faults"]:
-        return 1
+        return EXIT_FAULT
     if res.get("harm"):
         print(f"rig hil: {res['harm']}", file=sys.stderr)
         return EXIT_HARM
-    return 0
+    return EXIT_HARM if worse else EXIT_SUSPECT if late else 0
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
@@ -380,16 +381,19 @@ def _prototype(cfg, seconds: float, args) -> int:
         print(f"rig hil: FAULT: {res['fault_reason']}", file=sys.stderr)
     out = {k: res[k] for k in ("transports", "harm", "faults", "overruns", "iterations", "samples_recorded",
                                "tracking", "isolation_reduction_db", "recording")}
-    code = 1 if res["faults"] else EXIT_HARM if res["harm"] else 0
+    red = res["isolation_reduction_db"]
+    worse = red is not None and red < 0
+    code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else 0
     if res["harm"]:
         print(f"rig hil: {res['harm']}", file=sys.stderr)
+    elif worse:
+        print(f"rig hil: warning: isolating made the load {-red:.1f} dB worse than holding", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
         return code
     from rig import operated
     print(operated.figures_text(res["segments"]))
     tr = res["tracking"]
-    red = res["isolation_reduction_db"]
     print(f"transports {', '.join(out['transports'])}: {out['iterations']} periods at {cfg.loop.rate_hz:g} Hz, "
           f"{out['faults']} faults, {out['overruns']} overruns, recorded to {out['recording']}")
     if tr.get("rms_error_um") is not None:

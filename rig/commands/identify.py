@@ -15,7 +15,7 @@ from pathlib import Path
 from rig import cliargs
 from rig.batch import command as batch
 from rig.batch.run import Job, file_identity
-from rig.errors import RigError
+from rig.errors import EXIT_SUSPECT, RigError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -164,9 +164,10 @@ def _run_plant(args, rec, plant, t0: float) -> int:
             (args.out / "identify.json").write_text(json.dumps(res, indent=1))
         except OSError as e:
             raise RigError(f"--out {args.out}: cannot write ({e.strerror or e})") from None
+    code = EXIT_SUSPECT if "warning" in res else 0
     if args.json:
         print(json.dumps(res, indent=1))
-        return 0
+        return code
     print(f"Identified {plant.family} from {rec.source} ({rec.n} samples at {rec.fs_hz:g} Hz)\n")
     print("| parameter | start | identified | 1-sigma | bounds |\n|---|---|---|---|---|")
     for k, v in res["parameters"].items():
@@ -181,7 +182,7 @@ def _run_plant(args, rec, plant, t0: float) -> int:
                                                       if "shooting" in res else ""))
     if res["at_bounds"]:
         print("at their bounds: " + ", ".join(res["at_bounds"]) + " (the model lacks something: run rig diagnose)")
-    return 0
+    return code
 
 
 def identify_one(plant_path: Path | None, config: str | None, starts: int, seed: int, refine: bool, path: str,
@@ -261,9 +262,10 @@ def run_single(args) -> int:
     if args.plot is not None:
         plot_fig3(res, args.plot)
         paths["plot"] = args.plot
+    code = EXIT_SUSPECT if "warning" in res.fit else 0      # a poor fit or closed-loop data: said in the table
     if args.json:
         print(json.dumps(res.to_json(), indent=1))
-        return 0
+        return code
     print(f"Identified from {rec.source} ({rec.n} samples at {rec.fs_hz:g} Hz) in {res.timing_s['total_s']:.2f} s "
           f"({res.timing_s['cpu_s']:.2f} s cpu)\n")
     print(table_markdown(res))
@@ -273,4 +275,4 @@ def run_single(args) -> int:
     print(weak_markdown(res))
     if paths:
         print("\nwritten: " + ", ".join(str(p) for p in paths.values()))
-    return 0
+    return code

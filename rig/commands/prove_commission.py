@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.config import MOUNTS
-from rig.errors import RigError
+from rig.errors import EXIT_FINDINGS, EXIT_HARM, EXIT_SUSPECT, RigError
 
 N_AI = 8                                # the analog module's channels (ch0-3 the mounts' table accelerometers)
 FLOOR_AI = 4                            # AI ch4-7: the floor accelerometers under the mounts, in MOUNTS order
@@ -169,7 +169,7 @@ def commission(config: Path, out: Path, timeout_s: float = 600.0) -> tuple[dict 
     """`rig commission --backend hil --config CONFIG --out OUT --json` as a user runs it: (its report, wall s,
     the last of its stderr when it failed)."""
     res, wall, err, _ = _rig_json(["commission", "--backend", "hil", "--config", str(config), "--out", str(out)],
-                                  (0, 4), timeout_s, out / "commission.log")
+                                  (0, EXIT_FINDINGS), timeout_s, out / "commission.log")
     return (None if err else res), wall, err
 
 
@@ -353,7 +353,8 @@ def hil(config: Path, record: Path, seconds: float | None, timeout_s: float = 90
     argv = ["hil", "--config", str(config), "--record", str(record)]
     if seconds is not None:
         argv += ["--seconds", f"{seconds:g}"]
-    res, wall, err, code = _rig_json(argv, (0,), timeout_s, record.with_suffix(".log"))
+    # finished: a mode worse than off and a host that let periods come late are figures here, not stops
+    res, wall, err, code = _rig_json(argv, (0, EXIT_HARM, EXIT_SUSPECT), timeout_s, record.with_suffix(".log"))
     res = res or {}
     if code == 1:
         err = _fault_reason(record) or err

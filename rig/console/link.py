@@ -39,7 +39,7 @@ from rig.identify import UNITS
 from rig.config import MOUNTS
 from rig.console.live import LiveRing
 from rig.console.protocol import check_command, receive, send
-from rig.errors import RigError
+from rig.errors import EXIT_SUSPECT, RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import Recorder
 from rig.runtime.rt import raise_priority
@@ -649,7 +649,7 @@ class Console:
             code = p.wait()
             self._identify = None
             job = self.shown_job
-            if code == 0:
+            if code in (0, EXIT_SUSPECT):          # EXIT_SUSPECT: identified, with a warning in its fit
                 try:
                     result = json.loads(self._identify_out)
                 except ValueError as e:
@@ -661,6 +661,8 @@ class Console:
                                                 "f1_hz": job.f1_hz, "duration_s": job.duration_s,
                                                 "mount": job.mount}, **result})
                 log.info("console: identified from %s (NRMSE %.4f)", job.recording, result["fit"]["nrmse"])
+                if result["fit"].get("warning"):
+                    log.warning("console: identify: %s", result["fit"]["warning"])
             else:
                 last = self._identify_last or self._identify_err.decode(errors="replace").strip()
                 self._identify_result_failed(job, f"identify failed (exit {code})" + (f": {last}" if last else ""))

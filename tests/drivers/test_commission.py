@@ -14,9 +14,9 @@ import tomllib
 
 import pytest
 
-from tests.hosttiming import skip_unless_commissioned_on_time, skip_unless_on_time
+from tests.hosttiming import ran_to_the_end, skip_unless_commissioned_on_time, skip_unless_on_time
 
-from rig.commands.commission import EXIT_FINDINGS
+from rig.errors import EXIT_FINDINGS
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.config import MOUNTS
 from rig.runtime.recorder import read_recording
@@ -61,7 +61,7 @@ def test_wiring_faults_on_the_emulated_rig_are_named_on_their_channels(tmp_path)
     argv = [sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--record", str(rec),
             "--json"]
     hil = subprocess.run(argv, capture_output=True, text=True, timeout=600)
-    assert hil.returncode == 0, hil.stderr[-3000:]
+    assert ran_to_the_end(hil), hil.stderr[-3000:]
     skip_unless_on_time(hil)                           # the isolation is judged when the host kept the HIL's time
     figs = json.loads(hil.stdout)
     assert figs["harm"] is None and figs["isolation_reduction_db"] > 3.0

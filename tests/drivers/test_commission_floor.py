@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from tests.drivers.test_commission import _commission as _commission_sim
-from tests.hosttiming import skip_unless_on_time
+from tests.hosttiming import ran_to_the_end, skip_unless_on_time
 from tests.drivers.test_commission_valves import _commission
 from tests.drivers.test_commission_sensors import _miswired
 
 from drivers import build_driver_port, conversion
 from rig import commissioning
-from rig.commands.commission import EXIT_FINDINGS
+from rig.errors import EXIT_FINDINGS
 from rig.config import MOUNTS, Config
 
 FL, FR, RL, RR = MOUNTS
@@ -62,7 +62,7 @@ def test_an_inverted_and_two_swapped_floor_accelerometers_are_named_and_correcte
     # swapped floor channel would feed the floor's motion forward the wrong way)
     hil = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--json"],
                          capture_output=True, text=True, timeout=600)
-    assert hil.returncode == 0, hil.stderr[-3000:]
+    assert ran_to_the_end(hil), hil.stderr[-3000:]
     skip_unless_on_time(hil)
     figs = json.loads(hil.stdout)
     assert figs["harm"] is None and figs["feedforward_reduction_db"] > figs["isolation_reduction_db"] + 1.0, figs

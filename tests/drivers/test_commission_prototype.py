@@ -22,7 +22,8 @@ import pytest
 from tests.hosttiming import skip_if_noisy_from_the_host, skip_unless_commissioned_on_time, skip_unless_on_time
 
 from rig import commissioning
-from rig.commands.commission import EXIT_FINDINGS, FLOOR_IN_AMPLITUDE_V
+from rig.commands.commission import FLOOR_IN_AMPLITUDE_V
+from rig.errors import EXIT_FINDINGS
 from rig.commands.run import LAYOUTS
 from rig.config import load_config
 from rig.runtime.recorder import read_recording

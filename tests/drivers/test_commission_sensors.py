@@ -15,7 +15,7 @@ import pytest
 
 from tests.drivers.test_commission import _commission
 
-from rig.commands.commission import EXIT_FINDINGS
+from rig.errors import EXIT_FAULT, EXIT_FINDINGS
 from rig.commands.hil import HIL_DEFAULT_CONFIG
 from rig.commissioning import stroke_unit
 from rig.errors import EXIT_HARM
@@ -151,7 +151,7 @@ def test_a_channel_dead_at_a_constant_stops_commissioning_naming_it(tmp_path, ke
     """A dead channel, or a unit slip of 1000 (100 on the accelerometer), stops commissioning by the safety rules,
     naming the channel: nothing judged, no calibration written."""
     run, out = _commission(tmp_path, "--config", str(_miswired(tmp_path, "dead", keys)))
-    assert run.returncode not in (0, EXIT_FINDINGS) and run.stdout == ""
+    assert run.returncode == EXIT_FAULT and run.stdout == ""
     assert line in run.stderr and "nothing judged" in run.stderr and not (out / "commissioning.toml").exists()
 
 

@@ -11,7 +11,7 @@ import pytest
 from tests.drivers.test_commission import _commission
 from tests.drivers.test_commission_sensors import _faults, _miswired
 
-from rig.commands.commission import EXIT_FINDINGS
+from rig.errors import EXIT_FINDINGS
 
 FL, FR, RL, RR = "front_left", "front_right", "rear_left", "rear_right"
 KEYS = ("ai_factor = [-1.0, 1.0, 0.10197, 1.0, 1.0, 1.0, 1.0, 1.0]\n"   # front_left inverted, rear_left a g range

@@ -22,7 +22,7 @@ from tests.drivers.test_commission_sensors import _miswired
 
 from drivers import conversion
 from rig import commissioning
-from rig.commands.commission import EXIT_FINDINGS
+from rig.errors import EXIT_FINDINGS
 from rig.config import MOUNTS
 from rig.errors import ConfigError
 

@@ -22,3 +22,15 @@ def test_a_mount_of_the_wrong_sign_is_switched_off_and_said():
     res, _ = compare(wrong, seconds=4.0, settle_s=1.0)
     assert set(res["harm"]) == {"feedback", "feedback_feedforward"}
     assert all("front_left +" in line and "isolation switched off" in line for line in res["harm"].values())
+
+
+def test_rig_demo_exits_with_the_harm_status(tmp_path, capsys):
+    """A wrong sign through `rig demo` (an accelerometer wired reversed): the warning lines, and EXIT_HARM, so a
+    script or CI job running the demo fails on it rather than reading a zero."""
+    from rig.cli import main
+    from rig.errors import EXIT_HARM
+    cfg = tmp_path / "wrong_sign.toml"
+    cfg.write_text("[rig_error]\naccel_gain = [-1.0, 1.0, 1.0, 1.0]\n")   # front_left wired reversed
+    assert main(["demo", "--config", str(cfg), "--seconds", "4", "--settle", "1"]) == EXIT_HARM
+    err = capsys.readouterr().err
+    assert "rig demo: warning: feedback:" in err and "isolation switched off" in err

@@ -1,9 +1,11 @@
 """`rig hil`'s closing verdict (rig/commands/hil.py): a mode that made the table worse, and a host that let more
-than 1 % of a mode's periods come late, are each said in one warning line on stderr; a run on time says nothing.
+than 1 % of a mode's periods come late, are each said in one warning line on stderr and in the exit status (a CI
+job running `rig hil` fails on them); a run on time says nothing and exits 0.
 Its figures come as one table, a column per mode (issue 29: read at a glance, as `rig demo`'s)."""
 from __future__ import annotations
 
 from rig.commands.hil import LATE_WARN, _exit_code, _print_modes
+from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_SUSPECT
 
 
 def _res(late: dict, fb_db: float = 7.6, ff_db: float = 11.8) -> dict:
@@ -17,7 +19,7 @@ def test_a_run_on_time_says_nothing(capsys):
 
 
 def test_late_periods_beyond_the_bound_are_said_in_one_line(capsys):
-    assert _exit_code(_res({"off": 0.383, "feedback": 0.002, "feedback_feedforward": LATE_WARN * 1.5})) == 0
+    assert _exit_code(_res({"off": 0.383, "feedback": 0.002, "feedback_feedforward": LATE_WARN * 1.5})) == EXIT_SUSPECT
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "the host did not keep time" in lines[0]
     assert "off 38.3 %" in lines[0] and "feedback + feedforward 1.5 %" in lines[0]
@@ -25,8 +27,17 @@ def test_late_periods_beyond_the_bound_are_said_in_one_line(capsys):
 
 
 def test_a_mode_worse_than_off_is_said(capsys):
-    assert _exit_code(_res({"off": 0.0}, fb_db=-4.0)) == 0
+    assert _exit_code(_res({"off": 0.0}, fb_db=-4.0)) == EXIT_HARM
     assert "feedback made the table 4.0 dB worse than isolation off" in capsys.readouterr().err
+
+
+def test_worse_outranks_late_and_a_fault_outranks_both(capsys):
+    late = {"off": 0.0, "feedback": 0.2}
+    assert _exit_code(_res(late, fb_db=-1.0)) == EXIT_HARM
+    assert _exit_code(dict(_res(late, fb_db=-1.0), faults=1)) == EXIT_FAULT
+    assert _exit_code(_res({"off": 0.0, "feedback": LATE_WARN})) == 0        # at the bound: on time
+    err = capsys.readouterr().err
+    assert err.count("worse than isolation off") == 2 and err.count("did not keep time") == 2
 
 
 def test_the_modes_are_one_table_with_the_lockstep_gap(capsys):

@@ -175,3 +175,17 @@ def test_a_closed_loop_run_recording_is_refused_and_a_chirp_is_not(tmp_path, cap
     capsys.readouterr()
     assert main(["identify", str(chirp), "--json", "--starts", "1", "--no-refine"]) == 0
     assert set(json.loads(capsys.readouterr().out)["parameters"]) >= {"K_L", "K_Q", "K_C"}
+
+
+def test_a_poor_fit_is_said_and_in_the_exit_status(tmp_path, capsys):
+    """A chirp buried in transducer noise identifies poorly: the table says so and the exit status is
+    EXIT_SUSPECT (a nightly `rig identify` fails on it); the parameters are still written."""
+    from rig.cli import main
+    from rig.errors import EXIT_SUSPECT
+    path = tmp_path / "noisy.h5"
+    save_recording_h5(_chirp_rec(TRUE, 1000.0, 20.0, noise_m=1e-6), path)
+    assert main(["identify", str(path), "--starts", "1", "--no-refine", "--out", str(tmp_path / "o")]) == EXIT_SUSPECT
+    assert "WARNING: poor fit (NRMSE" in capsys.readouterr().out
+    assert json.loads((tmp_path / "o" / "identify.json").read_text())["fit"]["warning"].startswith("poor fit")
+    assert main(["identify", str(path), "--starts", "1", "--no-refine", "--json"]) == EXIT_SUSPECT
+    assert json.loads(capsys.readouterr().out)["fit"]["nrmse"] > 0.2

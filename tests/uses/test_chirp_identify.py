@@ -16,6 +16,7 @@ import numpy as np
 import psutil
 import pytest
 
+from rig.errors import EXIT_FAULT, EXIT_SUSPECT
 from sim_backend.linear import ActuatorParams
 
 RIG = [sys.executable, "-m", "rig.cli"]
@@ -100,14 +101,14 @@ def test_a_chirp_that_fails_leaves_nothing_behind(tmp_path):
     cfg.write_text("[safety]\nstroke_limit_m = 2e-6\n")
     for out, extra in (("f.h5", ()), ("f.csv.gz", ("--csv",))):
         res = _rig("chirp", "--config", cfg, "--record", out, "--duration", "5", *extra, cwd=tmp_path)
-        assert res.returncode == 2 and "Traceback" not in res.stderr
+        assert res.returncode == EXIT_FAULT and "Traceback" not in res.stderr
         last = res.stderr.strip().splitlines()[-1]
         assert last.startswith("rig chirp: error: chirp stopped by a FAULT") and "nothing kept" in last
     assert list(tmp_path.iterdir()) == [cfg]
     kept = tmp_path / "kept.h5"
     kept.write_bytes(b"the user's own file")
     res = _rig("chirp", "--config", cfg, "--record", kept, "--overwrite", "--duration", "5", cwd=tmp_path)
-    assert res.returncode == 2 and kept.read_bytes() == b"the user's own file"
+    assert res.returncode == EXIT_FAULT and kept.read_bytes() == b"the user's own file"
 
 
 # ---- rows missing: what a real-clock run that fell behind leaves ---------------------------------------
@@ -169,7 +170,8 @@ def test_identify_and_diagnose_take_a_recording_with_rows_missing(realtime_chirp
 def test_rows_dropped_on_the_real_clock_are_said_at_once_and_marked(tmp_path):
     """The recorder's writer held up on the real clock (stopped for 6.5 s, longer than its ring): the loop goes
     on, the rows that did not fit are dropped, a warning says so at once, an event marks the gap in the
-    recording, the chirp's last lines say the recording has gaps, and identify uses what is there."""
+    recording, the chirp's last lines say the recording has gaps (exit EXIT_SUSPECT), and identify uses what is
+    there."""
     proc = subprocess.Popen(_realtime_chirp(tmp_path, 15, "rt.h5"), cwd=tmp_path, stderr=subprocess.PIPE, text=True)
     try:
         writer = None
@@ -187,7 +189,7 @@ def test_rows_dropped_on_the_real_clock_are_said_at_once_and_marked(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, err[-3000:]
+    assert proc.returncode == EXIT_SUSPECT, err[-3000:]        # kept, and the exit status says it has gaps
     warned = [ln for ln in err.splitlines() if "rows dropped" in ln and "the recording has a gap there" in ln]
     assert warned, err[-3000:]
     assert "WARNING: the recording has gaps" in err

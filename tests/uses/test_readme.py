@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.hosttiming import skip_unless_text_on_time
+from tests.hosttiming import ran_to_the_end, skip_unless_text_on_time
 from tests.paths import REPO
 
 README = REPO / "README.md"
@@ -87,7 +87,7 @@ def test_every_readme_command_runs_as_written(tmp_path):
             except pytest.skip.Exception as e:
                 not_judged.append(f"$ {command}: {e}")
                 continue                                     # the other commands are still judged
-        assert out.returncode == 0, f"$ {command}\n{printed[-3000:]}"
+        assert ran_to_the_end(out), f"$ {command}\n{printed[-3000:]}"
         got = {_shape(line) for line in printed.splitlines()}
         for line in shown:
             assert _shape(line) in got, f"$ {command}\nexpected a line shaped like\n  {line}\nin\n{printed[-3000:]}"
