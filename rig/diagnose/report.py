@@ -7,7 +7,7 @@ The engine (rig.diagnose.engine) decides; this module only writes what it decide
    "mismatch": {"bands_hz": [[lo, hi], ...], "windows_s": [[t0, t1], ...], ...},
    "fit": {"nominal": {"nrmse", ...}, "refit": {...}, "augmented": {...}}, "summary": "...",
    "sensor": {"offset_m", "drift_m_per_s", "lines": [{"frequency_hz", "amplitude_m", ...}], ...},
-   "verdict": {"status": explained | partly | not_described | no_claim, "text", "suggestions"},
+   "verdict": {"status": explained | partly | incomplete | not_described | no_claim, "text", "suggestions"},
    "command": {"kind", "description", "band_hz", ...}}
 fit.csv models the measurement as recorded: each model column is physics plus that model's fitted sensor terms, so
 measured_m - augmented_m is the noise where used = 1 (used = 0: clipped or start-transient samples, left out).
