@@ -28,6 +28,15 @@ def calibration_path(cfg) -> Path:
     return p if p.is_absolute() or not src.is_file() else src.parent / p
 
 
+def accel_hold_s(d, period_s: float) -> float:
+    """How long after its SYNC the module's I/O hands a conversion to the loop at the soonest, when the design
+    takes it accel_delay_periods after its SYNC (2 or more): a quarter period after the loop's period before
+    that one started (its wake-up and take done), so a fast reply is not taken a period early; 0 for 1."""
+    if d.accel_delay_periods < 2:
+        return 0.0
+    return max(0.0, (d.accel_delay_periods - 1) * period_s - d.sync_offset_s + 0.25 * period_s)
+
+
 def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, modbus_host: str,
                       modbus_port: int, serial_port: str, stale_s: float, serial_stale_s: float | None = None,
                       on_close=None, priority: int | None = None, sample_driven: bool | None = None,
@@ -65,7 +74,7 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
              "names": names + [f"floor {m}" for m in names][:len(floor)], "timeout_s": d.modbus_timeout_s,
              "watchdog_s": d.modbus_watchdog_s, "stale_s": stale_s, "silent_s": silent, "fifo": fifo,
              "fetch_every": d.accel_fetch_every, "fetch_delay_s": d.accel_fetch_delay_s, "sync_device": VALVES,
-             **common}
+             "hold_s": accel_hold_s(d, period_s), **common}
     a_chs = conversion.channels(list(range(n)) + floor,
                                 [1.0 / d.accel_V_per_mps2] * n + [1.0 / s.floor_V_per_mps2] * len(floor))
     x_chs = conversion.channels(range(n), [1.0] * n)

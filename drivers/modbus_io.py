@@ -9,7 +9,9 @@ exchange block), waits `fetch_delay_s` (the module's conversion time), and every
 counter and the newest `fetch_every` + 1 FIFO entries in one request (after a stall the entries further back,
 in blocks); a reply without the new conversion is asked again once it is due. Every conversion, in order,
 goes into the block's conversion ring by its counter (unwrapped from 16 bits): the loop's kernel steps the
-controllers once per conversion. One lost from the FIFO before it was fetched is interpolated and counted.
+controllers once per conversion. When the design takes a conversion two or more periods after its SYNC
+([drivers] accel_delay_periods), a fast reply is held until the loop's period before that one has taken its
+inputs (hold_s, drivers.accel_hold_s), so no period finds two conversions and the next none. One lost from the FIFO before it was fetched is interpolated and counted.
 Without a FIFO the module's latest value (AI ch0-7 and its counter) is read once per loop period.
 
 Faults (the device's line in the block): no new conversion for stale_s (silence, exceptions, garbage, frozen
@@ -42,7 +44,7 @@ MAX_BEHIND = 1024               # conversions taken after a stall at most (beyon
 class AnalogIO(IODevice):
     """spec: host, port, unit, channels (conversion rows: AI ch -> m/s^2, mount accelerometers then floor
     ones), names (per channel), timeout_s, watchdog_s, stale_s, period_s (the loop's), fifo, fetch_every,
-    fetch_delay_s, sync_device (the valves' row: the SYNC's time), priority."""
+    fetch_delay_s, hold_s, sync_device (the valves' row: the SYNC's time), priority."""
 
     def __init__(self, spec: dict, block: ex.Block) -> None:
         super().__init__(spec, block)
@@ -58,6 +60,11 @@ class AnalogIO(IODevice):
         # the request after a SYNC: fetch_delay_s at first, then learnt (a request that comes before the
         # conversion costs a round trip for nothing; one that comes late delays the conversion)
         self.delay_ns = self.min_delay_ns = int(round(spec.get("fetch_delay_s", 0.0) * 1e9))
+        # a conversion is handed to the loop no sooner than hold_s after its SYNC (accel_delay_periods - 1
+        # periods): the loop then takes it at the period the design counts on, never one early, so a fast reply
+        # cannot leave the next period without one
+        self.hold_ns = int(round(spec.get("hold_s", 0.0) * 1e9))
+        self.not_before_ns = 0
         self.sync_row = spec.get("sync_device")
         self.priority = int(spec.get("priority", 0))
         self.where = f"modbus_tcp {self.host}:{self.port} unit {self.unit}"
@@ -116,15 +123,24 @@ class AnalogIO(IODevice):
         block = self.block
         sync_row = block.device_row(self.sync_row) if self.sync_row is not None else None
         due = time.monotonic_ns() + P
+        seen = int(block.futex[ex.FUTEX_SYNC])
+        fetched = 0                      # the block of SYNCs last fetched for (fetch_every per block)
         while not stop.is_set():
             if self.fifo and self.sync_row is not None:    # each SYNC (or, without one, every other period)
-                seen = int(block.futex[ex.FUTEX_SYNC])
+                # `seen` is the count at the last wake, so a SYNC sent while this one's fetch was still going
+                # on wakes it at once: re-reading the count here would sleep through it, a period late
                 block.wait(ex.FUTEX_SYNC, seen, 2 * P * 1e-9)
-                self._syncs += 1
-                if self._syncs % self.every:
+                now = int(block.futex[ex.FUTEX_SYNC])
+                step = (now - seen) & 0xFFFFFFFF
+                self._syncs += step or 1                         # a timeout (no SYNC) counts as one
+                seen = now
+                if self._syncs // self.every == fetched:
                     self._idle()
                     continue
+                fetched = self._syncs // self.every
                 t_sync = int(sync_row[ex.D_SAMPLE])
+                # held only for the SYNC just sent: after a hold-up (several SYNCs at once) what came is due
+                self.not_before_ns = t_sync + self.hold_ns if self.hold_ns and step == 1 else 0
                 self.sleep_until(max(t_sync + self.delay_ns, time.monotonic_ns()))
                 end = time.monotonic_ns() + P // 2
                 first = True
@@ -193,6 +209,8 @@ class AnalogIO(IODevice):
             return False
         self.last_error = ""
         self.asked_ns = 0
+        if self.not_before_ns > t1:
+            self.sleep_until(self.not_before_ns)
         self.sample_ns = t1
         self._ts[:] = t1
         if not self.fifo:

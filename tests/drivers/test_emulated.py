@@ -363,6 +363,38 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone):
         dev.close()
 
 
+def test_a_fast_reply_waits_for_the_period_that_takes_it(modbus_alone):
+    """With the design taking a conversion two periods after its SYNC, one fetched early is handed to the loop
+    only from its hold time on (drivers.accel_hold_s): before it the block has not got it, after it it has,
+    once and in order."""
+    arr, _c, port = modbus_alone
+    dev, block = _analog(port)
+    a = block.part("accel")
+    try:
+        first = int(dev.count)
+        sh.publish(arr, 2e-3, [0.02] * 4, [0.0] * 4)
+        dev.not_before_ns = time.monotonic_ns() + 60_000_000
+        seen_early = []
+        peek = threading.Timer(0.03, lambda: seen_early.append(int(block.io[a + ex.A_NEWEST])))
+        peek.start()
+        assert dev.poll()
+        peek.join()
+        assert time.monotonic_ns() >= dev.not_before_ns
+        assert seen_early == [first]                       # 30 ms in: still the conversion before
+        assert [c - first for c, _ in _conversions(block, first)] == [1]
+    finally:
+        dev.close()
+
+
+def test_the_hold_is_for_designs_that_take_a_conversion_periods_later():
+    from drivers import accel_hold_s
+    from rig.config import load_config
+    from tests.paths import REPO
+    d2 = load_config(REPO / "drivers" / "devicemaps" / "hil_2khz.toml").drivers
+    assert accel_hold_s(d2, 5e-4) == pytest.approx(5e-4 - d2.sync_offset_s + 1.25e-4)   # a quarter period into
+    assert accel_hold_s(load_config(REPO / "drivers" / "devicemaps" / "hil.toml").drivers, 2e-3) == 0.0
+
+
 def test_conversion_counter_wraps(modbus_alone):
     """The module's 16-bit counter wraps; the block's counter goes on (the kernel's replay counts on it)."""
     arr, _c, port = modbus_alone
