@@ -85,6 +85,12 @@ class IdentResult:
     model_position_m: np.ndarray | None = None     # the identified model driven by the recorded command
     frf_source: str = ""                            # the recording's file name
 
+    def change_pct(self) -> dict[str, float]:
+        """Each identified parameter's change from the start (Table 1's design unless a config gave another), in %
+        to 0.1 %, as `rig identify`'s change column."""
+        d = self.p0.identified()
+        return {k: round(100.0 * (v / d[k] - 1.0), 1) for k, v in self.params.identified().items()}
+
     def to_json(self) -> dict:
         return {"parameters": self.params.identified(), "std": self.std, "fit": self.fit, "notes": NOTES,
                 "correlation": self.correlation, "weakly_identified": self.weakly_identified,

@@ -4,6 +4,7 @@ out) are its output's shape: each must appear in what the command printed (stdou
 A command that fails, or whose output changes shape, fails this test."""
 from __future__ import annotations
 
+import ast
 import os
 import re
 import shlex
@@ -96,5 +97,7 @@ def test_every_readme_command_runs_as_written(tmp_path):
     out = subprocess.run([sys.executable, "-c", code[0]], cwd=tmp_path, env=env, capture_output=True, text=True,
                          timeout=900)
     assert out.returncode == 0 and "ActuatorParams(" in out.stdout, out.stderr[-3000:]
+    change = ast.literal_eval(out.stdout.strip().splitlines()[-1])      # the README's Pass: all six within 2 %
+    assert set(change) == {"K_L", "C", "w_nv", "zeta", "K_Q", "K_C"} and max(map(abs, change.values())) <= 2.0, change
     if not_judged:
         pytest.skip("; ".join(not_judged))
