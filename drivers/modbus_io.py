@@ -11,7 +11,8 @@ in blocks); a reply without the new conversion is asked again once it is due. Ev
 goes into the block's conversion ring by its counter (unwrapped from 16 bits): the loop's kernel steps the
 controllers once per conversion. When the design takes a conversion two or more periods after its SYNC
 ([drivers] accel_delay_periods), a fast reply is held until the loop's period before that one has taken its
-inputs (hold_s, drivers.accel_hold_s), so no period finds two conversions and the next none. One lost from the FIFO before it was fetched is interpolated and counted.
+inputs (hold_s, drivers.accel_hold_s), so no period finds two conversions and the next none. One lost from the
+FIFO before it was fetched is interpolated and counted.
 Without a FIFO the module's latest value (AI ch0-7 and its counter) is read once per loop period.
 
 Faults (the device's line in the block): no new conversion for stale_s (silence, exceptions, garbage, frozen

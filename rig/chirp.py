@@ -149,7 +149,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
         wall = time.perf_counter() - wall0
         if loop.lc.state is State.FAULT:
             raise FaultError(f"chirp stopped by a FAULT after {loop.iterations} periods: {loop.lc.fault_reason} "
-                           f"(nothing kept: run the chirp again once the cause is cleared)")
+                             f"(nothing kept: run the chirp again once the cause is cleared)")
         if reason != "time":      # stopped before the sweep ended: a part of a chirp identifies nothing well
             raise RigError(f"chirp stopped early ({reason}) at t = {loop.iterations * loop.dt:.1f} s of "
                            f"{total:.1f} s (nothing kept)")

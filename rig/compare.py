@@ -104,7 +104,7 @@ def simulate_mode(cfg, n: int, mode: str):
             loop.cycle(k * loop.period_ns)
             if loop.state is State.FAULT:
                 raise FaultError(f"demo: the loop faulted at t = {k * dt:.3f} s ({LABELS[mode]}): "
-                               f"{loop.lc.fault_reason}")
+                                 f"{loop.lc.fault_reason}")
             tr["table"][k] = plant.table_m
             tr["tool"][k] = plant.tool_m
             tr["floor"][k] = sum(plant.floor_m) * 0.25

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.config import MOUNTS
-from rig.errors import EXIT_FINDINGS, EXIT_HARM, EXIT_SUSPECT, RigError
+from rig.errors import EXIT_FAULT, EXIT_FINDINGS, EXIT_HARM, EXIT_SUSPECT, RigError
 
 N_AI = 8                                # the analog module's channels (ch0-3 the mounts' table accelerometers)
 FLOOR_AI = 4                            # AI ch4-7: the floor accelerometers under the mounts, in MOUNTS order
@@ -356,7 +356,7 @@ def hil(config: Path, record: Path, seconds: float | None, timeout_s: float = 90
     # finished: a mode worse than off and a host that let periods come late are figures here, not stops
     res, wall, err, code = _rig_json(argv, (0, EXIT_HARM, EXIT_SUSPECT), timeout_s, record.with_suffix(".log"))
     res = res or {}
-    if code == 1:
+    if code == EXIT_FAULT:
         err = _fault_reason(record) or err
     elif res.get("harm"):
         err = res["harm"]
