@@ -11,6 +11,7 @@ import pytest
 from scipy.signal import lfilter
 
 from rig.diagnose import locate, prove
+from rig.errors import EXIT_SUSPECT
 from rig.recordings.recording import Recording
 from rig.recordings.rigformat import save_recording_csv
 from sim_backend.actuator import Effects, StandPlant
@@ -149,7 +150,7 @@ def test_identify_says_closed_loop(tmp_path):
     path = _closed_loop(tmp_path, "stand")
     res = _rig("identify", path, "--json")
     _no_traceback(res)
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == EXIT_SUSPECT, res.stderr       # identified, with the warning that qualifies it
     doc = json.loads(res.stdout)
     assert doc["fit"]["closed_loop"]["closed_loop"] is True
     assert "closed-loop" in doc["fit"]["warning"] and "WARNING: closed-loop" in res.stderr
