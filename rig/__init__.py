@@ -3,7 +3,8 @@
 `import rig` is light (the names differ from the submodules rig.identify and rig.diagnose on purpose): the API's functions (rig/api.py) load what they need when first used.
 """
 
-_API = ("load_recording", "record_chirp", "identify_actuator", "diagnose_recording", "simulate_isolation", "IsolationComparison")
+_API = ("load_recording", "record_chirp", "identify_actuator", "diagnose_recording", "simulate_isolation", "IsolationComparison",
+        "SuspectFit")
 __all__ = list(_API)
 
 

@@ -8,7 +8,8 @@
 
 The same rules as the commands apply: identify refuses a recording made under feedback alone (as
 `rig identify` does), a recording with gaps is mended and says so (`Recording.gaps`), bad input raises
-RigError with one line naming the file and field. A Session that never went ACTIVE warns (NeverActivated).
+RigError with one line naming the file and field, a fit `rig identify` would flag (exit 5: poor fit,
+closed-loop data) warns (SuspectFit), and a Session that never went ACTIVE warns (NeverActivated).
 docs/PYTHON_API.md is the worked example; a test runs it.
 """
 from __future__ import annotations
@@ -18,7 +19,12 @@ from pathlib import Path
 
 from rig.recordings.recording import Recording
 
-__all__ = ["load_recording", "record_chirp", "identify_actuator", "diagnose_recording", "simulate_isolation", "IsolationComparison"]
+__all__ = ["SuspectFit", "load_recording", "record_chirp", "identify_actuator", "diagnose_recording", "simulate_isolation", "IsolationComparison"]
+
+
+class SuspectFit(UserWarning):
+    """An identification `rig identify` would finish with exit status 5: the parameters are returned, and
+    `.fit["warning"]` says why they are not to be trusted."""
 
 
 def _subject(recording, plant, config):
@@ -68,8 +74,12 @@ def identify_actuator(recording, *, plant=None, config=None, starts: int = 8, se
         from rig.errors import RigError
         raise RigError(f"{pl.describe()}: identify() fits the eha actuator; for a {pl.family} plant use diagnose_recording()")
     refuse_feedback_only(rec)
-    return _identify(rec, pl.actuator, starts=starts, seed=seed, refine_time_domain=refine_time_domain,
-                     progress=progress)
+    res = _identify(rec, pl.actuator, starts=starts, seed=seed, refine_time_domain=refine_time_domain,
+                    progress=progress)
+    if "warning" in res.fit:
+        import warnings
+        warnings.warn(f"identify_actuator: {res.fit['warning']}", SuspectFit, stacklevel=2)
+    return res
 
 
 def diagnose_recording(recording, *, plant=None, config=None, seed: int = 0, progress=None):

@@ -64,6 +64,26 @@ def test_identify_refuses_a_feedback_only_recording_as_the_cli_does(tmp_path):
         rig.identify_actuator(run)
 
 
+def test_identify_warns_where_the_cli_exits_5(tmp_path):
+    """A chirp buried in transducer noise: `rig identify` says "poor fit" and exits 5; the API returns the
+    parameters with a SuspectFit warning naming the same reason (issue 29: the same rules as the CLI)."""
+    import rig
+    from rig.recordings.recording import Recording
+    from sim_backend.actuator import Effects, linear_chirp, simulate_stand
+    from sim_backend.linear import ActuatorParams
+    t, u = linear_chirp(1000.0, 20.0, 0.1, 100.0, 2.0)
+    out = simulate_stand(ActuatorParams(), u, 1000.0, Effects(position_noise_m=1e-6, accel_noise_mps2=2e-4, seed=1))
+    noisy = Recording.from_arrays(t, u, out["position_m"], out["accel_mps2"], source="sim 1000 Hz")
+    with pytest.warns(rig.SuspectFit, match="identify_actuator: poor fit"):
+        res = rig.identify_actuator(noisy, starts=1, refine_time_domain=False)
+    assert res.fit["warning"].startswith("poor fit") and set(res.change_pct()) == {"K_L", "C", "w_nv", "zeta", "K_Q", "K_C"}
+    out = simulate_stand(ActuatorParams(), u, 1000.0, Effects(position_noise_m=2e-8, accel_noise_mps2=2e-4, seed=1))
+    clean = Recording.from_arrays(t, u, out["position_m"], out["accel_mps2"], source="sim 1000 Hz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rig.SuspectFit)
+        assert "warning" not in rig.identify_actuator(clean, starts=1, refine_time_domain=False).fit
+
+
 def test_a_session_that_never_activates_warns_and_one_that_does_not():
     from rig.config import load_config
     from rig.runtime.clock import SimClock
