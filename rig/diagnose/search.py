@@ -14,6 +14,7 @@ import numpy as np
 
 from rig.diagnose import catalogue, locate
 from rig.diagnose.problem import ModelFit, Problem, compare, n_eff
+from rig.diagnose.verdict import VERDICT_AT_NOISE      # the search stops at the verdict's own bar
 
 MAX_EFFECTS = 2
 EXPLAINED = 1.01                   # held-out residual rms / noise below which no further effect is sought
@@ -21,7 +22,6 @@ EXPLAINED_SLOW = 1.02              # the same once a reduced (deadband/friction)
 SLOW_RTOL = 1e-4                   # a slow (reduced) model's fit stops when an iteration gains < 0.01 % of the rss
 POLISH_GAIN = 0.05                 # the polish stops when an iteration gains < 0.05 of one sample's share of the rss
 POLISH_MAX_ITER = 20               # ... or after this many iterations of a slow model (~1 s each on 30 s at 5 kHz)
-VERDICT_AT_NOISE = 1.15            # augmented residual / noise: "explains the recording"
 
 
 @dataclass(frozen=True)
