@@ -97,7 +97,9 @@ def test_every_readme_command_runs_as_written(tmp_path):
     out = subprocess.run([sys.executable, "-c", code[0]], cwd=tmp_path, env=env, capture_output=True, text=True,
                          timeout=900)
     assert out.returncode == 0 and "ActuatorParams(" in out.stdout, out.stderr[-3000:]
-    change = ast.literal_eval(out.stdout.strip().splitlines()[-1])      # the README's Pass: all six within 2 %
-    assert set(change) == {"K_L", "C", "w_nv", "zeta", "K_Q", "K_C"} and max(map(abs, change.values())) <= 2.0, change
+    change = ast.literal_eval(out.stdout.strip().splitlines()[-1])
+    assert set(change) == {"K_L", "C", "w_nv", "zeta", "K_Q", "K_C"}, change
+    assert max(abs(change[k]) for k in ("w_nv", "zeta", "K_Q")) <= 1.0, change     # the README's Pass
+    assert max(map(abs, change.values())) <= 2.0, change            # and the seeded figures it shows, weak ones too
     if not_judged:
         pytest.skip("; ".join(not_judged))
