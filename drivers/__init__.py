@@ -90,6 +90,6 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
               "port": serial_port, "baud": d.serial_baud, "names": names,
               "channels": conversion.to_dict(x_chs),
               "stale_s": x_stale, "silent_s": max(silent, x_stale), "rate_hz": min(d.serial_rate_hz, 1.0 / period_s),
-              **common}
+              "offset_s": d.serial_offset_s, **common}
     return DriverPort(name, [valves, accel, stroke], n_mounts=n, floor_sensors=bool(floor), counted=fifo,
                       stroke_stale_s=x_stale, on_close=on_close)

@@ -1,9 +1,10 @@
 """Serial displacement-transducer amplifier (DTA-4, RS-232/485, ASCII), four channels, on pyserial, in an I/O
 process of its own (drivers/process.py).
 
-The process asks `RD` at the transducer's own rate (`rate_hz`: what its line allows, below the loop's rate) and
-parses the replies with drivers/protocol/dta.py (garbage and partial frames are skipped or completed, never
-raised). Each frame with a new sequence number goes into the block's transducer part, stamped with its
+The process asks `RD` at the transducer's own rate (`rate_hz`: what its line allows, below the loop's rate), with
+`offset_s` >= 0 on the loop's grid (`request_due`: after the start of a period the loop wrote in the block's
+commands), and parses the replies with drivers/protocol/dta.py (garbage and partial frames are skipped or
+completed, never raised). Each frame with a new sequence number goes into the block's transducer part, stamped with its
 arrival: the loop holds it between frames and checks its age against the transducer's own staleness limit.
 Faults (the device's line in the block): a channel reporting UR/OR/NP, an `$E` error reply, or no new sample
 (sequence number) for stale_s. The conversion from the frame's micrometres per channel: drivers/conversion.py.
@@ -23,9 +24,19 @@ from rig.runtime import exchange as ex
 from rig.runtime.rt import raise_priority
 
 
+def request_due(t_ns: int, loop_start_ns: int, loop_period_ns: int, offset_ns: int) -> int:
+    """The first instant from t_ns on that lies offset_ns after a start of the loop's periods (one of them at
+    loop_start_ns); t_ns itself where there is no grid (offset_ns < 0, or the loop not running: loop_start_ns 0)."""
+    if offset_ns < 0 or loop_start_ns <= 0:
+        return t_ns
+    on = loop_start_ns + offset_ns % loop_period_ns
+    return on + -(-(t_ns - on) // loop_period_ns) * loop_period_ns
+
+
 class TransducerIO(IODevice):
     """spec: port, baud, names, channels (conversion rows: DTA-4 channel index -> m), stale_s, rate_hz,
-    reply_timeout_s, priority."""
+    reply_timeout_s, priority; period_s (the loop's) and offset_s (-1: no grid; else every whole number of
+    the loop's periods, offset_s after one starts: request_due)."""
 
     def __init__(self, spec: dict, block: ex.Block) -> None:
         super().__init__(spec, block)
@@ -35,6 +46,12 @@ class TransducerIO(IODevice):
         self.chs = conversion.from_dict(spec["channels"])
         self.stale_ns = int(spec["stale_s"] * 1e9)
         self.period_ns = int(round(1e9 / float(spec["rate_hz"])))
+        self.offset_ns = int(round(float(spec.get("offset_s", -1.0)) * 1e9))
+        self.loop_period_ns = int(round(float(spec.get("period_s", 0.0)) * 1e9))
+        if self.offset_ns < 0 or self.loop_period_ns <= 0:
+            self.offset_ns = -1
+        else:                                      # a whole number of the loop's periods, at most rate_hz
+            self.period_ns = -(-self.period_ns // self.loop_period_ns) * self.loop_period_ns
         self.reply_timeout_s = float(spec.get("reply_timeout_s", 0.01))
         self.priority = int(spec.get("priority", 0))
         self.where = f"serial DTA-4 {self.path}"
@@ -82,8 +99,9 @@ class TransducerIO(IODevice):
 
     def run(self, stop) -> None:
         raise_priority(self.priority)
-        P = self.period_ns
-        due = time.monotonic_ns() + P
+        P, Pl, off = self.period_ns, self.loop_period_ns, self.offset_ns
+        start = int(self.io[ex.H_CMD]) + ex.C_T      # the newest period's start the loop wrote (0: not running)
+        due = request_due(time.monotonic_ns() + P, int(self.io[start]), Pl, off)
         while not stop.is_set():
             self.sleep_until(due)
             self.poll()
@@ -93,6 +111,7 @@ class TransducerIO(IODevice):
             due += P
             if due < now:                          # the line (or this process) fell behind: on from now
                 due = now + P // 2
+            due = request_due(due, int(self.io[start]), Pl, off)
 
     def poll(self) -> bool:
         """One RD request; True when it brought a new sample (published)."""

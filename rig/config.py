@@ -209,6 +209,10 @@ class DriversConfig:
     # serial_latency_s after its sample; held between frames
     serial_rate_hz: float = _f(500.0, "Hz", gt=0, le=10000)
     serial_latency_s: float = _f(0.0008, "s", ge=0, le=1)
+    # the transducer asked on the loop's grid: serial_offset_s after a period starts (modulo the period), every
+    # whole number of periods (at most serial_rate_hz), when the period's other traffic leaves the CPUs free
+    # (drivers/README.md: the serial round trip); -1: at its own rate, whatever the phase
+    serial_offset_s: float = _f(-1.0, "s", ge=-1, le=0.1)
 
 
 @dataclass(frozen=True)

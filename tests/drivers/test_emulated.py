@@ -478,6 +478,61 @@ def test_serial_frames_over_pty(serial_alone):
     assert ask(ser, b"RD\r").status[2] == "NP"
 
 
+def test_serial_request_due_on_the_loops_grid():
+    """[drivers] serial_offset_s: the first instant offset after a start of the loop's periods; none without it."""
+    from drivers.serial_dta import request_due
+    S, P = 10_000_000, 500_000                                  # a period's start the loop wrote, its period
+    assert request_due(S + 30_000, S, P, 25_000) == S + 525_000
+    assert request_due(S + 25_000, S, P, 25_000) == S + 25_000  # on it: at once
+    assert request_due(S - 100_000, S, P, 25_000) == S + 25_000  # the grid before the newest start too
+    assert request_due(S + 30_000, S, P, 525_000) == S + 525_000  # modulo the period
+    assert request_due(S + 30_000, S, P, -1) == S + 30_000        # no grid: its own rate
+    assert request_due(S + 30_000, 0, P, 25_000) == S + 30_000    # the loop not running yet
+
+
+def test_transducer_asked_on_the_loops_grid():
+    """The transducer's I/O against the emulated amplifier on a pty, with offset_s: every request due offset_s
+    after a start of the loop's periods (the block's commands say where they start), every whole number of
+    periods at most rate_hz apart; without offset_s, at rate_hz whatever the phase."""
+    from drivers.process import IODevice
+    from drivers.serial_dta import TransducerIO
+    from sim_backend.emulators import serial_device
+    arr = sh.new_shared()
+    sh.publish(arr, 0.0, [0.0] * 4, [1e-6] * 4)
+    path, here, th = start_device(serial_device.serve, arr)
+    block = ex.Block.local(ex.Layout(4, devices=("valves", "accelerometer module", "transducer amplifier")))
+    spec = {"device": 2, "name": "amplifier", "port": path, "baud": 921600, "names": list("abcd"),
+            "channels": conversion.to_dict(conversion.channels(range(4), [1.0] * 4)), "stale_s": 1.0,
+            "rate_hz": 750.0, "period_s": 1e-3, "offset_s": 2.5e-4}
+    assert TransducerIO(dict(spec, offset_s=-1.0), block).period_ns == round(1e9 / 750)
+    dev = TransducerIO(spec, block)
+    assert dev.period_ns == 2_000_000                            # 750 Hz at most: every second 1 ms period
+    start = time.monotonic_ns() - 3_300_000                      # the loop's newest period (its grid)
+    block.io[int(block.io[ex.H_CMD]) + ex.C_T] = float(start)
+    dues = []
+
+    def sleep_until(t_ns):
+        dues.append(t_ns)
+        IODevice.sleep_until(dev, t_ns)
+    dev.sleep_until = sleep_until
+    stop = threading.Event()
+    dev.open()
+    try:
+        runner = threading.Thread(target=dev.run, args=(stop,), daemon=True)
+        runner.start()
+        end = time.monotonic() + 10
+        while len(dues) < 12 and time.monotonic() < end:
+            time.sleep(0.01)
+        stop.set()
+        runner.join(5)
+    finally:
+        dev.close()
+        stop_device(here, th)
+    assert len(dues) >= 12 and dev.seq >= 0
+    assert [(d - start - 250_000) % 1_000_000 for d in dues] == [0] * len(dues)
+    assert min(b - a for a, b in zip(dues, dues[1:])) >= 1_000_000
+
+
 def test_conversion_rows_are_the_one_place_of_a_channels_gain_and_offset():
     """drivers/conversion.py: a channel's source, gain and offset, applied the same way for any device."""
     chs = conversion.channels([2, 0], [0.5, -2.0], [0.1, 0.0])
