@@ -12,7 +12,9 @@ Checks that need the loaded configuration (a rate against the configured frequen
 from __future__ import annotations
 
 import argparse
+import logging
 import math
+import sys
 from pathlib import Path
 
 from rig.errors import RigError
@@ -21,6 +23,27 @@ MAX_RATE_HZ = 100000.0        # the loop's own ceiling ([loop] rate_hz): 10 us a
 MAX_RUN_S = 86400.0           # one day of loop time per run
 MAX_CHIRP_S = 3600.0          # one hour of chirp (the paper's identification chirp is 100 s)
 MAX_SEED = 2 ** 32 - 1        # numpy seeds are unsigned; 32 bits are plenty
+
+
+class _CommandLines(logging.Formatter):
+    """A command's log lines: `rig COMMAND: warning: ...` for a warning, as every command says one (docs/CLI.md);
+    `rig COMMAND: ...` for the others (a fault is its own `FAULT: ...` line)."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__("%(message)s")
+        self.prefix = f"rig {command}: "
+
+    def format(self, record: logging.LogRecord) -> str:
+        said = "warning: " if record.levelno == logging.WARNING else ""
+        return self.prefix + said + super().format(record)
+
+
+def log_to_stderr(command: str, level: int = logging.WARNING) -> None:
+    """The command's log lines on stderr from level on; once (a caller that set up logging keeps its own)."""
+    if not logging.getLogger().handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(_CommandLines(command))
+        logging.basicConfig(level=level, handlers=[handler])
 
 
 class ArgumentParser(argparse.ArgumentParser):

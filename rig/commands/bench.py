@@ -231,8 +231,7 @@ def bench_recorder(args) -> int:
 # ---- rig bench loop --------------------------------------------------------------------------------------
 def bench_loop(args) -> int:
     from rig.runtime.session import Session
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.WARNING, format="rig bench: %(message)s", stream=sys.stderr)
+    cliargs.log_to_stderr("bench")
     cfg = load_config(getattr(args, "config", None))
     rate = args.rate or cfg.loop.rate_hz
     cliargs.check_rate(cfg, rate, "--rate", sections=("vibration",))    # timing only: any controller

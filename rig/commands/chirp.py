@@ -114,7 +114,7 @@ def run(args) -> int:
               f"{s['wall_s']:.1f} s wall, overruns {s['overruns']}, dropped rows {s['dropped_rows']}")  # the result
     missing = s["skipped_periods"] + s["dropped_rows"]
     if missing:
-        print(f"WARNING: the recording has gaps: {missing} rows missing ({s['skipped_periods']} loop periods skipped "
+        print(f"rig chirp: warning: the recording has gaps: {missing} rows missing ({s['skipped_periods']} loop periods skipped "
               f"by overruns, {s['dropped_rows']} rows dropped by the recorder); rig identify bridges gaps of a few "
               f"samples and otherwise uses the longest stretch without one. Lower --rate or free the CPU for a "
               f"whole recording", file=sys.stderr)

@@ -138,8 +138,7 @@ def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
 
 
 def run(args) -> int:
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.WARNING, format="rig hil: %(message)s", stream=sys.stderr)
+    cliargs.log_to_stderr("hil")
     logging.getLogger("canopen").setLevel(logging.WARNING)
     if args.layout == "prototype" or (args.config and load_config(args.config).layout.plant == "stand"):
         cfg = hil_config(layout_config(argparse.Namespace(config=args.config, layout="prototype"), "hil"), args.rate)

@@ -157,7 +157,7 @@ def _run_plant(args, rec, plant, t0: float) -> int:
 
     res = identify_plant(rec, plant, progress=progress)
     if "warning" in res:
-        print(f"WARNING: {res['warning']}", file=sys.stderr)
+        print(f"rig identify: warning: {res['warning']}", file=sys.stderr)
     if args.out:
         cliargs.make_out_dir(args.out)
         try:
@@ -246,8 +246,8 @@ def run_single(args) -> int:
         print(f"note: {CLOSED_LOOP_NOTE}", file=sys.stderr)
     res = identify(rec, p0, starts=args.starts, seed=args.seed, refine_time_domain=not args.no_refine,
                    progress=progress)
-    if res.fit.get("closed_loop", {}).get("closed_loop"):
-        print(f"WARNING: {res.fit['warning']}", file=sys.stderr)
+    if "warning" in res.fit:                 # a poor fit or closed-loop data: exit 5 below
+        print(f"rig identify: warning: {res.fit['warning']}", file=sys.stderr)
     if args.repeat > 1:
         import numpy as np
         runs = [res.timing_s]

@@ -233,7 +233,7 @@ def _log_to_stderr(quiet: bool = False) -> None:
     quiet: warnings and errors only. The rig's loggers stay at INFO either way (the console's page logs every
     line): --quiet silences the terminal only."""
     if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.WARNING, format="rig run: %(message)s", stream=sys.stderr)
+        cliargs.log_to_stderr("run")
         logging.getLogger("rig").setLevel(logging.INFO)
     if quiet:
         for h in logging.getLogger().handlers:
@@ -387,7 +387,7 @@ class _RunPlan:
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
         if loop.harm:                         # logged when it happened; said again beside the stop line
-            log.error("%s", loop.harm)
+            log.warning("%s", loop.harm)
             return EXIT_HARM
         return 0
 

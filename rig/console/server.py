@@ -36,6 +36,7 @@ from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, R
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
+from rig import cliargs
 from rig.console.feed import Feed
 from rig.console.live import LiveReader
 from rig.console.protocol import check_command, receive, send
@@ -443,7 +444,7 @@ def main(argv=None) -> int:
     p.add_argument("--control-fd", type=int, required=True)
     p.add_argument("--listen-fd", type=int, required=True)
     a = p.parse_args(argv)        # its CPU and priority are set before it starts (rig/console/link.py)
-    logging.basicConfig(level=logging.WARNING, format="rig console: %(message)s", stream=sys.stderr)
+    cliargs.log_to_stderr("console")
     control = socket.socket(fileno=a.control_fd)
     listen = socket.socket(fileno=a.listen_fd)
     state = _wait_hello(control)

@@ -296,7 +296,7 @@ class Loop:
             self._event(said)
         if harm is None:
             return
-        log.error("%s", harm)
+        log.warning("%s", harm)            # a warning: the run goes on, isolation off
         self._event(harm)
         self.gate.hold_isolation_off(harm)
         for m, c in enumerate(self.ctrls):

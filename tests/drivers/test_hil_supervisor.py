@@ -36,7 +36,7 @@ def test_an_inverted_accelerometer_is_caught_and_isolation_switched_off(tmp_path
     assert ": front_left +" in harm and res["supervisor"]["tripped"]
     t_trip = float(harm.rsplit("at t = ", 1)[1].split(" s")[0])
     assert 0 < t_trip - SECONDS / 3 < 5.0                         # isolation went on at a third of the run
-    assert out.stderr.count(f"rig hil: {harm}") >= 1               # said at once, on stderr
+    assert out.stderr.count(f"rig hil: warning: {harm}") >= 1      # said at once, on stderr, as a warning
     events = [t for _, t in read_recording(rec)["events"]]
     assert harm in events
     assert "isolation on refused: held off by the do-no-harm supervisor" in events     # the feedforward phase

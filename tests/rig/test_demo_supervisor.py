@@ -34,3 +34,21 @@ def test_rig_demo_exits_with_the_harm_status(tmp_path, capsys):
     assert main(["demo", "--config", str(cfg), "--seconds", "4", "--settle", "1"]) == EXIT_HARM
     err = capsys.readouterr().err
     assert "rig demo: warning: feedback:" in err and "isolation switched off" in err
+
+
+def test_rig_run_says_the_harm_as_a_warning_and_exits_with_the_harm_status(tmp_path):
+    """The README's scripted run (isolation off, then on) with an accelerometer wired reversed: the supervisor's
+    line on stderr as every command says a warning, `rig run: warning: do-no-harm: ...` (docs/CLI.md), and EXIT_HARM."""
+    import subprocess
+    import sys
+    from rig.errors import EXIT_HARM
+    from tests.paths import REPO
+    cfg = tmp_path / "wrong_sign.toml"
+    cfg.write_text("[rig_error]\naccel_gain = [-1.0, 1.0, 1.0, 1.0]\n")
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "run", "--config", str(cfg), "--sim-time", "--seconds", "12",
+                          "--script", str(REPO / "docs" / "examples" / "isolation_off_then_on.txt")],
+                         capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert out.returncode == EXIT_HARM, out.stderr[-2000:]
+    said = [ln for ln in out.stderr.splitlines() if "do-no-harm" in ln]
+    assert said and all(ln.startswith("rig run: warning: do-no-harm: isolation made the table worse than isolation off: "
+                                      "front_left +") for ln in said), said

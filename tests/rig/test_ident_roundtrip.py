@@ -185,7 +185,9 @@ def test_a_poor_fit_is_said_and_in_the_exit_status(tmp_path, capsys):
     path = tmp_path / "noisy.h5"
     save_recording_h5(_chirp_rec(TRUE, 1000.0, 20.0, noise_m=1e-6), path)
     assert main(["identify", str(path), "--starts", "1", "--no-refine", "--out", str(tmp_path / "o")]) == EXIT_SUSPECT
-    assert "WARNING: poor fit (NRMSE" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "WARNING: poor fit (NRMSE" in said.out                  # in the fit table (report.md too)
+    assert "rig identify: warning: poor fit (NRMSE" in said.err    # and on stderr, as every command says a warning
     assert json.loads((tmp_path / "o" / "identify.json").read_text())["fit"]["warning"].startswith("poor fit")
     assert main(["identify", str(path), "--starts", "1", "--no-refine", "--json"]) == EXIT_SUSPECT
     assert json.loads(capsys.readouterr().out)["fit"]["nrmse"] > 0.2

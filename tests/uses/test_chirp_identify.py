@@ -76,7 +76,7 @@ def test_default_chirp_then_identify_under_load(tmp_path):
         res = _ok(_rig("chirp", "--record", "chirp.h5", cwd=tmp_path))
     line = _summary_line(res.stdout)
     assert "500500 samples -> chirp.h5 (hdf5)" in line and line.endswith("overruns 0, dropped rows 0")
-    assert "WARNING" not in res.stderr and "next: rig identify chirp.h5" in res.stderr
+    assert "rig chirp: warning" not in res.stderr and "next: rig identify chirp.h5" in res.stderr
     with h5py.File(tmp_path / "chirp.h5") as f:
         assert f.attrs["dropped_rows"] == 0 and f.attrs["complete"]
         assert np.ptp(np.diff(f["time_s"][()])) < 1e-9            # one step throughout: no gap
@@ -192,7 +192,7 @@ def test_rows_dropped_on_the_real_clock_are_said_at_once_and_marked(tmp_path):
     assert proc.returncode == EXIT_SUSPECT, err[-3000:]        # kept, and the exit status says it has gaps
     warned = [ln for ln in err.splitlines() if "rows dropped" in ln and "the recording has a gap there" in ln]
     assert warned, err[-3000:]
-    assert "WARNING: the recording has gaps" in err
+    assert "rig chirp: warning: the recording has gaps" in err       # as every command says a warning
     with h5py.File(tmp_path / "rt.h5") as f:
         dropped = int(f.attrs["dropped_rows"])
         events = [x.decode() if isinstance(x, bytes) else x for x in f["events/text"][()]]

@@ -153,7 +153,7 @@ def test_identify_says_closed_loop(tmp_path):
     assert res.returncode == EXIT_SUSPECT, res.stderr       # identified, with the warning that qualifies it
     doc = json.loads(res.stdout)
     assert doc["fit"]["closed_loop"]["closed_loop"] is True
-    assert "closed-loop" in doc["fit"]["warning"] and "WARNING: closed-loop" in res.stderr
+    assert "closed-loop" in doc["fit"]["warning"] and "rig identify: warning: closed-loop" in res.stderr
     # an open-loop chirp is not flagged
     open_path = save_recording_csv(_chirp(20.0), tmp_path / "open.csv")
     doc2 = json.loads(_rig("identify", open_path, "--json").stdout)
