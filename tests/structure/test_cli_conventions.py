@@ -106,3 +106,22 @@ def test_json_prints_only_json_on_stdout():
                          timeout=300, cwd=REPO)
     assert out.returncode == 0, out.stderr
     json.loads(out.stdout)
+
+
+def test_a_warning_on_stderr_names_its_command():
+    """docs/CLI.md: a warning is one line `rig COMMAND: warning: ...` on stderr. No command prints a bare
+    `WARNING: ...` to stderr (readers of the README could not grep one form: rig identify's and rig chirp's did)."""
+    import ast
+    bare = []
+    for path in sorted((REPO / "rig").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and getattr(node.func, "id", None) == "print" and node.args):
+                continue
+            to_stderr = any(k.arg == "file" and ast.unparse(k.value) == "sys.stderr" for k in node.keywords)
+            first = node.args[0]
+            head = (first.value if isinstance(first, ast.Constant) else
+                    first.values[0].value if isinstance(first, ast.JoinedStr) and first.values
+                    and isinstance(first.values[0], ast.Constant) else "")
+            if to_stderr and isinstance(head, str) and head.lower().startswith("warning"):
+                bare.append(f"{path.relative_to(REPO)}:{node.lineno}")
+    assert not bare, bare
