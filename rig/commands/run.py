@@ -337,7 +337,9 @@ class _RunPlan:
                      cfg.source, os.getpid(), f", control file {args.control}" if args.control else "")
         else:
             log.info("backend %s, %d mounts at %g Hz, isolation %s, config %s, pid %d (SIGUSR1 toggles "
-                     "isolation%s)", backend, loop.n, loop.rate_hz, args.isolation, cfg.source, os.getpid(),
+                     "isolation%s)", backend, loop.n, loop.rate_hz,
+                     f"{args.isolation}, then as {args.script} says" if args.script else args.isolation, cfg.source,
+                     os.getpid(),
                      f", control file {args.control}" if args.control else "")
         settle = args.settle if args.settle is not None else (0.05 if backend == "sim" else warmup_s(loop.ctrls))
         cliargs.check_settle(settle, args.seconds, default="the default --settle")

@@ -24,6 +24,7 @@ def test_quiet_prints_the_result_alone_and_its_help_says_so(tmp_path):
     assert line.startswith("rig run: VC class, machine at its mounts")
     loud = _run("--sim-time", "--seconds", "12", "--script", script, "--record", "r2.h5", cwd=tmp_path)
     assert loud.returncode == 0 and "lifecycle: activate -> ACTIVE" in loud.stderr and "stopped (time)" in loud.stderr
+    assert f"isolation on, then as {script} says" in loud.stderr     # the start line does not contradict the script
     assert loud.stdout.splitlines()[0].split(":")[:2] == line.split(":")[:2]           # the same result
     helped = subprocess.run(RIG + ["--help"], capture_output=True, text=True, timeout=120, cwd=REPO)
     assert "only warnings, errors and the result" in " ".join(helped.stdout.split())
