@@ -89,7 +89,8 @@ class IdentResult:
         """Each identified parameter's change from the start (Table 1's design unless a config gave another), in %
         to 0.1 %, as `rig identify`'s change column."""
         d = self.p0.identified()
-        return {k: round(100.0 * (v / d[k] - 1.0), 1) for k, v in self.params.identified().items()}
+        # + 0.0: a change that rounds to zero prints 0.0, never -0.0
+        return {k: round(100.0 * (v / d[k] - 1.0), 1) + 0.0 for k, v in self.params.identified().items()}
 
     def to_json(self) -> dict:
         return {"parameters": self.params.identified(), "std": self.std, "fit": self.fit, "notes": NOTES,

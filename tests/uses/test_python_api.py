@@ -3,6 +3,7 @@ returns typed results; the CLI's rules hold (a feedback-only recording refused, 
 activates warns); `import rig` loads nothing heavy."""
 from __future__ import annotations
 
+import dataclasses
 import re
 import subprocess
 import sys
@@ -81,7 +82,10 @@ def test_identify_warns_where_the_cli_exits_5(tmp_path):
     clean = Recording.from_arrays(t, u, out["position_m"], out["accel_mps2"], source="sim 1000 Hz")
     with warnings.catch_warnings():
         warnings.simplefilter("error", rig.SuspectFit)
-        assert "warning" not in rig.identify_actuator(clean, starts=1, refine_time_domain=False).fit
+        res = rig.identify_actuator(clean, starts=1, refine_time_domain=False)
+    assert "warning" not in res.fit
+    below = dataclasses.replace(res, params=dataclasses.replace(res.p0, K_Q=res.p0.K_Q * (1.0 - 1e-6)))
+    assert str(below.change_pct()["K_Q"]) == "0.0"          # a change that rounds to zero is not printed -0.0
 
 
 def test_a_session_that_never_activates_warns_and_one_that_does_not():
