@@ -50,14 +50,15 @@ def table_markdown(res) -> str:
     from sim_backend.linear import IDENTIFIED
     lines = ["| parameter | unit | Table 1 (design) | identified | 1-sigma | change | note |",
              "|---|---|---|---|---|---|---|"]
+    change = res.change_pct()
     for k in IDENTIFIED:
         v0, v, s = getattr(res.p0, k), getattr(res.params, k), res.std[k]
         note = "weak (prior-held)" if k in res.weakly_identified else ""
-        lines.append(f"| {k} | {UNITS[k]} | {v0:.4g} | {v:.4g} | {s:.2g} | {100 * (v / v0 - 1):+.1f} % | {note} |")
+        lines.append(f"| {k} | {UNITS[k]} | {v0:.4g} | {v:.4g} | {s:.2g} | {change[k]:+.1f} % | {note} |")
     f = res.fit
+    lag = round(100 * (f['K_C*K_L'] / (res.p0.K_C * res.p0.K_L) - 1), 1) + 0.0      # (never -0.0)
     lines.append(f"| K_C*K_L | m^4/s | {res.p0.K_C * res.p0.K_L:.4g} | {f['K_C*K_L']:.4g} | "
-                 f"{f['K_C*K_L'] * f['K_C*K_L_rel_std']:.2g} | "
-                 f"{100 * (f['K_C*K_L'] / (res.p0.K_C * res.p0.K_L) - 1):+.1f} % | lag corner, well fixed |")
+                 f"{f['K_C*K_L'] * f['K_C*K_L_rel_std']:.2g} | {lag:+.1f} % | lag corner, well fixed |")
     return "\n".join(lines)
 
 
