@@ -149,7 +149,7 @@ def run(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
     injections = [inject.parse(x) for x in getattr(args, "inject", [])]
     for inj in injections:
-        inject.check(inj, "hil")
+        inject.check(inj, "hil", seconds)
     if args.bench:
         from rig.commands import hil_bench
         return hil_bench.run(cfg, seconds if args.seconds is not None else hil_bench.SECONDS, args.json)

@@ -4,6 +4,7 @@ without --overwrite; `rig model --plot` writes what it says."""
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import time
@@ -222,3 +223,23 @@ def test_an_unknown_option_is_named_by_its_command_with_the_nearest_option(capsy
     assert capsys.readouterr().err.strip() == "rig hil: error: unrecognized arguments: --frobnicate (see rig hil --help)"
     assert main(["--frobnicate"]) == 2
     assert capsys.readouterr().err.strip() == "rig: error: unrecognized arguments: --frobnicate (see rig --help)"
+
+
+@pytest.mark.parametrize("argv", [["run", "--sim-time", "--seconds", "0.3"], ["hil", "--seconds", "2"]])
+def test_inject_after_the_runs_end_is_refused(capsys, argv):
+    """Was: `rig run --seconds 0.3 --inject nan:front_left:accel@5` ran, said `injected ... at t = 5.000 s` and exited
+    0 (nothing was injected); `rig hil` ran the whole run without the fault and without a word."""
+    assert main(argv + ["--inject", "nan:front_left:stroke@5"]) == 2
+    _one_line_error(capsys, "--inject 'nan:front_left:stroke@5'", "within the run", "--seconds")
+
+
+def test_an_injection_the_run_never_reached_is_not_said_to_be_injected(caplog):
+    """Was: the first injection faulted the run at 0.02 s, and it said `injected nan:front_right:accel@0.2 at t =
+    0.200 s` all the same."""
+    caplog.set_level(logging.INFO, logger="rig")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--inject", "nan:front_left:accel@0.02",
+                 "--inject", "nan:front_right:accel@0.2"]) == 1
+    err = caplog.text
+    assert "injected nan:front_left:accel@0.02 at t = 0.020 s" in err
+    assert "injected nan:front_right:accel@0.2 at" not in err
+    assert "not injected nan:front_right:accel@0.2: the run stopped first (fault)" in err
