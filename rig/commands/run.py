@@ -210,7 +210,7 @@ def read_script(path) -> list[tuple[float, str]]:
             at = float(t)
         except ValueError:
             raise RigError(f"--script {p}: line {i}: expected `<loop time s> <word>`, got {ln[:60]!r}") from None
-        if at < 0 or not word.strip():
+        if not 0 <= at < float("inf") or not word.strip():      # nan and inf too: a word that never comes
             raise RigError(f"--script {p}: line {i}: expected a time >= 0 and a control word, got {ln[:60]!r}")
         out.append((at, word.strip()))
     return out

@@ -243,3 +243,12 @@ def test_an_injection_the_run_never_reached_is_not_said_to_be_injected(caplog):
     assert "injected nan:front_left:accel@0.02 at t = 0.020 s" in err
     assert "injected nan:front_right:accel@0.2 at" not in err
     assert "not injected nan:front_right:accel@0.2: the run stopped first (fault)" in err
+
+
+@pytest.mark.parametrize("when", ["nan", "inf", "-1"])
+def test_a_script_time_that_never_comes_is_refused(tmp_path, capsys, when):
+    """Was: `nan off` (and `inf off`) in a --script ran the whole run with the word never acted on, exit 0."""
+    script = tmp_path / "s.txt"
+    script.write_text(f"# times\n0.1 off\n{when} on\n")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
+    _one_line_error(capsys, f"--script {script}: line 3", "a time >= 0")
