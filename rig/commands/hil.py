@@ -369,7 +369,9 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
         port.rig.phase(None)
         rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
     rig = port.rig
-    hold, iso = (rig.table_rms_m(k) if k in rig.meter else math.nan for k in ("hold", "isolate"))
+    from rig.commands.hil_lockstep import MIN_WINDOW_S
+    short = q - settle < MIN_WINDOW_S - 1e-9        # hold and isolate each metered from settle to the third's end
+    hold, iso = (rig.table_rms_m(k) if k in rig.meter and not short else math.nan for k in ("hold", "isolate"))
     red = 20 * math.log10(hold / iso) if hold > 0 and iso > 0 else math.nan
     figs = operated.figures(operated.load_operated(record))
     track = next((d for d in figs if d["mode"] == "track"), {})
@@ -380,7 +382,9 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
                                                    "peak_command_V")},
             "isolation_reduction_db": None if math.isnan(red) else round(red, 2), "load_rms_hold_um": hold * 1e6,
             "load_rms_isolate_um": iso * 1e6, "recording": str(record), "fault_reason": loop.lc.fault_reason,
-            "round_trip_us": rtt, "segments": figs, "harm": loop.harm}
+            "round_trip_us": rtt, "segments": figs, "harm": loop.harm,
+            "unmetered": ["hold", "isolate"] if short else [],
+            "seconds_to_meter": 3 * (MIN_WINDOW_S + min(cfg.hil.settle_s, MIN_WINDOW_S / 2))}
 
 
 def _prototype(cfg, seconds: float, args) -> int:
@@ -392,7 +396,10 @@ def _prototype(cfg, seconds: float, args) -> int:
                                "tracking", "isolation_reduction_db", "recording")}
     red = res["isolation_reduction_db"]
     worse = red is not None and red < 0
-    code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else 0
+    code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else EXIT_SUSPECT if res["unmetered"] else 0
+    if res["unmetered"]:
+        print(f"rig hil: warning: hold, isolate: metered for less than 1 s after [hil] settle_s (the 1-100 Hz band "
+              f"needs it): no isolation figure; give --seconds {res['seconds_to_meter']:g} or more", file=sys.stderr)
     if res["harm"]:
         print(f"rig hil: {res['harm']}", file=sys.stderr)
     elif worse:
@@ -408,6 +415,9 @@ def _prototype(cfg, seconds: float, args) -> int:
     if tr.get("rms_error_um") is not None:
         print(f"tracking {tr['request']}: rms error {tr['rms_error_um']:.3f} um = {tr['rms_error_pct']:.2f} % of the "
               f"amplitude (max {tr['max_error_um']:.3f} um)")
-    print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} um "
-          f"isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
+    if res["unmetered"]:
+        print("isolation: n/a (not metered: the run is too short)")
+    else:
+        print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} "
+              f"um isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
     return code

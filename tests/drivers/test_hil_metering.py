@@ -86,3 +86,16 @@ def test_a_run_too_short_to_meter_says_so_without_numpy_warnings(tmp_path):
     said = [ln for ln in out.stderr.splitlines() if "no isolation figure" in ln]
     assert len(said) == 1 and said[0].startswith("rig hil: warning: off, feedback, feedback + feedforward: metered")
     assert "give --seconds 9 or more" in said[0]
+
+
+@pytest.mark.hil
+def test_a_prototype_run_too_short_to_meter_gives_no_isolation_figure(tmp_path):
+    """Was: `rig hil --layout prototype --seconds 0.3` judged isolation from 0.07 s of holding and of isolating
+    ('5.3 dB', or 'made the load worse', exit 3, by chance), exit 0."""
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--layout", "prototype", "--seconds", "0.3",
+                          "--json", "--no-realtime", "--record", str(tmp_path / "short.h5")], capture_output=True,
+                         text=True, timeout=180)
+    assert "Traceback" not in out.stderr and out.returncode == EXIT_SUSPECT, out.stderr
+    assert json.loads(out.stdout)["isolation_reduction_db"] is None
+    said = [ln for ln in out.stderr.splitlines() if "no isolation figure" in ln]
+    assert len(said) == 1 and said[0].startswith("rig hil: warning: hold, isolate: metered for less than 1 s")
