@@ -252,3 +252,9 @@ def test_a_script_time_that_never_comes_is_refused(tmp_path, capsys, when):
     script.write_text(f"# times\n0.1 off\n{when} on\n")
     assert main(["run", "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
     _one_line_error(capsys, f"--script {script}: line 3", "a time >= 0")
+
+
+def test_a_control_file_that_is_a_folder_is_refused(tmp_path, capsys):
+    """Was: `--control /tmp` ran the whole run polling a folder: `stop` written anywhere never reached it."""
+    assert main(["run", "--sim-time", "--seconds", "0.2", "--control", str(tmp_path)]) == 2
+    _one_line_error(capsys, f"control file {tmp_path}", "is a folder")
