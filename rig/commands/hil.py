@@ -152,6 +152,7 @@ def run(args) -> int:
         inject.check(inj, "hil", seconds)
     if args.bench:
         from rig.commands import hil_bench
+        cliargs.check_periods(seconds if args.seconds is not None else hil_bench.SECONDS, cfg.loop.rate_hz)
         return hil_bench.run(cfg, seconds if args.seconds is not None else hil_bench.SECONDS, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     if not args.json:

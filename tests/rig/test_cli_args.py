@@ -258,3 +258,10 @@ def test_a_control_file_that_is_a_folder_is_refused(tmp_path, capsys):
     """Was: `--control /tmp` ran the whole run polling a folder: `stop` written anywhere never reached it."""
     assert main(["run", "--sim-time", "--seconds", "0.2", "--control", str(tmp_path)]) == 2
     _one_line_error(capsys, f"control file {tmp_path}", "is a folder")
+
+
+def test_hil_bench_of_fewer_than_ten_periods_is_refused(capsys):
+    """Was: `rig hil --bench --seconds 0.01` started the emulated rig and gave p99s of 5 round trips, exit 0."""
+    assert main(["hil", "--bench", "--seconds", "0.01", "--json"]) == 2
+    err = _one_line_error(capsys, "--seconds 0.01", "at least 10 periods at 500 Hz")
+    assert err.startswith("rig hil: error:")
