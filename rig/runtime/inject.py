@@ -98,9 +98,13 @@ def _need(inj: Injection, what: str, ok: bool, backend: str) -> None:
 def check(inj: Injection, backend: str, seconds: float | None = None) -> None:
     """RigError when `backend` has no knob for this injection, or T is not inside a run of `seconds` (before
     anything is started)."""
+    _check_knob(inj, backend)
     if seconds is not None and inj.at_s >= seconds:
         raise RigError(f"--inject {inj.spec!r}: T: expected a loop time within the run (< --seconds {seconds:g}), "
                        f"got {inj.at_s:g} s")
+
+
+def _check_knob(inj: Injection, backend: str) -> None:
     if inj.kind in COMMON:
         return
     if backend == "sim":
