@@ -149,9 +149,10 @@ def run(args) -> int:
         raise RigError(f"--seconds: expected 0 < N <= 3600, got {seconds}")
     injections = [inject.parse(x) for x in getattr(args, "inject", [])]
     for inj in injections:
-        inject.check(inj, "hil")
+        inject.check(inj, "hil", seconds)
     if args.bench:
         from rig.commands import hil_bench
+        cliargs.check_periods(seconds if args.seconds is not None else hil_bench.SECONDS, cfg.loop.rate_hz)
         return hil_bench.run(cfg, seconds if args.seconds is not None else hil_bench.SECONDS, args.json)
     cliargs.check_rate(cfg, cfg.loop.rate_hz, "HIL", sections=("controller",))
     if not args.json:
@@ -197,6 +198,7 @@ def _print_modes(res: dict, out: dict) -> None:
         return "n/a" if x is None else f"{x:{fmt}} dB"
     print(mode_row("", [LABELS[m] for m in modes]))
     print(mode_row(f"table Y rms ({BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz)", [
+        "n/a" if math.isnan(res['table_rms_m'][m]) else
         f"{res['table_rms_m'][m] * 1e6:.3f} um" + ("" if m == "off" else f" ({db(red.get(m))})") for m in modes]))
     print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
         "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))
@@ -225,12 +227,18 @@ def _exit_code(res) -> int:
             f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in late.items()) + " of the periods late, more than "
             f"{100 * LATE_WARN:g} %): isolation through the drivers falls with that, so these figures are below what "
             "this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
+    short = res.get("unmetered") or []
+    if short:
+        from rig.commands.hil_lockstep import BAND_HZ, MIN_WINDOW_S
+        print(f"rig hil: warning: {', '.join(m.replace('_', ' + ') for m in short)}: metered for less than "
+              f"{MIN_WINDOW_S:g} s after [hil] settle_s (the {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz band needs it): no "
+              f"isolation figure; give --seconds {res['seconds_to_meter']:g} or more", file=sys.stderr)
     if res["faults"]:
         return EXIT_FAULT
     if res.get("harm"):
         print(f"rig hil: {res['harm']}", file=sys.stderr)
         return EXIT_HARM
-    return EXIT_HARM if worse else EXIT_SUSPECT if late else 0
+    return EXIT_HARM if worse else EXIT_SUSPECT if late or short else 0
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
@@ -238,7 +246,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             compare: bool = True) -> dict:
     """One HIL run with the runtime's loop; `cfg` as from hil_config. Returns the figures (and more); compare:
     also the same run in lockstep simulated time (rig/commands/hil_lockstep.py)."""
-    from rig.commands.hil_lockstep import lockstep, phase_rms, reductions
+    from rig.commands.hil_lockstep import lockstep, phase_rms, reductions, seconds_to_meter, unmetered
     from rig.runtime.session import Session
     rate = cfg.loop.rate_hz
     if record is None:
@@ -247,7 +255,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         print(f"rig hil: starting the emulated rig (CANopen valves, Modbus TCP module, serial amplifier) and the "
               f"drivers' I/O processes at {rate:g} Hz", file=sys.stderr)
     modes = ISOLATION_MODES if cfg.sensors.floor_accel else ISOLATION_MODES[:2]
-    settle = min(cfg.hil.settle_s, seconds / (2 * len(modes)))      # of each mode's share, not metered
+    settle = cfg.hil.settle_s          # of each mode's share, not metered (hil_lockstep.windows: a third at most)
     activate = min(0.05, seconds / 10)
     opts = {"trace_s": seconds + TRACE_MARGIN_S, **(port_options or {})}
     session = Session(cfg, "hil", rate_hz=rate, port_options=opts, isolation=False,
@@ -278,8 +286,10 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
     table, floor, codes = rig.trace()
+    short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
-    total = {m: rig.table_rms_m(m) if m in rig.meter else math.nan for m in modes}
+    band_rms = {m: math.nan if m in short else v for m, v in band_rms.items()}
+    total = {m: rig.table_rms_m(m) if m in rig.meter and m not in short else math.nan for m in modes}
     tr = {m: 20 * math.log10(total[m] / rig.floor_rms_m(m)) if m in rig.meter and total[m] > 0 else math.nan
           for m in modes}
     red = reductions(band_rms)
@@ -293,13 +303,14 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
            "stop_reason": reason, "pre_steps": pre_steps, "harm": loop.harm,
            "supervisor": loop.supervisor.summary() if loop.supervisor is not None else None,
-           "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0}
-    if compare and reason not in ("SIGINT", "SIGTERM") and not out["faults"]:
+           "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0,
+           "unmetered": short, "seconds_to_meter": seconds_to_meter(modes, settle)}
+    if compare and reason not in ("SIGINT", "SIGTERM") and not out["faults"] and "off" not in short:
         if not quiet:
             print("rig hil: the same design and floor in lockstep simulated time", file=sys.stderr)
         ls = lockstep(cfg, seconds, modes, settle, activate, pre_steps)
-        out["lockstep_table_rms_m"] = ls["table_rms_m"]
-        out["lockstep_reduction_db"] = reductions(ls["table_rms_m"])
+        out["lockstep_table_rms_m"] = {m: math.nan if m in short else v for m, v in ls["table_rms_m"].items()}
+        out["lockstep_reduction_db"] = reductions(out["lockstep_table_rms_m"])
     return out
 
 
@@ -359,7 +370,9 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
         port.rig.phase(None)
         rtt = {k: _pct(v) for k, v in port.round_trips_us().items()}
     rig = port.rig
-    hold, iso = (rig.table_rms_m(k) if k in rig.meter else math.nan for k in ("hold", "isolate"))
+    from rig.commands.hil_lockstep import MIN_WINDOW_S
+    short = q - settle < MIN_WINDOW_S - 1e-9        # hold and isolate each metered from settle to the third's end
+    hold, iso = (rig.table_rms_m(k) if k in rig.meter and not short else math.nan for k in ("hold", "isolate"))
     red = 20 * math.log10(hold / iso) if hold > 0 and iso > 0 else math.nan
     figs = operated.figures(operated.load_operated(record))
     track = next((d for d in figs if d["mode"] == "track"), {})
@@ -370,7 +383,9 @@ def run_hil_prototype(cfg, seconds: float, *, record: str | None = None, realtim
                                                    "peak_command_V")},
             "isolation_reduction_db": None if math.isnan(red) else round(red, 2), "load_rms_hold_um": hold * 1e6,
             "load_rms_isolate_um": iso * 1e6, "recording": str(record), "fault_reason": loop.lc.fault_reason,
-            "round_trip_us": rtt, "segments": figs, "harm": loop.harm}
+            "round_trip_us": rtt, "segments": figs, "harm": loop.harm,
+            "unmetered": ["hold", "isolate"] if short else [],
+            "seconds_to_meter": 3 * (MIN_WINDOW_S + min(cfg.hil.settle_s, MIN_WINDOW_S / 2))}
 
 
 def _prototype(cfg, seconds: float, args) -> int:
@@ -382,7 +397,10 @@ def _prototype(cfg, seconds: float, args) -> int:
                                "tracking", "isolation_reduction_db", "recording")}
     red = res["isolation_reduction_db"]
     worse = red is not None and red < 0
-    code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else 0
+    code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else EXIT_SUSPECT if res["unmetered"] else 0
+    if res["unmetered"]:
+        print(f"rig hil: warning: hold, isolate: metered for less than 1 s after [hil] settle_s (the 1-100 Hz band "
+              f"needs it): no isolation figure; give --seconds {res['seconds_to_meter']:g} or more", file=sys.stderr)
     if res["harm"]:
         print(f"rig hil: {res['harm']}", file=sys.stderr)
     elif worse:
@@ -398,6 +416,9 @@ def _prototype(cfg, seconds: float, args) -> int:
     if tr.get("rms_error_um") is not None:
         print(f"tracking {tr['request']}: rms error {tr['rms_error_um']:.3f} um = {tr['rms_error_pct']:.2f} % of the "
               f"amplitude (max {tr['max_error_um']:.3f} um)")
-    print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} um "
-          f"isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
+    if res["unmetered"]:
+        print("isolation: n/a (not metered: the run is too short)")
+    else:
+        print(f"isolation: load motion rms {res['load_rms_hold_um']:.3f} um holding -> {res['load_rms_isolate_um']:.3f} "
+              f"um isolating ({'n/a' if red is None else f'{red:.1f} dB'})")
     return code

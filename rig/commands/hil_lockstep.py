@@ -28,6 +28,7 @@ from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.session import Session
 
 BAND_HZ = (1.0, 100.0)
+MIN_WINDOW_S = 1.0 / BAND_HZ[0]     # a mode metered for less than one period of the band's lower edge is not metered
 
 
 def band(x: np.ndarray, fs: float, lo: float = BAND_HZ[0], hi: float = BAND_HZ[1]) -> np.ndarray:
@@ -39,8 +40,10 @@ def band(x: np.ndarray, fs: float, lo: float = BAND_HZ[0], hi: float = BAND_HZ[1
 
 def windows(seconds: float, modes, settle_s: float) -> list[tuple[float, float]]:
     """Each mode's metered window in loop time (s): its equal share of the run from settle_s after its start, the
-    last one up to settle_s before the run's end (no window at either end of the band-limited trace)."""
+    last one up to settle_s before the run's end (no window at either end of the band-limited trace). settle_s is
+    at most a third of the share: the last window loses it twice and is never empty."""
     share = seconds / len(modes)
+    settle_s = min(settle_s, share / 3)
     return [(j * share + settle_s, (j + 1) * share - (settle_s if j == len(modes) - 1 else 0.0))
             for j in range(len(modes))]
 
@@ -92,8 +95,18 @@ def lockstep(cfg, seconds: float, modes, settle_s: float, activate_after_s: floa
     out = {}
     for m, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
         w = slice(int(round(t0 * rate)), int(round(t1 * rate)))
-        out[m] = float(np.sqrt(np.mean(b[w] ** 2)))
+        out[m] = float(np.sqrt(np.mean(b[w] ** 2))) if b[w].size else math.nan
     return {"table_rms_m": out, "fault": fault}
+
+
+def unmetered(seconds: float, modes, settle_s: float) -> list[str]:
+    """The modes whose metered window is shorter than MIN_WINDOW_S: no figure of theirs means anything."""
+    return [m for m, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)) if t1 - t0 < MIN_WINDOW_S - 1e-9]
+
+
+def seconds_to_meter(modes, settle_s: float) -> float:
+    """The shortest run whose every mode is metered for MIN_WINDOW_S (the last one loses settle_s twice)."""
+    return len(modes) * (MIN_WINDOW_S + 2 * min(MIN_WINDOW_S, settle_s))
 
 
 def reductions(rms: dict) -> dict:

@@ -210,7 +210,7 @@ def read_script(path) -> list[tuple[float, str]]:
             at = float(t)
         except ValueError:
             raise RigError(f"--script {p}: line {i}: expected `<loop time s> <word>`, got {ln[:60]!r}") from None
-        if at < 0 or not word.strip():
+        if not 0 <= at < float("inf") or not word.strip():      # nan and inf too: a word that never comes
             raise RigError(f"--script {p}: line {i}: expected a time >= 0 and a control word, got {ln[:60]!r}")
         out.append((at, word.strip()))
     return out
@@ -291,7 +291,7 @@ class _RunPlan:
         self.backend = backend = args.backend or cfg.backend.name
         self.injections = [inject.parse(x) for x in args.inject]
         for inj in self.injections:
-            inject.check(inj, backend)
+            inject.check(inj, backend, args.seconds)
         self.cfg = cfg = _run_config(args, cfg, backend, self.injections)
         self.clock = SimClock() if args.sim_time else MonotonicClock()
         self.stand = stand = cfg.layout.plant == "stand"
@@ -356,6 +356,9 @@ class _RunPlan:
                 reason = session.run(seconds=self.args.seconds, activate_after_s=settle)
             for spec, t in armed.applied.items():
                 log.info("injected %s at t = %.3f s", spec, t)
+            for inj in self.injections:
+                if inj.spec not in armed.applied:
+                    log.info("not injected %s: the run stopped first (%s)", inj.spec, reason)
         return loop, reason
 
     def finish(self, loop, reason: str) -> int:

@@ -33,6 +33,9 @@ COMMANDS = {
 }
 
 
+MAX_TEXT = 4096          # a path or mode request (PATH_MAX): longer would not fit the control socket's message
+
+
 def check_command(msg) -> tuple[str, dict] | str:
     """(name, arguments) of a well-formed command message {"cmd": name, "args": {...}}, else one line saying
     what is wrong."""
@@ -56,6 +59,8 @@ def check_command(msg) -> tuple[str, dict] | str:
             v = float(v)
         elif not isinstance(v, typ):
             return f"{name}: {key} must be {typ.__name__}, got {v!r}"
+        elif typ is str and len(v) > MAX_TEXT:
+            return f"{name}: {key} must be at most {MAX_TEXT} characters, got {len(v)}"
         out[key] = v
     return name, out
 

@@ -95,8 +95,16 @@ def _need(inj: Injection, what: str, ok: bool, backend: str) -> None:
         raise RigError(f"--inject {inj.spec!r}: the {backend} backend's {inj.kind} knob needs {what}")
 
 
-def check(inj: Injection, backend: str) -> None:
-    """RigError when `backend` has no knob for this injection (before anything is started)."""
+def check(inj: Injection, backend: str, seconds: float | None = None) -> None:
+    """RigError when `backend` has no knob for this injection, or T is not inside a run of `seconds` (before
+    anything is started)."""
+    _check_knob(inj, backend)
+    if seconds is not None and inj.at_s >= seconds:
+        raise RigError(f"--inject {inj.spec!r}: T: expected a loop time within the run (< --seconds {seconds:g}), "
+                       f"got {inj.at_s:g} s")
+
+
+def _check_knob(inj: Injection, backend: str) -> None:
     if inj.kind in COMMON:
         return
     if backend == "sim":
@@ -166,6 +174,8 @@ class Armed:
         self._halt.set()
         if self._thread is not None:
             self._thread.join(1.0)
+        t = self._loop_time()           # the sim's knobs were set ahead: keep those the loop reached
+        self.applied = {k: v for k, v in self.applied.items() if t is not None and v <= t + 1e-9}
 
     def _loop_time(self) -> float | None:
         lp = self.session.loop

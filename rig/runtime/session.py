@@ -104,6 +104,9 @@ class Session:
             if not os.path.isdir(folder):
                 raise ConfigError(f"control file {control_file}: folder {folder} does not exist (the file is "
                                   f"polled there for control words)")
+            if os.path.isdir(control_file):
+                raise ConfigError(f"control file {control_file}: is a folder, expected a file name (polled for "
+                                  f"control words)")
         self._held_signals: list[int] = []     # SIGUSR1/2 before the loop existed: applied at its first period
         self._mode = self.parse(mode, "mode") if isinstance(mode, str) else mode
         self._script = [(float(t), w) for t, w in (script or ())]

@@ -136,3 +136,15 @@ def test_the_mode_command_switches_a_stand_and_refuses_what_it_cannot_hold():
     with live_run() as (s, console):
         code, reply = command(console, "mode", request="hold")
         assert code == 409 and not reply["ok"] and "no operating modes" in reply["text"], reply
+
+
+def test_an_overlong_text_argument_is_refused_in_one_short_line(run):
+    """Was: a 300 kB record_start path came back as 'no reply from the run (OSError)' (too big for the control
+    socket); a 150 kB mode request was echoed whole into the refusal, on the page and in the terminal's log."""
+    s, console = run
+    for cmd, args in (("record_start", {"path": "a" * 300_000 + ".h5"}), ("mode", {"request": "a" * 150_000})):
+        code, body = http(f"{base(console)}/api/command?token={console.token}", data={"cmd": cmd, "args": args})
+        reply = json.loads(body)
+        assert code == 409 and not reply["ok"] and len(reply["text"]) < 200, reply["text"][:300]
+        assert "must be at most 4096 characters" in reply["text"]
+    assert s.loop.stop_reason is None

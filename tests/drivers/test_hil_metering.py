@@ -1,11 +1,16 @@
 """`rig hil`'s isolation figures and its lockstep twin's are metered alike (issue 24, the floor feedforward's gap):
 the emulated plant's trace band-limited up to the run's end, and no mode's window at either end of the trace."""
+import json
 import math
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 import scipy.signal
 
-from rig.commands.hil_lockstep import phase_rms, windows
+from rig.commands.hil_lockstep import phase_rms, seconds_to_meter, unmetered, windows
+from rig.errors import EXIT_SUSPECT
 
 RATE = 500.0
 MODES = ("off", "feedback", "feedback_feedforward")
@@ -52,3 +57,45 @@ def test_what_the_plant_did_after_the_run_does_not_reach_the_figures():
     at_end = phase_rms(xt, np.r_[codes_at_end, ct[x.size:]], RATE, phases)
     ref = phase_rms(x, codes_at_end, RATE, phases)
     assert 20 * math.log10(at_end["feedback_feedforward"] / ref["feedback_feedforward"]) > 0.5
+
+
+def test_no_window_is_empty_and_a_short_one_is_named():
+    """`rig hil --config hil_2khz.toml --seconds 6` metered its last mode from 5 s to 5 s (settle_s at each end of a
+    2 s share): numpy's 'Mean of empty slice' on the terminal. settle_s is now a third of the share at most, and a
+    window under MIN_WINDOW_S gives no figure (unmetered) instead of one from a few periods."""
+    for seconds in (0.05, 1.0, 3.0, 6.0, 6.5, 9.0, 15.0):
+        assert all(t1 > t0 for t0, t1 in windows(seconds, MODES, 1.0)), seconds
+    assert unmetered(6.0, MODES, 1.0) == ["feedback_feedforward"]
+    assert unmetered(3.0, MODES, 1.0) == list(MODES)
+    need = seconds_to_meter(MODES, 1.0)
+    assert need == 9.0 and unmetered(need, MODES, 1.0) == [] and unmetered(need - 0.1, MODES, 1.0) != []
+    assert unmetered(seconds_to_meter(MODES, 0.2), MODES, 0.2) == []
+    assert unmetered(seconds_to_meter(MODES[:2], 0.2) - 0.01, MODES[:2], 0.2) == ["feedback"]
+
+
+@pytest.mark.hil
+def test_a_run_too_short_to_meter_says_so_without_numpy_warnings(tmp_path):
+    """Was: `rig hil --seconds 0.1` printed numpy's RuntimeWarning and judged 'feedback made the table 3.9 dB worse'
+    from 17 periods (exit 3); --seconds 0.01 ended in a scipy traceback."""
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--seconds", "0.3", "--json", "--no-realtime",
+                          "--record", str(tmp_path / "short.h5")], capture_output=True, text=True, timeout=180)
+    assert "Warning" not in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert out.returncode == EXIT_SUSPECT, out.stderr
+    res = json.loads(out.stdout)
+    assert res["isolation_reduction_db"] is None and res["feedforward_reduction_db"] is None
+    said = [ln for ln in out.stderr.splitlines() if "no isolation figure" in ln]
+    assert len(said) == 1 and said[0].startswith("rig hil: warning: off, feedback, feedback + feedforward: metered")
+    assert "give --seconds 9 or more" in said[0]
+
+
+@pytest.mark.hil
+def test_a_prototype_run_too_short_to_meter_gives_no_isolation_figure(tmp_path):
+    """Was: `rig hil --layout prototype --seconds 0.3` judged isolation from 0.07 s of holding and of isolating
+    ('5.3 dB', or 'made the load worse', exit 3, by chance), exit 0."""
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--layout", "prototype", "--seconds", "0.3",
+                          "--json", "--no-realtime", "--record", str(tmp_path / "short.h5")], capture_output=True,
+                         text=True, timeout=180)
+    assert "Traceback" not in out.stderr and out.returncode == EXIT_SUSPECT, out.stderr
+    assert json.loads(out.stdout)["isolation_reduction_db"] is None
+    said = [ln for ln in out.stderr.splitlines() if "no isolation figure" in ln]
+    assert len(said) == 1 and said[0].startswith("rig hil: warning: hold, isolate: metered for less than 1 s")

@@ -4,6 +4,7 @@ without --overwrite; `rig model --plot` writes what it says."""
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import time
@@ -222,3 +223,45 @@ def test_an_unknown_option_is_named_by_its_command_with_the_nearest_option(capsy
     assert capsys.readouterr().err.strip() == "rig hil: error: unrecognized arguments: --frobnicate (see rig hil --help)"
     assert main(["--frobnicate"]) == 2
     assert capsys.readouterr().err.strip() == "rig: error: unrecognized arguments: --frobnicate (see rig --help)"
+
+
+@pytest.mark.parametrize("argv", [["run", "--sim-time", "--seconds", "0.3"], ["hil", "--seconds", "2"]])
+def test_inject_after_the_runs_end_is_refused(capsys, argv):
+    """Was: `rig run --seconds 0.3 --inject nan:front_left:accel@5` ran, said `injected ... at t = 5.000 s` and exited
+    0 (nothing was injected); `rig hil` ran the whole run without the fault and without a word."""
+    assert main(argv + ["--inject", "nan:front_left:stroke@5"]) == 2
+    _one_line_error(capsys, "--inject 'nan:front_left:stroke@5'", "within the run", "--seconds")
+
+
+def test_an_injection_the_run_never_reached_is_not_said_to_be_injected(caplog):
+    """Was: the first injection faulted the run at 0.02 s, and it said `injected nan:front_right:accel@0.2 at t =
+    0.200 s` all the same."""
+    caplog.set_level(logging.INFO, logger="rig")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--inject", "nan:front_left:accel@0.02",
+                 "--inject", "nan:front_right:accel@0.2"]) == 1
+    err = caplog.text
+    assert "injected nan:front_left:accel@0.02 at t = 0.020 s" in err
+    assert "injected nan:front_right:accel@0.2 at" not in err
+    assert "not injected nan:front_right:accel@0.2: the run stopped first (fault)" in err
+
+
+@pytest.mark.parametrize("when", ["nan", "inf", "-1"])
+def test_a_script_time_that_never_comes_is_refused(tmp_path, capsys, when):
+    """Was: `nan off` (and `inf off`) in a --script ran the whole run with the word never acted on, exit 0."""
+    script = tmp_path / "s.txt"
+    script.write_text(f"# times\n0.1 off\n{when} on\n")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
+    _one_line_error(capsys, f"--script {script}: line 3", "a time >= 0")
+
+
+def test_a_control_file_that_is_a_folder_is_refused(tmp_path, capsys):
+    """Was: `--control /tmp` ran the whole run polling a folder: `stop` written anywhere never reached it."""
+    assert main(["run", "--sim-time", "--seconds", "0.2", "--control", str(tmp_path)]) == 2
+    _one_line_error(capsys, f"control file {tmp_path}", "is a folder")
+
+
+def test_hil_bench_of_fewer_than_ten_periods_is_refused(capsys):
+    """Was: `rig hil --bench --seconds 0.01` started the emulated rig and gave p99s of 5 round trips, exit 0."""
+    assert main(["hil", "--bench", "--seconds", "0.01", "--json"]) == 2
+    err = _one_line_error(capsys, "--seconds 0.01", "at least 10 periods at 500 Hz")
+    assert err.startswith("rig hil: error:")

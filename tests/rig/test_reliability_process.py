@@ -173,7 +173,7 @@ def test_inject_drives_a_sim_knob_and_the_run_faults_naming_it(tmp_path):
     ("nan:front_left:valve@1", "needs SIGNAL accel or stroke"),
     ("silence:*:accel@1", "the sim backend has no 'silence' knob"),
     ("nan:0:accel@nan", "T: expected 0 <= T <= 86400 s"),
-    ("recorder:*:-@1", "needs a recording (--record FILE)"),
+    ("recorder:*:-@0.5", "needs a recording (--record FILE)"),     # T within the --seconds 1 run
 ])
 def test_a_bad_injection_is_one_line(tmp_path, spec, words):
     line = one_error_line(rig("run", "--config", relaxed(tmp_path), "--seconds", "1", "--quiet", "--no-realtime",
