@@ -161,9 +161,12 @@ def output_arg(p: argparse.ArgumentParser, *flags: str, kind: str = "file", suff
 def check_outputs(args) -> None:
     """The rule: an output file that exists, or an output folder that is not empty, is refused without
     --overwrite (but a batch's own folder, given to the same batch again: rig/batch/command.py `resumes`); a file
-    name that is a folder (or a folder name that is a file) always. RigError, one line."""
+    name that is a folder (or a folder name that is a file, or a path under a file) always. RigError, one line."""
     overwrite = bool(getattr(args, "overwrite", False))
     for option, path, kind in getattr(args, "_outputs", []):
+        above = next((a for a in path.parents if a.exists()), None)     # the nearest part of the path there
+        if above is not None and not above.is_dir():
+            raise RigError(f"{option} {path}: {above} is a file, not a folder")
         if kind == "file":
             if path.is_dir():
                 raise RigError(f"{option} {path}: is a folder, expected a file name")

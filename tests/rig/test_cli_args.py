@@ -152,6 +152,21 @@ def test_output_folder_with_files_is_not_written_into(tmp_path, monkeypatch, cap
     assert [p.name for p in d.iterdir()] == ["notes.md"]
 
 
+@pytest.mark.parametrize("argv, option", FILE_OUTPUTS + FOLDER_OUTPUTS +
+                         [(["export", "missing.h5", "--to", "csv", "--out"], "--out")])
+def test_an_output_under_a_file_is_refused_before_anything_runs(tmp_path, monkeypatch, capsys, argv, option):
+    """Found by the abuse trial: `rig chirp --record notes.txt/x.h5` and `rig export ... --out notes.txt/x` ended
+    in a NotADirectoryError traceback, `rig identify --out notes.txt/x` only after the whole identification."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.txt").write_text("mine")
+    out = tmp_path / "notes.txt" / ("x.png" if option == "--plot" else "x.h5")
+    t0 = time.monotonic()
+    assert main(argv + [str(out)]) == 2
+    assert time.monotonic() - t0 < 10                       # before anything started
+    _one_line_error(capsys, f"{option} {out}: {tmp_path / 'notes.txt'} is a file, not a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 def test_overwrite_replaces_a_recording_after_a_run(tmp_path, capsys):
     rec = tmp_path / "run.h5"
     rec.write_bytes(b"old")
