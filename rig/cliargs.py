@@ -161,7 +161,8 @@ def output_arg(p: argparse.ArgumentParser, *flags: str, kind: str = "file", suff
 def check_outputs(args) -> None:
     """The rule: an output file that exists, or an output folder that is not empty, is refused without
     --overwrite (but a batch's own folder, given to the same batch again: rig/batch/command.py `resumes`); a file
-    name that is a folder (or a folder name that is a file, or a path under a file) always. RigError, one line."""
+    name that is a folder (or a folder name that is a file, or a path under a file) always. RigError, one line.
+    Then the folder of each output file is made if missing."""
     overwrite = bool(getattr(args, "overwrite", False))
     for option, path, kind in getattr(args, "_outputs", []):
         above = next((a for a in path.parents if a.exists()), None)     # the nearest part of the path there
@@ -178,6 +179,9 @@ def check_outputs(args) -> None:
             resumes = getattr(args, "resumes", None)      # a batch's folder, run again into: it resumes
             if path.is_dir() and not overwrite and any(path.iterdir()) and not (resumes and resumes(args, path)):
                 raise RigError(f"{option} {path}: folder is not empty (add --overwrite to write into it)")
+    for option, path, kind in getattr(args, "_outputs", []):    # all accepted: a file's folder is made if
+        if kind == "file":                                       # missing, as --out DIR is
+            make_out_dir(path.parent, option)
 
 
 # ---- checks that need the configuration or more than one option -----------------------------------------

@@ -65,6 +65,16 @@ def test_rig_report_cli_json_and_plot(three_modes, tmp_path, capsys):
     assert len(err) == 1 and "no mode lasted 5 s (a VC report needs seconds of one mode" in err[0]
 
 
+def test_plot_into_a_missing_folder_makes_it(three_modes, tmp_path, capsys):
+    """Found by the abuse trial: `rig report REC --plot new/vc.png` ended in a FileNotFoundError traceback from
+    matplotlib (so did `rig identify --plot`, after the whole identification); the folder is made, as --out's."""
+    from rig.cli import main
+    plot = tmp_path / "new" / "sub" / "vc.png"
+    assert main(["report", str(three_modes), "--plot", str(plot)]) == 0
+    assert plot.stat().st_size > 10000
+    assert "Traceback" not in capsys.readouterr().err
+
+
 def test_not_a_loop_recording_is_one_line(tmp_path, capsys):
     from rig.cli import main
     bad = tmp_path / "chirp.h5"
