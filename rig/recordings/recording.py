@@ -170,7 +170,7 @@ def validated(cols: dict[str, np.ndarray], source: str, labels: dict[str, str] |
     dt = np.diff(t)
     if not (dt > 0).all():
         k = int(np.argmax(dt <= 0)) + 1
-        raise RecordingError(f"{source}: {lab['time_s']} not increasing at sample {k} ({t[k - 1]!r} then {t[k]!r})")
+        raise RecordingError(f"{source}: {lab['time_s']} not increasing at sample {k} ({t[k - 1]:.9g} s then {t[k]:.9g} s)")
     step = float(np.median(dt))
     off = np.abs(dt - step) > UNIFORM_TOL * step
     if off.any():
