@@ -487,6 +487,16 @@ def _check_value(where: str, name: str, ftype, meta, value):
     return value
 
 
+def check_actuator_value(where: str, name: str, value: float) -> float:
+    """An eha actuator parameter (sim_backend.linear.ActuatorParams' name, e.g. a plant file's K_L) held to the
+    range of its key in [actuator], [valve] or [fluid]: one ConfigError naming where.name."""
+    for cls in (ActuatorConfig, ValveConfig, FluidConfig):
+        field = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+        if field is not None:
+            return _check_value(where, name, float, field.metadata, value)
+    return value
+
+
 def _build_section(cls, data: dict, where: str):
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a table [{where.split(': ')[-1]}], got {data!r}")

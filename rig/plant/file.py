@@ -25,7 +25,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from rig.config import load_config
+from rig.config import check_actuator_value, load_config
 from rig.errors import ConfigError
 from rig.plant.model import FAMILIES, INPUT_UNITS, Param, Plant, eha_plant
 from rig.recordings.recording import Recording, check_plausible
@@ -100,7 +100,8 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
             k = next(k for k, p in vals.items() if p.free)
             raise ConfigError(f"{where} {k}: the eha plant's values are fixed numbers (the diagnosis refits "
                               "K_L, K_C, K_Q, w_nv, zeta within 0.7-1.4 x these)")
-        return eha_plant(base.with_(**{k: p.value for k, p in vals.items()}), source)
+        return eha_plant(base.with_(**{k: check_actuator_value(where, k, p.value) for k, p in vals.items()}),
+                         source)
     if family == "mechanical_axis":
         output = rest.pop("output", "position")
         if output not in AXIS_OUTPUTS:

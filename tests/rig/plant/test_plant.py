@@ -43,6 +43,11 @@ def test_no_plant_table_is_the_eha_default(tmp_path):
     ({"family": "transfer_function", "num": [1.0, 2.0], "den": [1.0, 3.0]}, "strictly proper"),
     ({"family": "transfer_function", "num": [1.0], "den": [0.0, 1.0, 3.0]}, "den[0]"),
     ({"family": "eha", "K_Q": {"value": 1e-6, "min": 1e-7, "max": 1e-5}}, "K_Q"),
+    # found by the abuse trial: K_L = 1e300 passed and the diagnosis ended in a ValueError traceback; an eha
+    # value is held to its [actuator], [valve] or [fluid] range
+    ({"family": "eha", "K_L": 1e300}, "K_L: expected <= 1e+11 N/m, got 1e+300"),
+    ({"family": "eha", "zeta": 50.0}, "zeta: expected <= 10, got 50.0"),
+    ({"family": "eha", "beta": 1.0}, "beta: expected >= 1e+07 Pa, got 1.0"),
 ])
 def test_bad_plant_gives_one_line_naming_file_and_key(table, words):
     with pytest.raises(ConfigError) as e:
