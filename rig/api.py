@@ -49,10 +49,16 @@ def record_chirp(path, *, seconds: float = 100.0, amplitude_V: float = 2.0, f0_h
     defaults: 0.1-100 Hz, 2 V, 100 s); the recording written to path and returned. Nothing is kept if the run
     fails. A file already at path is refused (RigError) unless overwrite=True, as the command refuses it
     without --overwrite."""
+    import argparse
+    from rig import cliargs
     from rig.chirp import run_chirp
     from rig.config import load_config
     from rig.errors import RigError
     from rig.recordings.rigformat import load_recording as _load
+    try:
+        seconds = cliargs.seconds(le=cliargs.MAX_CHIRP_S)(seconds)          # as rig chirp --seconds
+    except argparse.ArgumentTypeError as e:
+        raise RigError(f"record_chirp: seconds: {e}") from None
     p = Path(path)
     if p.is_dir():
         raise RigError(f"record_chirp: {p}: is a folder, expected a file name")

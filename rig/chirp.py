@@ -80,12 +80,12 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
 def _check_signal(cfg, rate: float, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float,
                   slew_V_per_s: float) -> None:
     """The signal within the safety limits and below Nyquist (one line naming the option otherwise)."""
-    if amplitude_V <= 0 or amplitude_V > cfg.safety.valve_limit_V:
+    if not 0 < amplitude_V <= cfg.safety.valve_limit_V:            # (so NaN is refused too)
         raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
                        f"got {amplitude_V:g}")
     if not 0 <= f0_hz < f1_hz < rate / 2:
         raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
-    if duration_s <= 0:
+    if not duration_s > 0:
         raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
     if slew_V_per_s > cfg.safety.slew_V_per_s:
         raise RigError(f"--amplitude/--f1: the chirp slews {slew_V_per_s:.0f} V/s, above safety.slew_V_per_s = "

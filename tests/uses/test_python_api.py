@@ -4,9 +4,11 @@ activates warns); `import rig` loads nothing heavy."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -63,6 +65,22 @@ def test_identify_refuses_a_feedback_only_recording_as_the_cli_does(tmp_path):
     assert main(["run", "--sim-time", "--seconds", "1", "--quiet", "--record", str(run)]) == 0
     with pytest.raises(RigError, match="closed-loop recording"):
         rig.identify_actuator(run)
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"seconds": math.nan}, "seconds: expected > 0 s and <= 3600 s, got nan"),
+    ({"seconds": 1e9}, "seconds: expected > 0 s and <= 3600 s, got 1000000000.0"),
+    ({"seconds": 1.0, "amplitude_V": math.nan}, "--amplitude: expected 0 < V <="),
+])
+def test_record_chirp_refuses_what_rig_chirp_refuses(tmp_path, kw, words):
+    """Found by the abuse trial: seconds=nan ended in a ValueError from the scheduler, seconds=1e9 went on building
+    a billion-second chirp (`rig chirp --seconds` stops at an hour), amplitude_V=nan ran into a FAULT."""
+    import rig
+    from rig.errors import RigError
+    t0 = time.monotonic()
+    with pytest.raises(RigError, match=re.escape(words)):
+        rig.record_chirp(tmp_path / "c.h5", **kw)
+    assert time.monotonic() - t0 < 20 and list(tmp_path.iterdir()) == []       # refused before any run
 
 
 def test_identify_warns_where_the_cli_exits_5(tmp_path):
