@@ -119,7 +119,17 @@ def simulate_isolation(seconds: float = 10.0, *, config=None, settle_s: float = 
     """The four-mount rig on the simulated plant in simulated time, isolation off / feedback / feedback +
     feedforward over the same floor (the actuators model_error_pct off the controllers' model, as
     `rig demo`). For a run of your own, use rig.runtime.session.Session (see docs/PYTHON_API.md)."""
+    import argparse
+    from rig.commands.demo import RANGES
     from rig.compare import compare, demo_config
+    from rig.errors import RigError
+    for name, value in (("seconds", seconds), ("settle_s", settle_s), ("rms_um", rms_um),
+                        ("model_error_pct", model_error_pct)):
+        try:
+            if value is not None:
+                RANGES[name](value)                             # as rig demo's option
+        except argparse.ArgumentTypeError as e:
+            raise RigError(f"simulate_isolation: {name}: {e}") from None
     cfg, plant = demo_config(config, rms_um=rms_um, model_error_pct=model_error_pct, log=progress)
     res, _ = compare(cfg, seconds=seconds, settle_s=settle_s, log=progress)
     res["plant"] = plant

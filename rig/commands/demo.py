@@ -26,15 +26,20 @@ from rig import cliargs
 from rig.errors import EXIT_HARM
 
 
+# the options' ranges, which rig.simulate_isolation (rig/api.py) holds its arguments to as well
+RANGES = {"seconds": cliargs.seconds(ge=0.5, le=600), "settle_s": cliargs.seconds(ge=0, le=60),
+          "rms_um": cliargs.Number(gt=0, le=1000, unit="um"), "model_error_pct": cliargs.Number(ge=0, le=50, unit="%")}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=cliargs.seconds(ge=0.5, le=600), default=10.0, metavar="N",
+    p.add_argument("--seconds", type=RANGES["seconds"], default=10.0, metavar="N",
                    help="seconds PER MODE: three simulated runs of N s each (off, feedback, feedback + feedforward), "
                         "each after --settle; unlike run, hil and chirp, where --seconds is the whole run (default 10)")
-    p.add_argument("--settle", type=cliargs.seconds(ge=0, le=60), default=1.0, metavar="S",
+    p.add_argument("--settle", type=RANGES["settle_s"], default=1.0, metavar="S",
                    help="seconds run before metering in each mode (default 1)")
-    p.add_argument("--rms-um", type=cliargs.Number(gt=0, le=1000, unit="um"), default=None, metavar="UM",
+    p.add_argument("--rms-um", type=RANGES["rms_um"], default=None, metavar="UM",
                    help="floor displacement rms in um (default: [vibration] rms_m of the config)")
-    p.add_argument("--model-error", type=cliargs.Number(ge=0, le=50, unit="%"), default=10.0, metavar="PCT",
+    p.add_argument("--model-error", type=RANGES["model_error_pct"], default=10.0, metavar="PCT",
                    help="the plant's actuator parameters PCT %% off the controllers' model, in the worst corner "
                         "for the feedforward (default 10; 0: the plant as [plant_error] of the config says)")
     cliargs.output_arg(p, "--out", kind="folder", metavar="DIR", default=None,

@@ -83,6 +83,23 @@ def test_record_chirp_refuses_what_rig_chirp_refuses(tmp_path, kw, words):
     assert time.monotonic() - t0 < 20 and list(tmp_path.iterdir()) == []       # refused before any run
 
 
+@pytest.mark.parametrize("kw, words", [
+    ({"seconds": 0}, "simulate_isolation: seconds: expected >= 0.5 s and <= 600 s, got 0"),
+    ({"seconds": -1}, "simulate_isolation: seconds: expected >= 0.5 s and <= 600 s, got -1"),
+    ({"seconds": math.nan}, "simulate_isolation: seconds: expected >= 0.5 s and <= 600 s, got nan"),
+    ({"seconds": 1, "settle_s": -1}, "simulate_isolation: settle_s: expected >= 0 s and <= 60 s, got -1"),
+])
+def test_simulate_isolation_refuses_what_rig_demo_refuses(kw, words):
+    """Found by the abuse trial: seconds=0 ended in a ValueError from scipy after RuntimeWarnings ("Mean of empty
+    slice"), -1 in a ZeroDivisionError, nan in a ValueError: the API holds its arguments to rig demo's ranges."""
+    import rig
+    from rig.errors import RigError
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RigError, match=re.escape(words)):
+            rig.simulate_isolation(**kw)
+
+
 def test_identify_warns_where_the_cli_exits_5(tmp_path):
     """A chirp buried in transducer noise: `rig identify` says "poor fit" and exits 5; the API returns the
     parameters with a SuspectFit warning naming the same reason (issue 29: the same rules as the CLI)."""
