@@ -100,6 +100,17 @@ def test_simulate_isolation_refuses_what_rig_demo_refuses(kw, words):
             rig.simulate_isolation(**kw)
 
 
+def test_record_chirp_under_a_file_is_one_line(tmp_path):
+    """Found by the abuse trial: a path under a file ended in a NotADirectoryError from the clean-up of the part
+    file, which hid the recorder's one line."""
+    import rig
+    from rig.errors import RigError
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(RigError, match="cannot create recording") as e:
+        rig.record_chirp(tmp_path / "notes.txt" / "c.h5", seconds=1)
+    assert "\n" not in str(e.value) and (tmp_path / "notes.txt").read_text() == "mine"
+
+
 def test_identify_warns_where_the_cli_exits_5(tmp_path):
     """A chirp buried in transducer noise: `rig identify` says "poor fit" and exits 5; the API returns the
     parameters with a SuspectFit warning naming the same reason (issue 29: the same rules as the CLI)."""
