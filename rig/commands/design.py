@@ -31,6 +31,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from rig import cliargs
+from rig.config import check_actuator_value
 from rig.errors import RigError
 
 PAPER = {  # Law et al. 2015, text of Figs. 11-13
@@ -92,7 +93,7 @@ def load_identified(cfg, folder: Path):
         v = par.get(k)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise RigError(f"{path}: parameters.{k}: expected a positive number, got {v!r}")
-        vals[k] = float(v)
+        vals[k] = check_actuator_value(f"{path}: parameters", k, float(v))     # within [actuator]/[valve]'s range
     return with_actuator(cfg, **vals), vals, str(path)
 
 

@@ -108,6 +108,8 @@ def test_design_on_identified_actuator(tmp_path, capsys):
     (lambda p: p.mkdir(), "no identify.json"),
     (lambda p: (p.mkdir(), (p / "identify.json").write_text("{not json")), "cannot read it as JSON"),
     (lambda p: _identify_json(p, w_nv=-3.0), "parameters.w_nv: expected a positive number"),
+    # found by the abuse trial: K_L = 1e300 ended in a LinAlgError traceback; held to [actuator] K_L's range
+    (lambda p: _identify_json(p, K_L=1e300), "parameters.K_L: expected <= 1e+11 N/m, got 1e+300"),
     (lambda p: (p.mkdir(), (p / "identify.json").write_text('{"parameters": 3}')), "'parameters'"),
 ])
 def test_identified_errors_are_one_line(tmp_path, capsys, setup, words):
