@@ -86,7 +86,21 @@ def _where(args) -> str:
     return f"on the Dask cluster at {check_address(args.scheduler)}"
 
 
+def _refuse_other_modes(args) -> None:
+    """An option of another mode is refused, not ignored (the defaults: add_arguments)."""
+    for option, given, mode, on in (("--kinds", args.kinds is not None, "--single", args.single),
+                                    ("--all-mounts", args.all_mounts, "--single", args.single),
+                                    ("--repeats", args.repeats != 2, "--single", args.single),
+                                    ("--hil-seconds", args.hil_seconds is not None, "--single", args.single),
+                                    ("--clean", args.clean != 10, "--commission", args.commission),
+                                    ("--retries", args.retries != 0, "--commission", args.commission),
+                                    ("--keep", args.keep is not None, "--rig", args.rig)):
+        if given and not on:
+            raise RigError(f"{option}: expected with {mode} (see rig prove --help)")
+
+
 def run(args) -> int:
+    _refuse_other_modes(args)
     if args.rig:                                    # the four-mount rig (issue 28): its own defaults
         return prove_rig.run(args)
     if args.single and not args.commission:

@@ -79,3 +79,21 @@ def test_prove_cases_folder_errors(tmp_path):
     (tmp_path / "answers.json").write_text(json.dumps({"x.csv": {"effects": {"gremlins": {}}}}))
     res = _rig("prove", "--cases", tmp_path)
     assert res.returncode == 2 and "gremlins" in res.stderr
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--kinds", "accel_sign"], "--kinds: expected with --single"),
+    (["--all-mounts"], "--all-mounts: expected with --single"),
+    (["--repeats", "3"], "--repeats: expected with --single"),
+    (["--clean", "5"], "--clean: expected with --commission"),
+    (["--retries", "1"], "--retries: expected with --commission"),
+    (["--keep", "kept"], "--keep: expected with --rig"),
+])
+def test_an_option_of_another_mode_is_refused_not_ignored(tmp_path, capsys, monkeypatch, argv, words):
+    """Found by the abuse trial: `rig prove --kinds foo` ignored --kinds and ran the default 30 blind chirp cases
+    (minutes); an option that belongs to another mode is one line, exit 2."""
+    from rig.cli import main
+    monkeypatch.chdir(tmp_path)
+    assert main(["prove", "--n", "1", "--duration", "5", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0] == f"rig prove: error: {words} (see rig prove --help)", err
