@@ -69,8 +69,9 @@ class Number:
 
     def expected(self) -> str:
         unit = f" {self.unit}" if self.unit else ""
-        parts = [f"{op} {_fmt(b)}{unit}" for op, b in ((">", self.gt), (">=", self.ge), ("<", self.lt),
-                                                       ("<=", self.le)) if b is not None]
+        fmt = (lambda b: str(int(b))) if self.integer else _fmt          # a seed's bound in full, not 4.29497e+09
+        parts = [f"{op} {fmt(b)}{unit}" for op, b in ((">", self.gt), (">=", self.ge), ("<", self.lt),
+                                                      ("<=", self.le)) if b is not None]
         if self.integer:
             return "an integer" + (" " + " and ".join(parts) if parts else "")
         return " and ".join(parts) if parts else f"a finite number{unit}"

@@ -211,6 +211,13 @@ def test_a_position_without_its_unit_is_refused(capsys, value):
     _one_line_error(capsys, "--position: expected a length with its unit, e.g. 5um or 0.5mm", repr(value))
 
 
+def test_an_integer_bound_is_said_in_full(capsys):
+    """Found by the abuse trial: `--seed 4294967296` was refused with "expected ... <= 4.29497e+09", a bound the
+    value looks to be inside of."""
+    assert main(["identify", "missing.h5", "--seed", "4294967296"]) == 2
+    _one_line_error(capsys, "--seed: expected an integer >= 0 and <= 4294967295, got '4294967296'")
+
+
 def test_lengths_take_their_units_and_numbers_their_options_unit():
     from controllers.reference import parse_length, parse_reference
     from rig import cliargs
