@@ -48,8 +48,8 @@ def run(args) -> int:
                 raise RigError(f"{f}: file exists (add --overwrite to replace it)")
     if out.resolve() == rec.resolve():
         raise RigError(f"--out {out}: is the recording itself")
-    out.parent.mkdir(parents=True, exist_ok=True)
     exp = export.load(rec)
+    out.parent.mkdir(parents=True, exist_ok=True)           # once REC is read: a refused REC leaves no folder
     if args.to == "mat":
         export.write_mat(exp, out)
     else:

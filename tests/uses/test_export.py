@@ -115,6 +115,14 @@ def test_a_chirp_exported_to_mat_is_read_by_rigs_loader(tmp_path):
     assert scipy.io.loadmat(mat, simplify_cells=True)["meta"]["units"]["position_m"] == "m"
 
 
+def test_a_refused_recording_leaves_no_output_folder(tmp_path):
+    """Found by the abuse trial: `rig export bad.h5 --to csv --out DIR` refused bad.h5 and left DIR made, empty."""
+    (tmp_path / "bad.h5").write_bytes(b"\x89HDF\r\n\x1a\n truncated")
+    res = _rig("export", tmp_path / "bad.h5", "--to", "csv", "--out", tmp_path / "exported")
+    assert res.returncode == 2 and "bad.h5: cannot open recording" in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.h5"]
+
+
 def test_bad_input_is_one_line(run_rec, tmp_path):
     (tmp_path / "text.h5").write_text("not HDF5")
     with h5py.File(tmp_path / "other.h5", "w") as f:
