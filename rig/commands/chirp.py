@@ -76,6 +76,12 @@ def run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    name = args.record.name.lower()
+    csv_name = name.endswith((".csv", ".csv.gz"))
+    if args.csv != csv_name and (csv_name or name.endswith((".h5", ".hdf5"))):   # `rig identify` reads by name
+        raise RigError(f"--record {args.record}: " + ("--csv writes CSV: expected a name ending in .csv or .csv.gz"
+                                                      if args.csv else "expected --csv for a .csv name (without it "
+                                                                       "the recording is HDF5), or a .h5 name"))
     from rig.chirp import run_chirp          # heavy (numba, scipy): after the arguments are checked
     cfg = load_config(args.config)
     backend = args.backend or cfg.backend.name

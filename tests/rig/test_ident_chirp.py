@@ -115,6 +115,20 @@ def test_cli_bad_arguments_are_one_line(tmp_path, capsys, argv, expect):
     assert len(err) == 1 and expect in err[0]
 
 
+@pytest.mark.parametrize("name, argv, expect", [
+    ("x.h5", ["--csv"], "--csv writes CSV: expected a name ending in .csv or .csv.gz"),
+    ("x.csv", [], "expected --csv for a .csv name (without it the recording is HDF5), or a .h5 name"),
+])
+def test_a_record_name_of_the_other_format_is_refused(tmp_path, capsys, name, argv, expect):
+    """Found by the abuse trial: `rig chirp --record x.h5 --csv` wrote CSV into x.h5, and the `next: rig identify
+    x.h5` it printed then failed ("not an HDF5 file"); `--record x.csv` without --csv wrote HDF5 into x.csv."""
+    from rig.cli import main
+    out = tmp_path / name
+    assert main(["chirp", "--record", str(out), "--duration", "0.5", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"rig chirp: error: --record {out}: {expect}"] and not out.exists()
+
+
 def test_stand_effects_from_the_config_reach_the_recording(tmp_path):
     # a 2 ms transport delay in [stand]: the linear refit hides it by lowering w_nv (PHYSICS_NOTES)
     from rig.cli import main
