@@ -96,18 +96,19 @@ def run(args) -> int:
 
     def progress(t_s, total_s):
         nonlocal task
-        if task is None:
+        if task is None:                    # the bar starts with the run: a refusal before it prints no empty line
+            bar.start()
             task = bar.add_task("chirp", total=total_s)
         bar.update(task, completed=t_s)
 
-    bar.start()
     try:
         s = run_chirp(cfg, backend=backend, amplitude_V=args.amplitude, f0_hz=args.f0, f1_hz=args.f1,
                       duration_s=args.duration, rate_hz=args.rate, out=args.record, csv=args.csv, mount=args.mount,
                       settle_s=args.settle, sim_time=(backend == "sim" and not args.realtime), seed=args.seed,
                       progress=progress, levels_V=args.levels, multisine=args.multisine, period_s=args.period)
     finally:
-        bar.stop()
+        if task is not None:
+            bar.stop()
     what = ("chirp at levels " + ",".join(f"{v:g}" for v in args.levels) + " V" if args.levels
             else f"odd multisine (period {args.period:g} s)" if args.multisine else "chirp")
     if args.json:
