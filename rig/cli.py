@@ -55,7 +55,8 @@ def unrecognized(parser: argparse.ArgumentParser, command: str | None, extra: li
     near = next((difflib.get_close_matches(x.split("=")[0], options, n=1, cutoff=0.7) for x in extra
                  if x.startswith("-")), [])
     hint = f"; did you mean {near[0]}?" if near else ""
-    return f"{prog}: error: unrecognized arguments: {' '.join(extra)}{hint} (see {prog} --help)"
+    shown = " ".join(x if x.isprintable() else repr(x) for x in extra)     # a CR or newline keeps it one line
+    return f"{prog}: error: unrecognized arguments: {shown}{hint} (see {prog} --help)"
 
 
 def main(argv: list[str] | None = None) -> int:

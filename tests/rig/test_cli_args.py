@@ -245,6 +245,9 @@ def test_an_unknown_option_is_named_by_its_command_with_the_nearest_option(capsy
     assert capsys.readouterr().err.strip() == "rig hil: error: unrecognized arguments: --frobnicate (see rig hil --help)"
     assert main(["--frobnicate"]) == 2
     assert capsys.readouterr().err.strip() == "rig: error: unrecognized arguments: --frobnicate (see rig --help)"
+    assert main(["drill", "--only", "nan", "-x\rb"]) == 2          # a carriage return does not split the line
+    assert capsys.readouterr().err.splitlines() == ["rig drill: error: unrecognized arguments: '-x\\rb' "
+                                                    "(see rig drill --help)"]
 
 
 @pytest.mark.parametrize("argv", [["run", "--sim-time", "--seconds", "0.3"], ["hil", "--seconds", "2"]])
