@@ -229,16 +229,21 @@ def _exit_code(res) -> int:
             "this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
     short = res.get("unmetered") or []
     if short:
-        from rig.commands.hil_lockstep import BAND_HZ, MIN_WINDOW_S
-        print(f"rig hil: warning: {', '.join(m.replace('_', ' + ') for m in short)}: metered for less than "
-              f"{MIN_WINDOW_S:g} s after [hil] settle_s (the {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz band needs it): no "
-              f"isolation figure; give --seconds {res['seconds_to_meter']:g} or more", file=sys.stderr)
+        _say_unmetered(short, res["seconds_to_meter"])
     if res["faults"]:
         return EXIT_FAULT
     if res.get("harm"):
         print(f"rig hil: {res['harm']}", file=sys.stderr)
         return EXIT_HARM
     return EXIT_HARM if worse else EXIT_SUSPECT if late or short else 0
+
+
+def _say_unmetered(modes, seconds_needed: float) -> None:
+    """The one warning line for modes metered too briefly to give an isolation figure."""
+    from rig.commands.hil_lockstep import BAND_HZ, MIN_WINDOW_S
+    print(f"rig hil: warning: {', '.join(m.replace('_', ' + ') for m in modes)}: metered for less than "
+          f"{MIN_WINDOW_S:g} s after [hil] settle_s (the {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz band needs it): no "
+          f"isolation figure; give --seconds {seconds_needed:g} or more", file=sys.stderr)
 
 
 def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = True, quiet: bool = False,
@@ -399,8 +404,7 @@ def _prototype(cfg, seconds: float, args) -> int:
     worse = red is not None and red < 0
     code = EXIT_FAULT if res["faults"] else EXIT_HARM if res["harm"] or worse else EXIT_SUSPECT if res["unmetered"] else 0
     if res["unmetered"]:
-        print(f"rig hil: warning: hold, isolate: metered for less than 1 s after [hil] settle_s (the 1-100 Hz band "
-              f"needs it): no isolation figure; give --seconds {res['seconds_to_meter']:g} or more", file=sys.stderr)
+        _say_unmetered(res["unmetered"], res["seconds_to_meter"])
     if res["harm"]:
         print(f"rig hil: {res['harm']}", file=sys.stderr)
     elif worse:
