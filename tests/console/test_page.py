@@ -79,7 +79,9 @@ def test_an_injected_sensor_fault_shows_its_reason_and_is_reset_from_the_page(ch
         assert page.is_hidden("#fault")
         page.click("#activate")
         wait_for(page, "document.getElementById('state').textContent === 'ACTIVE'")
-        events = page.text_content("#events")
+        # the events list comes in its own message, which can follow the state's: waited for, not read at once
+        events = wait_for(page, "document.getElementById('events').textContent.includes('fault reset requested') "
+                                "&& document.getElementById('events').textContent")
         assert page.errors == []
     assert "FAULT" in events and "fault reset requested" in events
 
