@@ -24,8 +24,9 @@
   rig bench recorder [--seconds N] [--json]       the recording writer's CPU time and the recording's size per
                                                   hour, gzip against none (rig/commands/bench_recorder.py)
   rig bench stalls [--seconds N] [--json]         where stalls come from: an empty loop at real-time and at normal
-                                                  priority, a pty echo and a socket echo, side by side
-                                                  (rig/commands/bench_stalls.py)
+                                                  priority, a pty echo and a socket echo, side by side; then
+                                                  what the host takes from busy loops on one CPU and on every
+                                                  CPU (rig/commands/bench_stalls.py)
   rig bench idle-poll [--rounds R] [--seconds N]  `rig hil` with idle CPUs kept polling and without, alternating
                                                   (rig/commands/bench_idle_poll.py)
   rig bench sim ...                               simulation speed of the plant
@@ -109,7 +110,7 @@ def add_arguments(p) -> None:
     pp.add_argument("--seed", type=cliargs.seed(), default=18, metavar="N", help="seed of the switches (default 18)")
     pp.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
     st = sub.add_parser("stalls", help="where stalls come from: real-time and normal empty loops, pty and socket "
-                                       "echoes side by side")
+                                       "echoes side by side; then busy loops on one CPU and on every CPU")
     _config_arg(st)
     bench_stalls.add_arguments(st)
     ip = sub.add_parser("idle-poll", help="rig hil with idle CPUs kept polling and without, alternating runs")

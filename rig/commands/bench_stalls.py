@@ -10,10 +10,18 @@ Four probes run at once, each a process of its own, for --seconds:
   pty echo             a byte echoed through a pty pair between two SCHED_FIFO processes (the emulated amplifier's
                        line, at the devices' priorities), every 2 ms
   socket echo          the same through a socket pair (the Modbus and CAN gateways' loopback TCP takes this path)
-Per probe: the gap or echo time p50/p99/max, and how many exceeded 20 ms. A pty moves its bytes through the
+Per probe: the gap or echo time p50/p99/max, and how many exceeded 20 ms; for the loops also the share of
+wake-ups more than a period late (what `rig hil` counts as a late period). A pty moves its bytes through the
 kernel's tty flip buffer, pushed by a worker thread at normal priority: under the machine's other load that
 worker waits, and the echo stalls while both ends run at SCHED_FIFO and the real-time loop does not (a serial
-port's driver uses the same buffer). --json prints {"seconds", "rate_hz", "load", "probes": {name: {...}}}.
+port's driver uses the same buffer).
+
+Then the CPUs kept busy, --seconds / 2 (at most 10 s) each: a busy loop pinned to one CPU alone, then one pinned
+to every CPU at once. What such a loop loses in gaps over 0.5 ms was taken from it: by the machine's other
+processes (the load says whether there are any) or, on an otherwise idle machine, by the kernel or the
+hypervisor. A host that takes far more when every CPU is busy cannot hold a loop whose processes need more than
+one CPU to a period (drivers/README.md, the same code on a noisier host). --json prints {"seconds", "rate_hz", "load", "probes": {name: {...}}, "busy": {"one CPU", "every CPU":
+{"seconds", "cpus", "load", "lost_pct", "gaps_over_5_ms", "longest_ms"}}}.
 """
 from __future__ import annotations
 
@@ -34,6 +42,8 @@ from rig.runtime.clock import MonotonicClock
 from rig.runtime.rt import raise_priority
 
 OVER_MS = 20.0
+GAP_NS = 500_000            # a busy loop's gap longer than this was the CPU taken from it
+BUSY_MAX_S = 10.0
 
 
 def add_arguments(p) -> None:
@@ -49,15 +59,55 @@ def _loop(conn, priority: int, rate: float, seconds: float) -> None:
     clock, period = MonotonicClock(0), int(round(1e9 / rate))
     t = time.monotonic_ns() + period
     end = t + int(seconds * 1e9)
-    gaps, last = [], None
+    gaps, late, last = [], 0, None
     while t < end:
         clock.sleep_until(t)
         now = time.monotonic_ns()
         if last is not None:
             gaps.append(now - last)
+        late += now - t > period
         last = now
         t += period
+    conn.send((np.asarray(gaps, dtype=np.float64) * 1e-3, late))
+
+
+def _spin(conn, cpu: int, seconds: float) -> None:
+    """Busy on one CPU for `seconds`: the gaps over GAP_NS between two readings of the clock (us)."""
+    os.sched_setaffinity(0, {cpu})
+    now_ns = time.monotonic_ns
+    last = now_ns()
+    end = last + int(seconds * 1e9)
+    gaps = []
+    while last < end:
+        now = now_ns()
+        if now - last > GAP_NS:
+            gaps.append(now - last)
+        last = now
     conn.send(np.asarray(gaps, dtype=np.float64) * 1e-3)
+
+
+def busy(seconds: float) -> dict:
+    """A busy loop on one CPU alone, then on every CPU at once: per phase the share of its time each lost in
+    gaps (the mean over the CPUs), the gaps over 5 ms and the longest."""
+    ctx = mp.get_context("fork")
+    cpus = sorted(os.sched_getaffinity(0))
+    out = {}
+    for phase, on in (("one CPU", cpus[-1:]), ("every CPU", cpus)):
+        running = []
+        for cpu in on:
+            here, there = ctx.Pipe()
+            p = ctx.Process(target=_spin, args=(there, cpu, seconds), daemon=True)
+            p.start()
+            running.append((p, here))
+        gaps = []
+        for p, here in running:
+            gaps.append(here.recv() if here.poll(seconds + 30) else np.zeros(0))
+            p.join(5)
+        out[phase] = {"seconds": seconds, "cpus": len(on), "load": round(os.getloadavg()[0], 2),
+                      "lost_pct": round(100 * float(np.mean([g.sum() * 1e-6 / seconds for g in gaps])), 2),
+                      "gaps_over_5_ms": int(sum((g > 5e3).sum() for g in gaps)),
+                      "longest_ms": round(max((float(g.max()) for g in gaps if g.size), default=0.0) * 1e-3, 2)}
+    return out
 
 
 def _echo(conn, kind: str, priority: int, seconds: float) -> None:
@@ -109,16 +159,23 @@ def measure(cfg, seconds: float, rate: float) -> dict:
     load0 = os.getloadavg()[0]
     out = {}
     for name, (p, here) in running.items():
-        a = here.recv() if here.poll(seconds + 30) else np.zeros(0)
+        got = here.recv() if here.poll(seconds + 30) else np.zeros(0)
         p.join(5)
+        a, late = got if isinstance(got, tuple) else (got, None)
         out[name] = ({"p50_us": round(float(np.percentile(a, 50)), 1), "p99_us": round(float(np.percentile(a, 99)), 1),
                       "max_ms": round(float(a.max()) * 1e-3, 2), f"over_{OVER_MS:g}_ms": int((a > OVER_MS * 1e3).sum()),
                       "n": int(a.size)} if a.size else {"n": 0})
-    return {"seconds": seconds, "rate_hz": rate, "load": round((load0 + os.getloadavg()[0]) / 2, 2), "probes": out}
+        if late is not None and a.size:
+            out[name]["late_over_period_pct"] = round(100 * late / (a.size + 1), 2)
+    load = round((load0 + os.getloadavg()[0]) / 2, 2)
+    return {"seconds": seconds, "rate_hz": rate, "load": load, "probes": out,
+            "busy": busy(min(seconds / 2, BUSY_MAX_S))}
 
 
 def run(args) -> int:
     cfg = load_config(getattr(args, "config", None))
+    print(f"rig bench stalls: {args.seconds:g} s of the four probes side by side, then the CPUs kept busy "
+          f"(2 x {min(args.seconds / 2, BUSY_MAX_S):g} s)", file=sys.stderr)
     res = measure(cfg, args.seconds, args.rate)
     if args.json:
         print(json.dumps(res))
@@ -128,6 +185,11 @@ def run(args) -> int:
         if not d.get("n"):
             print(f"  {name:18s} no samples")
             continue
+        late = f"  late > a period: {d['late_over_period_pct']:.2f} %" if "late_over_period_pct" in d else ""
         print(f"  {name:18s} p50 {d['p50_us']:8.1f} us  p99 {d['p99_us']:8.1f} us  max {d['max_ms']:7.2f} ms  "
-              f"over {OVER_MS:g} ms: {d[f'over_{OVER_MS:g}_ms']}", file=sys.stdout)
+              f"over {OVER_MS:g} ms: {d[f'over_{OVER_MS:g}_ms']}{late}", file=sys.stdout)
+    print(f"CPUs kept busy, {res['busy']['one CPU']['seconds']:g} s each (time the host took from a busy loop):")
+    for phase, d in res["busy"].items():
+        print(f"  {phase:18s} lost {d['lost_pct']:5.2f} %  gaps over 5 ms: {d['gaps_over_5_ms']}  longest "
+              f"{d['longest_ms']:.1f} ms  (load average {d['load']:g})")
     return 0

@@ -4,6 +4,7 @@ nothing here asserts on timing (the machine is shared)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -50,6 +51,14 @@ def test_bench_stalls_json_side_by_side():
     for name, d in res["probes"].items():
         assert d["n"] > 100, name                       # 1 kHz loops, an echo every 2 ms, for 2 s
         assert d["p50_us"] <= d["p99_us"] <= 1e3 * d["max_ms"] + 1e-6, name
+    for name in ("loop (SCHED_FIFO)", "loop (normal)"):
+        assert 0.0 <= res["probes"][name]["late_over_period_pct"] <= 100.0, name
+    one, every = res["busy"]["one CPU"], res["busy"]["every CPU"]
+    assert (one["cpus"], every["cpus"]) == (1, len(os.sched_getaffinity(0)))
+    for d in (one, every):
+        assert d["seconds"] == 1.0 and 0.0 <= d["lost_pct"] < 100.0
+        assert d["longest_ms"] >= 0.0 and d["gaps_over_5_ms"] >= 0
+        assert d["gaps_over_5_ms"] == 0 or d["longest_ms"] > 5.0
 
 
 def test_bench_idle_poll_json_runs_both_settings_alternately():
