@@ -32,8 +32,9 @@ def host_line(text: str) -> str | None:
 
 def ran_to_the_end(out) -> bool:
     """A real-clock command that ran to its end without a fault or harm: exit 0, or EXIT_SUSPECT with `rig hil`'s
-    line saying the host let more than 1 % of a mode's periods come late (its figures are then the host's too)."""
-    return out.returncode == 0 or (out.returncode == EXIT_SUSPECT and "the host did not keep time" in out.stderr)
+    line saying more than 1 % of a mode's periods came late (the host's, or the drivers' chain's on this host)."""
+    return out.returncode == 0 or (out.returncode == EXIT_SUSPECT and any(
+        s in out.stderr for s in ("the host did not keep time", "the drivers' chain fell behind")))
 
 
 def skip_unless_on_time(out) -> None:

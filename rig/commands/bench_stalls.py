@@ -38,7 +38,7 @@ import numpy as np
 
 from rig import cliargs
 from rig.config import load_config
-from rig.runtime.clock import MonotonicClock
+from rig.runtime.empty_loop import EmptyLoop
 from rig.runtime.rt import raise_priority
 
 OVER_MS = 20.0
@@ -54,21 +54,48 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON figures on stdout")
 
 
-def _loop(conn, priority: int, rate: float, seconds: float) -> None:
+def _echo(conn, kind: str, priority: int, seconds: float) -> None:
+    """One end asks, the other (a forked child at priority + 5) echoes: the round trip, every 2 ms."""
+    if kind == "pty":
+        a, b = os.openpty()
+        tty.setraw(b)
+        near, far = b, a
+    else:
+        s1, s2 = socket.socketpair()
+        near, far = s1.detach(), s2.detach()
+    pid = os.fork()
+    if pid == 0:
+        raise_priority(priority + 5)
+        while True:
+            r, _, _ = select.select([far], [], [], 1.0)
+            if r:
+                d = os.read(far, 64)
+                if not d or d == b"q":
+                    os._exit(0)
+                os.write(far, d)
     raise_priority(priority)
-    clock, period = MonotonicClock(0), int(round(1e9 / rate))
-    t = time.monotonic_ns() + period
-    end = t + int(seconds * 1e9)
-    gaps, late, last = [], 0, None
-    while t < end:
-        clock.sleep_until(t)
-        now = time.monotonic_ns()
-        if last is not None:
-            gaps.append(now - last)
-        late += now - t > period
-        last = now
-        t += period
-    conn.send((np.asarray(gaps, dtype=np.float64) * 1e-3, late))
+    out = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        t0 = time.monotonic_ns()
+        os.write(near, b"x")
+        r, _, _ = select.select([near], [], [], 1.0)
+        if r:
+            os.read(near, 64)
+        out.append(time.monotonic_ns() - t0)
+        time.sleep(0.002)
+    os.write(near, b"q")
+    os.waitpid(pid, 0)
+    conn.send(np.asarray(out, dtype=np.float64) * 1e-3)
+
+
+def _figures(a: np.ndarray) -> dict:
+    """A probe's gaps or echo times (us): p50, p99, max, how many over OVER_MS."""
+    if not a.size:
+        return {"n": 0}
+    return {"p50_us": round(float(np.percentile(a, 50)), 1), "p99_us": round(float(np.percentile(a, 99)), 1),
+            "max_ms": round(float(a.max()) * 1e-3, 2), f"over_{OVER_MS:g}_ms": int((a > OVER_MS * 1e3).sum()),
+            "n": int(a.size)}
 
 
 def _spin(conn, cpu: int, seconds: float) -> None:
@@ -110,65 +137,30 @@ def busy(seconds: float) -> dict:
     return out
 
 
-def _echo(conn, kind: str, priority: int, seconds: float) -> None:
-    """One end asks, the other (a forked child at priority + 5) echoes: the round trip, every 2 ms."""
-    if kind == "pty":
-        a, b = os.openpty()
-        tty.setraw(b)
-        near, far = b, a
-    else:
-        s1, s2 = socket.socketpair()
-        near, far = s1.detach(), s2.detach()
-    pid = os.fork()
-    if pid == 0:
-        raise_priority(priority + 5)
-        while True:
-            r, _, _ = select.select([far], [], [], 1.0)
-            if r:
-                d = os.read(far, 64)
-                if not d or d == b"q":
-                    os._exit(0)
-                os.write(far, d)
-    raise_priority(priority)
-    out = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        t0 = time.monotonic_ns()
-        os.write(near, b"x")
-        r, _, _ = select.select([near], [], [], 1.0)
-        if r:
-            os.read(near, 64)
-        out.append(time.monotonic_ns() - t0)
-        time.sleep(0.002)
-    os.write(near, b"q")
-    os.waitpid(pid, 0)
-    conn.send(np.asarray(out, dtype=np.float64) * 1e-3)
-
-
 def measure(cfg, seconds: float, rate: float) -> dict:
     ctx = mp.get_context("fork")
     prio, dev = cfg.loop.rt_priority, cfg.hil.device_priority
-    probes = {"loop (SCHED_FIFO)": (_loop, (prio, rate, seconds)), "loop (normal)": (_loop, (0, rate, seconds)),
-              "pty echo": (_echo, ("pty", dev - 5, seconds)), "socket echo": (_echo, ("socket", dev - 5, seconds))}
+    loops = {"loop (SCHED_FIFO)": EmptyLoop(rate, seconds, prio), "loop (normal)": EmptyLoop(rate, seconds, 0)}
+    echoes = {"pty echo": ("pty", dev - 5, seconds), "socket echo": ("socket", dev - 5, seconds)}
     running = {}
-    for name, (fn, args) in probes.items():
+    for name, args in echoes.items():
         here, there = ctx.Pipe()
-        p = ctx.Process(target=fn, args=(there, *args), daemon=True)
+        p = ctx.Process(target=_echo, args=(there, *args), daemon=True)
         p.start()
         running[name] = (p, here)
     load0 = os.getloadavg()[0]
+    echoed = {}
+    with loops["loop (SCHED_FIFO)"], loops["loop (normal)"]:
+        for name, (p, here) in running.items():
+            echoed[name] = _figures(here.recv() if here.poll(seconds + 30) else np.zeros(0))
+            p.join(5)
     out = {}
-    for name, (p, here) in running.items():
-        got = here.recv() if here.poll(seconds + 30) else np.zeros(0)
-        p.join(5)
-        a, late = got if isinstance(got, tuple) else (got, None)
-        out[name] = ({"p50_us": round(float(np.percentile(a, 50)), 1), "p99_us": round(float(np.percentile(a, 99)), 1),
-                      "max_ms": round(float(a.max()) * 1e-3, 2), f"over_{OVER_MS:g}_ms": int((a > OVER_MS * 1e3).sum()),
-                      "n": int(a.size)} if a.size else {"n": 0})
-        if late is not None and a.size:
-            out[name]["late_over_period_pct"] = round(100 * late / (a.size + 1), 2)
+    for name, el in loops.items():
+        late = el.late_us()
+        gaps = el.period_ns * 1e-3 + np.diff(late)          # between two wake-ups (us)
+        out[name] = dict(_figures(gaps), late_over_period_pct=round(100 * el.late_share(), 2) if late.size else None)
     load = round((load0 + os.getloadavg()[0]) / 2, 2)
-    return {"seconds": seconds, "rate_hz": rate, "load": load, "probes": out,
+    return {"seconds": seconds, "rate_hz": rate, "load": load, "probes": {**out, **echoed},
             "busy": busy(min(seconds / 2, BUSY_MAX_S))}
 
 
@@ -185,7 +177,8 @@ def run(args) -> int:
         if not d.get("n"):
             print(f"  {name:18s} no samples")
             continue
-        late = f"  late > a period: {d['late_over_period_pct']:.2f} %" if "late_over_period_pct" in d else ""
+        late = (f"  late > a period: {d['late_over_period_pct']:.2f} %" if d.get("late_over_period_pct") is not None
+                else "")
         print(f"  {name:18s} p50 {d['p50_us']:8.1f} us  p99 {d['p99_us']:8.1f} us  max {d['max_ms']:7.2f} ms  "
               f"over {OVER_MS:g} ms: {d[f'over_{OVER_MS:g}_ms']}{late}", file=sys.stdout)
     print(f"CPUs kept busy, {res['busy']['one CPU']['seconds']:g} s each (time the host took from a busy loop):")

@@ -20,10 +20,12 @@ takes the floor's level out.
 "late_periods" gives per mode the share of its metered periods that were late: the loop woke more than a
 period after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply);
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
-suffers first).
+suffers first). "empty_loop_late" gives per mode the same share for an empty loop run beside (its own process,
+at the loop's rate and priority, nothing in its period: rig/runtime/empty_loop.py): what the host did in that
+window to any process of the run; the closing warning says from it whether late periods were the host's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "recording",
-"pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
+"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
+"recording", "pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
 seeded floor the run met; its lockstep twin takes them first); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130.
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
@@ -53,6 +55,7 @@ from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_SUSPECT, RecordingError, RigError
+from rig.runtime.empty_loop import EmptyLoop
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -60,8 +63,8 @@ log = logging.getLogger("rig.hil")
 # without --config: the HIL rate, staleness limit and the isolation controller tuned for that rate
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
-             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods", "recording",
-             "pre_steps")
+             "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods",
+             "empty_loop_late", "recording", "pre_steps")
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
@@ -203,9 +206,9 @@ def _print_modes(res: dict, out: dict) -> None:
     print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
         "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))
     print(mode_row("table/floor", [db(out["transmissibility_db"].get(m), ".2f") for m in modes]))
-    late = out["late_periods"]
-    if late:
-        print(mode_row("late periods", ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
+    for label, late in (("late periods", out["late_periods"]), ("an empty loop beside, late", out.get("empty_loop_late"))):
+        if late:
+            print(mode_row(label, ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
 
 
 LATE_WARN = 0.01        # issue 24: at most 1 % of a mode's periods late; beyond, the run says its figures suffer
@@ -223,10 +226,7 @@ def _exit_code(res) -> int:
               file=sys.stderr)
     late = {m: v for m, v in (res.get("late_periods") or {}).items() if v is not None and v > LATE_WARN}
     if late:
-        print("rig hil: warning: the host did not keep time (" + ", ".join(
-            f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in late.items()) + " of the periods late, more than "
-            f"{100 * LATE_WARN:g} %): isolation through the drivers falls with that, so these figures are below what "
-            "this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
+        _say_late(late, {m: v for m, v in (res.get("empty_loop_late") or {}).items() if m in late and v is not None})
     short = res.get("unmetered") or []
     if short:
         _say_unmetered(short, res["seconds_to_meter"])
@@ -236,6 +236,23 @@ def _exit_code(res) -> int:
         print(f"rig hil: {res['harm']}", file=sys.stderr)
         return EXIT_HARM
     return EXIT_HARM if worse else EXIT_SUSPECT if late or short else 0
+
+
+def _say_late(late: dict, beside: dict) -> None:
+    """The one warning line for modes with more than LATE_WARN of their periods late, and whose: the host's when
+    the empty loop beside the run was late as well (or was not measured), the drivers' chain's when it kept time."""
+    def shares(d):
+        return ", ".join(f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in d.items())
+    if beside and all(v <= LATE_WARN for v in beside.values()):
+        print(f"rig hil: warning: the drivers' chain fell behind ({shares(late)} of the periods late, more than "
+              f"{100 * LATE_WARN:g} %) while an empty loop beside the run kept time ({shares(beside)}): the SYNC, "
+              "the plant, the module and the loop did not fit their periods; isolation through the drivers falls "
+              "with that (drivers/README.md, the exchange block and the rates)", file=sys.stderr)
+        return
+    host = f"; an empty loop beside the run: {shares(beside)}" if beside else ""
+    print(f"rig hil: warning: the host did not keep time ({shares(late)} of the periods late, more than "
+          f"{100 * LATE_WARN:g} %{host}): isolation through the drivers falls with that, so these figures are below "
+          "what this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
 
 
 def _say_unmetered(modes, seconds_needed: float) -> None:
@@ -268,7 +285,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
                       record_attrs={"command": "rig hil", "transports": "canopen,modbus_tcp,serial",
                                     "modes": ",".join(modes)},
                       realtime=realtime, signals=True, stability_check=stability_check)
-    progress = None
+    progress = beside = None
     reason = None
     with session:
         port, loop = session.port, session.loop
@@ -279,7 +296,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             progress = _Progress(loop, quiet)
             progress.start()
             pre_steps = rig.steps
-            with inject.Armed(session, injections):
+            with EmptyLoop(rate, seconds + 1.0, cfg.loop.rt_priority if realtime else 0) as beside, \
+                    inject.Armed(session, injections):
                 reason = session.run(seconds=seconds, activate_after_s=activate)
             end_steps = rig.steps          # the trace up to here: the valves go to null after it
         finally:
@@ -290,6 +308,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
+    host_late = empty_loop_late(beside, loop.t0_ns, modes, seconds, settle) if beside is not None else {}
     table, floor, codes = rig.trace()
     short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
@@ -303,8 +322,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "samples_recorded": rec.rows_written if rec is not None else 0,
            "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-           "late_periods": late, "recording": str(record), "fault_reason": loop.lc.fault_reason,
-           "table_rms_m": band_rms, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
+           "late_periods": late, "empty_loop_late": host_late, "recording": str(record),
+           "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
            "stop_reason": reason, "pre_steps": pre_steps, "harm": loop.harm,
            "supervisor": loop.supervisor.summary() if loop.supervisor is not None else None,
@@ -316,6 +335,19 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         ls = lockstep(cfg, seconds, modes, settle, activate, pre_steps)
         out["lockstep_table_rms_m"] = {m: math.nan if m in short else v for m, v in ls["table_rms_m"].items()}
         out["lockstep_reduction_db"] = reductions(out["lockstep_table_rms_m"])
+    return out
+
+
+def empty_loop_late(beside, t0_ns: int | None, modes, seconds: float, settle_s: float) -> dict:
+    """Per mode, over the same metered window as late_periods: the share of the empty loop's wake-ups (beside
+    the run, at the loop's rate and priority: rig/runtime/empty_loop.py) more than a period late."""
+    from rig.commands.hil_lockstep import windows
+    if t0_ns is None:
+        return {}
+    out = {}
+    for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
+        v = beside.late_share(t0_ns + int(t0 * 1e9), t0_ns + int(t1 * 1e9))
+        out[mode] = None if v is None else round(v, 4)
     return out
 
 
