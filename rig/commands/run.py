@@ -49,7 +49,8 @@ switched off, bumpless, for the rest of the run (rig/runtime/supervisor.py).
 No uncommissioned hardware: --backend hardware needs [drivers] calibration, a commissioning.toml newer than the
 configuration (`rig commission`; --uncommissioned runs without it).
 Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 3 when the
-do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up.
+do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up or the closing figures
+(SIGTERM: 143).
 """
 from __future__ import annotations
 
