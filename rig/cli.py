@@ -6,8 +6,8 @@ import importlib
 import sys
 
 from rig.cliargs import ArgumentParser, check_outputs
-from rig.errors import EXIT_FAULT, EXIT_INPUT, FaultError, RigError
-from rig.runtime.signals import hold_early
+from rig.errors import EXIT_FAULT, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED, FaultError, RigError
+from rig.runtime.signals import Terminated, hold_early
 
 # name -> (module, one-line help). Each module has add_arguments(parser) and run(args) -> int.
 COMMANDS = {
@@ -60,15 +60,33 @@ def unrecognized(parser: argparse.ArgumentParser, command: str | None, extra: li
 
 
 def main(argv: list[str] | None = None) -> int:
-    hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal (rig/runtime/signals.py)
+    hold_early()                 # a SIGUSR1 during the imports and set-up is held, not fatal; a SIGTERM unwinds as
+                                 # Ctrl-C does (rig/runtime/signals.py)
     argv = sys.argv[1:] if argv is None else argv
     # Import only the module of the command asked for (hardware libraries stay unloaded otherwise).
     only = next((a for a in argv if a in COMMANDS), None)
+    said = [only]                # the command, as parsed once it is
+    try:
+        return _command(argv, only, said)
+    except KeyboardInterrupt:    # at any point outside a run that stops on it safely: the imports, the set-up,
+        print(f"{_prog(said[0])}: interrupted", file=sys.stderr)          # the closing figures
+        return EXIT_INTERRUPTED
+    except Terminated:
+        print(f"{_prog(said[0])}: interrupted (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
+
+
+def _prog(command: str | None) -> str:
+    return f"rig {command}" if command else "rig"
+
+
+def _command(argv: list[str], only: str | None, said: list) -> int:
     parser = build_parser(only)
     try:
         args, extra = parser.parse_known_args(argv)
     except SystemExit as e:                  # a bad argument (one line printed) or --help: the exit status
         return e.code if isinstance(e.code, int) else 2
+    said[0] = args.command
     if extra:
         print(unrecognized(parser, args.command, extra), file=sys.stderr)
         return 2
@@ -84,9 +102,6 @@ def main(argv: list[str] | None = None) -> int:
     except RigError as e:
         print(f"rig {args.command}: error: {e}", file=sys.stderr)
         return EXIT_INPUT
-    except KeyboardInterrupt:
-        print(f"rig {args.command}: interrupted", file=sys.stderr)
-        return 130
 
 
 if __name__ == "__main__":

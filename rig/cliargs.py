@@ -203,6 +203,13 @@ def check_settle(settle_s: float, seconds_s: float | None, *, default: str = "")
                        f"activation (give a longer --seconds or a shorter --settle)")
 
 
+def check_within_run(at_s: float, seconds_s: float | None, where: str) -> None:
+    """A loop time at or after the run's end never comes (an --inject T, a --script line): refused before the run
+    starts, never left to pass silently. where: what names the time (`--inject SPEC: T`, `--script FILE: line N`)."""
+    if seconds_s is not None and at_s >= seconds_s:
+        raise RigError(f"{where}: expected a loop time within the run (< --seconds {seconds_s:g}), got {at_s:g} s")
+
+
 def check_periods(seconds_s: float, rate_hz: float, at_least: int = 10, option: str = "--seconds") -> None:
     """A benchmark of fewer than at_least periods measures nothing (and an empty one has no percentiles)."""
     if seconds_s * rate_hz < at_least:

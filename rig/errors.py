@@ -28,3 +28,5 @@ EXIT_HARM = 3          # isolation made the table worse: do-no-harm switched it 
 EXIT_FINDINGS = 4      # rig commission: a channel needs the calibration file or is refused
 EXIT_SUSPECT = 5       # finished and wrote its results, but they fall short as said in a warning line: the host
                        # did not keep time, the recording has gaps, or the model fits poorly
+EXIT_INTERRUPTED = 130   # Ctrl-C (128 + SIGINT) outside a run that stops on it safely
+EXIT_TERMINATED = 143    # SIGTERM (128 + SIGTERM, as the shell shows a process it ended) outside such a run

@@ -39,7 +39,8 @@
 `loop --json` prints exactly: {"rate_hz", "iterations", "wake_latency_us": {"p50","p99","max"},
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
 update + limit + write + record-push within one period; missed_deadline_fraction is
-(overruns + skipped periods) / (iterations + skipped periods).
+(overruns + skipped periods) / (iterations + skipped periods). A loop run that faulted (its rest at null) is
+said in a `rig bench: warning:` line and exits 1 (`faulted_exit`), its figures printed still.
 
 `loop --feedforward` runs R rounds of two runs of --seconds each, feedback only ([sensors] floor_accel off:
 the loop as without the feedforward) and feedback + feedforward (floor accelerometers read, checked and
@@ -70,7 +71,7 @@ from rig.commands import bench_cli, bench_idle_poll, bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
-from rig.errors import RigError
+from rig.errors import EXIT_FAULT, RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.rt import cpu_steal_ms, enter_realtime, leave_realtime
 
@@ -289,13 +290,23 @@ def bench_loop(args) -> int:
            "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
            "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
            "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
-    if loop.lc.fault_reason:
-        print(f"rig bench loop: note: the simulated rig faulted during the run: {loop.lc.fault_reason}",
-              file=sys.stderr)
     n = min(loop.iterations, loop.keep)
     _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0, steal1, cpu)
     _print_loop_figures(out, args.json, loop.skipped)
-    return 0
+    return faulted_exit({"loop": loop.lc.fault_reason})
+
+
+def faulted_exit(faults: dict) -> int:
+    """The exit status of a benchmark of whole runs ({what ran: its fault reason or None}): a loop that faulted
+    spent the rest of its run at FAULT (valves at null, controllers not run), so its figures are not those of
+    the loop the benchmark claims: one warning line per faulted run and EXIT_FAULT (rig/errors.py), as every
+    command exits after a fault. (The block benchmarks, --layout both and --console, leave a faulted block
+    out and count it instead.)"""
+    bad = {what: why for what, why in faults.items() if why}
+    for what, why in bad.items():
+        log.warning("%s: the simulated rig faulted (%s): these figures are not the loop's (valves at null from "
+                    "the fault on)", what, why)
+    return EXIT_FAULT if bad else 0
 
 
 def _feedforward_ab(cfg, args, rate: float) -> int:
@@ -311,6 +322,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
     out = {"rate_hz": rate, "rounds": args.rounds, "seconds": args.seconds}
     per_round = {p: [] for p in paths}
     counts = {p: {"iterations": 0, "overruns": 0} for p in paths}
+    faults: dict = {}
     for r in range(args.rounds):
         for path in (paths if r % 2 == 0 else paths[::-1]):
             ff = path == paths[1]
@@ -337,8 +349,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
             counts[path]["iterations"] += loop.iterations
             counts[path]["overruns"] += loop.overruns
             if loop.lc.fault_reason:
-                print(f"rig bench loop: note: {path}: the simulated rig faulted: {loop.lc.fault_reason}",
-                      file=sys.stderr)
+                faults.setdefault(f"{path} (round {r + 1})", loop.lc.fault_reason)
             print(f"rig bench loop --feedforward: round {r + 1}/{args.rounds} {path}: compute p99 "
                   f"{per_round[path][-1]:.2f} us (mode {loop.isolation_mode})", file=sys.stderr)
 
@@ -355,7 +366,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
                                                                                 per_round[paths[0]]))), 2)
     if args.json:
         print(json.dumps(out))
-        return 0
+        return faulted_exit(faults)
     print(f"{args.rounds} rounds of {args.seconds:g} s per path at {rate:g} Hz, alternating (AB BA ...)")
     for p in paths:
         c, w = out[p]["compute_us"], out[p]["wake_latency_us"]
@@ -365,7 +376,7 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
     print(f"  feedforward - feedback: compute p50 {out['compute_p50_difference_us']:+.2f} us, "
           f"p99 {out['compute_p99_difference_us']:+.2f} us (pooled); p99 paired by round (median) "
           f"{out['compute_p99_paired_difference_us']:+.2f} us")
-    return 0
+    return faulted_exit(faults)
 
 
 def _loop_cpu(cfg) -> int | None:
@@ -461,7 +472,7 @@ def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
     finally:
         os.unlink(tmp)
     tm = loop.timing_us()
-    return {"mounts": loop.n, "rate_hz": rate, "iterations": loop.iterations,
+    return {"fault_reason": loop.lc.fault_reason, "mounts": loop.n, "rate_hz": rate, "iterations": loop.iterations,
             "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
             "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
             "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
@@ -477,8 +488,10 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
         return _bench_both(cfg, proto, args, rate)
     print(f"rig bench loop: prototype (1 mount) at {rate:g} Hz for {args.seconds:g} s, {PROTOTYPE_BENCH_MODE}",
           file=sys.stderr)
-    _print_loop_figures(_bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE), args.json, 0)
-    return 0
+    out = _bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE)
+    fault = out.pop("fault_reason")
+    _print_loop_figures(out, args.json, 0)
+    return faulted_exit({"prototype": fault})
 
 
 class BlockClock(MonotonicClock):

@@ -37,7 +37,7 @@ backend; any config with [layout] plant = "stand"): the actuator alone on its st
   --reference REF                  track it: setpoint:x=5um, step:amp=2um, sine:amp=10um,freq=5,
                                    chirp:amp=1um,f0=1,f1=100,duration=20, csv:profile.csv (time_s,position_m)
   --control FILE                   write `hold 5um`, `track sine:amp=10um,freq=5`, `isolate`, `off`, `stop`
-  --script FILE                    timed control words, one per line: `<loop time s> <word>`
+  --script FILE                    timed control words, one per line: `<loop time s> <word>` (< --seconds)
   kill -USR1 / -USR2 <pid>         isolate <-> hold / off <-> hold
 A reference the actuator cannot follow (outside the stroke limit or the static range of about +-24 um that
 leakage leaves at 90 % of the valve clamp, faster than the rate limit, more volts than the clamp allows) is
@@ -49,7 +49,8 @@ switched off, bumpless, for the rest of the run (rig/runtime/supervisor.py).
 No uncommissioned hardware: --backend hardware needs [drivers] calibration, a commissioning.toml newer than the
 configuration (`rig commission`; --uncommissioned runs without it).
 Exit code: 0 after a normal stop, 1 after a fault (the reason is printed), 2 for a user error, 3 when the
-do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up.
+do-no-harm supervisor switched isolation off, 130 after Ctrl-C during the start-up or the closing figures
+(SIGTERM: 143).
 """
 from __future__ import annotations
 
@@ -193,8 +194,9 @@ def check_start_stroke(args, cfg) -> None:
     check_stroke(parse_reference(text, 1.0 / cfg.loop.rate_hz, where=where), cfg.safety.stroke_limit_m, name=where)
 
 
-def read_script(path) -> list[tuple[float, str]]:
-    """`<loop time s> <control word>` per line; RigError naming the file and line."""
+def read_script(path, seconds: float | None = None) -> list[tuple[float, str]]:
+    """`<loop time s> <control word>` per line; RigError naming the file and line (a time at or after the run's
+    `seconds` too: its word would never act)."""
     p = Path(path)
     try:
         lines = p.read_text().splitlines()
@@ -212,6 +214,7 @@ def read_script(path) -> list[tuple[float, str]]:
             raise RigError(f"--script {p}: line {i}: expected `<loop time s> <word>`, got {ln[:60]!r}") from None
         if not 0 <= at < float("inf") or not word.strip():      # nan and inf too: a word that never comes
             raise RigError(f"--script {p}: line {i}: expected a time >= 0 and a control word, got {ln[:60]!r}")
+        cliargs.check_within_run(at, seconds, f"--script {p}: line {i}")
         out.append((at, word.strip()))
     return out
 
@@ -316,7 +319,7 @@ class _RunPlan:
                       "overrun_policy": args.policy or cfg.loop.overrun_policy, "layout": cfg.layout.plant}
         if stand:
             self.attrs["mode_at_start"] = start or "hold"
-        self.script = read_script(args.script) if args.script else None
+        self.script = read_script(args.script, args.seconds) if args.script else None
 
     def new_session(self, record) -> Session:
         from rig.runtime.session import Session

@@ -137,10 +137,12 @@ class Console:
 
     def __init__(self, cfg, backend: str, *, port: int | None = None, read_only: bool = False,
                  serve: str = "process", config_path: str | None = None,
-                 log_level: int | None = logging.INFO) -> None:
+                 log_level: int | None = logging.INFO, record_dir=None) -> None:
         if serve not in ("process", "thread"):
             raise ValueError(f"serve {serve!r}")
         self.cfg, self.backend = cfg, backend
+        # the recordings the page starts, and its chirps': here or below (default: where the run was started)
+        self.record_dir = Path(record_dir if record_dir is not None else os.getcwd()).resolve()
         self.read_only = bool(read_only)
         self.serve = serve
         self.config_path = config_path
@@ -559,16 +561,32 @@ class Console:
         s = self._need_run()
         if isinstance(s.loop.recorder, Recorder):
             return False, f"already recording to {s.loop.recorder.path}: stop it first"
-        p = Path(path).expanduser()
-        if p.suffix.lower() not in (".h5", ".hdf5"):
-            raise RigError(f"recording {path!r}: expected a file name ending in .h5")
-        if p.exists():
-            raise RigError(f"recording {p}: exists (choose another name; nothing is overwritten)")
-        if not p.parent.is_dir():
-            raise RigError(f"recording {p}: folder {p.parent} does not exist")
+        p = self.recording_path(path)
         s.start_recording(p, command="rig run --console", started_by="console")
         self.last_recording = None
         return True, f"recording to {p}"
+
+    def recording_path(self, name: str) -> Path:
+        """A recording the page names, as a new file in the console's recording folder or below it. The token lets
+        a person drive the rig, not write wherever the rig's user may: an absolute path elsewhere, `..` or `~`
+        out of the folder (or a symbolic link leading out) is refused in one line, as is a file that exists."""
+        root = self.record_dir
+        p = Path(name)
+        if p.suffix.lower() not in (".h5", ".hdf5"):
+            raise RigError(f"recording {name!r}: expected a file name ending in .h5")
+        full = (root / p).resolve()           # an absolute p stands alone; `..` and links are resolved
+        if (len(p.parts) > 1 and p.parts[0].startswith("~")) or not full.is_relative_to(root):   # ~/, ~user/
+            raise RigError(f"recording {name!r}: outside the console's recording folder {root} (where the run "
+                           f"started): expected a file name there or below it")
+        try:
+            there = os.path.lexists(root / p) or full.exists()
+        except OSError as e:                  # e.g. a name longer than the file system takes
+            raise RigError(f"recording {name[:80]!r}: {e.strerror or e}") from None
+        if there:
+            raise RigError(f"recording {full}: exists (choose another name; nothing is overwritten)")
+        if not full.parent.is_dir():
+            raise RigError(f"recording {full}: folder {full.parent} does not exist")
+        return full
 
     def _cmd_record_stop(self):
         s = self._need_run()

@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
 
 from rig.chirp import run_chirp
 from rig.console.link import Console
@@ -59,7 +58,7 @@ def run_with_console(args, cfg, backend: str, new_session, started):
 
 def _chirp(console: Console, job, cfg, backend: str, args) -> bool:
     """The chirp run and the start of its identification; False if it did not complete."""
-    out = Path(f"chirp_{time.strftime('%Y%m%d_%H%M%S')}.h5").resolve()
+    out = console.record_dir / f"chirp_{time.strftime('%Y%m%d_%H%M%S')}.h5"
     job.recording = str(out)
     console.job_progress("chirp", 0.0, f"chirp {job.f0_hz:g}->{job.f1_hz:g} Hz, {job.amplitude_V:g} V, "
                                        f"{job.duration_s:g} s")

@@ -30,6 +30,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+from rig.cliargs import check_within_run
 from rig.config import mount_names
 from rig.errors import RigError
 
@@ -99,9 +100,7 @@ def check(inj: Injection, backend: str, seconds: float | None = None) -> None:
     """RigError when `backend` has no knob for this injection, or T is not inside a run of `seconds` (before
     anything is started)."""
     _check_knob(inj, backend)
-    if seconds is not None and inj.at_s >= seconds:
-        raise RigError(f"--inject {inj.spec!r}: T: expected a loop time within the run (< --seconds {seconds:g}), "
-                       f"got {inj.at_s:g} s")
+    check_within_run(inj.at_s, seconds, f"--inject {inj.spec!r}: T")
 
 
 def _check_knob(inj: Injection, backend: str) -> None:

@@ -36,7 +36,7 @@ from rig.runtime.lock import RigLock
 from rig.runtime.loop import Loop
 from rig.runtime.recorder import WRITER_PRIORITY, Recorder
 from rig.runtime.rt import enter_realtime, leave_realtime
-from rig.runtime.signals import take_held
+from rig.runtime.signals import interrupt, take_held
 from rig.runtime.supervisor import warm as warm_supervisor
 from rig.runtime.tap import Columns
 
@@ -230,7 +230,7 @@ class Session:
             if self.loop is not None:
                 self.loop.stop(signal.Signals(signum).name)
             else:
-                raise KeyboardInterrupt
+                interrupt(signum)
 
         def on_usr(signum, frame):
             self._usr_signal(signum)

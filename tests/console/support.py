@@ -35,12 +35,14 @@ def test_config() -> Config:
 
 
 @contextlib.contextmanager
-def live_run(*, read_only: bool = False, isolation: bool = True, record=None, serve: str = "process", cfg=None):
-    """(session, console): the simulated rig (or cfg's) running in a thread, ACTIVE, its console attached."""
+def live_run(*, read_only: bool = False, isolation: bool = True, record=None, serve: str = "process", cfg=None,
+             record_dir=None):
+    """(session, console): the simulated rig (or cfg's) running in a thread, ACTIVE, its console attached (its
+    recordings in record_dir, default the working directory)."""
     cfg = cfg or test_config()
     s = Session(cfg, "sim", clock=MonotonicClock(), rate_hz=RATE_HZ, stop_on_fault=False, isolation=isolation,
                 record=record)
-    with s, Console(cfg, "sim", port=0, read_only=read_only, serve=serve) as console:
+    with s, Console(cfg, "sim", port=0, read_only=read_only, serve=serve, record_dir=record_dir) as console:
         console.attach(s)
         th = threading.Thread(target=lambda: s.run(activate_after_s=0.05), name="test-loop", daemon=True)
         th.start()

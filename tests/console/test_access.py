@@ -148,3 +148,30 @@ def test_an_overlong_text_argument_is_refused_in_one_short_line(run):
         assert code == 409 and not reply["ok"] and len(reply["text"]) < 200, reply["text"][:300]
         assert "must be at most 4096 characters" in reply["text"]
     assert s.loop.stop_reason is None
+
+
+def test_a_recording_from_the_page_stays_in_the_consoles_recording_folder(tmp_path, monkeypatch):
+    """Was: the page's recording path was taken as given, so whoever held the token could make an HDF5 file
+    wherever the rig's user may write (`../`, an absolute path, `~/`). Now a name in the console's recording
+    folder (where the run started) or below it; anything leading out, a symbolic link too, is refused in one
+    line and nothing is written."""
+    recs, elsewhere = tmp_path / "recs", tmp_path / "elsewhere"
+    (recs / "day1").mkdir(parents=True)
+    elsewhere.mkdir()
+    (recs / "out").symlink_to(elsewhere)
+    (recs / "dangling.h5").symlink_to(elsewhere / "via_link.h5")
+    monkeypatch.chdir(recs)                                  # the run starts here: its recording folder
+    with live_run() as (s, console):
+        for path in ("../elsewhere/up.h5", str(elsewhere / "abs.h5"), "day1/../../elsewhere/x.h5", "out/x.h5",
+                     "dangling.h5", "~/x.h5"):
+            code, reply = command(console, "record_start", path=path)
+            assert code == 409 and not reply["ok"], (path, reply)
+            assert reply["text"] == (f"recording {path!r}: outside the console's recording folder {recs} (where the "
+                                     f"run started): expected a file name there or below it")
+        for path, made in (("day1/a.h5", recs / "day1" / "a.h5"), (str(recs / "b.h5"), recs / "b.h5")):
+            code, reply = command(console, "record_start", path=path)
+            assert code == 200 and reply["text"] == f"recording to {made}", reply
+            code, reply = command(console, "record_stop")
+            assert code == 200 and reply["ok"], reply
+    assert list(elsewhere.iterdir()) == []
+    assert sorted(p.name for p in recs.rglob("*.h5") if not p.is_symlink()) == ["a.h5", "b.h5"]

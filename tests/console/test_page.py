@@ -33,7 +33,7 @@ def test_live_traces_move(chromium):
 
 def test_isolation_on_from_the_page_is_shown_and_recorded(chromium, tmp_path):
     rec_path = tmp_path / "switch.h5"
-    with live_run(isolation=False) as (s, console):
+    with live_run(isolation=False, record_dir=tmp_path) as (s, console):
         page = open_page(chromium, console)
         assert page.text_content("#isolation") == "off"
         page.fill("#rec-path", str(rec_path))

@@ -8,17 +8,22 @@ import sys
 
 import pytest
 
+from tests.hosttiming import skip_unless_on_time
+
 KEYS = {"rate_hz", "iterations", "wake_latency_us", "compute_us", "overruns", "missed_deadline_fraction"}
 
 
 @pytest.mark.parametrize("extra", [[], ["--empty"]], ids=["loop", "empty"])
 def test_bench_loop_json(extra):
-    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "loop", "--rate", "1000", "--seconds", "0.3",
+    # 2000 Hz: the default (Table 1) controllers are unstable at 1000 Hz (`rig design`), so a loop run there
+    # faults on its own oscillation (exit 1)
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "loop", "--rate", "2000", "--seconds", "0.3",
                           "--no-realtime", "--json", *extra], capture_output=True, text=True, timeout=120)
+    skip_unless_on_time(out)                                # a stall of the shared host faults the loop (exit 1)
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)                            # only JSON on stdout
     assert set(res) == KEYS
-    assert res["rate_hz"] == 1000.0 and res["iterations"] >= 280
+    assert res["rate_hz"] == 2000.0 and res["iterations"] >= 560
     for k in ("wake_latency_us", "compute_us"):
         d = res[k]
         assert set(d) == {"p50", "p99", "max"} and 0 <= d["p50"] <= d["p99"] <= d["max"]
@@ -39,6 +44,7 @@ def test_bench_loop_feedforward_ab_json(tmp_path):
     out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "loop", "--feedforward", "--rounds", "2",
                           "--rate", "5000", "--seconds", "0.2", "--no-realtime", "--json"], capture_output=True,
                          text=True, timeout=180)
+    skip_unless_on_time(out)
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout)
     assert {"rate_hz", "rounds", "seconds", "feedback", "feedback_feedforward", "compute_p99_difference_us",
@@ -52,3 +58,20 @@ def test_bench_loop_feedforward_ab_json(tmp_path):
     order = [line.split()[6] for line in out.stderr.splitlines() if "round" in line and "compute p99" in line]
     assert order == ["feedback:", "feedback_feedforward:", "feedback_feedforward:", "feedback:"]
     assert "(mode feedback_feedforward)" in out.stderr and "(mode feedback)" in out.stderr
+
+
+@pytest.mark.parametrize("extra", [[], ["--feedforward", "--rounds", "1"]], ids=["loop", "feedforward"])
+def test_bench_loop_whose_rig_faulted_exits_as_a_fault(tmp_path, extra):
+    """Was: a benchmark whose simulated rig faulted (its loop at FAULT, valves at null, for the rest of the run)
+    said so as a `note:` and exited 0, as if its figures were the loop's. Now a warning line naming the fault,
+    and exit 1 (a fault, rig/errors.py EXIT_FAULT); the figures are still printed, and --json stays JSON."""
+    cfg = tmp_path / "trip.toml"
+    cfg.write_text("[safety]\nstroke_limit_m = 1e-9\n")     # the first period's stroke trips the limit
+    out = subprocess.run([sys.executable, "-m", "rig.cli", "bench", "loop", "--config", str(cfg), "--rate", "1000",
+                          "--seconds", "0.2", "--no-realtime", "--json", *extra], capture_output=True, text=True,
+                         timeout=180)
+    assert out.returncode == 1, out.stderr[-2000:]
+    json.loads(out.stdout)                                  # still only JSON on stdout
+    warned = [ln for ln in out.stderr.splitlines() if ln.startswith("rig bench: warning: ")]
+    assert warned and all("faulted (" in ln and "stroke limit" in ln for ln in warned), out.stderr[-2000:]
+    assert "note:" not in out.stderr

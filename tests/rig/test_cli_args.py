@@ -290,3 +290,15 @@ def test_hil_bench_of_fewer_than_ten_periods_is_refused(capsys):
     assert main(["hil", "--bench", "--seconds", "0.01", "--json"]) == 2
     err = _one_line_error(capsys, "--seconds 0.01", "at least 10 periods at 500 Hz")
     assert err.startswith("rig hil: error:")
+
+
+@pytest.mark.parametrize("when", ["0.3", "5"])
+def test_a_script_word_at_or_after_the_runs_end_is_refused(tmp_path, capsys, when):
+    """Was: `5 on` in a --script of a 0.3 s run ran the whole run with the word never acted on, exit 0, not a word
+    said. Now refused before the run starts, as an --inject T at or after --seconds is (one rule: cliargs
+    check_within_run): one line naming the file, the line and the time against --seconds."""
+    script = tmp_path / "s.txt"
+    script.write_text(f"# times\n0.1 off\n{when} on\n")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
+    err = _one_line_error(capsys, f"--script {script}: line 3", "within the run (< --seconds 0.3)", f"got {when} s")
+    assert err.startswith("rig run: error: ")

@@ -120,3 +120,60 @@ def test_recording_survives_kill_9_of_the_whole_process_group(tmp_path):
     assert len(t) > 0                          # flushed rows are there, and the file opens
     assert np.allclose(np.diff(t), 1 / RATE)
     assert np.all(np.isfinite(d["stroke_m"]))
+
+
+SAID = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "interrupted (SIGTERM)")}
+
+
+def _handles_sigterm(pid: int, timeout: float = 60.0) -> None:
+    """Wait until the process has a handler for SIGTERM (its SigCgt mask): rig.cli's main has begun, and the
+    command's imports follow (a second or two before any session)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with open(f"/proc/{pid}/status") as f:
+            caught = next(int(ln.split()[1], 16) for ln in f if ln.startswith("SigCgt:"))
+        if caught & (1 << (signal.SIGTERM - 1)):
+            return
+        time.sleep(0.002)
+    raise AssertionError("rig never handled SIGTERM")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_during_the_imports_says_one_line(tmp_path, sig):
+    """Was: SIGTERM during the imports and set-up ended the process at once, exit 143 and not a word, while SIGINT
+    said `rig run: interrupted`. Now both say one line of the same form, each with its own exit status."""
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--sim-time", "--seconds", "5",
+                             "--record", str(tmp_path / "never.h5")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    _handles_sigterm(proc.pid)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=60)
+    code, line = SAID[sig]
+    assert proc.returncode == code, err
+    assert err.strip().splitlines()[-1] == f"rig run: {line}" and "Traceback" not in err
+    assert not (tmp_path / "never.h5").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_during_the_closing_figures_says_one_line_and_keeps_the_recording(tmp_path, sig):
+    """Was: SIGTERM while `rig run` worked out its figures after the run (here the prototype's tracking figures
+    and their plot, about a second) ended it with exit 143 and no line. Now one line, as for SIGINT, and the
+    recording, closed before the figures, keeps every period."""
+    rec = tmp_path / "run.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--layout", "prototype", "--sim-time",
+                             "--seconds", "1", "--record", str(rec), "--plot", str(tmp_path / "run.png")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    lines = []
+    for ln in proc.stderr:
+        lines.append(ln)
+        if "rig run: stopped (time)" in ln:
+            proc.send_signal(sig)
+            break
+    _, rest = proc.communicate(timeout=60)
+    err = "".join(lines) + rest
+    code, line = SAID[sig]
+    assert proc.returncode == code, err
+    assert err.strip().splitlines()[-1] == f"rig run: {line}" and "Traceback" not in err
+    d = read_recording(rec)
+    assert d["attrs"]["complete"] in (True, 1) and d["attrs"]["stop_reason"] == "time"
+    assert len(d["time_s"]) == d["attrs"]["iterations"] == 5000 and d["attrs"]["dropped_rows"] == 0
