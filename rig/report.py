@@ -89,7 +89,7 @@ def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
             if why:
                 out["absent_modes"][mode] = why
             elif b > 0:
-                out["skipped_modes"][mode] = f"{max(b - a, 0) / fs:.1f} s after settling (at least {MIN_SECONDS:g} s)"
+                out["skipped_modes"][mode] = f"{max(b - a, 0) / fs:.1f} s after settling, at least {MIN_SECONDS:g} s"
             continue
         out["segments"][mode] = {"t0_s": float(t[a]), "t1_s": float(t[b - 1]), "seconds": (b - a) / fs,
                                  "resolution_hz": fs / (b - a)}

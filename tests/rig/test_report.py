@@ -132,3 +132,24 @@ def test_a_short_record_resolves_the_1_hz_band():
         power.append(v ** 2 / exact)
     mean = np.mean(power, axis=0)
     assert np.all(mean > 0.4) and np.all(mean < 2.5), mean.round(2)
+
+
+def test_a_mode_too_short_is_a_warning_in_the_house_form(tmp_path, capsys):
+    """Found by the abuse trial: a mode too short for a VC report was said as `rig report: feedback: too short ...`,
+    not in the `rig COMMAND: warning: ...` form every other warning takes (docs/CLI.md)."""
+    from rig.cli import main
+    path = tmp_path / "short.h5"
+    with Session(Config(), "sim", clock=SimClock(), isolation=False, record=path) as s:
+        lp = s.loop
+        lp.activate()
+        p = 0
+        for mode, periods in (("off", 17500), ("feedback", 7500)):     # 3.5 s off, then 1.5 s of feedback
+            s.request_isolation_mode(mode)
+            for _ in range(periods):
+                lp.cycle(p * lp.period_ns)
+                p += 1
+    assert main(["report", str(path), "--json"]) == 0
+    r = capsys.readouterr()
+    assert list(json.loads(r.out)["skipped_modes"]) == ["feedback"]     # --json: stdout stays pure JSON
+    assert r.err.splitlines() == [f"rig report: warning: {path}: feedback: too short for a VC report (0.5 s after "
+                                  "settling, at least 2 s)"]
