@@ -138,23 +138,36 @@ class Table:
         return RecordingError(f"{self.source}: could not parse the numeric rows")
 
 
+SEPARATORS = ("\t", ";", ",")
+SEPARATOR_NAMES = {"\t": "tab", ";": "';'", ",": "','"}
+
+
 def read_table(text: str, source: str, *, delimiter: str | None = ",", skip_rows: int = 0,
-               comment: str | None = None, header: bool | None = None, quoted: bool = True) -> Table:
+               comment: str | None = None, header: bool | None = None, quoted: bool = True,
+               expected: str = "") -> Table:
     """A delimited text file: `delimiter` one character, "whitespace" (runs of spaces and tabs) or None (the first
     of tab, ";" and "," found in the first line, else whitespace); `skip_rows` lines of preamble; lines starting
     with `comment` and blank lines left out; `header`: the first line names the columns (None: when it is not all
-    numbers)."""
+    numbers). A header that is one field on the delimiter asked for but several on another separator is refused
+    naming the separator the file looks to have (`expected`: what the caller wants, for the message)."""
     lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if i >= skip_rows]
     lines = [(i, ln) for i, ln in lines if ln.strip() and not (comment and ln.lstrip().startswith(comment))]
     if not lines:
         raise RecordingError(f"{source}: no data rows (after {skip_rows} skipped lines and comments)")
     delim = (None if delimiter == "whitespace" else      # None: any run of spaces and tabs
-             delimiter or next((d for d in ("\t", ";", ",") if d in lines[0][1]), None))
+             delimiter or next((d for d in SEPARATORS if d in lines[0][1]), None))
     table = Table(source, delim, None, [], [], quoted)
     first = table.split(lines[0][1])
     # empty cells (a delimiter ending every line, as MATLAB's `save -ascii -tabs` and the DaISy files write)
     # say nothing: only a cell that is text makes the first line a header
     has_header = header if header is not None else not all(is_number(c) for c in first if c)
+    if has_header and delimiter in SEPARATORS and len(first) == 1:
+        other = next((d for d in SEPARATORS if len(lines[0][1].split(d)) > 1), None)
+        if other is not None:
+            raise RecordingError(f"{source}: the header is one field on {SEPARATOR_NAMES[delimiter]} but "
+                                 f"{len(lines[0][1].split(other))} on {SEPARATOR_NAMES[other]}: the file looks "
+                                 f"{SEPARATOR_NAMES[other]}-separated; expected {SEPARATOR_NAMES[delimiter]}-separated"
+                                 + (f" {expected}" if expected else ""))
     rows = lines[1:] if has_header else lines
     if not rows:
         raise RecordingError(f"{source}: no data rows after the header")

@@ -50,7 +50,9 @@ def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> R
 def _parse_csv(text: str, source: str) -> Recording:
     if not text.strip():
         raise RecordingError(f"{source}: empty file")
-    table = read_table(text, source, delimiter=",", header=True, quoted=False)
+    table = read_table(text, source, delimiter=",", header=True, quoted=False,
+                       expected=f"columns {','.join(COLUMNS)} (another separator: a plant file's [signals] with "
+                                f"csv = {{ delimiter = ... }}, docs/PLANT.md)")
     header = table.names
     missing = [c for c in COLUMNS if c not in header]
     if missing:

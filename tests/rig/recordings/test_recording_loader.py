@@ -104,6 +104,12 @@ BAD_CASES = {
     "blank": (b"\n\n  \n", "empty file"),
     "header_only": (HEADER.encode() + b"\n", "no data rows"),
     "wrong_columns": (_csv_text(_good_rows(), "t,u,y,a").encode(), "wrong columns"),
+    # found by the abuse trial: refused as "wrong columns" without naming the separator the file has
+    "semicolon_separated": (_csv_text([r.replace(",", ";") for r in _good_rows()], HEADER.replace(",", ";")).encode(),
+                            f"one field on ',' but 4 on ';': the file looks ';'-separated; expected ','-separated "
+                            f"columns {HEADER} "),
+    "tab_separated": (_csv_text([r.replace(",", "\t") for r in _good_rows()], HEADER.replace(",", "\t")).encode(),
+                      "the file looks tab-separated; expected ','-separated"),
     "missing_column": (_csv_text([r.rsplit(",", 1)[0] for r in _good_rows()],
                                  "time_s,valve_cmd_V,position_m").encode(), "missing accel_mps2"),
     "nan": (_csv_text(_good_rows()[:50] + ["0.050000,nan,0,0"] + _good_rows(200)[51:]).encode(),
