@@ -26,6 +26,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    cliargs.log_to_stderr("report")          # the readers' warnings: `rig report: warning: ...`
     rep = report.vc_of_recording(args.recording, settle_s=args.settle)
     for mode, why in rep["skipped_modes"].items():
         print(f"rig report: warning: {args.recording}: {mode}: too short for a VC report ({why})", file=sys.stderr)

@@ -282,3 +282,30 @@ def test_matlab_v73_is_read_as_hdf5(tmp_path):
     back = load_recording(path)
     np.testing.assert_array_equal(back.position_m, rec.position_m)
     assert back.fs_hz == pytest.approx(1000.0)
+
+
+def test_a_recording_its_writer_did_not_close_is_used_and_said_once(tmp_path, caplog):
+    """Found by the abuse trial: a file rig.runtime.recorder left with complete = False (a crash, a kill) was read
+    with no word. The one reader of files says it in one warning line naming the file, why and the rows it
+    holds; the rows every channel has are used; a second read of the same file says nothing more."""
+    import logging
+
+    import h5py
+    rec = _rec(500)
+    path = save_recording_h5(rec, tmp_path / "cut.h5", attrs={"complete": False})
+    with h5py.File(path, "r+") as f:                  # the writer died between two datasets' appends
+        data = f["valve_cmd_V"][:420]
+        del f["valve_cmd_V"]
+        f["valve_cmd_V"] = data
+    with caplog.at_level(logging.WARNING, logger="rig.recordings"):
+        back = load_recording(path)
+        load_recording(path)
+    assert back.n == 420
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert said == [f"{path}: the run ended before the recording was closed (attribute complete = false): it may be "
+                    f"cut short; it holds 420 rows (t = 0 to 0.419 s), used as they are"]
+    caplog.clear()
+    closed = save_recording_h5(rec, tmp_path / "closed.h5", attrs={"complete": True})
+    with caplog.at_level(logging.WARNING, logger="rig.recordings"):
+        load_recording(closed)
+    assert not caplog.records
