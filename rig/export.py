@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import RecordingError
+from rig.recordings.files import open_hdf5
 from rig.runtime.recorder import read_recording
 
 FORMATS = ("mat", "csv")
@@ -75,7 +76,6 @@ class Exported:
 
 def load(path) -> Exported:
     """The recording at `path` (RecordingError, one line naming the file, when it is not one of the rig's)."""
-    import h5py
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording (expected the HDF5 file of rig run --record, rig chirp or "
@@ -96,7 +96,7 @@ def load(path) -> Exported:
         raise RecordingError(f"{p}: dataset {bad[0]} is not a column of numbers (expected a recording of rig run "
                              f"--record, rig chirp or rig hil)")
     labels, descriptions = {}, {}
-    with h5py.File(p, "r") as f:
+    with open_hdf5(p, str(p), "recording") as f:       # the one reader of files: says if the writer did not close it
         for k in data:
             a = f[k].attrs
             labels[k] = [_text(x) for x in np.atleast_1d(a["labels"])] if "labels" in a else []

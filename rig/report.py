@@ -23,6 +23,7 @@ import numpy as np
 
 from controllers.vibration_criteria import band_velocity_rms, plot_vc, vc_class
 from rig.errors import RecordingError
+from rig.recordings.files import open_hdf5
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import read_recording
 
@@ -89,7 +90,7 @@ def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
             if why:
                 out["absent_modes"][mode] = why
             elif b > 0:
-                out["skipped_modes"][mode] = f"{max(b - a, 0) / fs:.1f} s after settling (at least {MIN_SECONDS:g} s)"
+                out["skipped_modes"][mode] = f"{max(b - a, 0) / fs:.1f} s after settling, at least {MIN_SECONDS:g} s"
             continue
         out["segments"][mode] = {"t0_s": float(t[a]), "t1_s": float(t[b - 1]), "seconds": (b - a) / fs,
                                  "resolution_hz": fs / (b - a)}
@@ -132,14 +133,14 @@ def _absent(mode: str, rows: np.ndarray, active: np.ndarray, fs: float) -> str:
 
 
 def _labels(path, n: int) -> list[str] | None:
-    """The accel_mps2 dataset's column labels (mount names), if recorded."""
-    import h5py
+    """The accel_mps2 dataset's column labels (mount names), if recorded (read through the one reader of files,
+    which says when the recording was not closed by its writer)."""
     try:
-        with h5py.File(path, "r") as f:
+        with open_hdf5(Path(path), str(path), "recording") as f:
             lab = f["accel_mps2"].attrs.get("labels")
             if lab is not None and len(lab) == n:
                 return [x.decode() if isinstance(x, bytes) else str(x) for x in lab]
-    except (OSError, KeyError):
+    except RecordingError:
         return None
     return None
 

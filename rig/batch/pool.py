@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import logging
 import os
 import re
 import signal
+import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from multiprocessing import get_context
@@ -70,6 +72,20 @@ def _die_with_parent(parent_pid: int) -> None:
         pass
 
 
+def _log_format() -> logging.Formatter | None:
+    """The batch's own log line format (`rig COMMAND: warning: ...`, rig.cliargs.log_to_stderr), for its workers."""
+    return next((h.formatter for h in logging.getLogger().handlers if h.formatter is not None), None)
+
+
+def _start_worker(parent_pid: int, log_format: logging.Formatter | None) -> None:
+    """A spawned worker: it ends with the batch, and its log lines (a reader's warning) take the batch's form."""
+    _die_with_parent(parent_pid)
+    if log_format is not None and not logging.getLogger().handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(log_format)
+        logging.basicConfig(level=logging.WARNING, handlers=[handler])
+
+
 def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
     if workers <= 1 or len(tasks) == 1:
         for i, (fn, args) in enumerate(tasks):
@@ -82,7 +98,7 @@ def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
     # while the pool lives
     with _one_thread_each():
         pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=get_context("spawn"),
-                                   initializer=_die_with_parent, initargs=(os.getpid(),))
+                                   initializer=_start_worker, initargs=(os.getpid(), _log_format()))
         try:
             futs = {pool.submit(fn, *args): i for i, (fn, args) in enumerate(tasks)}
             for fut in as_completed(futs):

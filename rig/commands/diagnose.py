@@ -66,6 +66,7 @@ def diagnose_one(plant: Path | None, config: str | None, seed: int, path: str, o
 
 def run(args) -> int:
     """The route of REC, chosen here once: a batch, a run of the four-mount rig, or a recording against its plant."""
+    cliargs.log_to_stderr("diagnose")          # the readers' warnings: `rig diagnose: warning: ...`
     if batch.wanted(args):
         options = {"seed": args.seed, "plant": file_identity(args.plant), "config": file_identity(args.config)}
         return batch.run_job(Job("diagnose", options, partial(diagnose_one, args.plant, args.config, args.seed)), args)

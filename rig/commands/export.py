@@ -39,6 +39,7 @@ def output_path(rec: Path, fmt: str, out: Path | None, gzip: bool = False) -> Pa
 
 
 def run(args) -> int:
+    cliargs.log_to_stderr("export")          # the readers' warnings: `rig export: warning: ...`
     rec = Path(args.recording)
     out = output_path(rec, args.to, args.out, args.gzip)
     files = [out] + (list(export.sidecars(out)) if args.to == "csv" else [])

@@ -211,6 +211,7 @@ def identify_one(plant_path: Path | None, config: str | None, starts: int, seed:
 
 
 def run(args) -> int:
+    cliargs.log_to_stderr("identify")          # the readers' warnings: `rig identify: warning: ...`
     if args.starts < 1:
         raise RigError(f"--starts: expected >= 1, got {args.starts}")
     if batch.wanted(args):

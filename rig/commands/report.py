@@ -26,9 +26,10 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    cliargs.log_to_stderr("report")          # the readers' warnings: `rig report: warning: ...`
     rep = report.vc_of_recording(args.recording, settle_s=args.settle)
     for mode, why in rep["skipped_modes"].items():
-        print(f"rig report: {mode}: too short for a VC report ({why})", file=sys.stderr)
+        print(f"rig report: warning: {args.recording}: {mode}: too short for a VC report ({why})", file=sys.stderr)
     if args.out is not None:
         cliargs.make_out_dir(args.out)
         report.plot(args.out / "report.png", rep)

@@ -27,8 +27,11 @@ def lm_fit(fun, x0, lo, hi, step, *, max_iter: int = 20, rtol: float = 1e-5, nea
             xp = x.copy(); xp[i] += h
             J[:, i] = ((fun(xp) if near is None else near(xp, x)) - r) / h
         list(_POOL.map(column, range(n)))       # the simulators release the GIL: two cores share the columns
-        g = J.T @ r
-        A = J.T @ J
+        with np.errstate(over="ignore", invalid="ignore"):
+            g = J.T @ r
+            A = J.T @ J
+        if not (np.isfinite(J).all() and np.isfinite(A).all() and np.isfinite(g).all()):
+            break                               # a model not computable one step away: no step to take from here
         d = np.sqrt(np.maximum(np.diag(A), 1e-300))
         An = A / np.outer(d, d); gn = g / d
         improved = False

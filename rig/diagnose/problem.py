@@ -519,7 +519,12 @@ class Problem:
         return [self.base_band] + list(bnd[1:]) if effect.in_band else bnd
 
     def evaluate(self, lin: dict, fx: dict, k: int) -> ModelFit:
-        r, dist, c, state, _ = self._residual_full(lin, fx)
+        with np.errstate(all="ignore"):                # numpy's words on overflow: the check below says it once
+            r, dist, c, state, _ = self._residual_full(lin, fx)
+            rss = float(np.sum(r * r))
+        if not fx and not math.isfinite(rss):          # the plant alone (the plant file's values): no fit from it
+            raise self.plant.plant.not_computable(self.plant.public_linear(lin),
+                                                  f"the residual sum of squares ({rss}) of the model's position")
         # a plant file's plant: how correlated the held-out residual is (the tests count independent samples);
         # the eha plant's tests stay as its proofs measured them
         tau = correlation_time(r, self.mhold, self.n // (2 * int(self.blk[-1] + 1))) \

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.signal
 
+from rig.errors import ConfigError
 from sim_backend.linear import ActuatorParams
 
 FAMILIES = ("eha", "mechanical_axis", "transfer_function")
@@ -105,6 +106,13 @@ class Plant:
         ev = np.linalg.eigvals(A)
         scale = max(float(np.max(np.abs(ev))), 1e-9)
         return bool(np.max(ev.real) >= -1e-9 * scale)
+
+    def not_computable(self, values: dict[str, float], what: str) -> ConfigError:
+        """The one line for a fit this plant's model makes impossible: `what` came out not finite at these values
+        (e.g. a mass of 1e-300 kg: no range fits every axis, so the values are refused by what they give)."""
+        shown = ", ".join(f"{k} = {v:.4g}" for k, v in values.items())
+        return ConfigError(f"{self.source}: [plant] {self.family}: no fit is possible: {what} is not finite with "
+                           f"{shown}; check these values and their units (docs/PLANT.md)")
 
     def describe(self) -> str:
         parts = []

@@ -54,6 +54,8 @@ def phi(Am, Bm, tau):
     """Exact ZOH pair (e^{A tau}, int_0^tau e^{A s} ds B) from the augmented matrix exponential (balanced)."""
     n = len(Bm)
     E = np.zeros((n + 1, n + 1)); E[:n, :n] = Am * tau; E[:n, n] = Bm * tau
+    if not np.isfinite(E).all():        # a model beyond floating point (its values absurd): not computable, so
+        return np.full((n, n), np.nan), np.full(n, np.nan)      # nan, which a fit rejects and its figures refuse
     Eb, (sc, _) = matrix_balance(E, permute=False, separate=True)
     X = _expm_taylor(Eb)
     X = X * sc[:, np.newaxis] / sc[np.newaxis, :]          # undo the similarity Eb = D^-1 E D

@@ -1,11 +1,14 @@
 """The one reader of recording files: format detection, gzip, CSV and text tables, MATLAB .mat (v5 with scipy, v7.3
 with h5py) and HDF5. It returns what the file holds (named columns, variables, datasets), never a Recording:
 rig's own formats (rig/recordings/rigformat.py) and a plant file's signal map (rig/recordings/signalmap.py) each
-pick their signals from it. Every problem with a file is one RecordingError line naming the file."""
+pick their signals from it. Every problem with a file is one RecordingError line naming the file; an HDF5 file
+its writer did not close is read as it is, and said in one warning line (`warn_if_incomplete`)."""
 from __future__ import annotations
 
 import gzip
 import io
+import logging
+import os
 import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -138,23 +141,36 @@ class Table:
         return RecordingError(f"{self.source}: could not parse the numeric rows")
 
 
+SEPARATORS = ("\t", ";", ",")
+SEPARATOR_NAMES = {"\t": "tab", ";": "';'", ",": "','"}
+
+
 def read_table(text: str, source: str, *, delimiter: str | None = ",", skip_rows: int = 0,
-               comment: str | None = None, header: bool | None = None, quoted: bool = True) -> Table:
+               comment: str | None = None, header: bool | None = None, quoted: bool = True,
+               expected: str = "") -> Table:
     """A delimited text file: `delimiter` one character, "whitespace" (runs of spaces and tabs) or None (the first
     of tab, ";" and "," found in the first line, else whitespace); `skip_rows` lines of preamble; lines starting
     with `comment` and blank lines left out; `header`: the first line names the columns (None: when it is not all
-    numbers)."""
+    numbers). A header that is one field on the delimiter asked for but several on another separator is refused
+    naming the separator the file looks to have (`expected`: what the caller wants, for the message)."""
     lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if i >= skip_rows]
     lines = [(i, ln) for i, ln in lines if ln.strip() and not (comment and ln.lstrip().startswith(comment))]
     if not lines:
         raise RecordingError(f"{source}: no data rows (after {skip_rows} skipped lines and comments)")
     delim = (None if delimiter == "whitespace" else      # None: any run of spaces and tabs
-             delimiter or next((d for d in ("\t", ";", ",") if d in lines[0][1]), None))
+             delimiter or next((d for d in SEPARATORS if d in lines[0][1]), None))
     table = Table(source, delim, None, [], [], quoted)
     first = table.split(lines[0][1])
     # empty cells (a delimiter ending every line, as MATLAB's `save -ascii -tabs` and the DaISy files write)
     # say nothing: only a cell that is text makes the first line a header
     has_header = header if header is not None else not all(is_number(c) for c in first if c)
+    if has_header and delimiter in SEPARATORS and len(first) == 1:
+        other = next((d for d in SEPARATORS if len(lines[0][1].split(d)) > 1), None)
+        if other is not None:
+            raise RecordingError(f"{source}: the header is one field on {SEPARATOR_NAMES[delimiter]} but "
+                                 f"{len(lines[0][1].split(other))} on {SEPARATOR_NAMES[other]}: the file looks "
+                                 f"{SEPARATOR_NAMES[other]}-separated; expected {SEPARATOR_NAMES[delimiter]}-separated"
+                                 + (f" {expected}" if expected else ""))
     rows = lines[1:] if has_header else lines
     if not rows:
         raise RecordingError(f"{source}: no data rows after the header")
@@ -177,11 +193,45 @@ def open_hdf5(path: Path, source: str, what: str = "file"):
     import h5py          # lazy: h5py is loaded only for HDF5 files
     try:
         with h5py.File(path, "r") as f:
+            warn_if_incomplete(f, path, source)
             yield f
     except RecordingError:
         raise
     except Exception as e:   # h5py raises OSError/KeyError/ValueError/TypeError for damaged files
         raise RecordingError(f"{source}: not a readable HDF5 {what} ({type(e).__name__}: {e})"[:300]) from None
+
+
+log = logging.getLogger("rig.recordings")
+_warned: set = set()
+
+
+def warn_if_incomplete(f, path: Path, source: str) -> None:
+    """A file whose writer did not close it (rig.runtime.recorder keeps the root attribute complete = False until
+    the run closes its file: a crash, a kill or a run still going) may be cut short: the rig never uses such data
+    silently. One warning line, once per file and version in a process, with what is known: why it ended (the
+    recorder's `ended`), the rows every root dataset has (what the readers keep) and their time span."""
+    if bool(f.attrs.get("complete", True)):
+        return
+    try:
+        st = os.stat(path)
+        key = (str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+    except OSError:
+        key = (source,)
+    if key in _warned:
+        return
+    _warned.add(key)
+    ended = f.attrs.get("ended", "")
+    ended = ended.decode(errors="replace") if isinstance(ended, bytes) else str(ended)
+    sets = [d for d in f.values() if getattr(d, "ndim", 0) >= 1 and getattr(d, "shape", None)]
+    held = ""
+    if sets:
+        rows = min(d.shape[0] for d in sets)
+        t = f.get("time_s")
+        ends = (float(t[0]), float(t[rows - 1])) if rows and t is not None and getattr(t, "ndim", 0) == 1 else ()
+        span = f" (t = {ends[0]:.6g} to {ends[1]:.6g} s)" if ends and ends[1] > ends[0] else ""
+        held = f"; it holds {rows} rows{span}, used as they are"
+    log.warning("%s: the run ended before the recording was closed (attribute complete = false%s): it may be cut "
+                "short%s", source, f"; {ended}" if ended else "", held)
 
 
 def vector(a) -> np.ndarray:

@@ -7,7 +7,8 @@ Formats (all carry the same four signals, sampled uniformly at fs_hz):
 - HDF5 (`save_recording_h5`, and what rig.runtime.recorder writes for a chirp run): 1-D float64 datasets /time_s,
   /valve_cmd_V, /position_m, /accel_mps2 at the root; root attributes fs_hz (rig.runtime.recorder: rate_hz) and source.
   2-D datasets (n, n_mounts) are accepted; `mount` picks the column (index, or name from the "labels" attr).
-  A file with attribute complete = False (a run cut short) is read up to the rows every channel has.
+  A file with attribute complete = False (a run cut short) is read up to the rows every channel has, and said
+  in a warning line (rig/recordings/files.py, open_hdf5).
   A recording may also sit in a group (e.g. /stand or /mounts/front_left): pass `group=`.
   An operated run of the stand layout (`rig run --layout prototype`, datasets mode, reference_m,
   tracking_error_m) is read over its longest stretch in `track` mode while ACTIVE: closed-loop data
@@ -50,7 +51,9 @@ def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> R
 def _parse_csv(text: str, source: str) -> Recording:
     if not text.strip():
         raise RecordingError(f"{source}: empty file")
-    table = read_table(text, source, delimiter=",", header=True, quoted=False)
+    table = read_table(text, source, delimiter=",", header=True, quoted=False,
+                       expected=f"columns {','.join(COLUMNS)} (another separator: a plant file's [signals] with "
+                                f"csv = {{ delimiter = ... }}, docs/PLANT.md)")
     header = table.names
     missing = [c for c in COLUMNS if c not in header]
     if missing:

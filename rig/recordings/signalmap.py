@@ -290,7 +290,7 @@ def _missing(sig: Signal, source: str, plant: str, have: list[str], what: str = 
 def _read_csv(text: str, source: str, smap: SignalMap) -> dict[str, np.ndarray]:
     opts, plant = smap.csv, smap.source
     table = read_table(text, source, delimiter=opts.delimiter, skip_rows=opts.skip_rows, comment=opts.comment,
-                       header=opts.header)
+                       header=opts.header, expected=f"([signals] csv.delimiter of {plant})")
     names = table.names
     cols = {}
     for sig in smap.signals:

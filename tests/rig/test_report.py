@@ -132,3 +132,49 @@ def test_a_short_record_resolves_the_1_hz_band():
         power.append(v ** 2 / exact)
     mean = np.mean(power, axis=0)
     assert np.all(mean > 0.4) and np.all(mean < 2.5), mean.round(2)
+
+
+def test_a_mode_too_short_is_a_warning_in_the_house_form(tmp_path, capsys):
+    """Found by the abuse trial: a mode too short for a VC report was said as `rig report: feedback: too short ...`,
+    not in the `rig COMMAND: warning: ...` form every other warning takes (docs/CLI.md)."""
+    from rig.cli import main
+    path = tmp_path / "short.h5"
+    with Session(Config(), "sim", clock=SimClock(), isolation=False, record=path) as s:
+        lp = s.loop
+        lp.activate()
+        p = 0
+        for mode, periods in (("off", 17500), ("feedback", 7500)):     # 3.5 s off, then 1.5 s of feedback
+            s.request_isolation_mode(mode)
+            for _ in range(periods):
+                lp.cycle(p * lp.period_ns)
+                p += 1
+    assert main(["report", str(path), "--json"]) == 0
+    r = capsys.readouterr()
+    assert list(json.loads(r.out)["skipped_modes"]) == ["feedback"]     # --json: stdout stays pure JSON
+    assert r.err.splitlines() == [f"rig report: warning: {path}: feedback: too short for a VC report (0.5 s after "
+                                  "settling, at least 2 s)"]
+
+
+def test_a_run_its_writer_did_not_close_is_reported_and_exported_with_a_warning(three_modes, tmp_path):
+    """Found by the abuse trial: a run whose recording was left with complete = False (the loop killed) was
+    reported and exported with no word. Each command says it in one warning line naming the file and the rows it
+    holds, and does its work; --json keeps stdout pure JSON."""
+    import shutil
+    import subprocess
+    import sys
+    cut = tmp_path / "cut.h5"
+    shutil.copy(three_modes, cut)
+    with h5py.File(cut, "r+") as f:
+        f.attrs["complete"] = False
+        f.attrs["ended"] = "the recording process ended without closing (crash or kill)"
+        rows = f["time_s"].shape[0]
+        f["time_s"][...] = [k / 5000 for k in range(rows)]
+    for command, extra in (("report", []), ("export", ["--to", "csv", "--out", str(tmp_path / "exported")])):
+        r = subprocess.run([sys.executable, "-m", "rig.cli", command, str(cut), "--json", *extra],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        json.loads(r.stdout)
+        assert r.stderr.splitlines() == [
+            f"rig {command}: warning: {cut}: the run ended before the recording was closed (attribute complete = "
+            f"false; the recording process ended without closing (crash or kill)): it may be cut short; it holds "
+            f"{rows} rows (t = 0 to {(rows - 1) / 5000:.6g} s), used as they are"]

@@ -104,6 +104,12 @@ BAD_CASES = {
     "blank": (b"\n\n  \n", "empty file"),
     "header_only": (HEADER.encode() + b"\n", "no data rows"),
     "wrong_columns": (_csv_text(_good_rows(), "t,u,y,a").encode(), "wrong columns"),
+    # found by the abuse trial: refused as "wrong columns" without naming the separator the file has
+    "semicolon_separated": (_csv_text([r.replace(",", ";") for r in _good_rows()], HEADER.replace(",", ";")).encode(),
+                            f"one field on ',' but 4 on ';': the file looks ';'-separated; expected ','-separated "
+                            f"columns {HEADER} "),
+    "tab_separated": (_csv_text([r.replace(",", "\t") for r in _good_rows()], HEADER.replace(",", "\t")).encode(),
+                      "the file looks tab-separated; expected ','-separated"),
     "missing_column": (_csv_text([r.rsplit(",", 1)[0] for r in _good_rows()],
                                  "time_s,valve_cmd_V,position_m").encode(), "missing accel_mps2"),
     "nan": (_csv_text(_good_rows()[:50] + ["0.050000,nan,0,0"] + _good_rows(200)[51:]).encode(),
@@ -276,3 +282,30 @@ def test_matlab_v73_is_read_as_hdf5(tmp_path):
     back = load_recording(path)
     np.testing.assert_array_equal(back.position_m, rec.position_m)
     assert back.fs_hz == pytest.approx(1000.0)
+
+
+def test_a_recording_its_writer_did_not_close_is_used_and_said_once(tmp_path, caplog):
+    """Found by the abuse trial: a file rig.runtime.recorder left with complete = False (a crash, a kill) was read
+    with no word. The one reader of files says it in one warning line naming the file, why and the rows it
+    holds; the rows every channel has are used; a second read of the same file says nothing more."""
+    import logging
+
+    import h5py
+    rec = _rec(500)
+    path = save_recording_h5(rec, tmp_path / "cut.h5", attrs={"complete": False})
+    with h5py.File(path, "r+") as f:                  # the writer died between two datasets' appends
+        data = f["valve_cmd_V"][:420]
+        del f["valve_cmd_V"]
+        f["valve_cmd_V"] = data
+    with caplog.at_level(logging.WARNING, logger="rig.recordings"):
+        back = load_recording(path)
+        load_recording(path)
+    assert back.n == 420
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert said == [f"{path}: the run ended before the recording was closed (attribute complete = false): it may be "
+                    f"cut short; it holds 420 rows (t = 0 to 0.419 s), used as they are"]
+    caplog.clear()
+    closed = save_recording_h5(rec, tmp_path / "closed.h5", attrs={"complete": True})
+    with caplog.at_level(logging.WARNING, logger="rig.recordings"):
+        load_recording(closed)
+    assert not caplog.records

@@ -280,6 +280,12 @@ def test_csv_column_problems(tmp_path):
         load_mapped(path, _map('sample_rate_hz = 10.0\ncommand = "a"\nposition = "b"\n'))
     with pytest.raises(RecordingError, match=r"no header row names the columns .* give its column number"):
         load_mapped(path, _map('sample_rate_hz = 10.0\ncommand = "a"\nposition = 1\ncsv = { header = false }\n'))
+    semi = tmp_path / "semi.csv"                   # the plant file says ',' and the file is ';'-separated
+    semi.write_text("a;b\n" + "\n".join(f"{k};{k * 2}" for k in range(200)) + "\n")
+    with pytest.raises(RecordingError, match=r"semi.csv: the header is one field on ',' but 2 on ';': the file "
+                                             r"looks ';'-separated; expected ','-separated "
+                                             r"\(\[signals\] csv.delimiter of p.toml\)"):
+        load_mapped(semi, _map('sample_rate_hz = 10.0\ncommand = "a"\nposition = "b"\ncsv = { delimiter = "," }\n'))
 
 
 # ---- property tests ---------------------------------------------------------------------------------------
