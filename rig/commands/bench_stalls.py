@@ -158,7 +158,8 @@ def measure(cfg, seconds: float, rate: float) -> dict:
     for name, el in loops.items():
         late = el.late_us()
         gaps = el.period_ns * 1e-3 + np.diff(late)          # between two wake-ups (us)
-        out[name] = dict(_figures(gaps), late_over_period_pct=round(100 * el.late_share(), 2) if late.size else None)
+        out[name] = dict(_figures(gaps), late_over_period_pct=round(100 * float((late > el.period_ns * 1e-3).mean()), 2)
+                         if late.size else None)
     load = round((load0 + os.getloadavg()[0]) / 2, 2)
     return {"seconds": seconds, "rate_hz": rate, "load": load, "probes": {**out, **echoed},
             "busy": busy(min(seconds / 2, BUSY_MAX_S))}

@@ -20,9 +20,10 @@ takes the floor's level out.
 "late_periods" gives per mode the share of its metered periods that were late: the loop woke more than a
 period after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply);
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
-suffers first). "empty_loop_late" gives per mode the same share for an empty loop run beside (its own process,
-at the loop's rate and priority, nothing in its period: rig/runtime/empty_loop.py): what the host did in that
-window to any process of the run; the closing warning says from it whether late periods were the host's.
+suffers first). "empty_loop_late" gives per mode the share of its periods in which an empty loop beside the run
+(one pinned to each CPU, at the loop's priority and a tenth of its rate, nothing in its period:
+rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run. The closing warning says from it whether the
+late periods were the host's or the drivers' chain's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
 "recording", "pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
@@ -40,6 +41,7 @@ Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -56,7 +58,7 @@ from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_SUSPECT, RecordingError, RigError
-from rig.runtime.empty_loop import EmptyLoop
+from rig.runtime.empty_loop import EmptyLoop, late_share
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -66,6 +68,8 @@ HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
              "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods",
              "empty_loop_late", "recording", "pre_steps")
+BESIDE_DIVIDER = 10         # the empty loops beside the run wake at a tenth of its rate: at its own, the two cost
+#                             the run a fifth of a CPU and tripled its late periods on the 2-core machine
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
 CONFIG_HELP = "TOML configuration (default: the HIL design, drivers/devicemaps/hil.toml; not Table 1)"
 
@@ -300,8 +304,11 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             progress = _Progress(loop, quiet)
             progress.start()
             pre_steps = rig.steps
-            with EmptyLoop(rate, seconds + 1.0, cfg.loop.rt_priority if realtime else 0) as beside, \
-                    inject.Armed(session, injections):
+            with contextlib.ExitStack() as stack:
+                beside = [stack.enter_context(EmptyLoop(rate / BESIDE_DIVIDER, seconds + 1.0,
+                                                        cfg.loop.rt_priority if realtime else 0, cpu))
+                          for cpu in range(os.cpu_count() or 1)]
+                stack.enter_context(inject.Armed(session, injections))
                 reason = session.run(seconds=seconds, activate_after_s=activate)
             end_steps = rig.steps          # the trace up to here: the valves go to null after it
         finally:
@@ -312,7 +319,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
-    host_late = empty_loop_late(beside, loop.t0_ns, modes, seconds, settle) if beside is not None else {}
+    host_late = empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle) if beside else {}
     table, floor, codes = rig.trace()
     short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
@@ -343,15 +350,16 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     return out
 
 
-def empty_loop_late(beside, t0_ns: int | None, modes, seconds: float, settle_s: float) -> dict:
-    """Per mode, over the same metered window as late_periods: the share of the empty loop's wake-ups (beside
-    the run, at the loop's rate and priority: rig/runtime/empty_loop.py) more than a period late."""
+def empty_loop_late(beside, t0_ns: int | None, period_ns: int, modes, seconds: float, settle_s: float) -> dict:
+    """Per mode, over the same metered window as late_periods: the share of its periods in a stretch where an
+    empty loop beside the run (one per CPU at the loop's priority: rig/runtime/empty_loop.py) was held more than a
+    period, i.e. the host took a CPU from the run."""
     from rig.commands.hil_lockstep import windows
     if t0_ns is None:
         return {}
     out = {}
     for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
-        v = beside.late_share(t0_ns + int(t0 * 1e9), t0_ns + int(t1 * 1e9))
+        v = late_share(beside, t0_ns + int(t0 * 1e9), t0_ns + int(t1 * 1e9), period_ns)
         out[mode] = None if v is None else round(v, 4)
     return out
 

@@ -1,12 +1,15 @@
 """An empty loop beside a run: the host's timing measured in the same run as the work it judges.
 
 A process of its own wakes on absolute deadlines at a rate and a priority, with nothing in its period, and keeps
-how late each wake-up was. Its share of wake-ups more than a period late is what the host (the kernel, the
-hypervisor, the machine's other load) did in that window to any process of the run: `rig hil` reports it per
-mode beside its own late periods, and `rig bench stalls` measures the host with it."""
+how late each wake-up was. At a priority above every other process of the run, pinned to one CPU, its
+wake-ups more than a period late are the periods in which that CPU was taken from the run (by the kernel or the
+hypervisor). `rig hil` runs one on each CPU beside the loop, at a tenth of the loop's rate so that it takes
+little of the CPUs it measures (late_share: the loop's periods in a stretch where any of them was held), and
+`rig bench stalls` measures the host with it."""
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import time
 
 import numpy as np
@@ -15,7 +18,9 @@ from rig.runtime.clock import MonotonicClock
 from rig.runtime.rt import raise_priority
 
 
-def _wake(first_ns, count, stop, late_ns, period_ns: int, priority: int) -> None:
+def _wake(first_ns, count, stop, late_ns, period_ns: int, priority: int, cpu: int | None) -> None:
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
     raise_priority(priority)
     clock = MonotonicClock(0)
     t = time.monotonic_ns() + period_ns
@@ -31,16 +36,16 @@ def _wake(first_ns, count, stop, late_ns, period_ns: int, priority: int) -> None
 
 
 class EmptyLoop:
-    """with EmptyLoop(rate_hz, seconds, priority) as el: ... ; then el.late_share(t0_ns, t1_ns) and el.late_us().
-    It stops at the block's end or after `seconds`, whichever comes first."""
+    """with EmptyLoop(rate_hz, seconds, priority, cpu) as el: ... ; then el.late_us() and el.late_spans_ns().
+    It stops at the block's end or after `seconds`, whichever comes first; cpu None: where the kernel puts it."""
 
-    def __init__(self, rate_hz: float, seconds: float, priority: int = 0) -> None:
+    def __init__(self, rate_hz: float, seconds: float, priority: int = 0, cpu: int | None = None) -> None:
         self.period_ns = int(round(1e9 / rate_hz))
         n = int(seconds * rate_hz) + 1
         self._first, self._count, self._stop = mp.RawValue("q", 0), mp.RawValue("q", 0), mp.RawValue("b", 0)
         self._late = mp.RawArray("q", n)
         self._proc = mp.get_context("fork").Process(
-            target=_wake, args=(self._first, self._count, self._stop, self._late, self.period_ns, priority),
+            target=_wake, args=(self._first, self._count, self._stop, self._late, self.period_ns, priority, cpu),
             daemon=True, name="rig-empty-loop")
 
     def __enter__(self) -> "EmptyLoop":
@@ -58,14 +63,25 @@ class EmptyLoop:
         """Each wake-up's lateness after its deadline (us), in order."""
         return np.frombuffer(self._late, dtype=np.int64)[:self._count.value] * 1e-3
 
-    def late_share(self, t0_ns: int | None = None, t1_ns: int | None = None) -> float | None:
-        """The share of the wake-ups whose deadlines fall in [t0_ns, t1_ns) (monotonic clock) that came more
-        than a period late; None when there were none."""
+    def late_spans_ns(self, late_ns: int | None = None) -> np.ndarray:
+        """(deadline, wake-up) of each wake-up more than late_ns (default: its period) after its deadline, on the
+        monotonic clock (ns): the stretches its CPU was taken from it."""
         late = np.frombuffer(self._late, dtype=np.int64)[:self._count.value]
-        deadline = self._first.value + self.period_ns * np.arange(late.size, dtype=np.int64)
-        m = np.ones(late.size, dtype=bool)
-        if t0_ns is not None:
-            m &= deadline >= t0_ns
-        if t1_ns is not None:
-            m &= deadline < t1_ns
-        return float((late[m] > self.period_ns).mean()) if m.any() else None
+        k = np.flatnonzero(late > (self.period_ns if late_ns is None else late_ns))
+        t = self._first.value + self.period_ns * k.astype(np.int64)
+        return np.stack([t, t + late[k]], axis=1)
+
+
+def late_share(loops, t0_ns: int, t1_ns: int, period_ns: int) -> float | None:
+    """The share of the periods of [t0_ns, t1_ns) (the grid t0_ns + k period_ns) that fall in a stretch where any
+    of the empty loops woke more than one such period late; None for an empty window."""
+    n = (t1_ns - t0_ns) // period_ns
+    if n <= 0:
+        return None
+    late = np.zeros(n, dtype=bool)
+    for el in loops:
+        for a, b in el.late_spans_ns(period_ns):
+            k0, k1 = max(0, -(-(a - t0_ns) // period_ns)), min(n, -(-(b - t0_ns) // period_ns))
+            if k1 > k0:                 # (a stretch before the window has k1 <= 0: a slice would wrap)
+                late[k0:k1] = True
+    return float(late.mean())

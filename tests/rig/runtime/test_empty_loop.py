@@ -1,0 +1,53 @@
+"""The empty loop beside a run (rig/runtime/empty_loop.py): a real process on the real clock. Held off its CPU
+(here: stopped by a signal, as a hypervisor takes a vCPU), its wake-ups in that stretch come more than a period
+late, and late_share counts those periods of a window, once however many loops saw them."""
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+from rig.runtime.empty_loop import EmptyLoop, late_share
+
+RATE = 1000.0
+PERIOD_NS = 1_000_000
+
+
+def test_a_loop_held_off_its_cpu_marks_the_periods_it_was_held():
+    with EmptyLoop(RATE, 5.0) as el, EmptyLoop(RATE, 5.0) as other:
+        time.sleep(0.2)
+        t_stop = time.monotonic_ns()
+        os.kill(el._proc.pid, signal.SIGSTOP)
+        time.sleep(0.08)
+        os.kill(el._proc.pid, signal.SIGCONT)
+        t_cont = time.monotonic_ns()
+        time.sleep(0.2)
+    spans = el.late_spans_ns()
+    assert spans.shape[1] == 2 and (spans[:, 1] > spans[:, 0] + PERIOD_NS).all()
+    held = (spans[:, 0] >= t_stop - 2 * PERIOD_NS) & (spans[:, 0] < t_cont + PERIOD_NS)
+    assert held.sum() >= 40                                 # the 80 ms held, less what the host let slip anyway
+    assert held.sum() >= 0.9 * len(spans) - 5               # the late wake-ups are the held stretch
+    assert el.late_us().size > 300                          # it ran on after
+    t0, t1 = t_stop - 100 * PERIOD_NS, t_cont + 100 * PERIOD_NS
+    both = late_share([el, other], t0, t1, PERIOD_NS)
+    alone = late_share([el], t0, t1, PERIOD_NS)
+    assert 0.2 <= alone <= both <= 1.0                      # about 80 of the window's 280 periods
+    slow = [EmptyLoop(RATE / 10, 1.0)]                      # never started: no wake-ups, no late periods
+    assert late_share(slow, t0, t1, PERIOD_NS) == 0.0
+    assert late_share([el], t1, t1, PERIOD_NS) is None      # an empty window
+
+
+def test_a_slow_loop_marks_every_period_of_a_faster_grid_it_was_held_through():
+    run_period = PERIOD_NS // 2                             # the run at 2 kHz, the empty loop at 100 Hz
+    with EmptyLoop(100.0, 5.0) as el:
+        time.sleep(0.1)
+        t_stop = time.monotonic_ns()
+        os.kill(el._proc.pid, signal.SIGSTOP)
+        time.sleep(0.1)
+        os.kill(el._proc.pid, signal.SIGCONT)
+        t_cont = time.monotonic_ns()
+        time.sleep(0.1)
+    share = late_share([el], t_stop - 100 * run_period, t_cont + 100 * run_period, run_period)
+    held = (t_cont - t_stop) / run_period                   # about 200 periods of the 2 kHz grid
+    assert (held - 40) / (held + 200) <= share <= (held + 40) / (held + 200)
+    assert late_share([el], t_cont + 20 * run_period, t_cont + 120 * run_period, run_period) <= 0.2   # after it
