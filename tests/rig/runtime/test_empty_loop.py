@@ -13,15 +13,22 @@ RATE = 1000.0
 PERIOD_NS = 1_000_000
 
 
+def _hold(el: EmptyLoop, before_s: float, held_s: float, after_s: float) -> tuple[int, int]:
+    """Stop the loop's process for held_s (between before_s and after_s of it running): when it stopped and went
+    on (monotonic ns)."""
+    time.sleep(before_s)
+    t_stop = time.monotonic_ns()
+    os.kill(el._proc.pid, signal.SIGSTOP)
+    time.sleep(held_s)
+    os.kill(el._proc.pid, signal.SIGCONT)
+    t_cont = time.monotonic_ns()
+    time.sleep(after_s)
+    return t_stop, t_cont
+
+
 def test_a_loop_held_off_its_cpu_marks_the_periods_it_was_held():
     with EmptyLoop(RATE, 5.0) as el, EmptyLoop(RATE, 5.0) as other:
-        time.sleep(0.2)
-        t_stop = time.monotonic_ns()
-        os.kill(el._proc.pid, signal.SIGSTOP)
-        time.sleep(0.08)
-        os.kill(el._proc.pid, signal.SIGCONT)
-        t_cont = time.monotonic_ns()
-        time.sleep(0.2)
+        t_stop, t_cont = _hold(el, 0.2, 0.08, 0.2)
     spans = el.late_spans_ns()
     assert spans.shape[1] == 2 and (spans[:, 1] > spans[:, 0] + PERIOD_NS).all()
     held = (spans[:, 0] >= t_stop - 2 * PERIOD_NS) & (spans[:, 0] < t_cont + PERIOD_NS)
@@ -40,13 +47,7 @@ def test_a_loop_held_off_its_cpu_marks_the_periods_it_was_held():
 def test_a_slow_loop_marks_every_period_of_a_faster_grid_it_was_held_through():
     run_period = PERIOD_NS // 2                             # the run at 2 kHz, the empty loop at 100 Hz
     with EmptyLoop(100.0, 5.0) as el:
-        time.sleep(0.1)
-        t_stop = time.monotonic_ns()
-        os.kill(el._proc.pid, signal.SIGSTOP)
-        time.sleep(0.1)
-        os.kill(el._proc.pid, signal.SIGCONT)
-        t_cont = time.monotonic_ns()
-        time.sleep(0.1)
+        t_stop, t_cont = _hold(el, 0.1, 0.1, 0.1)
     share = late_share([el], t_stop - 100 * run_period, t_cont + 100 * run_period, run_period)
     held = (t_cont - t_stop) / run_period                   # about 200 periods of the 2 kHz grid
     assert (held - 40) / (held + 200) <= share <= (held + 40) / (held + 200)
