@@ -22,8 +22,8 @@ period after its deadline, or the accelerometer module's new conversion had not 
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
 suffers first). "empty_loop_late" gives per mode the share of its periods in which an empty loop beside the run
 (one pinned to each CPU, at the loop's priority and a tenth of its rate, nothing in its period:
-rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run. The closing warning says from it whether the
-late periods were the host's or the drivers' chain's.
+rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run. The closing warning
+says from it whether the late periods were the host's or the drivers' chain's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
 "recording", "pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
@@ -334,8 +334,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
            "late_periods": late, "empty_loop_late": host_late, "load": round(os.getloadavg()[0], 2),
-           "recording": str(record),
-           "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms, "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
+           "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms,
+           "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
            "stop_reason": reason, "pre_steps": pre_steps, "harm": loop.harm,
            "supervisor": loop.supervisor.summary() if loop.supervisor is not None else None,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 import time
 
 import numpy as np
@@ -19,6 +20,10 @@ from rig.runtime.rt import raise_priority
 
 
 def _wake(first_ns, count, stop, late_ns, period_ns: int, priority: int, cpu: int | None) -> None:
+    # forked from the run's process with its handlers: a Ctrl-C to the process group is the run's to act on (it
+    # stops this loop), and a SIGTERM ends this one quietly
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
     raise_priority(priority)
