@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import os
 import sys
 import threading
 
@@ -82,5 +83,6 @@ def main(argv: list[str]) -> int:
 if __name__ == "__main__":
     try:
         sys.exit(main(sys.argv[1:]))
-    except KeyboardInterrupt:
-        sys.exit(0)
+    except KeyboardInterrupt:             # Ctrl-C reaches the whole process group: the rig stops us
+        sys.stdout.flush()
+        os._exit(0)                       # not sys.exit: the stdin watcher's read would make finalizing fatal

@@ -5,6 +5,7 @@ rehearsal on the emulated devices; the lag and oscillation rules within their ta
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -50,6 +51,20 @@ def test_rig_hil_stopped_by_ctrl_c_says_so_and_exits_130(tmp_path):
     assert rc == 130, text
     assert "interrupted (SIGINT)" in text and "no isolation figure" in text and "Traceback" not in text
     assert "isolation reduction" not in out and out.strip() == ""
+
+
+def test_ctrl_c_at_a_terminal_reaches_every_process_of_rig_hil_and_says_one_line(tmp_path):
+    """Was: a Ctrl-C to the whole process group (as a terminal sends it) also ended the emulated devices, each
+    printing "Fatal Python error: _enter_buffered_busy" (their stdin watcher at interpreter shutdown)."""
+    hil = Command("hil", "--seconds", "20", "--record", str(tmp_path / "int.h5"), own_group=True)
+    assert hil.wait_for("ACTIVE isolation"), hil.text
+    time.sleep(1.0)
+    os.killpg(hil.proc.pid, signal.SIGINT)
+    rc = hil.finish()
+    hil.drain()
+    text = hil.text
+    assert rc == 130, text
+    assert "interrupted (SIGINT)" in text and "Fatal Python error" not in text and "Traceback" not in text
 
 
 def test_hil_inject_a_silent_valve_node_faults_naming_it(tmp_path):

@@ -9,6 +9,7 @@ Command: a `rig` command as a background process, its stderr followed line by li
 from __future__ import annotations
 
 import math
+import signal
 import subprocess
 import sys
 import threading
@@ -48,13 +49,20 @@ def CentringP(kp_V_per_m: float = 2e4, dt: float = 2e-4) -> TrackingPID:
     return TrackingPID(PIDParams(kp_V_per_m, 0.0, 0.0, 1000.0, math.inf, math.inf), dt)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Command:
     """A `rig` command in the background (a real process), its stderr collected line by line; waits for a
     line."""
 
-    def __init__(self, *args, env=None):
+    def __init__(self, *args, env=None, own_group=False):
+        """own_group: in a process group of its own with SIGINT at its default, as a command at a terminal is
+        (a Ctrl-C there reaches the whole group: os.killpg(proc.pid, SIGINT))."""
         self.proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, env=env)
+                                     stderr=subprocess.PIPE, text=True, env=env, start_new_session=own_group,
+                                     preexec_fn=_default_sigint if own_group else None)
         self.lines: list[str] = []
         self._closed = False
         self._seen = threading.Condition()
@@ -85,6 +93,13 @@ class Command:
         finally:
             if self.proc.poll() is None:
                 self.proc.kill()
+
+    def drain(self, timeout=30.0) -> None:
+        """Until stderr closes: every process that shares it (children too) has written its last line."""
+        end = time.monotonic() + timeout
+        with self._seen:
+            while not self._closed and time.monotonic() < end:
+                self._seen.wait(0.2)
 
     @property
     def text(self) -> str:
