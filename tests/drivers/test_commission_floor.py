@@ -60,8 +60,8 @@ def test_an_inverted_and_two_swapped_floor_accelerometers_are_named_and_correcte
     fixed.write_text(cfg.read_text() + f'\n[drivers]\ncalibration = "{tmp_path / "first" / "commissioning.toml"}"\n')
     # `rig hil` through it: the floor feedforward, fed the floor as calibrated, adds isolation (an inverted or a
     # swapped floor channel would feed the floor's motion forward the wrong way)
-    hil = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--json"],
-                         capture_output=True, text=True, timeout=600)
+    hil = subprocess.run([sys.executable, "-m", "rig.cli", "hil", "--config", str(fixed), "--seconds", "9", "--json",
+                          "--record", str(tmp_path / "calibrated.h5")], capture_output=True, text=True, timeout=600)
     assert ran_to_the_end(hil), hil.stderr[-3000:]
     skip_unless_on_time(hil)
     figs = json.loads(hil.stdout)
