@@ -425,6 +425,7 @@ class StandBank:
         self._g = np.zeros((n, 4))
         self._block = np.zeros((0, 2 * n))
         self._j = 0
+        self._block_next = None
         self.exact = all(s.linear for s in self.stands)
         if self.exact:
             self._build_exact()
@@ -454,15 +455,30 @@ class StandBank:
         self._rng = np.random.default_rng(fx.seed)
         self._noise = np.zeros((0, 2 * n))
         self._nj = 0
+        self._noise_next = None
         # compile (or load) the bank's step now, not in the loop's first period (the watchdog)
         _bank_step(self._M, np.zeros(N), np.zeros(5 * n), np.zeros((n, 4)), np.zeros(2 * n), self.floor is not None,
                    np.zeros(2 * n), np.zeros(3 * n))
+
+    def prefetch(self) -> None:
+        """Draw the next blocks of floor motion and sensor noise ahead of time, between steps (the simulated
+        port's idle time, the HIL plant's server after its TPDOs), so no step pays for a draw; the sequence is
+        the same either way."""
+        half = self.BLOCK // 2
+        if self.exact and self._noise_next is None and self._nj >= len(self._noise) - half:
+            self._noise_next = self._rng.standard_normal((self.BLOCK, 2 * self.n_mounts)) * self._sd
+        if self.floor is not None and self._block_next is None and self._j >= len(self._block) - half:
+            self._block_next = self.floor.next_block(self.BLOCK)
+
+    def _next_floor(self) -> None:
+        nxt, self._block_next = self._block_next, None
+        self._block, self._j = (nxt if nxt is not None else self.floor.next_block(self.BLOCK)), 0
 
     def _floor_step(self) -> None:
         g = self._g
         if self.floor is not None:
             if self._j >= len(self._block):             # floor motion drawn in blocks (a draw costs ~20 us)
-                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+                self._next_floor()
             b = self._block[self._j]                    # x_g (n), v_g (n) at the new instant
             self._j += 1
             n = self.n_mounts
@@ -477,9 +493,11 @@ class StandBank:
             w = self._w
             w[:n] = valve_cmd_V
             if self._nj >= len(self._noise):
-                self._noise, self._nj = self._rng.standard_normal((self.BLOCK, 2 * n)) * self._sd, 0
+                nxt, self._noise_next = self._noise_next, None
+                self._noise = nxt if nxt is not None else self._rng.standard_normal((self.BLOCK, 2 * n)) * self._sd
+                self._nj = 0
             if self.floor is not None and self._j >= len(self._block):
-                self._block, self._j = self.floor.next_block(self.BLOCK), 0
+                self._next_floor()
             y = self._y
             _bank_step(self._M, self._X, w, g, self._block[self._j] if self.floor is not None else self._noise[0],
                        self.floor is not None, self._noise[self._nj], y)

@@ -4,13 +4,21 @@ whether or not (and whenever) the prefetch ran, and the loop must call idle() on
 between periods."""
 from __future__ import annotations
 
+import ctypes
+import dataclasses
+import socket
+import time
+
 import numpy as np
 
 from controllers.isolation import make_isolation_controllers
 from rig.runtime.clock import SimClock
 from rig.config import Config
 from rig.runtime.loop import Loop
-from sim_backend.backend import make_sim_port
+from drivers import can_stream
+from sim_backend.backend import make_sim_port, stand_bank
+from sim_backend.emulators import shared as sh
+from sim_backend.emulators.canopen_valve import PlantServer, StreamGateway
 from sim_backend.rig_plant import FloorMotion, RigPlant
 
 DT = 2e-4
@@ -83,3 +91,47 @@ def test_idle_step_then_late_read_hands_over_every_conversion():
         out.append((m.new_samples, [list(a) for a in m.accel_older], m.accel_mps2, m.stroke_m))
     assert out[0] == out[1]
     assert out[1][0] == 3 and len(out[1][1]) == 2
+
+
+def _bank_trace(prefetch_every: int | None, n: int = 2 * 256 + 9) -> np.ndarray:
+    cfg = Config()
+    cfg = cfg.replace(stand=dataclasses.replace(cfg.stand, base_motion_rms_m=5e-6))
+    bank = stand_bank(cfg, DT, n=2)
+    out = np.empty((n, 6))
+    for k in range(n):
+        if prefetch_every and k % prefetch_every == 0:
+            bank.prefetch()
+        bank.step([0.3, -0.2])
+        out[k] = bank.accel_mps2 + bank.stroke_m + bank.table_m
+    return out
+
+
+def test_stand_bank_prefetch_leaves_its_sequence_unchanged():
+    """The stand layout's plant (the prototype's) draws ahead too, and draws the same floor and noise."""
+    ref = _bank_trace(None)
+    assert np.std(ref[:, 0]) > 0                    # the floor and the noise do move it
+    for every in (1, 5, 300):
+        assert np.array_equal(_bank_trace(every), ref), every
+
+
+def test_the_hil_plant_draws_its_next_block_between_syncs():
+    """The emulated rig's plant process steps the plant on each SYNC; a refill inside that step held the SYNC's
+    conversion up (every 256 steps, a held period at 2 kHz). After each SYNC it serves, the block the coming
+    steps need is drawn already."""
+    cfg = Config()
+    plant = RigPlant(cfg, DT, floor=FloorMotion.from_config(cfg, DT), seed=5)
+    arr = (ctypes.c_double * sh.SIZE)()
+    server = PlantServer(arr, plant, DT, (1, 2, 3, 4), 2 * np.pi * 100, 10.0, True, 0)
+    a, b = socket.socketpair()
+    try:
+        server.gw = StreamGateway(a)
+        t0 = time.monotonic()
+        for k in range(2 * RigPlant.BLOCK + 3):
+            while time.monotonic() < t0 + k * DT:       # a SYNC a period (the plant keeps the wall clock's pace)
+                pass
+            server.handle(can_stream.pack(0x80, b""))
+            assert plant._gi < RigPlant.BLOCK // 2 or plant._next is not None, k
+        assert server.steps > 2 * RigPlant.BLOCK       # the SYNCs stepped it through two refills
+    finally:
+        a.close()
+        b.close()
