@@ -23,6 +23,7 @@ event and holds isolation off (rig/runtime/gate.py `hold_isolation_off`, bumples
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numba
 import numpy as np
@@ -67,9 +68,28 @@ def filter_squares(sos, zi, x, out):
             out[c] += v * v
 
 
+@numba.njit(cache=True)
+def worse_db(on, ref, n, floor, out):
+    """out[m] (mounts, then the whole table at n): 10 log10 of the isolating window's mean square over the
+    reference's, in dB; with floor accelerometers (floor) each the table/floor ratio (channels n.. the floor under
+    each mount); ref empty: against the floor itself (a ratio of 1)."""
+    tiny = 1e-300
+    for k in range(n + 1):
+        if k < n:
+            a = on[k] / max(on[n + k], tiny) if floor else on[k]
+            b = (ref[k] / max(ref[n + k], tiny) if floor else ref[k]) if ref.shape[0] else 1.0
+        else:
+            a = on[:n].sum() / max(on[n:2 * n].sum(), tiny) if floor else on[:n].sum()
+            b = ((ref[:n].sum() / max(ref[n:2 * n].sum(), tiny)) if floor else ref[:n].sum()) if ref.shape[0] else 1.0
+        out[k] = 10.0 * math.log10(max(a, tiny) / max(b, tiny))
+
+
 def warm() -> None:
-    """Compile (or load from numba's cache) the filter before any device runs: never in a running loop."""
+    """Compile (or load from numba's cache) the filter and the comparison before any device runs: never in a
+    running loop (the first comparison, uncompiled, held a 2 kHz loop's next wake-up by about a millisecond)."""
     filter_squares(np.zeros((1, 6)), np.zeros((1, 2, 1)), np.zeros((1, 1)), np.zeros(1))
+    worse_db(np.ones(8), np.ones(8), 4, True, np.zeros(5))
+    worse_db(np.ones(4), np.ones(0), 4, False, np.zeros(5))
 
 
 class HarmSupervisor:
@@ -88,7 +108,10 @@ class HarmSupervisor:
         self.zi = np.zeros((self.sos.shape[0], 2, width))
         warm()
         self.last = -1                # the newest conversion taken
-        self.looks = {PASSIVE: [], ISOLATING: []}    # per kind the newest looks: (sum of squares per channel, count)
+        self.looks = {PASSIVE: deque(), ISOLATING: deque()}   # per kind the newest looks: (sums of squares, count)
+        self._sum_sq = {k: np.zeros(width) for k in self.looks}  # ... and their totals
+        self._sum_n = {k: 0 for k in self.looks}
+        self._worse = np.zeros(self.n + 1)     # the newest comparison, dB: per mount, then the whole table
         self.window_n = max(1, int(round(sup.window_s * self.rate_hz)))    # conversions in a window
         self.switched_s = -math.inf   # the loop time of the last switch
         self.was = None
@@ -96,7 +119,6 @@ class HarmSupervisor:
         self.look_s = LOOK_S
         self.harm: str | None = None
         self.worst_db: float | None = None    # the newest comparison: whole table, dB against the reference
-        self.worst_mount_db: dict = {}
         self.max_mount_db = -math.inf          # the worst mount's worst comparison of the run
         self.reference = "none"
         self.skipped = 0              # conversions lost to the ring (the watch held up longer than the ring)
@@ -130,7 +152,8 @@ class HarmSupervisor:
     # ---- one look ------------------------------------------------------------------------------------
     def look(self, io, isolating: bool | None, t_s: float) -> str | None:
         """Take the new conversions, mark them (isolating None: neither, e.g. a stand tracking a reference),
-        compare. Returns the harm line the moment it trips."""
+        compare. Returns the harm line the moment it trips. It runs in the loop's slack (half a period at 2 kHz),
+        so its cost does not grow with the window: running sums per kind, the comparison compiled."""
         x = self._take(io)
         sq = np.zeros(self.width)
         if x.shape[0]:
@@ -139,25 +162,37 @@ class HarmSupervisor:
             self.was, self.switched_s = isolating, t_s
             self.over_s = None
             if isolating:
-                self.looks[ISOLATING] = []               # a new isolated stretch: judged on its own
+                self._clear(ISOLATING)                   # a new isolated stretch: judged on its own
         settled = t_s - self.switched_s >= self.cfg.settle_s + self.look_s
         kind = SETTLING if not settled or isolating is None else ISOLATING if isolating else PASSIVE
         if kind != SETTLING:
-            looks = self.looks[kind]
-            looks.append((sq, x.shape[0]))
-            while len(looks) > 1 and sum(c for _, c in looks[1:]) >= self.window_n:
-                del looks[0]
+            self._add(kind, sq, x.shape[0])
         if self.harm is not None or kind != ISOLATING:
             return None
         return self._compare(t_s)
 
+    def _clear(self, kind: int) -> None:
+        self.looks[kind].clear()
+        self._sum_sq[kind][:] = 0.0
+        self._sum_n[kind] = 0
+
+    def _add(self, kind: int, sq: np.ndarray, count: int) -> None:
+        """One look into its kind's window; the oldest looks leave once the rest still fill window_s."""
+        looks, tot = self.looks[kind], self._sum_sq[kind]
+        looks.append((sq, count))
+        tot += sq
+        self._sum_n[kind] += count
+        while len(looks) > 1 and self._sum_n[kind] - looks[0][1] >= self.window_n:
+            old, c = looks.popleft()
+            tot -= old
+            self._sum_n[kind] -= c
+
     def _window(self, kind: int):
         """The newest window_s of looks of this kind: per channel mean square, or None when not that much."""
-        looks = self.looks[kind]
-        count = sum(c for _, c in looks)
+        count = self._sum_n[kind]
         if count < self.window_n:
             return None
-        return sum(sq for sq, _ in looks) / count
+        return np.maximum(self._sum_sq[kind], 0.0) / count     # (a running sum: never below 0 by rounding)
 
     def _compare(self, t_s: float) -> str | None:
         on = self._window(ISOLATING)
@@ -165,26 +200,18 @@ class HarmSupervisor:
             return None
         n, floor = self.n, self.nf >= self.n
         off = self._window(PASSIVE)
-
-        def ratio(ms):                     # per mount and whole table: (table / floor) or table, mean square
-            tab = ms[:n]
-            if floor:
-                return np.append(tab / np.maximum(ms[n:], 1e-300), tab.sum() / max(ms[n:].sum(), 1e-300))
-            return np.append(tab, tab.sum())
         if off is not None:
-            ref = ratio(off)
             self.reference = "isolation off (table/floor)" if floor else "isolation off"
         elif floor:
-            ref = np.ones(n + 1)
             self.reference = "the floor accelerometers"
         else:
             self.reference = "none"
             return None
-        worse = 10.0 * np.log10(np.maximum(ratio(on), 1e-300) / np.maximum(ref, 1e-300))   # dB (mean squares)
+        worse = self._worse
+        worse_db(on, off if off is not None else on[:0], n, floor, worse)    # dB per mount, then the table
         self.worst_db = float(worse[n])
-        self.max_mount_db = max(self.max_mount_db, float(worse[:n].max()))
-        self.worst_mount_db = {self.names[m]: round(float(worse[m]), 2) for m in range(n)}
         m = int(np.argmax(worse[:n]))
+        self.max_mount_db = max(self.max_mount_db, float(worse[m]))
         if max(worse[n], worse[m]) <= self.cfg.margin_db:
             self.over_s = None
             return None
@@ -198,6 +225,13 @@ class HarmSupervisor:
                      f"rms over {self.cfg.window_s:g} s; margin {self.cfg.margin_db:g} dB for {self.cfg.hold_s:g} s) "
                      f"at t = {t_s:.2f} s: isolation switched off and held off")
         return self.harm
+
+    @property
+    def worst_mount_db(self) -> dict:
+        """The newest comparison per mount, dB against the reference ({} before the first)."""
+        if self.worst_db is None:
+            return {}
+        return {self.names[m]: round(float(self._worse[m]), 2) for m in range(self.n)}
 
     def no_reference_line(self) -> str | None:
         """Once, when isolating without any reference: the supervisor cannot judge (no floor accelerometers,

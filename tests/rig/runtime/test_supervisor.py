@@ -135,3 +135,41 @@ def test_the_compiled_filter_is_scipys_sosfilt():
         filter_squares(sos, zi, np.ascontiguousarray(part), got)
         total += got
     assert np.allclose(total, (want ** 2).sum(axis=0), rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("floor", [True, False])
+def test_the_running_window_and_the_compiled_comparison_match_the_direct_sums(floor):
+    """The supervisor keeps each kind's window as running sums and compares in compiled code (its look runs in
+    the loop's slack): the same dB as summing the newest window_s of looks afresh and taking the ratios."""
+    from rig.runtime.supervisor import ISOLATING, PASSIVE, worse_db
+    n = 4
+    sup = HarmSupervisor(SUP, n, n if floor else 0, RATE, MOUNTS)
+    rng = np.random.default_rng(3)
+    kept = {PASSIVE: [], ISOLATING: []}
+    for k in range(300):
+        kind = PASSIVE if k < 150 else ISOLATING
+        sq, count = rng.uniform(0.5, 2.0, sup.width), int(rng.integers(5, 40))
+        if kind == ISOLATING:
+            sq[:n] *= 0.1                            # the table's, not the floor's
+        sup._add(kind, sq, count)
+        kept[kind].append((sq, count))
+        looks = kept[kind]
+        while len(looks) > 1 and sum(c for _, c in looks[1:]) >= sup.window_n:   # the newest window_s
+            del looks[0]
+        want = sum(s for s, _ in looks) / sum(c for _, c in looks)
+        if sum(c for _, c in looks) >= sup.window_n:
+            assert np.allclose(sup._window(kind), want, rtol=1e-12), k
+        else:
+            assert sup._window(kind) is None
+    on, off = sup._window(ISOLATING), sup._window(PASSIVE)
+    out = np.zeros(n + 1)
+    worse_db(on, off, n, floor, out)
+
+    def ratio(ms):
+        tab = ms[:n]
+        return np.append(tab / ms[n:], tab.sum() / ms[n:].sum()) if floor else np.append(tab, tab.sum())
+    assert np.allclose(out, 10 * np.log10(ratio(on) / ratio(off)), atol=1e-9)
+    assert out[n] < -5                               # a tenth of the power: isolating helps
+    if floor:                                        # no reference: against the floor itself
+        worse_db(on, on[:0], n, True, out)
+        assert np.allclose(out, 10 * np.log10(ratio(on)), atol=1e-9)
