@@ -152,11 +152,19 @@ class AnalogIO(IODevice):
                     self.sleep_until(time.monotonic_ns() + P // 8)     # not converted yet: once more
                 if first:                                      # in at once: try a little earlier next time
                     self.delay_ns = max(self.delay_ns - DELAY_STEP_NS // 5, self.min_delay_ns)
+                self._watch_status(fetched)
             else:                                           # the latest value, once per loop period
                 self.sleep_until(due)
                 due += P
                 self.poll()
+                self._watch_status(self._polls)
             self._idle()
+
+    def _watch_status(self, k: int) -> None:
+        """With the FIFO: the status register every STATUS_EVERY fetches, after the fetch's conversion went out
+        (read before it, its round trip held every 50th conversion up by that long)."""
+        if self.fifo and k % STATUS_EVERY == 0:
+            self._status()
 
     def _idle(self) -> None:
         self.report(self.check(time.monotonic_ns()))
@@ -169,13 +177,11 @@ class AnalogIO(IODevice):
     def poll(self) -> bool:
         """One request (with the FIFO: its newest entries, the newest first; without: AI ch0-7, the counter and
         the status); True when it brought a new conversion (published, with any older ones it had not
-        published). With the FIFO the status (the host watchdog's bit) is read every STATUS_EVERY polls."""
+        published). With the FIFO the status (the host watchdog's bit) is read apart (_watch_status)."""
         t0 = time.monotonic_ns()
         if not self.asked_ns:
             self.asked_ns = t0
         self._polls += 1
-        if self.fifo and self._polls % STATUS_EVERY == 1 and not self._status():
-            return False
         try:
             r = self.client.read_holding_registers(self.first, count=self.n_read, device_id=self.unit)
         except Exception as e:                      # noqa: BLE001 - timeouts, garbage, closed socket

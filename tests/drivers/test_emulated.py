@@ -363,6 +363,29 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone):
         dev.close()
 
 
+def test_a_fetch_with_its_conversion_in_is_one_request(modbus_alone):
+    """The module's status register (the host watchdog's bit) is read apart from the fetches, after a fetch's
+    conversion went out: read first, its round trip held every 50th conversion up by that long at 2 kHz.
+    (The status is still read: test_module_watchdog_trip_is_a_fault.)"""
+    arr, _c, port = modbus_alone
+    dev, block = _analog(port)
+    try:
+        asked = []
+        read = dev.client.read_holding_registers
+
+        def spy(address, **kw):
+            asked.append(address)
+            return read(address, **kw)
+        dev.client.read_holding_registers = spy
+        for k in range(2, 2 + 2 * 50 + 3):
+            sh.publish(arr, k * 1e-3, [0.01 * k] * 4, [0.0] * 4)
+            n = len(asked)
+            assert dev.poll()
+            assert asked[n:] == [mm.REG_FIFO], (k, asked[n:])
+    finally:
+        dev.close()
+
+
 def test_a_fast_reply_waits_for_the_period_that_takes_it(modbus_alone):
     """With the design taking a conversion two periods after its SYNC, one fetched early is handed to the loop
     only from its hold time on (drivers.accel_hold_s): before it the block has not got it, after it it has,
