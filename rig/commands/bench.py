@@ -319,16 +319,18 @@ def stop_if_interrupted(reason: str | None) -> None:
         interrupt(signal.Signals[reason])
 
 
-def faulted_exit(faults: dict) -> int:
-    """The exit status of a benchmark of whole runs ({what ran: its fault reason or None}): a loop that faulted
-    spent the rest of its run at FAULT (valves at null, controllers not run), so its figures are not those of
-    the loop the benchmark claims: one warning line per faulted run and EXIT_FAULT (rig/errors.py), as every
-    command exits after a fault. (The block benchmarks, --layout both and --console, leave a faulted block
-    out and count it instead.)"""
+FIGURES_AT_NULL = "these figures are not the loop's (valves at null from the fault on)"
+
+
+def faulted_exit(faults: dict, consequence: str = FIGURES_AT_NULL) -> int:
+    """The exit status of a benchmark ({what ran: its fault reason or None}): a loop that faulted spent the rest
+    of its run or block at FAULT (valves at null, controllers not run), so the benchmark did not measure what it
+    claims: one warning line per faulted run (what that did to the figures: `consequence`) and EXIT_FAULT
+    (rig/errors.py), as every command exits after a fault. Whole runs, --layout both (its faulted blocks left
+    out) and --console alike."""
     bad = {what: why for what, why in faults.items() if why}
     for what, why in bad.items():
-        log.warning("%s: the simulated rig faulted (%s): these figures are not the loop's (valves at null from "
-                    "the fault on)", what, why)
+        log.warning("%s: the simulated rig faulted (%s): %s", what, why, consequence)
     return EXIT_FAULT if bad else 0
 
 
@@ -598,6 +600,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     clocks = {n: BlockClock(spin, BLOCK_ALIGN_NS) for n in names}
     spans: dict = {n: [[] for _ in range(rounds)] for n in names}     # (first, last) period index per block
     faulted = {n: 0 for n in names}         # blocks left out: the loop faulted in them
+    faults: dict = {}                       # per layout: the first fault's reason
     load0 = os.getloadavg()
     try:
         with contextlib.ExitStack() as stack:
@@ -622,6 +625,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
                         span = _run_block(sessions[n], clocks[n], blk, settle)
                         if span is None:
                             faulted[n] += 1
+                            faults.setdefault(n, sessions[n].loop.lc.fault_reason)
                         else:
                             spans[n][r].append(span)
                 print(f"rig bench loop --layout both: round {r + 1}/{rounds} done", file=sys.stderr)
@@ -635,14 +639,15 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     out["kernel_us"] = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
     out["load_average"] = [round(v, 2) for v in load0 + os.getloadavg()]
     _print_both(out, args.json)
-    return 0
+    return faulted_exit({f"{n} ({faulted[n]} of {rounds * k} blocks)": why for n, why in faults.items()},
+                        "those blocks are left out of the figures")
 
 
 def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] | None:
     """One block of a session's loop, ACTIVE from its first period: the period indexes it measured (less the
     first `settle` and the last, the stop period: deactivation, its event and log line, once a block); None
     when the loop faulted in it (a stall of the shared host): its periods after the fault did less work, so
-    the block is left out (and said so)."""
+    the block is left out (and said so: faulted_exit)."""
     loop = session.loop
     clock.resume()
     end = None
@@ -658,8 +663,6 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] |
         clock.stop(end)
     stop_if_interrupted(reason)
     if loop.state is State.FAULT:
-        print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
-              f"the block is left out", file=sys.stderr)
         return None
     return min(i0 + settle, loop.iterations - 1), loop.iterations - 1
 
@@ -719,19 +722,24 @@ def _print_both(out: dict, as_json: bool) -> None:
     for r, ratio in enumerate(out["compute_p99_ratio"]):
         a, b = m["compute_us_by_round"][r], p["compute_us_by_round"][r]
         if ratio is None:
-            print(f"  round {r + 1}: every block of a layout faulted (see the notes above)")
+            print(f"  round {r + 1}: every block of a layout faulted (see the warnings)")
             continue
         print(f"  round {r + 1}: compute machine (4) p50 {a['p50']:6.2f} p99 {a['p99']:6.2f} max {a['max']:8.1f} us"
               f" | prototype (1) p50 {b['p50']:6.2f} p99 {b['p99']:6.2f} max {b['max']:8.1f} us | p99 ratio "
               f"{ratio:.2f}")
     for name in ("machine", "prototype"):
         c, w = out[name]["compute_us"], out[name]["wake_latency_us"]
+        if not c["n"]:
+            print(f"  {name:9s} ({out[name]['mounts']}) pooled: no figures (every block faulted)")
+            continue
         print(f"  {name:9s} ({out[name]['mounts']}) pooled: compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max "
               f"{c['max']:8.1f} us | wake p99 {w['p99']:7.1f} us | overruns {out[name]['overruns']}"
               + (f" | {out[name]['faulted_blocks']} block(s) left out (faulted)" if out[name]['faulted_blocks'] else ""))
     if "cpu_p99_ratio" in out:
         for name in ("machine", "prototype"):
             c = out[name]["cpu_us"]
+            if not c["n"]:
+                continue
             print(f"  {name:9s} ({out[name]['mounts']}) pooled: CPU time of the loop thread per period p50 "
                   f"{c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us")
         print("  CPU time p99 ratio by round (1 / 4 mounts): "
