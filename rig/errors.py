@@ -30,3 +30,4 @@ EXIT_SUSPECT = 5       # finished and wrote its results, but they fall short as 
                        # did not keep time, the recording has gaps, or the model fits poorly
 EXIT_INTERRUPTED = 130   # Ctrl-C (128 + SIGINT) outside a run that stops on it safely
 EXIT_TERMINATED = 143    # SIGTERM (128 + SIGTERM, as the shell shows a process it ended) outside such a run
+EXIT_STOPPED_BY = {"SIGINT": EXIT_INTERRUPTED, "SIGTERM": EXIT_TERMINATED}   # a run's stop reason -> its exit

@@ -40,7 +40,9 @@
 "compute_us": {"p50","p99","max"}, "overruns", "missed_deadline_fraction"}; compute is read + check +
 update + limit + write + record-push within one period; missed_deadline_fraction is
 (overruns + skipped periods) / (iterations + skipped periods). A loop run that faulted (its rest at null) is
-said in a `rig bench: warning:` line and exits 1 (`faulted_exit`), its figures printed still.
+said in a `rig bench: warning:` line and exits 1 (`faulted_exit`), its figures printed still. Ctrl-C stops a
+loop run safely: its figures, a line saying it was interrupted, exit 130 (`interrupted_exit`); in a benchmark of
+several runs or blocks (--feedforward, --layout both) it ends the benchmark, no figures, exit 130.
 
 `loop --feedforward` runs R rounds of two runs of --seconds each, feedback only ([sensors] floor_accel off:
 the loop as without the feedforward) and feedback + feedforward (floor accelerometers read, checked and
@@ -59,6 +61,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -71,9 +74,10 @@ from rig.commands import bench_cli, bench_idle_poll, bench_stalls
 from rig.runtime.clock import MonotonicClock
 from rig.config import load_config
 from rig.console import bench as console_bench
-from rig.errors import EXIT_FAULT, RigError
+from rig.errors import EXIT_FAULT, EXIT_STOPPED_BY, RigError
 from rig.runtime.lifecycle import State
 from rig.runtime.rt import cpu_steal_ms, enter_realtime, leave_realtime
+from rig.runtime.signals import interrupt
 
 log = logging.getLogger("rig.bench")
 
@@ -278,7 +282,7 @@ def bench_loop(args) -> int:
                   f"{'real-time set-up where allowed' if realtime else 'no real-time hygiene'}", file=sys.stderr)
             cpu = _loop_cpu(cfg) if realtime else None
             steal0 = cpu_steal_ms(cpu)
-            session.run(seconds=args.seconds)
+            reason = session.run(seconds=args.seconds)
             steal1 = cpu_steal_ms(cpu)
     finally:
         if tmp:
@@ -293,19 +297,40 @@ def bench_loop(args) -> int:
     n = min(loop.iterations, loop.keep)
     _print_host_stalls(np.frombuffer(loop.wake_ns, dtype="<i8")[:n], loop.period_ns, steal0, steal1, cpu)
     _print_loop_figures(out, args.json, loop.skipped)
-    return faulted_exit({"loop": loop.lc.fault_reason})
+    code = faulted_exit({"loop": loop.lc.fault_reason})
+    return interrupted_exit(reason, loop.iterations / rate, args.seconds) or code
 
 
-def faulted_exit(faults: dict) -> int:
-    """The exit status of a benchmark of whole runs ({what ran: its fault reason or None}): a loop that faulted
-    spent the rest of its run at FAULT (valves at null, controllers not run), so its figures are not those of
-    the loop the benchmark claims: one warning line per faulted run and EXIT_FAULT (rig/errors.py), as every
-    command exits after a fault. (The block benchmarks, --layout both and --console, leave a faulted block
-    out and count it instead.)"""
+def interrupted_exit(reason: str | None, ran_s: float, seconds: float) -> int:
+    """The exit status of a benchmark run its loop stopped on Ctrl-C (a safe stop; a SIGTERM unwinds through
+    rig.cli: 143): its figures, printed still, are of the part that ran, so one line says so and the exit is
+    EXIT_STOPPED_BY's (130), as every command's after an interrupt; 0 for a run that was not interrupted."""
+    if reason not in EXIT_STOPPED_BY:
+        return 0
+    print(f"rig bench loop: interrupted ({reason}) at t = {ran_s:.1f} s of {seconds:g} s: the figures are of "
+          f"that part alone", file=sys.stderr)
+    return EXIT_STOPPED_BY[reason]
+
+
+def stop_if_interrupted(reason: str | None) -> None:
+    """A benchmark of several runs or blocks ends at one its session stopped on Ctrl-C (the loop's safe stop):
+    its figures would pool a round cut short, so none are printed and rig.cli says `interrupted` (130)."""
+    if reason in EXIT_STOPPED_BY:
+        interrupt(signal.Signals[reason])
+
+
+FIGURES_AT_NULL = "these figures are not the loop's (valves at null from the fault on)"
+
+
+def faulted_exit(faults: dict, consequence: str = FIGURES_AT_NULL) -> int:
+    """The exit status of a benchmark ({what ran: its fault reason or None}): a loop that faulted spent the rest
+    of its run or block at FAULT (valves at null, controllers not run), so the benchmark did not measure what it
+    claims: one warning line per faulted run (what that did to the figures: `consequence`) and EXIT_FAULT
+    (rig/errors.py), as every command exits after a fault. Whole runs, --layout both (its faulted blocks left
+    out) and --console alike."""
     bad = {what: why for what, why in faults.items() if why}
     for what, why in bad.items():
-        log.warning("%s: the simulated rig faulted (%s): these figures are not the loop's (valves at null from "
-                    "the fault on)", what, why)
+        log.warning("%s: the simulated rig faulted (%s): %s", what, why, consequence)
     return EXIT_FAULT if bad else 0
 
 
@@ -338,9 +363,10 @@ def _feedforward_ab(cfg, args, rate: float) -> int:
                 with session:
                     loop = session.loop
                     loop.activate()
-                    session.run(seconds=args.seconds)
+                    reason = session.run(seconds=args.seconds)
             finally:
                 os.unlink(tmp)
+            stop_if_interrupted(reason)
             n = min(loop.iterations, loop.keep)
             cu = np.frombuffer(loop.compute_ns, dtype="<i8")[:n] * 1e-3
             comp[path].append(cu)
@@ -468,11 +494,12 @@ def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
                      record_attrs={"command": "rig bench loop"}, realtime=realtime) as session:
             loop = session.loop
             loop.activate()
-            session.run(seconds=seconds)
+            reason = session.run(seconds=seconds)
     finally:
         os.unlink(tmp)
     tm = loop.timing_us()
-    return {"fault_reason": loop.lc.fault_reason, "mounts": loop.n, "rate_hz": rate, "iterations": loop.iterations,
+    return {"fault_reason": loop.lc.fault_reason, "stop_reason": reason, "mounts": loop.n, "rate_hz": rate,
+            "iterations": loop.iterations,
             "wake_latency_us": {k: round(v, 2) for k, v in tm["wake_latency_us"].items()},
             "compute_us": {k: round(v, 2) for k, v in tm["compute_us"].items()},
             "overruns": loop.overruns, "missed_deadline_fraction": loop.missed_deadline_fraction}
@@ -489,9 +516,10 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
     print(f"rig bench loop: prototype (1 mount) at {rate:g} Hz for {args.seconds:g} s, {PROTOTYPE_BENCH_MODE}",
           file=sys.stderr)
     out = _bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE)
-    fault = out.pop("fault_reason")
+    fault, reason = out.pop("fault_reason"), out.pop("stop_reason")
     _print_loop_figures(out, args.json, 0)
-    return faulted_exit({"prototype": fault})
+    code = faulted_exit({"prototype": fault})
+    return interrupted_exit(reason, out["iterations"] / rate, args.seconds) or code
 
 
 class BlockClock(MonotonicClock):
@@ -572,6 +600,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     clocks = {n: BlockClock(spin, BLOCK_ALIGN_NS) for n in names}
     spans: dict = {n: [[] for _ in range(rounds)] for n in names}     # (first, last) period index per block
     faulted = {n: 0 for n in names}         # blocks left out: the loop faulted in them
+    faults: dict = {}                       # per layout: the first fault's reason
     load0 = os.getloadavg()
     try:
         with contextlib.ExitStack() as stack:
@@ -596,6 +625,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
                         span = _run_block(sessions[n], clocks[n], blk, settle)
                         if span is None:
                             faulted[n] += 1
+                            faults.setdefault(n, sessions[n].loop.lc.fault_reason)
                         else:
                             spans[n][r].append(span)
                 print(f"rig bench loop --layout both: round {r + 1}/{rounds} done", file=sys.stderr)
@@ -609,14 +639,15 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     out["kernel_us"] = {"machine": _kernel_us(cfg, None), "prototype": _kernel_us(proto, PROTOTYPE_BENCH_MODE)}
     out["load_average"] = [round(v, 2) for v in load0 + os.getloadavg()]
     _print_both(out, args.json)
-    return 0
+    return faulted_exit({f"{n} ({faulted[n]} of {rounds * k} blocks)": why for n, why in faults.items()},
+                        "those blocks are left out of the figures")
 
 
 def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] | None:
     """One block of a session's loop, ACTIVE from its first period: the period indexes it measured (less the
     first `settle` and the last, the stop period: deactivation, its event and log line, once a block); None
     when the loop faulted in it (a stall of the shared host): its periods after the fault did less work, so
-    the block is left out (and said so)."""
+    the block is left out (and said so: faulted_exit)."""
     loop = session.loop
     clock.resume()
     end = None
@@ -626,13 +657,12 @@ def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] |
         loop.stop_reason = None
         loop.activate()
         i0 = loop.iterations
-        session.run(seconds=seconds)
+        reason = session.run(seconds=seconds)
         end = loop.t_ns + loop.period_ns        # the end of its last period
     finally:
         clock.stop(end)
+    stop_if_interrupted(reason)
     if loop.state is State.FAULT:
-        print(f"rig bench loop: note: {loop.n} mount(s): the simulated rig faulted: {loop.lc.fault_reason}; "
-              f"the block is left out", file=sys.stderr)
         return None
     return min(i0 + settle, loop.iterations - 1), loop.iterations - 1
 
@@ -692,19 +722,24 @@ def _print_both(out: dict, as_json: bool) -> None:
     for r, ratio in enumerate(out["compute_p99_ratio"]):
         a, b = m["compute_us_by_round"][r], p["compute_us_by_round"][r]
         if ratio is None:
-            print(f"  round {r + 1}: every block of a layout faulted (see the notes above)")
+            print(f"  round {r + 1}: every block of a layout faulted (see the warnings)")
             continue
         print(f"  round {r + 1}: compute machine (4) p50 {a['p50']:6.2f} p99 {a['p99']:6.2f} max {a['max']:8.1f} us"
               f" | prototype (1) p50 {b['p50']:6.2f} p99 {b['p99']:6.2f} max {b['max']:8.1f} us | p99 ratio "
               f"{ratio:.2f}")
     for name in ("machine", "prototype"):
         c, w = out[name]["compute_us"], out[name]["wake_latency_us"]
+        if not c["n"]:
+            print(f"  {name:9s} ({out[name]['mounts']}) pooled: no figures (every block faulted)")
+            continue
         print(f"  {name:9s} ({out[name]['mounts']}) pooled: compute p50 {c['p50']:6.2f} p99 {c['p99']:6.2f} max "
               f"{c['max']:8.1f} us | wake p99 {w['p99']:7.1f} us | overruns {out[name]['overruns']}"
               + (f" | {out[name]['faulted_blocks']} block(s) left out (faulted)" if out[name]['faulted_blocks'] else ""))
     if "cpu_p99_ratio" in out:
         for name in ("machine", "prototype"):
             c = out[name]["cpu_us"]
+            if not c["n"]:
+                continue
             print(f"  {name:9s} ({out[name]['mounts']}) pooled: CPU time of the loop thread per period p50 "
                   f"{c['p50']:6.2f} p99 {c['p99']:6.2f} max {c['max']:8.1f} us")
         print("  CPU time p99 ratio by round (1 / 4 mounts): "

@@ -28,7 +28,7 @@ says from it whether the late periods were the host's or the drivers' chain's.
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
 "recording", "pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
 seeded floor the run met; its lockstep twin takes them first); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
-isolation figure and exits 130.
+isolation figure and exits 130 (SIGTERM: 143).
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
@@ -57,7 +57,7 @@ from rig.runtime import inject
 from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
-from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_SUSPECT, RecordingError, RigError
+from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_STOPPED_BY, EXIT_SUSPECT, RecordingError, RigError
 from rig.runtime.empty_loop import EmptyLoop, late_share
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
@@ -176,7 +176,7 @@ def run(args) -> int:
               f"{out['recording']}", file=sys.stderr)
         if args.json:
             print(json.dumps(dict(out, isolation_reduction_db=None, feedforward_reduction_db=None)))
-        return 130
+        return EXIT_STOPPED_BY[res["stop_reason"]]
     rt = res["round_trip_us"]
     print("rig hil: driver round trips (us): " + "; ".join(f"{k} p50 {v['p50']} p99 {v['p99']} max {v['max']}"
                                                            for k, v in rt.items()), file=sys.stderr)

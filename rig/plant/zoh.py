@@ -56,7 +56,8 @@ def phi(Am, Bm, tau):
     E = np.zeros((n + 1, n + 1)); E[:n, :n] = Am * tau; E[:n, n] = Bm * tau
     if not np.isfinite(E).all():        # a model beyond floating point (its values absurd): not computable, so
         return np.full((n, n), np.nan), np.full(n, np.nan)      # nan, which a fit rejects and its figures refuse
-    Eb, (sc, _) = matrix_balance(E, permute=False, separate=True)
+    with np.errstate(invalid="ignore"):    # scipy casts the scale factors to int with the permutation it returns:
+        Eb, (sc, _) = matrix_balance(E, permute=False, separate=True)   # one beyond int64 (1e148) warns, harmless
     X = _expm_taylor(Eb)
     X = X * sc[:, np.newaxis] / sc[np.newaxis, :]          # undo the similarity Eb = D^-1 E D
     return X[:n, :n], X[:n, n]

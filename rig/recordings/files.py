@@ -9,6 +9,7 @@ import gzip
 import io
 import logging
 import os
+import stat
 import zlib
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -27,9 +28,12 @@ FOUND = {None: "neither HDF5 nor MATLAB", "mat": "a MATLAB v5 file", "mat73": "a
 
 
 def read_bytes(path: Path) -> bytes:
-    """A recording file's content; missing, unreadable or empty: RecordingError."""
+    """A recording file's content; missing, not a regular file, unreadable or empty: RecordingError."""
     source = str(path)
     try:
+        mode = path.stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a named pipe or device: reading waits for a writer
+            raise RecordingError(f"{source}: {_kind(mode)}, expected a regular file (a recording)")
         raw = path.read_bytes()
     except FileNotFoundError:
         raise RecordingError(f"{source}: no such file") from None
@@ -40,6 +44,11 @@ def read_bytes(path: Path) -> bytes:
     if not raw:
         raise RecordingError(f"{source}: empty file")
     return raw
+
+
+def _kind(mode: int) -> str:
+    return ("a named pipe" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
 
 
 def file_format(raw: bytes, path: Path, declared: str | None = None, where: str = "") -> str:

@@ -75,3 +75,52 @@ def test_bench_loop_whose_rig_faulted_exits_as_a_fault(tmp_path, extra):
     warned = [ln for ln in out.stderr.splitlines() if ln.startswith("rig bench: warning: ")]
     assert warned and all("faulted (" in ln and "stroke limit" in ln for ln in warned), out.stderr[-2000:]
     assert "note:" not in out.stderr
+
+
+@pytest.mark.parametrize("extra", [[], ["--layout", "prototype"]], ids=["machine", "prototype"])
+def test_bench_loop_interrupted_by_ctrl_c_says_so_and_exits_130(extra):
+    """Found by the abuse trial: Ctrl-C during `rig bench loop` printed the figures of the part that ran as if
+    the run were whole, exit 0. Now the figures, a line saying it was interrupted, and exit 130 (rig/errors.py)."""
+    import os
+    import signal
+    import time
+    from tests.rig.support import Command
+    cmd = Command("bench", "loop", "--rate", "2000", "--seconds", "120", "--no-realtime", "--json", *extra,
+                  own_group=True)                          # SIGINT at its default, as at a terminal
+    try:
+        assert cmd.wait_for("rig bench loop: ", timeout=120), cmd.text     # the set-up line: the run starts
+        time.sleep(1.0)                                    # into the run (it would go on for 120 s)
+        os.killpg(cmd.proc.pid, signal.SIGINT)             # Ctrl-C at a terminal reaches the whole group
+        out = cmd.proc.stdout.read()
+        code = cmd.finish(timeout=120)
+    finally:
+        cmd.finish()
+        cmd.drain()
+    assert code == 130, cmd.text
+    res = json.loads(out)                                  # the figures measured, still only JSON on stdout
+    assert KEYS <= set(res) and 0 < res["iterations"] < 120 * 2000
+    said = [ln for ln in cmd.text.splitlines() if "interrupted" in ln]
+    assert len(said) == 1 and said[0].startswith("rig bench loop: interrupted (SIGINT) at t = "), cmd.text
+
+
+def test_bench_loop_of_several_runs_ends_at_ctrl_c(tmp_path):
+    """Was: Ctrl-C during `rig bench loop --feedforward` cut one run short and the next ran on, pooled into
+    figures printed as whole, exit 0. Now the benchmark ends there: `rig bench: interrupted`, exit 130."""
+    import os
+    import signal
+    import time
+    from tests.rig.support import Command
+    cmd = Command("bench", "loop", "--feedforward", "--rounds", "1", "--rate", "2000", "--seconds", "30",
+                  "--no-realtime", "--json", env=dict(os.environ, TMPDIR=str(tmp_path)), own_group=True)
+    try:
+        while not list(tmp_path.glob("rig-bench-*.h5")) and cmd.proc.poll() is None:
+            time.sleep(0.1)                                # the first run's recording: its session is set up
+        time.sleep(1.0)                                    # into that run (it would go on for 30 s)
+        os.killpg(cmd.proc.pid, signal.SIGINT)
+        out = cmd.proc.stdout.read()
+        code = cmd.finish(timeout=120)
+    finally:
+        cmd.finish()
+        cmd.drain()
+    assert code == 130 and out == "", cmd.text
+    assert cmd.text.strip().splitlines()[-1] == "rig bench: interrupted", cmd.text

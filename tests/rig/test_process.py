@@ -184,3 +184,20 @@ def test_a_signal_during_the_closing_figures_says_one_line_and_keeps_the_recordi
     d = read_recording(rec)
     assert d["attrs"]["complete"] in (True, 1) and d["attrs"]["stop_reason"] == "time"
     assert len(d["time_s"]) == d["attrs"]["iterations"] == 5000 and d["attrs"]["dropped_rows"] == 0
+
+
+@pytest.mark.hil
+def test_rig_hil_stopped_by_sigterm_mid_run_exits_143(tmp_path):
+    """Found by the abuse trial: `rig hil` stopped by SIGTERM while its loop ran said `interrupted (SIGTERM)` and
+    exited 130, Ctrl-C's status; the rest of rig exits 143 for SIGTERM (rig/errors.py EXIT_STOPPED_BY)."""
+    from tests.rig.support import Command
+    rec = tmp_path / "hil.h5"
+    cmd = Command("hil", "--seconds", "60", "--no-realtime", "--record", str(rec), own_group=True)
+    try:
+        assert cmd.wait_for(" ACTIVE ", timeout=300), cmd.text         # the loop runs (its status line)
+        cmd.proc.send_signal(signal.SIGTERM)
+        code = cmd.finish(timeout=120)
+    finally:
+        cmd.drain()
+    assert code == 143, cmd.text
+    assert "rig hil: interrupted (SIGTERM) at t = " in cmd.text and "Traceback" not in cmd.text
