@@ -143,6 +143,9 @@ class RecordingConfig:
     flush_s: float = _f(0.05, "s", gt=0, le=0.1)        # kill -9 loses at most this much
     ring_s: float = _f(2.0, "s", gt=0, le=60)           # ring capacity; the loop never blocks on it
     chunk_rows: int = _f(1024, "", gt=0, le=1000000)    # HDF5 chunk length, at most flush_s / 2 of rows
+    # gzip: shuffle + deflate level 1, about a quarter smaller for 2.5 x the writer's CPU (`rig bench recorder`);
+    # none: raw, for a loop that shares few CPUs with its devices (drivers/devicemaps/hil_2khz.toml)
+    compression: str = _f("gzip", "", choices=("gzip", "none"))
 
 
 @dataclass(frozen=True)

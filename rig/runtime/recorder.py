@@ -58,7 +58,7 @@ from rig.runtime.rt import raise_priority
 log = logging.getLogger("rig.recorder")
 
 WRITER_PRIORITY = 20             # SCHED_FIFO of the writer in real-time runs (loop 80, drivers 55, HIL devices 50)
-COMPRESSION = ("gzip", None)     # gzip: shuffle + deflate level 1 (see the module docstring); None: raw
+COMPRESSION = ("gzip", None, "none")   # gzip: shuffle + deflate level 1 (see the module docstring); None, "none": raw
 _GZIP_LEVEL = 1                  # higher levels gain little on float data for much more CPU (rig bench recorder)
 
 
@@ -79,7 +79,7 @@ class Recorder:
             raise ValueError("a recording needs at least one channel")
         if compression not in COMPRESSION:
             raise ValueError(f"compression: expected one of {', '.join(map(str, COMPRESSION))}, got {compression!r}")
-        self.compression = compression
+        self.compression = None if compression == "none" else compression
         # simulated time: nothing is late, so a full ring waits for the writer instead of dropping the row (a
         # loop in simulated time outruns the writer; on the real clock the loop must never wait)
         self.wait_when_full = wait_when_full

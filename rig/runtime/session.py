@@ -166,6 +166,7 @@ class Session:
         channels = self.columns.channels if self.columns is not None else loop.channels
         rec = Recorder(self.record, channels, rate_hz=self.rate_hz, flush_s=cfg.recording.flush_s,
                        ring_s=cfg.recording.ring_s, chunk_rows=cfg.recording.chunk_rows,
+                       compression=cfg.recording.compression,
                        attrs={"config_source": cfg.source, "backend": self.backend,
                               **({"calibration": cfg.drivers.calibration} if cfg.drivers.calibration else {}),
                               **self._record_attrs},
@@ -384,6 +385,7 @@ class Session:
         """Record the loop's rows to `path` from the next period on (a running session)."""
         rec = Recorder(path, self.loop.channels, rate_hz=self.rate_hz, flush_s=self.cfg.recording.flush_s,
                        ring_s=self.cfg.recording.ring_s, chunk_rows=self.cfg.recording.chunk_rows,
+                       compression=self.cfg.recording.compression,
                        attrs={"config_source": self.cfg.source, "backend": self.backend, **attrs},
                        wait_when_full=not self.clock.is_real,
                        priority=WRITER_PRIORITY if self.realtime else 0).start()

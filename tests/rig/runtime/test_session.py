@@ -71,3 +71,17 @@ def test_requests_and_recording_from_another_thread(tmp_path):
     r = read_recording(tmp_path / "part.h5")
     assert len(r["time_s"]) > 10 and r["attrs"]["command"] == "console"
     assert (r["time_s"][1:] - r["time_s"][:-1]).max() < 2.1 / s.rate_hz          # consecutive periods
+
+
+@pytest.mark.parametrize("compression, filter_", [("gzip", "gzip"), ("none", None)])
+def test_the_recording_is_compressed_as_the_config_says(tmp_path, compression, filter_):
+    """[recording] compression: gzip (the default) or none, for a loop that shares few CPUs with its devices."""
+    import dataclasses
+    cfg = Config()
+    cfg = cfg.replace(recording=dataclasses.replace(cfg.recording, compression=compression))
+    path = tmp_path / "run.h5"
+    with Session(cfg, "sim", clock=SimClock(), record=path) as s:
+        s.run(iterations=300, activate_after_s=0.01)
+    with h5py.File(path) as f:
+        assert f["accel_mps2"].compression == filter_ and f["accel_mps2"].shape[0] == 300
+    assert Config().recording.compression == "gzip"
