@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import RecordingError
-from rig.recordings.files import open_hdf5
+from rig.recordings.files import check_file, open_hdf5
 from rig.runtime.recorder import read_recording
 
 FORMATS = ("mat", "csv")
@@ -77,9 +77,7 @@ class Exported:
 def load(path) -> Exported:
     """The recording at `path` (RecordingError, one line naming the file, when it is not one of the rig's)."""
     p = Path(path)
-    if not p.is_file():
-        raise RecordingError(f"{p}: no such recording (expected the HDF5 file of rig run --record, rig chirp or "
-                             f"rig hil)")
+    check_file(p, "no such recording (expected the HDF5 file of rig run --record, rig chirp or rig hil)")
     try:
         r = read_recording(p)
     except RecordingError as e:                  # h5py's reasons run over several lines: the first says it

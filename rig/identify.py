@@ -50,6 +50,8 @@ BOUNDS_ABS = {"w_nv": (2 * math.pi * 20.0, 2 * math.pi * 300.0), "zeta": (0.2, 2
 PRIOR_REL = 0.5              # 1-sigma of the weak log-normal prior around the design value (~ +-50 %)
 TD_TOL = 1e-6               # relative tolerances of the time-domain fit (its optimum is 1e-4 sharp)
 WEAK_SHRINK = 1 / 3           # posterior sd above this fraction of the prior's: "weakly identified"
+POOR_NRMSE = 0.2              # rig identify's poor fit, either path: a fifth of the motion unexplained (exit 5)
+POOR_COHERENCE = 0.95         # ... or, for the eha's FRF fit, a band bin this incoherent
 
 
 NOTES = ("SI units, w_nv in rad/s. std: 1 sigma from the Jacobian at the optimum (white-residual assumption, so "
@@ -349,9 +351,9 @@ def _fit_quality(rec: Recording, p: ActuatorParams, p0: ActuatorParams, frf: FRF
         "refined_time_domain": bool(refine_time_domain),
         "at_bounds": [k for k, t, l, h in zip(IDENTIFIED, th, lo, hi) if min(t - l, h - t) < 0.01],
     }
-    if nrmse > 0.2 or fit["coherence_min"] < 0.95:
-        fit["warning"] = (f"poor fit (NRMSE {nrmse:.2f}, lowest coherence used {fit['coherence_min']:.2f}): the "
-                          f"recording is not a clean chirp response of this linear model")
+    poor = poor_fit(nrmse, "this linear model", fit["coherence_min"])
+    if poor:
+        fit["warning"] = poor
     loop = closedloop.check(rec.valve_cmd_V, rec.position_m, rec.fs_hz, getattr(rec, "meta", None))
     fit["closed_loop"] = loop.as_dict()
     if loop.closed:
@@ -359,6 +361,17 @@ def _fit_quality(rec: Recording, p: ActuatorParams, p0: ActuatorParams, frf: FRF
                           f"these open-loop parameters are biased; identify from an open-loop run (rig chirp)"
                           + (f"; also {fit['warning']}" if "warning" in fit else ""))
     return fit, ym
+
+
+def poor_fit(nrmse: float, model: str, coherence_min: float | None = None) -> str | None:
+    """rig identify's one poor-fit rule, for the eha's fit and a plant file's (which has no FRF, so no
+    coherence): the warning's text, None for a fit that is not poor."""
+    if not (nrmse > POOR_NRMSE or coherence_min is not None and coherence_min < POOR_COHERENCE):
+        return None
+    if coherence_min is None:
+        return f"poor fit (NRMSE {nrmse:.2f}): the recording is not a clean response of {model}"
+    return (f"poor fit (NRMSE {nrmse:.2f}, lowest coherence used {coherence_min:.2f}): the recording is not a clean "
+            f"chirp response of {model}")
 
 
 def refuse_feedback_only(rec: Recording) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 
 from controllers.vibration_criteria import band_velocity_rms, plot_vc, vc_class
 from rig.errors import RecordingError
-from rig.recordings.files import open_hdf5
+from rig.recordings.files import check_file, open_hdf5
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import read_recording
 
@@ -55,8 +55,7 @@ def _longest(mask: np.ndarray) -> tuple[int, int]:
 def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     """The report of one recording as JSON-ready values (RecordingError for a file that is not a loop
     recording, one line naming the file and what is missing)."""
-    if not Path(path).is_file():
-        raise RecordingError(f"{path}: no such recording (expected the HDF5 file of rig run --record or rig hil)")
+    check_file(path, "no such recording (expected the HDF5 file of rig run --record or rig hil)")
     try:
         r = read_recording(path)
     except RecordingError as e:                     # h5py's reasons run over several lines: the first says it

@@ -42,7 +42,7 @@ update + limit + write + record-push within one period; missed_deadline_fraction
 (overruns + skipped periods) / (iterations + skipped periods). A loop run that faulted (its rest at null) is
 said in a `rig bench: warning:` line and exits 1 (`faulted_exit`), its figures printed still. Ctrl-C stops a
 loop run safely: its figures, a line saying it was interrupted, exit 130 (`interrupted_exit`); in a benchmark of
-several runs or blocks (--feedforward, --layout both) it ends the benchmark, no figures, exit 130.
+several runs or blocks (--feedforward, --layout both, --console) it ends the benchmark, no figures, exit 130.
 
 `loop --feedforward` runs R rounds of two runs of --seconds each, feedback only ([sensors] floor_accel off:
 the loop as without the feedforward) and feedback + feedforward (floor accelerometers read, checked and
@@ -262,7 +262,10 @@ def bench_loop(args) -> int:
     if layout != "machine":
         return _bench_layouts(cfg, args, rate, layout)
     if args.console:
-        return console_bench.bench_console(args, cfg, rate, clock)
+        out, faults, reason = console_bench.bench_console(args, cfg, rate, clock)
+        stop_if_interrupted(reason)
+        console_bench.print_figures(out, args.json)
+        return faulted_exit(faults, BLOCKS_LEFT_OUT)
     path, tmp = args.record, None
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
@@ -320,6 +323,7 @@ def stop_if_interrupted(reason: str | None) -> None:
 
 
 FIGURES_AT_NULL = "these figures are not the loop's (valves at null from the fault on)"
+BLOCKS_LEFT_OUT = "those blocks are left out of the figures"     # a benchmark of blocks (--layout both, --console)
 
 
 def faulted_exit(faults: dict, consequence: str = FIGURES_AT_NULL) -> int:
@@ -640,7 +644,7 @@ def _bench_both(cfg, proto, args, rate: float) -> int:
     out["load_average"] = [round(v, 2) for v in load0 + os.getloadavg()]
     _print_both(out, args.json)
     return faulted_exit({f"{n} ({faulted[n]} of {rounds * k} blocks)": why for n, why in faults.items()},
-                        "those blocks are left out of the figures")
+                        BLOCKS_LEFT_OUT)
 
 
 def _run_block(session, clock, seconds: float, settle: int) -> tuple[int, int] | None:

@@ -32,11 +32,12 @@ import urllib.request
 import numpy as np
 
 from rig.console import browser
-from rig.errors import RigError
+from rig.errors import EXIT_STOPPED_BY, RigError
 from rig.runtime.lifecycle import State
 
 TOGGLE_S = 0.5
 SETTLE_S = 1.0                  # after the page has connected, before the block's periods count
+RESET_TRIES = 3                 # resets in a row before a block is given up: a fault back at once is no stall
 
 
 def add_arguments(p) -> None:
@@ -55,7 +56,10 @@ def add_arguments(p) -> None:
                         "(its whole cost on the loop's path), against none at all")
 
 
-def bench_console(args, cfg, rate: float, clock) -> int:
+def bench_console(args, cfg, rate: float, clock) -> tuple[dict, dict, str | None]:
+    """The benchmark: (its figures, for print_figures; its faulted blocks, {what: the first fault's reason}, for
+    rig.commands.bench.faulted_exit: a block the loop faulted in, or could not start ACTIVE in, is left out of
+    the figures; the run's stop reason, a signal's name when it was interrupted)."""
     from rig.runtime.session import Session      # lazy: `rig bench --help` loads no numba
     why = browser.missing()
     if why:
@@ -96,17 +100,21 @@ def bench_console(args, cfg, rate: float, clock) -> int:
 
             t = threading.Thread(target=drive, name="rig-bench-driver", daemon=True)
             t.start()
-            session.run()
+            reason = session.run()
             t.join()
     finally:
         if tmp:
             os.unlink(tmp)
-    if failure:
+    if failure and reason not in EXIT_STOPPED_BY:      # after Ctrl-C (it reaches the web server too): the interrupt
         raise RigError(f"--console: {failure[0].__class__.__name__}: {failure[0]}")
     out = _figures(loop, conditions, blocks, rate)
     out["recording"] = not args.no_record
-    _print(out, args.json)
-    return 0
+    faults: dict = {}
+    for cond in conditions:
+        why = [b["fault"] for b in blocks if b["cond"] == cond and b["fault"]]
+        if why:
+            faults[f"{cond} ({len(why)} of {args.rounds} blocks)"] = why[0]
+    return out, faults, reason
 
 
 def _drive(session, cfg, conditions, args, blocks, say) -> None:
@@ -118,7 +126,14 @@ def _drive(session, cfg, conditions, args, blocks, say) -> None:
     try:
         for r in range(args.rounds):
             for cond in conditions:
-                _active_again(session, say)
+                if loop.stop_reason is not None:        # the run has ended: no block can be measured
+                    return
+                fault = _active_again(session)
+                if fault:
+                    blocks.append({"cond": cond, "round": r, "fault": fault})
+                    say(f"round {r + 1}/{args.rounds}: {cond} not run: the rig faulted again at once after "
+                        f"{RESET_TRIES} resets ({fault})")
+                    continue
                 b = _block_none(session, args.block_s) if cond == "none" else \
                     _block_console(session, cfg, cond, args.block_s, drv)
                 b.update(cond=cond, round=r, fault=loop.lc.fault_reason)
@@ -129,18 +144,29 @@ def _drive(session, cfg, conditions, args, blocks, say) -> None:
         drv.close()
 
 
-def _active_again(session, say) -> None:
+def _active_again(session) -> str | None:
     """Every block starts ACTIVE: a fault of the last one (a stall of the shared machine tripping the
-    watchdog) is reset, as an operator would."""
+    watchdog) is reset, as an operator would. None once ACTIVE; else the fault's reason, after RESET_TRIES
+    resets in a row (a fault that comes straight back is the set-up's: waiting for ACTIVE would never end)."""
     loop = session.loop
-    if loop.state is State.FAULT:
-        session.reset_fault()
-        while loop.state is State.FAULT:
-            time.sleep(0.01)
-    if loop.state is not State.ACTIVE:
-        session.request_active(True)
-        while loop.state is not State.ACTIVE and loop.state is not State.FAULT:
-            time.sleep(0.01)
+    for _ in range(RESET_TRIES):
+        if loop.state is State.FAULT:
+            session.reset_fault()
+            _applied(loop)
+        if loop.state is State.INACTIVE:
+            session.request_active(True)
+            _applied(loop)
+        if loop.state is State.ACTIVE:
+            return None
+    return loop.lc.fault_reason or f"the loop stayed {loop.state.name}"
+
+
+def _applied(loop) -> None:
+    """Until a request made now has been applied (and its period's checks run): two period boundaries on, or
+    the run's end. Not the state itself: a reset's INACTIVE can turn FAULT again within the same period."""
+    i = loop.iterations
+    while loop.iterations < i + 2 and loop.stop_reason is None:
+        time.sleep(0.002)
 
 
 def _block_none(session, block_s: float) -> dict:
@@ -201,13 +227,15 @@ def _figures(loop, conditions, blocks, rate) -> dict:
     keep = len(wake)
     out = {"rate_hz": rate, "conditions": {}, "block_s": None}
     for cond in conditions:
-        bs = [b for b in blocks if b["cond"] == cond]
+        bs = [b for b in blocks if b["cond"] == cond and not b["fault"]]     # faulted blocks left out
         idx = np.concatenate([np.arange(b["i0"], b["i1"]) % keep for b in bs]) if bs else np.array([], int)
         c, w = comp[idx] * 1e-3, wake[idx] * 1e-3
         per_block = [float(np.percentile(comp[np.arange(b["i0"], b["i1"]) % keep] * 1e-3, 99)) for b in bs]
         per_block_w = [float(np.percentile(wake[np.arange(b["i0"], b["i1"]) % keep] * 1e-3, 99)) for b in bs]
         period_ns = 1e9 / rate
-        d = {"blocks": len(bs), "periods": int(len(idx)), "faults": sum(1 for b in bs if b["fault"]), "compute_us": _pct(c), "wake_latency_us": _pct(w),
+        d = {"blocks": len(bs), "periods": int(len(idx)),
+             "faults": sum(1 for b in blocks if b["cond"] == cond and b["fault"]),
+             "compute_us": _pct(c), "wake_latency_us": _pct(w),
              "compute_p99_by_block_us": [round(x, 2) for x in per_block],
              "wake_p99_by_block_us": [round(x, 2) for x in per_block_w],
              "compute_p99_median_of_blocks_us": round(float(np.median(per_block)), 2) if bs else None,
@@ -226,14 +254,24 @@ def _figures(loop, conditions, blocks, rate) -> dict:
     base = out["conditions"]["none"]
     for cond, d in out["conditions"].items():
         if cond != "none":
-            d["compute_p99_minus_none_us"] = round(d["compute_us"]["p99"] - base["compute_us"]["p99"], 2)
-            d["compute_p99_median_of_blocks_minus_none_us"] = round(
-                d["compute_p99_median_of_blocks_us"] - base["compute_p99_median_of_blocks_us"], 2)
-            d["wake_p99_minus_none_us"] = round(d["wake_latency_us"]["p99"] - base["wake_latency_us"]["p99"], 2)
+            d["compute_p99_minus_none_us"] = _minus(d["compute_us"]["p99"], base["compute_us"]["p99"])
+            d["compute_p99_median_of_blocks_minus_none_us"] = _minus(d["compute_p99_median_of_blocks_us"],
+                                                                     base["compute_p99_median_of_blocks_us"])
+            d["wake_p99_minus_none_us"] = _minus(d["wake_latency_us"]["p99"], base["wake_latency_us"]["p99"])
     return out
 
 
-def _print(out: dict, as_json: bool) -> None:
+def _minus(a, b):
+    """a - b, None when a condition has no block measured (each faulted)."""
+    return None if a is None or b is None else round(a - b, 2)
+
+
+def _num(v, spec: str) -> str:
+    """v formatted, or "-" in the spec's width for a figure no block measured."""
+    return format(v, spec) if v is not None else "-".rjust(int(spec.split(".")[0].lstrip("+") or 0))
+
+
+def print_figures(out: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(out))
         return
@@ -242,15 +280,17 @@ def _print(out: dict, as_json: bool) -> None:
           f" {'compute p99 vs none':>20s}")
     for cond, d in out["conditions"].items():
         c, w = d["compute_us"], d["wake_latency_us"]
-        diff = "" if cond == "none" else f"{d['compute_p99_minus_none_us']:+.2f} us"
-        print(f"  {cond:10s} {d['blocks']:6d} {c['p50']:8.1f} {c['p99']:8.1f} {c['max']:8.0f} "
-              f"{w['p50']:8.1f} {w['p99']:8.1f} {w['max']:8.0f} {diff:>20s}")
-    med = {cond: d["compute_p99_median_of_blocks_us"] for cond, d in out["conditions"].items()}
+        diff = "" if cond == "none" else f"{_num(d['compute_p99_minus_none_us'], '+.2f')} us"
+        print(f"  {cond:10s} {d['blocks']:6d} {_num(c['p50'], '8.1f')} {_num(c['p99'], '8.1f')} "
+              f"{_num(c['max'], '8.0f')} {_num(w['p50'], '8.1f')} {_num(w['p99'], '8.1f')} "
+              f"{_num(w['max'], '8.0f')} {diff:>20s}")
     print("  compute p99, median of the blocks' p99: " + ", ".join(
-        f"{cond} {v:.2f} us" + ("" if cond == "none" else f" ({v - med['none']:+.2f})") for cond, v in med.items()))
+        f"{cond} {_num(d['compute_p99_median_of_blocks_us'], '.2f')} us" +
+        ("" if cond == "none" else f" ({_num(d['compute_p99_median_of_blocks_minus_none_us'], '+.2f')})")
+        for cond, d in out["conditions"].items()))
     for cond, d in out["conditions"].items():
         print(f"  {cond:10s} compute p99 by block: {d['compute_p99_by_block_us']} us; wake p99 by block: "
-              f"{d['wake_p99_by_block_us']} us; blocks with a fault (watchdog): {d['faults']}")
+              f"{d['wake_p99_by_block_us']} us; blocks left out (faulted): {d['faults']}")
         if "page_updates_per_s" in d:
             iv, cl = d["page_update_interval_ms"], d["click_to_shown_ms"]
             print(f"  {cond:10s} page: {d['page_updates_per_s']} updates/s (interval p50 {iv['p50']} ms, p99 "
@@ -266,10 +306,14 @@ class _Driver:
     """The browser process: one JSON request a line on its stdin, one JSON answer a line on its stdout."""
 
     def __init__(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "rig.console.bench", "--drive"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, bufsize=1)
+        self.proc = None                # started by the first console block: none if every block faulted
 
     def ask(self, req: dict) -> dict:
+        if self.proc is None:
+            # a session of its own: a Ctrl-C at the terminal stops the bench, which then closes the browser
+            self.proc = subprocess.Popen([sys.executable, "-m", "rig.console.bench", "--drive"],
+                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
+                                         start_new_session=True)
         self.proc.stdin.write(json.dumps(req) + "\n")
         self.proc.stdin.flush()
         line = self.proc.stdout.readline()
@@ -281,6 +325,8 @@ class _Driver:
         return ans
 
     def close(self) -> None:
+        if self.proc is None:
+            return
         try:
             self.proc.stdin.close()
             self.proc.wait(timeout=20)

@@ -16,6 +16,7 @@ from rig.recordings import closedloop
 from rig.diagnose.problem import Problem
 from rig.diagnose.plants import at_bounds
 from rig.errors import RecordingError
+from rig.identify import poor_fit
 from rig.plant.model import Plant
 from rig.recordings.recording import check_plausible
 
@@ -67,8 +68,11 @@ def identify_plant(rec, plant: Plant, progress=None) -> dict:
            "closed_loop": loop.as_dict(), "timing_s": time.perf_counter() - t0}
     if pb.shoot is not None:
         out["shooting"] = pb.shoot.as_dict(pb.fs)
+    poor = poor_fit(out["fit"]["nrmse"], f"the plant of {plant.source}")
+    if poor:
+        out["warning"] = poor
     if loop.closed:
         out["warning"] = (f"closed-loop data ({loop.reason}): the command carries the position's noise, so these "
-                          "parameters can be biased")
+                          "parameters can be biased" + (f"; also {poor}" if poor else ""))
     tick("done", 1.0)
     return out

@@ -30,20 +30,32 @@ FOUND = {None: "neither HDF5 nor MATLAB", "mat": "a MATLAB v5 file", "mat73": "a
 def read_bytes(path: Path) -> bytes:
     """A recording file's content; missing, not a regular file, unreadable or empty: RecordingError."""
     source = str(path)
+    check_file(path)
     try:
-        mode = path.stat().st_mode
-        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a named pipe or device: reading waits for a writer
-            raise RecordingError(f"{source}: {_kind(mode)}, expected a regular file (a recording)")
         raw = path.read_bytes()
-    except FileNotFoundError:
+    except FileNotFoundError:            # gone since check_file
         raise RecordingError(f"{source}: no such file") from None
-    except IsADirectoryError:
-        raise RecordingError(f"{source}: is a directory, expected a recording file") from None
     except OSError as e:
         raise RecordingError(f"{source}: cannot read ({e.strerror or e})") from None
     if not raw:
         raise RecordingError(f"{source}: empty file")
     return raw
+
+
+def check_file(path, missing: str = "no such file") -> None:
+    """The one rule for a recording's path, before any reader opens it: a regular file, else one RecordingError
+    line saying what it is (`missing`: the words for a path that does not exist). A named pipe or device is
+    refused, not opened: reading it waits for a writer."""
+    try:
+        mode = Path(path).stat().st_mode
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: {missing}") from None
+    except OSError as e:
+        raise RecordingError(f"{path}: cannot read ({e.strerror or e})") from None
+    if stat.S_ISDIR(mode):
+        raise RecordingError(f"{path}: is a directory, expected a recording file")
+    if not stat.S_ISREG(mode):
+        raise RecordingError(f"{path}: {_kind(mode)}, expected a regular file (a recording)")
 
 
 def _kind(mode: int) -> str:

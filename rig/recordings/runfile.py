@@ -17,7 +17,7 @@ import numpy as np
 
 from rig.config import MOUNTS
 from rig.errors import RecordingError
-from rig.recordings.files import open_hdf5
+from rig.recordings.files import check_file, open_hdf5
 from rig.recordings.recording import mend_gaps
 
 REQUIRED = ("time_s", "accel_mps2", "stroke_m", "valve_cmd_V")
@@ -124,8 +124,7 @@ def read_run(path) -> RunRecording:
     """The run recording at `path` (RecordingError naming the file and what is wrong)."""
     p = Path(path)
     where = str(p)
-    if not p.is_file():
-        raise RecordingError(f"{where}: no such recording")
+    check_file(p, "no such recording")
     with open_hdf5(p, where, "run recording (docs/RUN_RECORDING.md)") as f:
         missing = [k for k in REQUIRED if k not in f]
         if missing:

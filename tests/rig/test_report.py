@@ -85,6 +85,8 @@ def test_not_a_loop_recording_is_one_line(tmp_path, capsys):
     assert err == [f"rig report: error: {bad}: no accel_mps2 dataset (expected a recording of rig run or rig hil)"]
     with pytest.raises(RecordingError, match="no such recording"):
         report.vc_of_recording(tmp_path / "missing.h5")
+    with pytest.raises(RecordingError, match="is a directory, expected a recording file"):
+        report.vc_of_recording(tmp_path)          # it exists: not "no such recording"
     (tmp_path / "text.h5").write_text("not HDF5")
     with pytest.raises(RecordingError, match="cannot open recording") as e:
         report.vc_of_recording(tmp_path / "text.h5")

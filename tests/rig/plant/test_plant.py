@@ -6,7 +6,7 @@ import pytest
 import scipy.signal
 from hypothesis import given, settings, strategies as st
 
-from rig.errors import ConfigError
+from rig.errors import EXIT_SUSPECT, ConfigError
 from rig.plant.file import load_plant, parse_plant
 from rig.plant.model import axis_state_space
 from rig.plant.zoh import discretise, run_segments, substeps
@@ -237,12 +237,46 @@ def test_a_mass_of_1e300_ends_in_figures_without_a_numpy_warning(tmp_path, capsy
     rec = _axis_recording(tmp_path / "axis.csv")
     with warnings.catch_warnings():
         warnings.simplefilter("error")                  # any warning is noise on the user's terminal
-        assert main([command, str(rec), "--plant", str(plant), "--json"]) == 0
+        code = main([command, str(rec), "--plant", str(plant), "--json"])
     r = capsys.readouterr()
     res = json.loads(r.out)
     nrmse = res["fit"]["nominal"]["nrmse"] if command == "diagnose" else res["fit"]["nrmse"]
     assert math.isfinite(nrmse) and nrmse > 1.0
-    assert all(ln.startswith("[") for ln in r.err.splitlines()), r.err              # progress lines only
+    said = [ln for ln in r.err.splitlines() if not ln.startswith("[")]             # progress lines aside
+    if command == "diagnose":
+        assert code == 0 and said == [], r.err
+    else:                                               # identify's poor-fit rule: one line, exit 5, no numpy noise
+        assert code == EXIT_SUSPECT and said == [f"rig identify: warning: {res['warning']}"], r.err
+
+
+def test_identify_through_a_plant_file_says_a_poor_fit_as_the_eha_path_does(tmp_path, capsys):
+    """Found by a helper: `rig identify REC --plant FILE` ended a fit that explains nothing (NRMSE 4.7, the
+    plant's values all fixed and wrong) with exit 0 and no warning, where the eha path says "poor fit" and exits
+    EXIT_SUSPECT. Now the one rule (rig.identify.poor_fit: NRMSE above POOR_NRMSE) on both paths; a fitting plant
+    file stays quiet."""
+    import json
+    from rig.cli import main
+    rec = _axis_recording(tmp_path / "axis.csv")
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text('[plant]\nfamily = "mechanical_axis"\ninput_unit = "V"\nmass_kg = 10.0\n'
+                     'damping_n_s_per_m = 100.0\ngain_n_per_unit = 10.0\n')          # no spring: the data has one
+    assert main(["identify", str(rec), "--plant", str(wrong)]) == EXIT_SUSPECT
+    r = capsys.readouterr()
+    said = [ln for ln in r.err.splitlines() if not ln.startswith("[")]
+    assert len(said) == 1 and said[0].startswith("rig identify: warning: poor fit (NRMSE "), r.err
+    assert said[0].endswith(f"): the recording is not a clean response of the plant of {wrong}")
+    assert main(["identify", str(rec), "--plant", str(wrong), "--json"]) == EXIT_SUSPECT
+    res = json.loads(capsys.readouterr().out)
+    from rig.identify import POOR_NRMSE                 # the eha path's threshold
+    assert res["fit"]["nrmse"] > POOR_NRMSE and res["warning"].startswith("poor fit (NRMSE ")
+    good = tmp_path / "good.toml"
+    good.write_text('[plant]\nfamily = "mechanical_axis"\ninput_unit = "V"\n'
+                    'mass_kg = { value = 20.0, min = 1.0, max = 100.0 }\n'
+                    'damping_n_s_per_m = { value = 50.0, min = 1.0, max = 1000.0 }\n'
+                    'stiffness_n_per_m = { value = 5e3, min = 1e2, max = 1e6 }\ngain_n_per_unit = 10.0\n')
+    assert main(["identify", str(rec), "--plant", str(good), "--json"]) == 0
+    r = capsys.readouterr()
+    assert "warning" not in json.loads(r.out) and all(ln.startswith("[") for ln in r.err.splitlines()), r.err
 
 
 def test_a_mass_of_1e_minus_300_ends_in_figures_not_a_traceback(tmp_path, capsys):

@@ -171,19 +171,20 @@ def test_missing_file_and_directory(tmp_path):
         load_recording(tmp_path)
 
 
-@pytest.mark.parametrize("command", ["identify", "diagnose"])
+@pytest.mark.parametrize("command", [["identify"], ["diagnose"], ["report"], ["export", "--to", "csv"]])
 def test_a_named_pipe_is_refused_in_one_line_not_waited_on(tmp_path, command):
     """Found by the abuse trial: a FIFO given as the recording hung the command for ever (reading waits for a
-    writer). Now one line naming it, exit 2 (the timeout only ends the old hang)."""
+    writer); report and export then called it "no such recording". Now one line saying what it is, exit 2 (the
+    timeout only ends the old hang)."""
     import os
     import subprocess
     import sys
-    fifo = tmp_path / "pipe.csv"
+    fifo = tmp_path / "pipe.h5"    # not .csv: export --to csv would write pipe.csv beside it
     os.mkfifo(fifo)
-    r = subprocess.run([sys.executable, "-m", "rig.cli", command, str(fifo)], capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run([sys.executable, "-m", "rig.cli", command[0], str(fifo), *command[1:]], capture_output=True,
+                       text=True, timeout=120)
     assert r.returncode == 2 and r.stdout == ""
-    assert r.stderr.splitlines() == [f"rig {command}: error: {fifo}: a named pipe, expected a regular file "
+    assert r.stderr.splitlines() == [f"rig {command[0]}: error: {fifo}: a named pipe, expected a regular file "
                                      "(a recording)"]
 
 
