@@ -484,9 +484,10 @@ def _empty_loop(cfg, args, rate: float, clock) -> int:
 PROTOTYPE_BENCH_MODE = "track sine:amp=10um,freq=5"
 
 
-def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
+def _bench_once(cfg, args, rate: float, seconds: float, mode=None, announce: str | None = None) -> dict:
     """One timed run on the simulated backend (cfg's layout; mode: the stand's operating mode), recording to a
-    temporary file: the loop figures."""
+    temporary file: the loop figures. announce: a line said once the run is built (a Ctrl-C before it ends the
+    command without figures)."""
     from rig.runtime.session import Session
     fd, tmp = tempfile.mkstemp(suffix=".h5", prefix="rig-bench-")
     os.close(fd)
@@ -497,6 +498,8 @@ def _bench_once(cfg, args, rate: float, seconds: float, mode=None) -> dict:
                      keep_timing=int(math.ceil(seconds * rate)) + 16, stop_on_fault=False, record=tmp,
                      record_attrs={"command": "rig bench loop"}, realtime=realtime) as session:
             loop = session.loop
+            if announce:
+                print(announce, file=sys.stderr)
             loop.activate()
             reason = session.run(seconds=seconds)
     finally:
@@ -517,9 +520,8 @@ def _bench_layouts(cfg, args, rate: float, layout: str) -> int:
         raise RigError(f"--layout {layout}: {proto.source} is not a stand layout")
     if layout == "both":
         return _bench_both(cfg, proto, args, rate)
-    print(f"rig bench loop: prototype (1 mount) at {rate:g} Hz for {args.seconds:g} s, {PROTOTYPE_BENCH_MODE}",
-          file=sys.stderr)
-    out = _bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE)
+    out = _bench_once(proto, args, rate, args.seconds, PROTOTYPE_BENCH_MODE,
+                      f"rig bench loop: prototype (1 mount) at {rate:g} Hz for {args.seconds:g} s, {PROTOTYPE_BENCH_MODE}")
     fault, reason = out.pop("fault_reason"), out.pop("stop_reason")
     _print_loop_figures(out, args.json, 0)
     code = faulted_exit({"prototype": fault})
