@@ -74,7 +74,7 @@ def build_driver_port(cfg, name: str, *, can_interface: str, can_channel: str, m
              "names": names + [f"floor {m}" for m in names][:len(floor)], "timeout_s": d.modbus_timeout_s,
              "watchdog_s": d.modbus_watchdog_s, "stale_s": stale_s, "silent_s": silent, "fifo": fifo,
              "fetch_every": d.accel_fetch_every, "fetch_delay_s": d.accel_fetch_delay_s, "sync_device": VALVES,
-             "hold_s": accel_hold_s(d, period_s), **common}
+             "hold_s": accel_hold_s(d, period_s), "hold_periods": max(0, d.accel_delay_periods - 1), **common}
     a_chs = conversion.channels(list(range(n)) + floor,
                                 [1.0 / d.accel_V_per_mps2] * n + [1.0 / s.floor_V_per_mps2] * len(floor))
     x_chs = conversion.channels(range(n), [1.0] * n)

@@ -243,6 +243,7 @@ class ValveIO(IODevice):
                     pend[i] = now
             self._sync_t = now
             send(self._sync_msg)
+        self._row[ex.D_PERIOD] = float(self._T)        # before the SYNC's time: the module reads them in turn
         self._row[ex.D_SAMPLE] = float(now)
         self.block.wake(ex.FUTEX_SYNC)
 

@@ -10,9 +10,11 @@ counter and the newest `fetch_every` + 1 FIFO entries in one request (after a st
 in blocks); a reply without the new conversion is asked again once it is due. Every conversion, in order,
 goes into the block's conversion ring by its counter (unwrapped from 16 bits): the loop's kernel steps the
 controllers once per conversion. When the design takes a conversion two or more periods after its SYNC
-([drivers] accel_delay_periods), a fast reply is held until the loop's period before that one has taken its
-inputs (hold_s, drivers.accel_hold_s), so no period finds two conversions and the next none. One lost from the
-FIFO before it was fetched is interpolated and counted.
+([drivers] accel_delay_periods), a fast reply is held until the loop has written its commands for the period
+before the one due to take it (counted from the period whose commands the SYNC carried, the valves' row), so no
+period finds two conversions and the next none; by time while the loop is not running (hold_s,
+drivers.accel_hold_s). The process goes on meanwhile: the next SYNC's fetch may come before the release. One lost
+from the FIFO before it was fetched is interpolated and counted.
 Without a FIFO the module's latest value (AI ch0-7 and its counter) is read once per loop period.
 
 Faults (the device's line in the block): no new conversion for stale_s (silence, exceptions, garbage, frozen
@@ -23,7 +25,9 @@ The conversion from registers to m/s^2 per channel: drivers/conversion.py.
 from __future__ import annotations
 
 import logging
+import struct
 import time
+from collections import deque
 
 import numpy as np
 
@@ -40,6 +44,28 @@ FIFO_CHUNK = 13                 # entries per request reaching further back afte
 DELAY_STEP_NS = 10_000          # the learnt fetch delay: +10 us after a request too early, -2 us after one in time
 STATUS_EVERY = 50               # with the FIFO: the status register (host watchdog) every this many polls
 MAX_BEHIND = 1024               # conversions taken after a stall at most (beyond the FIFO: interpolated)
+
+
+def registers_response():
+    """pymodbus's read-registers response, decoded with one unpack and named in a short text: pymodbus's own
+    unpacks each register apart and formats every response for a debug line even when nothing logs (an eighth of
+    this process's time at 2 kHz in a profile). Registered with the client, pymodbus's way for a response of one's
+    own."""
+    from pymodbus.exceptions import ModbusIOException
+    from pymodbus.pdu.register_message import ReadHoldingRegistersResponse
+
+    class RegistersResponse(ReadHoldingRegistersResponse):
+        def decode(self, data: bytes) -> None:
+            n = int(data[0])
+            if n >= len(data):                  # as pymodbus's own
+                raise ModbusIOException(f"byte_count {n} > length of packet {len(data)}",
+                                        function_code=self.function_code)
+            self.registers = list(struct.unpack_from(f">{n // 2}H", data, 1))
+
+        def __str__(self) -> str:
+            return f"{type(self).__name__}(dev_id={self.dev_id}, {len(self.registers)} registers)"
+
+    return RegistersResponse
 
 
 class AnalogIO(IODevice):
@@ -61,11 +87,18 @@ class AnalogIO(IODevice):
         # the request after a SYNC: fetch_delay_s at first, then learnt (a request that comes before the
         # conversion costs a round trip for nothing; one that comes late delays the conversion)
         self.delay_ns = self.min_delay_ns = int(round(spec.get("fetch_delay_s", 0.0) * 1e9))
-        # a conversion is handed to the loop no sooner than hold_s after its SYNC (accel_delay_periods - 1
-        # periods): the loop then takes it at the period the design counts on, never one early, so a fast reply
-        # cannot leave the next period without one
+        # a conversion is handed to the loop no sooner than the design takes it (accel_delay_periods after the
+        # period whose commands its SYNC carried): never a period early, so a fast reply cannot leave the next
+        # period without one. The loop not running: no sooner than hold_s after its SYNC
         self.hold_ns = int(round(spec.get("hold_s", 0.0) * 1e9))
         self.not_before_ns = 0
+        # ... and, the loop running, only once it wrote its commands for the period hold_periods after the one whose
+        # commands the SYNC carried: it took its inputs for the period before the one due to take the conversion
+        # (a loop woken late, or a SYNC sent late, would otherwise have it taken a period early, and none after)
+        self.hold_periods = int(spec.get("hold_periods", 0))
+        self.after_T = 0.0
+        self._loop_T = int(block.io[ex.H_CMD]) + ex.C_T     # the newest period the loop wrote commands for
+        self._held: deque = deque()    # [release ns, arrival ns, [(c16, values)], loop period after, last ns]
         self.sync_row = spec.get("sync_device")
         self.priority = int(spec.get("priority", 0))
         self.where = f"modbus_tcp {self.host}:{self.port} unit {self.unit}"
@@ -77,7 +110,7 @@ class AnalogIO(IODevice):
         self.count = -1.0              # the newest conversion published (unwrapped counter)
         self._c16 = -1                 # the module's 16-bit counter last seen
         self._c16_pub = -1             # ... and last published
-        self._last = None              # its values (interpolation of lost ones)
+        self._last = None              # the newest conversion's values taken (interpolation of lost ones)
         self.watchdog_tripped = False
         self.sample_ns = 0             # when the newest conversion came
         self.asked_ns = 0              # first request since the last new conversion (0 = none outstanding)
@@ -93,6 +126,7 @@ class AnalogIO(IODevice):
         # cycle with timeout_s
         self.client = ModbusTcpClient(self.host, port=self.port, timeout=max(self.timeout_s, 1.0), retries=0,
                                       reconnect_delay=0.0)
+        self.client.register(registers_response())
         if not self.client.connect():
             self.client = None
             raise DeviceError(f"{self.where}: cannot connect (analog I/O module not answering)")
@@ -130,7 +164,7 @@ class AnalogIO(IODevice):
             if self.fifo and self.sync_row is not None:    # each SYNC (or, without one, every other period)
                 # `seen` is the count at the last wake, so a SYNC sent while this one's fetch was still going
                 # on wakes it at once: re-reading the count here would sleep through it, a period late
-                block.wait(ex.FUTEX_SYNC, seen, 2 * P * 1e-9)
+                self._wait_sync(seen, 2 * P)
                 now = int(block.futex[ex.FUTEX_SYNC])
                 step = (now - seen) & 0xFFFFFFFF
                 self._syncs += step or 1                         # a timeout (no SYNC) counts as one
@@ -140,16 +174,20 @@ class AnalogIO(IODevice):
                     continue
                 fetched = self._syncs // self.every
                 t_sync = int(sync_row[ex.D_SAMPLE])
-                # held only for the SYNC just sent: after a hold-up (several SYNCs at once) what came is due
-                self.not_before_ns = t_sync + self.hold_ns if self.hold_ns and step == 1 else 0
-                self.sleep_until(max(t_sync + self.delay_ns, time.monotonic_ns()))
+                # held only for the SYNC just sent (after a hold-up, several SYNCs at once, what came is due): the
+                # loop running, until it wrote its commands for the period before the one due to take it, else by time
+                t_cmd = sync_row[ex.D_PERIOD]
+                hold = self.hold_ns and step == 1
+                self.after_T = t_cmd + self.hold_periods * P if hold and t_cmd > 0 else 0.0
+                self.not_before_ns = t_sync + self.hold_ns if hold and not self.after_T else 0
+                self._sleep(max(t_sync + self.delay_ns, time.monotonic_ns()))
                 end = time.monotonic_ns() + P // 2
                 first = True
                 while not self.poll() and time.monotonic_ns() < end and not stop.is_set():
                     if first:                                  # too early: ask later after the next SYNCs
                         self.delay_ns = min(self.delay_ns + DELAY_STEP_NS, P // 2)
                         first = False
-                    self.sleep_until(time.monotonic_ns() + P // 8)     # not converted yet: once more
+                    self._sleep(time.monotonic_ns() + P // 8)          # not converted yet: once more
                 if first:                                      # in at once: try a little earlier next time
                     self.delay_ns = max(self.delay_ns - DELAY_STEP_NS // 5, self.min_delay_ns)
                 self._watch_status(fetched)
@@ -159,6 +197,58 @@ class AnalogIO(IODevice):
                 self.poll()
                 self._watch_status(self._polls)
             self._idle()
+
+    def _wait_sync(self, seen: int, timeout_ns: int) -> None:
+        """Sleep until a SYNC after `seen` (the futex count) or timeout_ns, handing held conversions on as they
+        fall due."""
+        block = self.block
+        end = time.monotonic_ns() + timeout_ns
+        while True:
+            now = self._release_due()
+            until = min(end, self._held[0][0]) if self._held else end
+            if until > now:
+                block.wait(ex.FUTEX_SYNC, seen, (until - now) * 1e-9)
+            if int(block.futex[ex.FUTEX_SYNC]) != seen or time.monotonic_ns() >= end:
+                self._release_due()
+                return
+
+    def _sleep(self, t_ns: int) -> None:
+        """Sleep until t_ns, handing held conversions on as they fall due."""
+        while self._held and self._held[0][0] < t_ns:
+            self.sleep_until(self._held[0][0])
+            self._release_due()
+        self.sleep_until(t_ns)
+        self._release_due()
+
+    def _hand(self, t1: int, convs: list) -> None:
+        """New conversions [(c16, values)] come in at t1: to the loop now, or held until not_before (behind any
+        held before them: they go out in order)."""
+        if convs and convs[-1][1] is not None:
+            self._last = convs[-1][1]
+        self._release_due()
+        release = max(self.not_before_ns, self._held[-1][0] if self._held else 0, t1)
+        if self._held or release > t1 or (self.after_T and self._loop_before(self.after_T, t1)):
+            self._held.append([release, t1, convs, self.after_T, release + self.period_ns])
+        else:
+            self._publish_all(t1, convs)
+
+    def _release_due(self) -> int:
+        """The held conversions whose time has come, to the loop; returns the time now."""
+        now = time.monotonic_ns()
+        while self._held and self._held[0][0] <= now:
+            head = self._held[0]
+            if head[3] and now < head[4] and self._loop_before(head[3], now):
+                head[0] = now + self.period_ns // 16         # the loop is late: look again shortly
+                break
+            _, t1, convs, _, _ = self._held.popleft()
+            self._publish_all(t1, convs)
+        return now
+
+    def _loop_before(self, T: float, now: int) -> bool:
+        """Whether the running loop has not yet written commands for a period starting at T or later (not
+        running: False, the hold is by time alone)."""
+        newest = self.io[self._loop_T]
+        return 0 < newest < T and now - newest < 4 * self.period_ns
 
     def _watch_status(self, k: int) -> None:
         """With the FIFO: the status register every STATUS_EVERY fetches, after the fetch's conversion went out
@@ -216,17 +306,15 @@ class AnalogIO(IODevice):
             return False
         self.last_error = ""
         self.asked_ns = 0
-        if self.not_before_ns > t1:
-            self.sleep_until(self.not_before_ns)
         self.sample_ns = t1
-        self._ts[:] = t1
         if not self.fifo:
-            self._publish(c16, self._values([regs[REG_AI + ch] for ch in range(8)]))
+            convs = [(c16, self._values([regs[REG_AI + ch] for ch in range(8)]))]
         elif self._c16 < 0:
-            self._publish(c16, self._values(regs[1:FIFO_WIDTH]))
+            convs = [(c16, self._values(regs[1:FIFO_WIDTH]))]
         else:
-            self._take_fifo(regs, c16)
+            convs = self._take_fifo(regs, c16)
         self._c16 = c16
+        self._hand(t1, convs)
         return True
 
     def _status(self) -> bool:
@@ -242,9 +330,9 @@ class AnalogIO(IODevice):
             self.watchdog_tripped = True            # latched in the module until open() clears it
         return True
 
-    def _take_fifo(self, regs, newest: int) -> None:
-        """The conversions after the last published one up to `newest`, from the FIFO entries (newest first):
-        those in this reply, then after a stall the ones further back, in blocks; one not in the FIFO any more
+    def _take_fifo(self, regs, newest: int) -> list:
+        """The conversions [(c16, values)] after the last one taken up to `newest`, from the FIFO entries (newest
+        first): those in this reply, then after a stall the ones further back, in blocks; one not in the FIFO any more
         is interpolated (counted in lost_conversions)."""
         want = min((newest - self._c16) & 0xFFFF, MAX_BEHIND)    # new conversions
         got = self._entries(regs, 0, self.every + 1, newest)
@@ -270,8 +358,7 @@ class AnalogIO(IODevice):
                 b = values[k] if k is not None else a
                 f = 1.0 / (k - j + 1) if k is not None else 0.0
                 values[j] = a if a is None else [x + f * (y - x) for x, y in zip(a, b)]
-        for (c, _), v in zip(convs, values):
-            self._publish(c, v)
+        return [(c, v) for (c, _), v in zip(convs, values)]
 
     @staticmethod
     def _entries(regs, base: int, entries: int, newest: int) -> dict:
@@ -291,13 +378,18 @@ class AnalogIO(IODevice):
                           if raw[c.source] in (0, 65535)), "")
         return conversion.apply(self.chs, [raw_to_volts(x) for x in raw])
 
+    def _publish_all(self, t1: int, convs: list) -> None:
+        """Conversions [(c16, values)] that came in at t1 into the block, in order."""
+        self._ts[:] = t1
+        for c16, values in convs:
+            self._publish(c16, values)
+
     def _publish(self, c16: int, values) -> None:
         """One conversion into the block (the channels' values), its counter unwrapped from 16 bits."""
         if values is None:                              # (nothing known before it: lost at the very start)
             return
         self.count = c16 if self.count < 0 else self.count + ((c16 - self._c16_pub) & 0xFFFF)
         self._c16_pub = c16
-        self._last = values
         self.counted(1)
         ex.put_conversion(self.io, float(self.count), self._ts, np.asarray(values, dtype=np.float64))
 

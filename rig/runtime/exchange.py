@@ -58,10 +58,11 @@ S_NEWEST, S_STALE, S_SLOTS = 0, 1, 2
 C_SEQ, C_T, C_ACK, C_WAITER, C_PERIOD, C_VALUES = 0, 1, 2, 3, 4, 5
 # devices: one row each: fault code (0 none), heartbeat, silence limit (0 none), the time of its newest sample or
 # event (the valves': the last SYNC), a count of requests to it (the port's: a valve fault reset), its samples
-# or SYNCs so far, and a count of its misses (the valves': SYNCs sent with the period before's commands; the
-# module: conversions interpolated, lost from its FIFO; the amplifier: requests without a new frame)
-DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns", "request", "count", "missed")
-D_FAULT, D_BEAT, D_SILENT, D_SAMPLE, D_REQUEST, D_COUNT, D_MISSED = range(len(DEVICE_ROW))
+# or SYNCs so far, a count of its misses (the valves': SYNCs sent with the period before's commands; the
+# module: conversions interpolated, lost from its FIFO; the amplifier: requests without a new frame), and the loop
+# period its newest sample or event belongs to (the valves': the period whose commands the last SYNC carried)
+DEVICE_ROW = ("fault", "beat_ns", "silent_ns", "sample_ns", "request", "count", "missed", "period_ns")
+D_FAULT, D_BEAT, D_SILENT, D_SAMPLE, D_REQUEST, D_COUNT, D_MISSED, D_PERIOD = range(len(DEVICE_ROW))
 TEXT_BYTES = 240                          # one device's fault line (UTF-8, NUL-padded)
 FUTEX_WORDS = 4                           # int32 words the processes sleep on (futex(2)): cmd, sync, spare
 

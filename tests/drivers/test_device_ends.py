@@ -195,12 +195,16 @@ def test_valve_driver_against_canopen_localnodes_serving_the_eds():
         th.start()
         try:
             end = time.monotonic() + 2.0
+            periods = []
             while time.monotonic() < end and not all(len(v.rpdo_data) > 20 for v in valves):
-                ex.put_commands(block.io, float(time.monotonic_ns()), np.array([2.5, -5.0]))
+                periods.append(float(time.monotonic_ns()))
+                ex.put_commands(block.io, periods[-1], np.array([2.5, -5.0]))
                 time.sleep(0.002)
         finally:
             stop.set()
             th.join(2)
+        # the period whose commands the last SYNC carried, beside its time (the module's hold counts from it)
+        assert block.device_row(VALVES)[ex.D_PERIOD] in periods
         for v, want in zip(valves, (2.5, -5.0)):
             cw, sp = struct.unpack("<Hh", v.rpdo_data[-1])
             assert cw == 0x7 and sp == round(want / 10.0 * 16384)   # controlword ACTIVE, setpoint INT16
@@ -278,3 +282,22 @@ def test_transducer_driver_against_an_answer_script_from_the_device_map():
         block.close()
         os.close(master)
         os.close(slave)
+
+
+def test_the_drivers_register_response_decodes_as_pymodbus_does():
+    """The analog module's client decodes read-register replies with a response class of its own (one unpack):
+    the same registers as pymodbus's own class for any reply, and one whose byte count overruns it refused alike."""
+    from pymodbus.exceptions import ModbusIOException
+    from pymodbus.pdu.register_message import ReadHoldingRegistersResponse
+    from drivers.modbus_io import registers_response
+    ours, theirs = registers_response()(), ReadHoldingRegistersResponse()
+    rng = np.random.default_rng(5)
+    for nbytes in (2, 3, 4, 18, 19, 36, 54, 250):
+        data = bytes([nbytes]) + rng.integers(0, 256, nbytes + 1, dtype=np.uint8).tobytes()
+        ours.decode(data)
+        theirs.decode(data)
+        assert ours.registers == theirs.registers
+    for pdu in (ours, theirs):
+        with pytest.raises(ModbusIOException):
+            pdu.decode(bytes([10, 1, 2]))
+    assert "registers" in str(ours)

@@ -290,6 +290,29 @@ def test_conversion_fifo_serves_the_last_64_conversions_newest_first(modbus_alon
         assert acc == pytest.approx([0.01 * k, -0.01 * k, 0.0, 0.5] + [0.0] * 4, abs=20 / 65535)
 
 
+def test_a_conversions_registers_are_made_once_and_anew_for_the_next_in_its_slot(modbus_alone):
+    """The emulated module makes a conversion's registers once (noise drawn once: the same however often it is
+    read) and makes them anew for the conversion that takes its FIFO slot 64 conversions later."""
+    from sim_backend.emulators.modbus_server import Module
+    arr, _c, _ = modbus_alone
+    m = Module(arr, 2.0, faults=(tuple(range(8)), (1.0,) * 8, (0.0,) * 8, (0.05,) + (0.0,) * 7))
+    sh.publish(arr, 1e-3, [0.1, 0.2, 0.0, 0.0], [0.0] * 4)
+    w = mm.FIFO_WIDTH
+    first = m.read(mm.REG_FIFO, 2 * w)
+    assert m.read(mm.REG_FIFO, 2 * w) == first
+    assert m.read(mm.REG_AI, mm.N_AI) == first[1:w]                  # the newest, as AI ch0-7 and as entry 0
+    for k in range(sh.FIFO_SLOTS):
+        sh.publish(arr, (2 + k) * 1e-3, [0.3, -0.3, 0.0, 0.0], [0.0] * 4)
+    later = m.read(mm.REG_FIFO, w)
+    assert later[0] == (first[0] + sh.FIFO_SLOTS) & 0xFFFF
+    assert mm.raw_to_volts(later[2]) / 2.0 == pytest.approx(-0.3, abs=20 / 65535)
+    assert later[1] != first[1]
+    arr[sh.COUNT] = later[0] - 1                                    # a plant started again: the same counter anew
+    sh.publish(arr, 1.0, [0.7, 0.0, 0.0, 0.0], [0.0] * 4)
+    again = m.read(mm.REG_FIFO, w)
+    assert again[0] == later[0] and mm.raw_to_volts(again[2]) / 2.0 == pytest.approx(0.0, abs=20 / 65535)
+
+
 def test_host_watchdog_sets_ao_safe_values(modbus_alone):
     _arr, c, _ = modbus_alone
     assert not c.write_registers(10, [40000, 41000, 32768, 30000], device_id=1).isError()   # AO, AO safe
@@ -389,24 +412,68 @@ def test_a_fetch_with_its_conversion_in_is_one_request(modbus_alone):
 def test_a_fast_reply_waits_for_the_period_that_takes_it(modbus_alone):
     """With the design taking a conversion two periods after its SYNC, one fetched early is handed to the loop
     only from its hold time on (drivers.accel_hold_s): before it the block has not got it, after it it has,
-    once and in order."""
+    once and in order. The process is not held meanwhile: the next SYNC's fetch can come first (three periods)."""
     arr, _c, port = modbus_alone
     dev, block = _analog(port)
     a = block.part("accel")
     try:
         first = int(dev.count)
         sh.publish(arr, 2e-3, [0.02] * 4, [0.0] * 4)
-        dev.not_before_ns = time.monotonic_ns() + 60_000_000
-        seen_early = []
-        peek = threading.Timer(0.03, lambda: seen_early.append(int(block.io[a + ex.A_NEWEST])))
-        peek.start()
+        release = dev.not_before_ns = time.monotonic_ns() + 60_000_000
         assert dev.poll()
-        peek.join()
-        assert time.monotonic_ns() >= dev.not_before_ns
-        assert seen_early == [first]                       # 30 ms in: still the conversion before
+        assert time.monotonic_ns() < release                 # the fetch came back without waiting out the hold
+        sh.publish(arr, 3e-3, [0.03] * 4, [0.0] * 4)        # the next conversion, fetched while one is held
+        dev.not_before_ns = 0
+        assert dev.poll()
+        assert int(block.io[a + ex.A_NEWEST]) == first      # both still held: in order, behind the first
+        dev._release_due()
+        assert int(block.io[a + ex.A_NEWEST]) == first
+        dev._sleep(time.monotonic_ns() + 1000)               # a sleep hands on what falls due in it
+        assert int(block.io[a + ex.A_NEWEST]) == first
+        dev._wait_sync(int(block.futex[ex.FUTEX_SYNC]), 200_000_000)    # no SYNC: the release is made meanwhile
+        assert time.monotonic_ns() >= release
+        got = _conversions(block, first)
+        assert [c - first for c, _ in got] == [1, 2]
+        assert [v[0] for _, v in got] == pytest.approx([0.02, 0.03], abs=1e-3)
+    finally:
+        dev.close()
+
+
+def test_a_fast_reply_waits_for_the_loop_to_have_taken_the_period_before(modbus_alone):
+    """The loop running, a conversion is handed on once the loop wrote its commands for the period before the one
+    due to take it (the period its SYNC's commands were for, plus accel_delay_periods - 1), whenever that is: a
+    loop woken late would otherwise take it a period early and find none the period after."""
+    arr, _c, port = modbus_alone
+    dev, block = _analog(port)
+    io, a = block.io, block.part("accel")
+    P = dev.period_ns
+    try:
+        first = int(dev.count)
+        T = float(time.monotonic_ns())                      # the period whose commands the SYNC carried
+        ex.put_commands(io, T, np.zeros(4))
+        dev.after_T = T + P                                  # accel_delay_periods 2: the loop's next period
+        sh.publish(arr, 2e-3, [0.02] * 4, [0.0] * 4)
+        assert dev.poll()
+        dev._sleep(time.monotonic_ns() + P // 2)             # time alone does not hand it on (the loop is late)
+        assert int(io[a + ex.A_NEWEST]) == first
+        ex.put_commands(io, T + P, np.zeros(4))              # the loop took its inputs for the period before
+        dev._sleep(time.monotonic_ns() + P // 4)
         assert [c - first for c, _ in _conversions(block, first)] == [1]
     finally:
         dev.close()
+
+
+def test_a_reply_for_a_loop_that_is_not_running_goes_by_time():
+    """No commands from the loop (not started, or stopped): the hold is by time alone, never for ever."""
+    from drivers.modbus_io import AnalogIO as _A
+    dev = _A.__new__(_A)
+    dev.period_ns = 1_000_000
+    dev.io = np.zeros(64)
+    dev._loop_T = 3
+    assert not dev._loop_before(1e9, 2_000_000_000)         # nothing written: not running
+    dev.io[3] = 1e9 - 1e6
+    assert dev._loop_before(1e9, 1_000_100_000)            # running, a period behind
+    assert not dev._loop_before(1e9, 1_010_000_000)        # written ten periods ago: not running any more
 
 
 def test_the_hold_is_for_designs_that_take_a_conversion_periods_later():
