@@ -48,9 +48,8 @@ MAX_BEHIND = 1024               # conversions taken after a stall at most (beyon
 
 def registers_response():
     """pymodbus's read-registers response, decoded with one unpack and named in a short text: pymodbus's own
-    unpacks each register apart and formats every response for a debug line even when nothing logs (an eighth of
-    this process's time at 2 kHz in a profile). Registered with the client, pymodbus's way for a response of one's
-    own."""
+    unpacks each register apart and formats every response for a debug line even when nothing logs
+    (drivers/README.md). Registered with the client, pymodbus's way for a response of one's own."""
     from pymodbus.exceptions import ModbusIOException
     from pymodbus.pdu.register_message import ReadHoldingRegistersResponse
 

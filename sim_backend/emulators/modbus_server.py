@@ -61,8 +61,8 @@ class Module:
         self.last_request = time.monotonic()
         self.frozen: list[int] | None = None
         # a conversion's registers, made once: each request reads the newest few entries again, and rounding
-        # every value every time cost this process a third of its CPU at 2 kHz (kept with its counter and values:
-        # a plant started again counts from 0 anew)
+        # every value every time was most of this process's work (drivers/README.md); kept with its counter and
+        # values: a plant started again counts from 0 anew
         self._raw: list[tuple[int, list, list[int]]] = [(-1, [], [])] * sh.FIFO_SLOTS
 
     def watchdog(self) -> None:
