@@ -21,7 +21,7 @@ takes the floor's level out.
 period after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply);
 the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
 suffers first). "empty_loop_late" gives per mode the share of its periods in which an empty loop beside the run
-(one pinned to each CPU, at the loop's priority and a tenth of its rate, nothing in its period:
+(one pinned to each CPU, above the loop's priority, at a tenth of its rate, nothing in its period:
 rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run. The closing warning
 says from it whether the late periods were the host's or the drivers' chain's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
@@ -58,7 +58,7 @@ from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_STOPPED_BY, EXIT_SUSPECT, RecordingError, RigError
-from rig.runtime.empty_loop import EmptyLoop, late_share
+from rig.runtime.empty_loop import PROBE_PRIORITY, EmptyLoop, late_share
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -306,7 +306,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             pre_steps = rig.steps
             with contextlib.ExitStack() as stack:
                 beside = [stack.enter_context(EmptyLoop(rate / BESIDE_DIVIDER, seconds + 1.0,
-                                                        cfg.loop.rt_priority if realtime else 0, cpu))
+                                                        PROBE_PRIORITY if realtime else 0, cpu))
                           for cpu in range(os.cpu_count() or 1)]
                 stack.enter_context(inject.Armed(session, injections))
                 reason = session.run(seconds=seconds, activate_after_s=activate)
@@ -352,7 +352,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
 
 def empty_loop_late(beside, t0_ns: int | None, period_ns: int, modes, seconds: float, settle_s: float) -> dict:
     """Per mode, over the same metered window as late_periods: the share of its periods in a stretch where an
-    empty loop beside the run (one per CPU at the loop's priority: rig/runtime/empty_loop.py) was held more than a
+    empty loop beside the run (one per CPU above the loop's priority: rig/runtime/empty_loop.py) was held more than a
     period, i.e. the host took a CPU from the run."""
     from rig.commands.hil_lockstep import windows
     if t0_ns is None:

@@ -13,6 +13,7 @@
   lifecycle  the lifecycle states and transitions
   clock      the real and the simulated clock
   rt         real-time set-up of the loop's thread and the helpers' priorities
+  libc       the C library as the process has it (clock_nanosleep, futex, mlockall)
   lock       one process per rig: a lock per device
   inject     fault rehearsal: a backend's knobs at a loop time
   signals    signals held before a session exists

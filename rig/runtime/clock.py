@@ -9,28 +9,26 @@ Both clocks speak integer nanoseconds on a monotonic time base:
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import errno
 import time
+
+from rig.runtime.libc import LIBC, Timespec
 
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 
 
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
 def _load_nanosleep():
     """clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME): an absolute wake-up, no drift from relative sleeps."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        fn = libc.clock_nanosleep
-    except (OSError, AttributeError):
+    fn = getattr(LIBC, "clock_nanosleep", None)
+    if fn is None:
         return None
-    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.POINTER(_Timespec)]
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(Timespec), ctypes.POINTER(Timespec)]
     fn.restype = ctypes.c_int
     return fn
+
+
+_NANOSLEEP = _load_nanosleep()
 
 
 class MonotonicClock:
@@ -44,8 +42,8 @@ class MonotonicClock:
     is_real = True
 
     def __init__(self, spin_ns: int | None = None) -> None:
-        self._nanosleep = _load_nanosleep()
-        self._ts = _Timespec()
+        self._nanosleep = _NANOSLEEP
+        self._ts = Timespec()
         self._ts_ref = ctypes.byref(self._ts)
         self.spin_ns = spin_ns
 

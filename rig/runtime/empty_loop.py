@@ -3,8 +3,8 @@
 A process of its own wakes on absolute deadlines at a rate and a priority, with nothing in its period, and keeps
 how late each wake-up was. At a priority above every other process of the run, pinned to one CPU, its
 wake-ups more than a period late are the periods in which that CPU was taken from the run (by the kernel or the
-hypervisor). `rig hil` runs one on each CPU beside the loop, at a tenth of the loop's rate so that it takes
-little of the CPUs it measures (late_share: the loop's periods in a stretch where any of them was held), and
+hypervisor). `rig hil` runs one on each CPU beside the loop at PROBE_PRIORITY, at a tenth of the loop's rate so
+that it takes little of the CPUs it measures (late_share: the loop's periods in a stretch where any of them was held), and
 `rig bench stalls` measures the host with it."""
 from __future__ import annotations
 
@@ -17,6 +17,10 @@ import numpy as np
 
 from rig.runtime.clock import MonotonicClock
 from rig.runtime.rt import raise_priority
+
+# above the loop ([loop] rt_priority, 80) and its watchdog (10 above it): at the loop's own priority an empty loop
+# on the loop's CPU waits behind a long period of the loop, and the run's own work would read as the host's
+PROBE_PRIORITY = 99
 
 
 def _wake(first_ns, count, stop, late_ns, period_ns: int, priority: int, cpu: int | None) -> None:

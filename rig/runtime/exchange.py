@@ -39,6 +39,8 @@ import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
 
+from rig.runtime.libc import LIBC, Timespec
+
 # header words: where each part is and how big
 # (the compiled readers take every size from here, never from this module's constants: numba's cache keeps a
 # constant compiled into a caller's code after the constant changed)
@@ -232,22 +234,17 @@ class Block:
 
 FUTEX_CMD, FUTEX_SYNC = 0, 1            # the words: commands written (valves' I/O), SYNC sent (module's I/O)
 
-_libc = ctypes.CDLL(None, use_errno=True)
 _SYS_FUTEX = 202 if os.uname().machine == "x86_64" else 98     # x86_64, aarch64
 _FUTEX_WAIT, _FUTEX_WAKE = 0, 1
 
 
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
 def _futex_wait(addr: int, seen: int, timeout_s: float) -> None:
-    ts = _Timespec(int(timeout_s), int((timeout_s % 1.0) * 1e9))
-    _libc.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAIT, ctypes.c_int(seen), ctypes.byref(ts), None, 0)
+    ts = Timespec(int(timeout_s), int((timeout_s % 1.0) * 1e9))
+    LIBC.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAIT, ctypes.c_int(seen), ctypes.byref(ts), None, 0)
 
 
 def _futex_wake(addr: int) -> None:
-    _libc.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
+    LIBC.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
 
 
 # ---- compiled rules ----------------------------------------------------------------------------------------

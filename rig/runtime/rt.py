@@ -7,7 +7,6 @@ Anything not allowed gives one logged note and the run carries on.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import gc
 import logging
 import os
@@ -17,6 +16,7 @@ from dataclasses import dataclass, field
 
 from rig.runtime.idle_poll import IdlePollers
 from rig.runtime.idle_poll import wanted as idle_poll_wanted
+from rig.runtime.libc import LIBC
 
 log = logging.getLogger("rig.rt")
 
@@ -133,8 +133,7 @@ def enter_realtime(*, priority: int = 80, cpu: int | None = -1, lock_memory: boo
             _note(st, f"SCHED_FIFO priority {priority} not allowed ({e})")
     if lock_memory:
         try:
-            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-            if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+            if LIBC.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
                 _note(st, f"mlockall not allowed ({os.strerror(ctypes.get_errno())})")
             else:
                 st.mlocked = True
@@ -180,8 +179,7 @@ def leave_realtime(st: RtState) -> None:
         sys.setswitchinterval(st._old_switch)
     if st.mlocked:
         try:
-            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-            libc.munlockall()
+            LIBC.munlockall()
         except OSError:
             pass
     if st.fifo and st._old_sched is not None:

@@ -52,3 +52,44 @@ def test_a_slow_loop_marks_every_period_of_a_faster_grid_it_was_held_through():
     held = (t_cont - t_stop) / run_period                   # about 200 periods of the 2 kHz grid
     assert (held - 40) / (held + 200) <= share <= (held + 40) / (held + 200)
     assert late_share([el], t_cont + 20 * run_period, t_cont + 120 * run_period, run_period) <= 0.2   # after it
+
+
+def _spin_at(priority: int, cpu: int, seconds: float) -> None:
+    os.sched_setaffinity(0, {cpu})
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+    os._exit(0)
+
+
+def test_the_probe_runs_above_a_loop_that_holds_its_cpu():
+    """rig hil's empty loops (PROBE_PRIORITY) wake on time beside a task at the loop's priority that keeps their
+    CPU for 60 ms; one at the loop's own priority waits behind it, and would count the run's own work as the
+    host's."""
+    import multiprocessing as mp
+
+    import pytest
+
+    from rig.config import config_from_dict
+    from rig.runtime.empty_loop import PROBE_PRIORITY
+    loop_priority = config_from_dict({}).loop.rt_priority
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except PermissionError:
+        pytest.skip("SCHED_FIFO not allowed here")
+    cpu = max(os.sched_getaffinity(0))
+    with EmptyLoop(RATE, 3.0, PROBE_PRIORITY, cpu) as probe, EmptyLoop(RATE, 3.0, loop_priority, cpu) as level:
+        time.sleep(0.3)
+        hog = mp.get_context("fork").Process(target=_spin_at, args=(loop_priority, cpu, 0.06))
+        t0 = time.monotonic_ns()
+        hog.start()
+        hog.join(10)
+        t1 = time.monotonic_ns()
+        time.sleep(0.1)
+    def held(el):
+        s = el.late_spans_ns()
+        return int(((s[:, 0] >= t0 - PERIOD_NS) & (s[:, 0] < t1)).sum())
+    assert held(level) >= 20                     # the 60 ms behind the hog, less the fork's start
+    assert held(probe) <= 2
