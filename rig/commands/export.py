@@ -43,12 +43,13 @@ def run(args) -> int:
     rec = Path(args.recording)
     out = output_path(rec, args.to, args.out, args.gzip)
     files = [out] + (list(export.sidecars(out)) if args.to == "csv" else [])
+    if out.resolve() == rec.resolve():      # before "exists": no --overwrite makes this right
+        raise RigError(f"{out}: the export would write over the recording itself (it is already a .{args.to} "
+                       f"file)")
     if not args.overwrite:                  # the default name is not an option check_outputs saw
         for f in files:
             if f.exists():
                 raise RigError(f"{f}: file exists (add --overwrite to replace it)")
-    if out.resolve() == rec.resolve():
-        raise RigError(f"--out {out}: is the recording itself")
     exp = export.load(rec)
     out.parent.mkdir(parents=True, exist_ok=True)           # once REC is read: a refused REC leaves no folder
     if args.to == "mat":

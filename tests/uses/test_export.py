@@ -144,3 +144,9 @@ def test_bad_input_is_one_line(run_rec, tmp_path):
     res = _rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice")
     assert res.returncode == 2 and "(add --overwrite to" in res.stderr
     _ok(_rig("export", run_rec, "--to", "csv", "--out", tmp_path / "twice", "--overwrite"))
+    csv_rec = tmp_path / "twice" / "run.csv"         # a CSV to CSV is itself: said so, with or without --overwrite
+    for extra in ((), ("--overwrite",)):
+        res = _rig("export", csv_rec, "--to", "csv", *extra)
+        assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+            f"rig export: error: {csv_rec}: the export would write over the recording itself (it is already a .csv "
+            "file)"], res.stderr
