@@ -12,7 +12,6 @@ worker) and see the same files at the same paths (the caller checks its folders 
 """
 from __future__ import annotations
 
-import ctypes
 import hashlib
 import logging
 import os
@@ -26,6 +25,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from rig.errors import RigError
+from rig.runtime.libc import LIBC
 
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 ADDRESS = re.compile(r"^(tcp|tls)://[^\s:/]+:\d{1,5}$")
@@ -64,8 +64,7 @@ def _die_with_parent(parent_pid: int) -> None:
     """A pool worker ends when the batch's process does (Linux: PR_SET_PDEATHSIG): a batch killed by the operator
     or a scheduler leaves no worker analysing recordings nobody will collect. Elsewhere, the pool's own pipes."""
     try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
         if os.getppid() != parent_pid:               # it died before the line above: nobody to work for
             os._exit(1)
     except (OSError, AttributeError):

@@ -16,7 +16,6 @@ The rules:
 """
 from __future__ import annotations
 
-import ctypes
 import datetime as dt
 import hashlib
 import json
@@ -32,6 +31,7 @@ from typing import Callable
 
 from rig.batch import inputs, pool, summary
 from rig.errors import RigError
+from rig.runtime.libc import LIBC
 
 MANIFEST = "batch.json"
 MARKER = "batch_row.json"         # written last: the recording is done
@@ -99,8 +99,8 @@ def _give_back_freed_memory() -> None:
     """Return the heap a recording's analysis freed to the system (glibc keeps it otherwise): the next recording's
     peak then starts from the worker's resident size, not from the last one's high-water mark."""
     try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):        # not glibc: its allocator decides
+        LIBC.malloc_trim(0)
+    except AttributeError:        # not glibc: its allocator decides
         pass
 
 

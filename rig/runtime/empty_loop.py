@@ -4,8 +4,8 @@ A process of its own wakes on absolute deadlines at a rate and a priority, with 
 how late each wake-up was. At a priority above every other process of the run, pinned to one CPU, its
 wake-ups more than a period late are the periods in which that CPU was taken from the run (by the kernel or the
 hypervisor). `rig hil` runs one on each CPU beside the loop at PROBE_PRIORITY, at a tenth of the loop's rate so
-that it takes little of the CPUs it measures (late_share: the loop's periods in a stretch where any of them was held), and
-`rig bench stalls` measures the host with it."""
+that it takes little of the CPUs it measures (late_share: the loop's periods in a stretch where any of them was
+held), and `rig bench stalls` measures the host with it."""
 from __future__ import annotations
 
 import multiprocessing as mp

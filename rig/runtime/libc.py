@@ -1,9 +1,9 @@
 """The C library as the running process already has it, for the calls Python does not wrap (clock_nanosleep,
 futex, mlockall).
 
-Loaded by name from the process itself, never through ctypes.util.find_library: that runs `ldconfig -p` in a
-subprocess, and the fork and exec of it in a real-time process held every CPU's real-time tasks for about a
-millisecond (a kernel without preemption) each time a clock was made, at the start of every run."""
+Loaded once from the process itself, never through ctypes.util.find_library: that runs `ldconfig -p` in a
+subprocess, and its fork and exec hold the real-time tasks of every CPU on a kernel without preemption
+(drivers/README.md, the run's own stalls)."""
 from __future__ import annotations
 
 import ctypes
