@@ -26,8 +26,9 @@ rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from
 says from it whether the late periods were the host's or the drivers' chain's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
-"recording", "pre_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which stretch of the
-seeded floor the run met; its lockstep twin takes them first); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
+"recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period,
+which stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps before the
+loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130 (SIGTERM: 143).
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
@@ -67,7 +68,7 @@ log = logging.getLogger("rig.hil")
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
              "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods",
-             "empty_loop_late", "recording", "pre_steps")
+             "empty_loop_late", "recording", "pre_steps", "end_steps")
 BESIDE_DIVIDER = 10         # the empty loops beside the run wake at a tenth of its rate: at its own, the two cost
 #                             the run a fifth of a CPU and tripled its late periods on the 2-core machine
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
@@ -131,11 +132,14 @@ class _Progress(threading.Thread):
         self.join(1.0)
 
 
-def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
+def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> dict:
     """The modes in turn, an equal share of the run each, switched at those loop times (the gate's schedule: the
     period boundary at or after them, as the lockstep run switches); each metered from settle_s into its share
     (the emulated plant's phase, per plant step) to its end, the last one to settle_s before the run's end
-    (as hil_lockstep meters: no window at the band filter's edge)."""
+    (as hil_lockstep meters: no window at the band filter's edge). Returns the plant's steps taken before the
+    loop's first period ("first") and before its last one ("last"), filled as the loop reaches them: the stretch
+    of the trace the run itself drove (the plant steps from the moment it starts, and after the loop's last
+    period the valves go to null)."""
     from rig.commands.hil_lockstep import windows
     share = seconds / len(modes)
     for k, (mode, (t0, t1)) in enumerate(zip(modes, windows(seconds, modes, settle_s))):
@@ -143,6 +147,10 @@ def schedule_modes(loop, rig, seconds: float, settle_s: float, modes) -> None:
             loop.gate.schedule(k * share, lambda m=mode: loop.request_isolation_mode(m))
         loop.gate.schedule(t0, lambda m=mode: rig.phase(m))
         loop.gate.schedule(t1 - 0.5 * loop.dt, lambda: rig.phase(None))
+    steps = {}
+    loop.gate.schedule(0.0, lambda: steps.setdefault("first", rig.steps))
+    loop.gate.schedule(seconds - 1.5 * loop.dt, lambda: steps.setdefault("last", rig.steps))
+    return steps
 
 
 def run(args) -> int:
@@ -300,17 +308,20 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
         rig = port.rig
         try:
             time.sleep(0.2)          # the I/O processes refresh their samples after the set-up pause
-            schedule_modes(loop, rig, seconds, settle, modes)
+            steps = schedule_modes(loop, rig, seconds, settle, modes)
             progress = _Progress(loop, quiet)
             progress.start()
-            pre_steps = rig.steps
+            before = rig.steps
             with contextlib.ExitStack() as stack:
                 beside = [stack.enter_context(EmptyLoop(rate / BESIDE_DIVIDER, seconds + 1.0,
                                                         PROBE_PRIORITY if realtime else 0, cpu))
                           for cpu in range(os.cpu_count() or 1)]
                 stack.enter_context(inject.Armed(session, injections))
                 reason = session.run(seconds=seconds, activate_after_s=activate)
-            end_steps = rig.steps          # the trace up to here: the valves go to null after it
+            # the trace the loop drove: from its first period to its last (the plant stepped during the set-up
+            # before it, and loop.run ends with the valves at null: either end in would move the figures)
+            pre_steps = steps.get("first", before)
+            end_steps = steps.get("last", rig.steps)
         finally:
             if progress is not None:
                 progress.stop()
@@ -337,7 +348,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms,
            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
-           "stop_reason": reason, "pre_steps": pre_steps, "harm": loop.harm,
+           "stop_reason": reason, "pre_steps": pre_steps, "end_steps": end_steps, "harm": loop.harm,
            "supervisor": loop.supervisor.summary() if loop.supervisor is not None else None,
            "t_s": (loop.t_ns - loop.t0_ns) * 1e-9 if loop.t0_ns is not None else 0.0,
            "unmetered": short, "seconds_to_meter": seconds_to_meter(modes, settle)}

@@ -99,3 +99,33 @@ def test_a_prototype_run_too_short_to_meter_gives_no_isolation_figure(tmp_path):
     assert json.loads(out.stdout)["isolation_reduction_db"] is None
     said = [ln for ln in out.stderr.splitlines() if "no isolation figure" in ln]
     assert len(said) == 1 and said[0].startswith("rig hil: warning: hold, isolate: metered for less than 1 s")
+
+
+@pytest.mark.hil
+def test_the_trace_metered_and_the_twin_start_are_the_loops_own(tmp_path, monkeypatch):
+    """The emulated plant steps from the moment it starts, before the loop's first period (the set-up: 40-160 ms),
+    and after its last one (loop.run ends with the valves at null: the table then rides the floor). `pre_steps`
+    was read before the set-up and the trace cut after loop.run returned, so the lockstep twin met a floor 40-160
+    steps earlier than the run, and the band filter's backward pass carried the null tail into the feedforward's
+    window: its figure fell 1.3-2.2 dB short of the twin's in one 2 kHz run of three, by how long the tail was.
+    Now both ends are the plant's steps when the loop reached its first and its last period."""
+    from rig.commands.hil import HIL_DEFAULT_CONFIG, hil_config, run_hil
+    from rig.config import load_config
+    from sim_backend.emulators.rig import EmulatedRig
+
+    traces = []
+    trace = EmulatedRig.trace
+    monkeypatch.setattr(EmulatedRig, "trace", lambda self: traces.append(trace(self)) or traces[-1])
+    cfg = hil_config(load_config(HIL_DEFAULT_CONFIG), None)
+    rate, settle = cfg.loop.rate_hz, cfg.hil.settle_s
+    seconds = seconds_to_meter(MODES, settle)
+    res = run_hil(cfg, seconds, record=str(tmp_path / "run.h5"), realtime=False, quiet=True, compare=False)
+    assert res["faults"] == 0 and res["stop_reason"] == "time", res["fault_reason"]
+    table, _, codes = traces[-1]
+    (t0, _), _, (_, t1) = windows(seconds, MODES, settle)
+    first_metered = int(np.flatnonzero(codes == 1)[0])        # the plant's step after the loop's period at t0
+    last_metered = int(np.flatnonzero(codes == 3)[-1])        # ... before the one at t1
+    # one plant step per period, give or take the plant's catch-up with the wall clock
+    assert abs(first_metered - (res["pre_steps"] + round(t0 * rate))) <= 3, (first_metered, res["pre_steps"])
+    assert abs(res["end_steps"] - (last_metered + round((seconds - t1) * rate))) <= 3, (last_metered, res["end_steps"])
+    assert res["end_steps"] < table.size          # the valves' null tail is in the trace, and left out
