@@ -18,7 +18,7 @@ import pytest
 from rig.commands.hil import HIL_DEFAULT_CONFIG, JSON_KEYS, LATE_WARN, hil_config
 from rig.config import load_config
 from rig.errors import EXIT_SUSPECT
-from tests.hosttiming import LATE_BOUND, skip_unless_on_time
+from tests.hosttiming import LATE_BOUND, ran_to_the_end, skip_unless_on_time
 
 pytestmark = pytest.mark.hil           # the real drivers against the emulated devices, on loopback
 
@@ -90,6 +90,34 @@ def test_feedforward_adds_to_feedback_through_the_drivers(on_time):
     out, _ = on_time
     res = json.loads(out.stdout)
     assert res["feedforward_reduction_db"] > res["isolation_reduction_db"] + 1.0, out.stderr[-1500:]
+
+
+@pytest.fixture(scope="module")
+def hil_2khz_run(tmp_path_factory):
+    """The design at 2 kHz as a user runs it: `rig hil --config drivers/devicemaps/hil_2khz.toml`."""
+    rec = tmp_path_factory.mktemp("hil2k") / "run.h5"
+    argv = [sys.executable, "-m", "rig.cli", "hil", "--config", str(HIL_DEFAULT_CONFIG.parent / "hil_2khz.toml"),
+            "--seconds", str(SECONDS), "--record", str(rec), "--json"]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=600)
+
+
+def test_the_2khz_design_isolates_through_the_drivers_as_in_lockstep(hil_2khz_run):
+    """Issue 24's targets at 2 kHz, from one run: no fault; feedback >= 11 dB and feedback + feedforward >= 20 dB
+    through the drivers, each within AGREE_DB of its lockstep twin. (The feedforward's figure fell 1.3-2.2 dB
+    short of its twin in one run of three while the trace metered began before the loop and ran into its null
+    tail: tests/drivers/test_hil_metering.py.) More than 1 % of a mode's periods late is said (EXIT_SUSPECT) and
+    still judged here."""
+    out = hil_2khz_run
+    skip_unless_on_time(out)
+    assert ran_to_the_end(out), out.stderr[-2000:]
+    res = json.loads(out.stdout)
+    fb, ff = res["isolation_reduction_db"], res["feedforward_reduction_db"]
+    twin = res["lockstep_reduction_db"]
+    why = f"drivers {fb} / {ff} dB, lockstep {twin}, late {res['late_periods']}; {out.stderr[-1500:]}"
+    assert res["faults"] == 0, why
+    assert fb >= 11.0 and ff >= 20.0, why
+    assert fb == pytest.approx(twin["feedback"], abs=AGREE_DB), why
+    assert ff == pytest.approx(twin["feedback_feedforward"], abs=AGREE_DB), why
 
 
 def test_bad_rate_is_one_line_user_error():
