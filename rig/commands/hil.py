@@ -17,16 +17,18 @@ feedforward_reduction_db the same for feedback + feedforward (null without floor
 motion of the emulated plant. The modes see successive stretches of the floor motion (one real-time run), so
 the figures also carry the floor's own variation; "transmissibility_db" (table rms over floor rms per mode)
 takes the floor's level out.
-"late_periods" gives per mode the share of its metered periods that were late: the loop woke more than a
-period after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply);
-the valves hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure
-suffers first). "empty_loop_late" gives per mode the share of its periods in which an empty loop beside the run
-(one pinned to each CPU, above the loop's priority, at a tenth of its rate, nothing in its period:
-rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run. The closing warning
-says from it whether the late periods were the host's or the drivers' chain's.
+"late_periods" gives per mode the share of its metered periods that were late: the loop woke more than a period
+after its deadline, or the accelerometer module's new conversion had not arrived (a late Modbus reply); the valves
+hold their last command meanwhile, so a loaded machine shows here first (the feedforward's figure suffers first).
+"empty_loop_late" gives per mode the share of its periods in which an empty loop beside the run (one pinned to each
+CPU, above the loop's priority, at a tenth of its rate, nothing in its period but a timed fixed piece of
+arithmetic: rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run; "host_slowed"
+the share in 50 ms stretches in which every CPU ran slowed (the empty loops' fixed compiled work took 1.25 times
+its median or longer: the host slowed the CPUs without taking them). The closing warning says from the two whether
+the late periods were the host's or the drivers' chain's.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
 "isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
-"recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period,
+"host_slowed", "recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period,
 which stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps before the
 loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
 isolation figure and exits 130 (SIGTERM: 143).
@@ -59,7 +61,7 @@ from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_STOPPED_BY, EXIT_SUSPECT, RecordingError, RigError
-from rig.runtime.empty_loop import PROBE_PRIORITY, EmptyLoop, late_share
+from rig.runtime.empty_loop import PROBE_PRIORITY, EmptyLoop, late_share, slowed_share
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -68,7 +70,7 @@ log = logging.getLogger("rig.hil")
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
              "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods",
-             "empty_loop_late", "recording", "pre_steps", "end_steps")
+             "empty_loop_late", "host_slowed", "recording", "pre_steps", "end_steps")
 BESIDE_DIVIDER = 10         # the empty loops beside the run wake at a tenth of its rate: at its own, the two cost
 #                             the run a fifth of a CPU and tripled its late periods on the 2-core machine
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
@@ -219,7 +221,8 @@ def _print_modes(res: dict, out: dict) -> None:
     print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
         "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))
     print(mode_row("table/floor", [db(out["transmissibility_db"].get(m), ".2f") for m in modes]))
-    for label, late in (("late periods", out["late_periods"]), ("an empty loop beside, late", out.get("empty_loop_late"))):
+    for label, late in (("late periods", out["late_periods"]), ("an empty loop beside, late", out.get("empty_loop_late")),
+                        ("the CPUs slowed beside", out.get("host_slowed"))):
         if late:
             print(mode_row(label, ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
 
@@ -239,8 +242,9 @@ def _exit_code(res) -> int:
               file=sys.stderr)
     late = {m: v for m, v in (res.get("late_periods") or {}).items() if v is not None and v > LATE_WARN}
     if late:
-        _say_late(late, {m: v for m, v in (res.get("empty_loop_late") or {}).items() if m in late and v is not None},
-                  res.get("load"))
+        host = {m: v + ((res.get("host_slowed") or {}).get(m) or 0.0)
+                for m, v in (res.get("empty_loop_late") or {}).items() if m in late and v is not None}
+        _say_late(late, host, res.get("load"))
     short = res.get("unmetered") or []
     if short:
         _say_unmetered(short, res["seconds_to_meter"])
@@ -254,18 +258,19 @@ def _exit_code(res) -> int:
 
 def _say_late(late: dict, beside: dict, load: float | None = None) -> None:
     """The one warning line for modes with more than LATE_WARN of their periods late, and whose they were: the
-    host's when the empty loop beside the run was late at least half as often in each such mode (or was not
-    measured), else the drivers' chain's (held by the machine's other load or by its own work)."""
+    host's when the empty loops beside the run were held or their CPUs ran slowed (`beside`: the two shares added)
+    at least half as often in each such mode (or were not measured), else the drivers' chain's (held by the
+    machine's other load or by its own work)."""
     def shares(d):
         return ", ".join(f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in d.items())
     if beside and any(2 * beside.get(m, 1.0) < v for m, v in late.items()):
         held = f"; load average {load:.1f}" if load is not None else ""
         print(f"rig hil: warning: the drivers' chain fell behind ({shares(late)} of the periods late, more than "
-              f"{100 * LATE_WARN:g} %) while an empty loop beside the run kept better time ({shares(beside)}): the "
+              f"{100 * LATE_WARN:g} %) while the empty loops beside the run kept better time and speed ({shares(beside)}): the "
               f"SYNC, the plant, the module and the loop were held by the machine's other load or their own work"
               f"{held}; isolation through the drivers falls with that (drivers/README.md, the rates)", file=sys.stderr)
         return
-    host = f"; an empty loop beside the run: {shares(beside)}" if beside else ""
+    host = f"; the empty loops beside the run held or slowed: {shares(beside)}" if beside else ""
     print(f"rig hil: warning: the host did not keep time ({shares(late)} of the periods late, more than "
           f"{100 * LATE_WARN:g} %{host}): isolation through the drivers falls with that, so these figures are below "
           "what this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
@@ -318,9 +323,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
                           for cpu in range(os.cpu_count() or 1)]
                 stack.enter_context(inject.Armed(session, injections))
                 reason = session.run(seconds=seconds, activate_after_s=activate)
-            # the trace the loop drove: from its first period to its last (the plant stepped during the set-up
-            # before it, and loop.run ends with the valves at null: either end in would move the figures)
-            pre_steps = steps.get("first", before)
+            pre_steps = steps.get("first", before)          # the trace the loop drove (schedule_modes)
             end_steps = steps.get("last", rig.steps)
         finally:
             if progress is not None:
@@ -330,7 +333,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
-    host_late = empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle) if beside else {}
+    host_late, host_slowed = (empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle, share)
+                              if beside else {} for share in (late_share, slowed_share))
     table, floor, codes = rig.trace()
     short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
@@ -344,7 +348,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "samples_recorded": rec.rows_written if rec is not None else 0,
            "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-           "late_periods": late, "empty_loop_late": host_late, "load": round(os.getloadavg()[0], 2),
+           "late_periods": late, "empty_loop_late": host_late, "host_slowed": host_slowed, "load": round(os.getloadavg()[0], 2),
            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms,
            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],
@@ -361,16 +365,17 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
     return out
 
 
-def empty_loop_late(beside, t0_ns: int | None, period_ns: int, modes, seconds: float, settle_s: float) -> dict:
+def empty_loop_late(beside, t0_ns: int | None, period_ns: int, modes, seconds: float, settle_s: float,
+                    share=late_share) -> dict:
     """Per mode, over the same metered window as late_periods: the share of its periods in a stretch where an
     empty loop beside the run (one per CPU above the loop's priority: rig/runtime/empty_loop.py) was held more than a
-    period, i.e. the host took a CPU from the run."""
+    period, i.e. the host took a CPU from the run; with share=slowed_share, where every CPU ran slowed."""
     from rig.commands.hil_lockstep import windows
     if t0_ns is None:
         return {}
     out = {}
     for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
-        v = late_share(beside, t0_ns + int(t0 * 1e9), t0_ns + int(t1 * 1e9), period_ns)
+        v = share(beside, t0_ns + int(t0 * 1e9), t0_ns + int(t1 * 1e9), period_ns)
         out[mode] = None if v is None else round(v, 4)
     return out
 

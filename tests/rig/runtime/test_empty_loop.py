@@ -63,6 +63,15 @@ def _spin_at(priority: int, cpu: int, seconds: float) -> None:
     os._exit(0)
 
 
+def _fifo_allowed() -> bool:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except PermissionError:
+        return False
+    return True
+
+
 def test_the_probe_runs_above_a_loop_that_holds_its_cpu():
     """rig hil's empty loops (PROBE_PRIORITY) wake on time beside a task at the loop's priority that keeps their
     CPU for 60 ms; one at the loop's own priority waits behind it, and would count the run's own work as the
@@ -74,10 +83,7 @@ def test_the_probe_runs_above_a_loop_that_holds_its_cpu():
     from rig.config import config_from_dict
     from rig.runtime.empty_loop import PROBE_PRIORITY
     loop_priority = config_from_dict({}).loop.rt_priority
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except PermissionError:
+    if not _fifo_allowed():
         pytest.skip("SCHED_FIFO not allowed here")
     cpu = max(os.sched_getaffinity(0))
     with EmptyLoop(RATE, 3.0, PROBE_PRIORITY, cpu) as probe, EmptyLoop(RATE, 3.0, loop_priority, cpu) as level:
@@ -93,3 +99,36 @@ def test_the_probe_runs_above_a_loop_that_holds_its_cpu():
         return int(((s[:, 0] >= t0 - PERIOD_NS) & (s[:, 0] < t1)).sum())
     assert held(level) >= 20                     # the 60 ms behind the hog, less the fork's start
     assert held(probe) <= 2
+
+
+def test_a_stretch_is_the_hosts_slowing_only_where_every_cpu_ran_slowed():
+    """Each wake-up times a fixed piece of compiled arithmetic (the CPU's speed); a 50 ms stretch whose median took
+    SLOWED times the run's is a slowed CPU. A host's slowdown cannot be made here, so it is written into the two
+    loops' record after their run: slowed_share counts a stretch only where every loop's CPU ran slowed."""
+    import numpy as np
+
+    from rig.runtime.empty_loop import PROBE_PRIORITY, slowed_share
+    cpus = sorted(os.sched_getaffinity(0))
+    with EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[0]) as a, EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[-1]) as b:
+        time.sleep(2.2)
+    for el in (a, b):         # (how often the host slows this machine's CPUs is its own: drivers/README.md)
+        w = el.work_us()
+        assert w.size >= 350 and (w > 0).all()
+
+    for el in (a, b):         # each at its median throughout (what the host did meanwhile left out) ...
+        work = np.frombuffer(el._work, dtype=np.int64)[:el._count.value]
+        work[:] = int(np.median(work))
+
+    def slow(el, t_from, t_to):   # ... and twice that in one stretch
+        work = np.frombuffer(el._work, dtype=np.int64)[:el._count.value]
+        t = el._first.value + el.period_ns * np.arange(work.size)
+        work[(t >= t_from) & (t < t_to)] *= 2
+
+    t_from = a._first.value + 600_000_000
+    t_to = t_from + 300_000_000
+    w0, w1, grid = t_from - 300_000_000, t_to + 300_000_000, 500_000      # 900 ms of a 2 kHz run's periods
+    slow(a, t_from, t_to)
+    assert slowed_share([a, b], w0, w1, grid) == 0.0                       # one CPU slowed: not the host
+    slow(b, t_from, t_to)
+    assert 0.2 <= slowed_share([a, b], w0, w1, grid) <= 0.45               # a third of the window, to 50 ms
+    assert slowed_share([], w0, w1, grid) is None and slowed_share([a, b], w1, w1, grid) is None
