@@ -26,12 +26,12 @@ arithmetic: rig/runtime/empty_loop.py) was held more than a period: the host too
 the share in 50 ms stretches in which every CPU ran slowed (the empty loops' fixed compiled work took 1.25 times
 its median or longer: the host slowed the CPUs without taking them). The closing warning says from the two whether
 the late periods were the host's or the drivers' chain's.
---json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded",
-"isolation_reduction_db", "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late",
-"host_slowed", "recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period,
-which stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps before the
-loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C, SIGTERM) it says so, gives no
-isolation figure and exits 130 (SIGTERM: 143).
+--json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
+"feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late", "host_slowed", "recording",
+"pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which
+stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps before the loop's
+last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C,
+SIGTERM) it says so, gives no isolation figure and exits 130 (SIGTERM: 143).
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
@@ -221,7 +221,8 @@ def _print_modes(res: dict, out: dict) -> None:
     print(mode_row("in lockstep (gap)", ["" if m == "off" else db(ls.get(m)) + (
         "" if red.get(m) is None or ls.get(m) is None else f" ({red[m] - ls[m]:+.1f})") for m in modes]))
     print(mode_row("table/floor", [db(out["transmissibility_db"].get(m), ".2f") for m in modes]))
-    for label, late in (("late periods", out["late_periods"]), ("an empty loop beside, late", out.get("empty_loop_late")),
+    for label, late in (("late periods", out["late_periods"]),
+                        ("an empty loop beside, late", out.get("empty_loop_late")),
                         ("the CPUs slowed beside", out.get("host_slowed"))):
         if late:
             print(mode_row(label, ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
@@ -266,9 +267,10 @@ def _say_late(late: dict, beside: dict, load: float | None = None) -> None:
     if beside and any(2 * beside.get(m, 1.0) < v for m, v in late.items()):
         held = f"; load average {load:.1f}" if load is not None else ""
         print(f"rig hil: warning: the drivers' chain fell behind ({shares(late)} of the periods late, more than "
-              f"{100 * LATE_WARN:g} %) while the empty loops beside the run kept better time and speed ({shares(beside)}): the "
-              f"SYNC, the plant, the module and the loop were held by the machine's other load or their own work"
-              f"{held}; isolation through the drivers falls with that (drivers/README.md, the rates)", file=sys.stderr)
+              f"{100 * LATE_WARN:g} %) while the empty loops beside the run kept better time and speed "
+              f"({shares(beside)}): the SYNC, the plant, the module and the loop were held by the machine's other "
+              f"load or their own work{held}; isolation through the drivers falls with that (drivers/README.md, the "
+              "rates)", file=sys.stderr)
         return
     host = f"; the empty loops beside the run held or slowed: {shares(beside)}" if beside else ""
     print(f"rig hil: warning: the host did not keep time ({shares(late)} of the periods late, more than "
@@ -348,7 +350,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "samples_recorded": rec.rows_written if rec is not None else 0,
            "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-           "late_periods": late, "empty_loop_late": host_late, "host_slowed": host_slowed, "load": round(os.getloadavg()[0], 2),
+           "late_periods": late, "empty_loop_late": host_late, "host_slowed": host_slowed,
+           "load": round(os.getloadavg()[0], 2),
            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms,
            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),
            "lost_conversions": counts["accelerometer module"][1], "late_commands": counts["valves"][1],

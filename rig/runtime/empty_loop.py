@@ -114,7 +114,6 @@ class EmptyLoop:
         t = self._first.value + self.period_ns * k.astype(np.int64)
         return np.stack([t, t + late[k]], axis=1)
 
-
     def work_us(self) -> np.ndarray:
         """Each wake-up's fixed work (us), in order: the CPU's speed."""
         return np.frombuffer(self._work, dtype=np.int64)[:self._count.value] * 1e-3
