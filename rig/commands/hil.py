@@ -321,7 +321,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             before = rig.steps
             with contextlib.ExitStack() as stack:
                 beside = [stack.enter_context(EmptyLoop(rate / BESIDE_DIVIDER, seconds + 1.0,
-                                                        PROBE_PRIORITY if realtime else 0, cpu))
+                                                        PROBE_PRIORITY if realtime else 0, cpu, speed=True))
                           for cpu in range(os.cpu_count() or 1)]
                 stack.enter_context(inject.Armed(session, injections))
                 reason = session.run(seconds=seconds, activate_after_s=activate)

@@ -50,7 +50,8 @@ def _fixed_work():
     return _compiled
 
 
-def _wake(first_ns, count, stop, late_ns, work_ns, period_ns: int, priority: int, cpu: int | None) -> None:
+def _wake(first_ns, count, stop, late_ns, work_ns, period_ns: int, priority: int, cpu: int | None,
+          speed: bool) -> None:
     # forked from the run's process with its handlers: a Ctrl-C to the process group is the run's to act on (it
     # stops this loop), and a SIGTERM ends this one quietly
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -62,33 +63,37 @@ def _wake(first_ns, count, stop, late_ns, work_ns, period_ns: int, priority: int
     t = time.monotonic_ns() + period_ns
     first_ns.value = t
     late, work = np.frombuffer(late_ns, dtype=np.int64), np.frombuffer(work_ns, dtype=np.int64)
-    fixed_work = _fixed_work()
+    fixed_work = _fixed_work() if speed else None
     k = 0
     while k < late.size and not stop.value:
         clock.sleep_until(t)
         woke = time.monotonic_ns()
         late[k] = woke - t
-        fixed_work(FIXED_WORK)
-        work[k] = time.monotonic_ns() - woke
+        if fixed_work is not None:
+            fixed_work(FIXED_WORK)
+            work[k] = time.monotonic_ns() - woke
         k += 1
         count.value = k
         t += period_ns
 
 
 class EmptyLoop:
-    """with EmptyLoop(rate_hz, seconds, priority, cpu) as el: ... ; then el.late_us(), el.late_spans_ns() and
-    el.slowed_spans_ns().
+    """with EmptyLoop(rate_hz, seconds, priority, cpu) as el: ... ; then el.late_us(), el.late_spans_ns() and, with
+    speed=True (the fixed work timed at each wake-up), el.slowed_spans_ns().
     It stops at the block's end or after `seconds`, whichever comes first; cpu None: where the kernel puts it."""
 
-    def __init__(self, rate_hz: float, seconds: float, priority: int = 0, cpu: int | None = None) -> None:
+    def __init__(self, rate_hz: float, seconds: float, priority: int = 0, cpu: int | None = None, *,
+                 speed: bool = False) -> None:
         self.period_ns = int(round(1e9 / rate_hz))
-        _fixed_work()                    # compiled (or loaded from numba's cache) here: the forked loop inherits it
+        self.speed = speed
+        if speed:
+            _fixed_work()                # compiled (or loaded from numba's cache) here: the forked loop inherits it
         n = int(seconds * rate_hz) + 1
         self._first, self._count, self._stop = mp.RawValue("q", 0), mp.RawValue("q", 0), mp.RawValue("b", 0)
         self._late, self._work = mp.RawArray("q", n), mp.RawArray("q", n)
         self._proc = mp.get_context("fork").Process(
             target=_wake, args=(self._first, self._count, self._stop, self._late, self._work, self.period_ns,
-                                priority, cpu),
+                                priority, cpu, speed),
             daemon=True, name="rig-empty-loop")
 
     def __enter__(self) -> "EmptyLoop":
@@ -124,7 +129,7 @@ class EmptyLoop:
         work = np.frombuffer(self._work, dtype=np.int64)[:self._count.value]
         per = max(1, int(window_ns // self.period_ns))
         nw = work.size // per
-        if nw == 0:
+        if nw == 0 or not self.speed:     # (not timed: no stretch is known slowed)
             return np.zeros((0, 2), dtype=np.int64)
         med = np.median(work[:nw * per].reshape(nw, per), axis=1)
         w = np.flatnonzero(med >= factor * np.median(work))

@@ -109,7 +109,8 @@ def test_a_stretch_is_the_hosts_slowing_only_where_every_cpu_ran_slowed():
 
     from rig.runtime.empty_loop import PROBE_PRIORITY, slowed_share
     cpus = sorted(os.sched_getaffinity(0))
-    with EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[0]) as a, EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[-1]) as b:
+    with EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[0], speed=True) as a, \
+            EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[-1], speed=True) as b:
         time.sleep(2.2)
     for el in (a, b):         # (how often the host slows this machine's CPUs is its own: drivers/README.md)
         w = el.work_us()
@@ -132,3 +133,15 @@ def test_a_stretch_is_the_hosts_slowing_only_where_every_cpu_ran_slowed():
     slow(b, t_from, t_to)
     assert 0.2 <= slowed_share([a, b], w0, w1, grid) <= 0.45               # a third of the window, to 50 ms
     assert slowed_share([], w0, w1, grid) is None and slowed_share([a, b], w1, w1, grid) is None
+
+
+def test_a_loop_without_the_timed_work_knows_no_slowed_stretch():
+    """`rig bench stalls` runs its empty loops up to 20 kHz with nothing in their period: the fixed work is rig hil's
+    (speed=True), and a loop without it says nothing of its CPU's speed rather than 'slowed throughout'."""
+    from rig.runtime.empty_loop import slowed_share
+    with EmptyLoop(RATE, 1.0) as a, EmptyLoop(RATE, 1.0) as b:
+        time.sleep(0.6)
+    assert a.late_us().size > 300 and (a.work_us() == 0).all()
+    assert len(a.slowed_spans_ns()) == 0
+    t0 = a._first.value
+    assert slowed_share([a, b], t0, t0 + 400 * PERIOD_NS, PERIOD_NS) == 0.0
