@@ -35,6 +35,13 @@ The lead (e^{s tau} to second order) gives back what the path delays: the zero-o
 the loop's one period of computation delay and the roll-off's own group delay at low frequency
 (3.8637 / w_lp). Seven zeros over eight poles: the filter is strictly proper and rolls off above w_lp.
 
+A restart (feedforward_restart): floor conversions lost, and stepped as a line across the gap, are a velocity
+error to the double integration, and the inverse actuator's leakage term (d0 = K_C K_L / A_p^2 dominates d1 s
+below ~7 Hz) turns the stroke error it integrates into a ramp of valve volts, held for seconds by the 0.1 Hz
+high-pass. So after a loss the filters start again from rest, the last output fades out, and the output comes
+back, bumpless (the DC block starts again, z = y), once the restart's own transient has died out: five time
+constants of the slowest corner (restart_s, 16 s at 0.05 Hz).
+
 Why it stops working: the residual is |1 - (1 + e) e^{j phi}| of the floor motion for a gain error e and a
 phase error phi (2 sin(phi/2) for phi alone), so a 10 % gain error alone limits the cancellation to 20 dB;
 that is why `rig design --identified DIR` designs it on the identified actuator rather than Table 1.
@@ -57,9 +64,10 @@ from controllers.timebase import check_step
 from rig.config import MOUNTS
 
 # state after the sections: output gain (fades between 0 and 1 when switched), switch request, periods since the
-# DC block started (0: not started)
-_G, _ON, _K = 0, 1, 2
-STATE_EXTRA = 3
+# DC block started (0: not started), periods a restart still holds the output off, the output held at the restart
+# (fading out), the last output, the periods a restart holds it off (restart_s)
+_G, _ON, _K, _WAIT, _HOLD, _LAST, _SETTLE = range(7)
+STATE_EXTRA = 7
 
 
 def butterworth_pairs(order: int) -> list[float]:
@@ -163,11 +171,21 @@ class FeedforwardFilter:
         self.coef = np.ravel(np.array(self.sections, dtype=float))      # (b0, b1, b2, a1, a2) per section
         self.fade = math.exp(-dt / p.fade_s)
         self._o = 2 * len(self.sections)
+        self.restart_s = 5.0 / (2 * math.pi * min(p.dc_hz, p.hp_hz))
 
     def initial_state(self, on: bool = False) -> np.ndarray:
         s = np.zeros(self._o + STATE_EXTRA)
         s[self._o + _G] = s[self._o + _ON] = 1.0 if on else 0.0
+        s[self._o + _SETTLE] = round(self.restart_s / self.dt)
         return s
+
+    def restart(self, state: np.ndarray) -> np.ndarray:
+        feedforward_restart(self.coef, state)
+        return state
+
+    def restarting_s(self, state: np.ndarray) -> float:
+        """The time a restart still holds the output off (0: none pending)."""
+        return float(state[self._o + _WAIT]) * self.dt
 
     def set_enabled(self, state: np.ndarray, on: bool) -> np.ndarray:
         state[self._o + _ON] = 1.0 if on else 0.0
@@ -196,14 +214,18 @@ class FeedforwardFilter:
 @numba.njit(cache=True)
 def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_floor_mps2: float) -> float:
     """One period: the sections (coef: flat, five per section) on the floor acceleration, times the output gain,
-    which moves towards the switch request (0 or 1) with factor `fade` per period. The last section, the DC block,
+    which moves towards the switch request (0 or 1; 0 while a restart holds it off) with factor `fade` per period,
+    plus the output a restart held (fading out at the same pace). The last section, the DC block,
     starts at switch-on from the command it meets (z = y) and averages from there until its window reaches its
     settled corner (alpha = max(1/k, alpha_dc)). Compiled (numba): the runtime's period (rig/runtime/kernel.py)
     calls it for every mount, FeedforwardFilter.step through the same dispatcher."""
     n = coef.shape[0] // 5
     o = 2 * n
     y, i, c = sections_step(state, coef, 0, 0, n - 1, accel_floor_mps2)
-    on = state[o + 1] > 0.5
+    wait = state[o + 3]
+    on = state[o + 1] > 0.5 and wait <= 0.0
+    if wait > 0.0:
+        state[o + 3] = wait - 1.0
     k = state[o + 2]
     if on and k == 0.0:
         state[i] = -y                                   # transposed direct form: the state is -z
@@ -214,9 +236,26 @@ def feedforward_step(coef: np.ndarray, fade: float, state: np.ndarray, accel_flo
         alpha = 1.0 / k
     out = y + state[i]
     state[i] -= alpha * out
-    g = state[o + 1] + (state[o] - state[o + 1]) * fade
+    target = 1.0 if on else 0.0
+    g = target + (state[o] - target) * fade
     state[o] = g
-    return g * out
+    hold = state[o + 4]
+    state[o + 4] = hold * fade
+    u = g * out + hold
+    state[o + 5] = u
+    return u
+
+
+@numba.njit(cache=True)
+def feedforward_restart(coef: np.ndarray, state: np.ndarray) -> None:
+    """Floor conversions were lost: the filters from rest, the last output fading out, the output held off for
+    restart_s (then it fades in as at a switch-on, if still switched on)."""
+    o = 2 * (coef.shape[0] // 5)
+    state[:o] = 0.0
+    state[o + 4] = state[o + 5]
+    state[o] = 0.0
+    state[o + 2] = 0.0
+    state[o + 3] = state[o + 6]
 
 
 def make_feedforward_filters(cfg, dt: float, params: FeedforwardParams | None = None,

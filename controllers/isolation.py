@@ -44,7 +44,9 @@ Saturation recovery (sat_reset_s, sat_resume_s): isolating with the output held 
 (longer than the clamp bursts of shocks the loop rides out, well below safety.saturation_s) suspends
 isolation bumplessly (centring alone, filters running) and resumes it by itself once the estimate has
 settled; see isolation_step. The usual cause of the latch: a scheduling gap leaves a velocity error in the double
-integration, which a 0.1 Hz blend forgets only over many seconds (tests/rig/runtime/test_saturation.py).
+integration, which a 0.1 Hz blend forgets only over many seconds (tests/rig/runtime/test_saturation.py). Where
+the gap is known, conversions the accelerometer module lost, the runtime suspends at once (isolation_suspend)
+rather than after the clamp, and holds off the resume for five time constants of the blend (loss_n).
 
 The defaults are rig/config.py's [controller] section; `rig design` prints the margins and isolation they
 give (README).
@@ -76,9 +78,9 @@ _N = len(SCALAR_STATES)
 
 # Named coefficients: these scalars, then the sections (b0, b1, b2, a1, a2) in state order
 COEFFICIENTS = ("n_sections", "n_h_acc", "n_f_str", "half_dt", "kp", "ki", "kc", "fade", "limit_V", "slew_V",
-                "sat_n", "resume_n", "resume_m", "resume_a")
+                "sat_n", "resume_n", "resume_m", "resume_a", "loss_n")
 (_CF_NSEC, _CF_NH, _CF_NF, _CF_H, _CF_KP, _CF_KI, _CF_KC, _CF_FADE, _CF_LIM, _CF_SLEW, _CF_SATN, _CF_RESN,
- _CF_RESM, _CF_RESA) = range(14)
+ _CF_RESM, _CF_RESA, _CF_LOSSN) = range(15)
 _CF_SECTIONS = len(COEFFICIENTS)
 
 
@@ -192,6 +194,9 @@ class IsolationController:
         # what is left of the estimate's error then fits the actuator's range
         self.resume_m = 0.5 * p.limit_V * p.dc_gain_m_per_V
         self.resume_a = dt / p.sat_resume_s          # mean over ~sat_resume_s (first-order)
+        # suspended after lost conversions: no resume before the blend has forgotten their error (five time
+        # constants of its corner): until then the error is still growing, and its mean says nothing yet
+        self.loss_n = int(round(5.0 / (2 * math.pi * p.blend_hz) / dt))
         self.state_names = tuple(f"{g}{k}_z{j}" for g, secs in (("h_acc", self.h_acc), ("f_str", self.f_str),
                                                                 ("comp", self.comp))
                                  for k in range(len(secs)) for j in (1, 2)) + SCALAR_STATES
@@ -201,7 +206,8 @@ class IsolationController:
         """The law's coefficients (COEFFICIENTS, then the sections): what rig/runtime/kernel.py copies into its
         block."""
         head = (len(self.sections), len(self.h_acc), len(self.f_str), 0.5 * self.dt, self.kp, self.ki, self.kc,
-                self.fade, self.limit, self.slew, self.sat_n, self.resume_n, self.resume_m, self.resume_a)
+                self.fade, self.limit, self.slew, self.sat_n, self.resume_n, self.resume_m, self.resume_a,
+                self.loss_n)
         return np.concatenate([np.array(head, dtype=np.float64), np.ravel(self.sections)])
 
     # ---- the runtime interface ---------------------------------------------------------------------
@@ -384,6 +390,29 @@ def isolation_step(st, cf, a, s):
 
 
 @numba.njit(cache=True, inline="always")
+def _suspend(st, o, u, cent, v):
+    """Isolation suspended the bumpless way: the output u held (b takes over, then fades), centring alone."""
+    st[o + _B] = u + cent
+    st[o + _I] = 0.0
+    st[o + _SUS] = 1.0
+    st[o + _A] = v
+
+
+@numba.njit(cache=True)
+def isolation_suspend(st, cf):
+    """Conversions were lost (estimated across a gap): the double integration's velocity is off by what they
+    would have added, and the piston would run to the clamp before the saturation recovery caught it. So
+    isolation is suspended now, as that recovery would (and resumed by it, once the estimate has settled).
+    Not before loss_n periods though (the count starts below zero): the error grows at first, and its mean is
+    no sign of having settled. Nothing while not isolating or without the recovery (sat_reset_s 0)."""
+    o = 2 * int(cf[_CF_NSEC])
+    if cf[_CF_SATN] > 0.0 and st[o + _ON] > 0.5:
+        if st[o + _SUS] < 0.5:
+            _suspend(st, o, st[o + _U], st[o + _C], st[o + _V])
+        st[o + _K] = -cf[_CF_LOSSN]
+
+
+@numba.njit(cache=True, inline="always")
 def _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp):
     """Isolating at the clamp for sat_reset_s: the loop is not following its estimate of the absolute motion
     (typically a velocity error in the double integration after a scheduling gap: with a slow blend a few
@@ -396,10 +425,7 @@ def _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp):
         if u >= lim or u <= -lim:
             k = st[o + _K] + 1.0
             if k >= cf[_CF_SATN]:
-                st[o + _B] = u + cent                     # hold the output (at the clamp)
-                st[o + _I] = 0.0
-                st[o + _SUS] = 1.0
-                st[o + _A] = v
+                _suspend(st, o, u, cent, v)               # hold the output (at the clamp)
                 k = 0.0
             st[o + _K] = k
         else:
@@ -409,8 +435,9 @@ def _saturation_recovery(st, cf, o, on, u, lim, v, b, cent, kp):
         mv += cf[_CF_RESA] * (v - mv)
         st[o + _A] = mv
         rv = cf[_CF_RESM]
-        if -rv < mv < rv:
-            k = st[o + _K] + 1.0
+        k = st[o + _K]
+        if k < 0.0 or -rv < mv < rv:                 # (below zero: the hold after lost conversions)
+            k += 1.0
         else:
             k = 0.0
         if k >= cf[_CF_RESN]:

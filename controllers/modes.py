@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
-from controllers.isolation import IsolationController, isolation_step, params_from_config
+from controllers.isolation import IsolationController, isolation_step, isolation_suspend, params_from_config
 from controllers.reference import Reference, parse_reference
 from controllers.tracking import _E as _T_ERR
 from controllers.tracking import _R as _T_REF
@@ -181,6 +181,13 @@ class OperatingModes:
         if not hasattr(self, "_cf"):
             self._cf = self.coefficients()
         return self._cf
+
+
+@numba.njit(cache=True)
+def modes_suspend(st, cf):
+    """Conversions were lost: the isolation part suspended (controllers/isolation.py isolation_suspend)."""
+    nts, nic, nis = int(cf[1]), int(cf[2]), int(cf[3])
+    isolation_suspend(st[_S + nts:_S + nts + nis], cf[_H:_H + nic])
 
 
 @numba.njit(cache=True)

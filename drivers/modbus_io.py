@@ -220,7 +220,7 @@ class AnalogIO(IODevice):
         self._release_due()
 
     def _hand(self, t1: int, convs: list) -> None:
-        """New conversions [(c16, values)] come in at t1: to the loop now, or held until not_before (behind any
+        """New conversions [(c16, values, lost)] come in at t1: to the loop now, or held until not_before (behind any
         held before them: they go out in order)."""
         if convs and convs[-1][1] is not None:
             self._last = convs[-1][1]
@@ -307,9 +307,9 @@ class AnalogIO(IODevice):
         self.asked_ns = 0
         self.sample_ns = t1
         if not self.fifo:
-            convs = [(c16, self._values([regs[REG_AI + ch] for ch in range(8)]))]
+            convs = [(c16, self._values([regs[REG_AI + ch] for ch in range(8)]), False)]
         elif self._c16 < 0:
-            convs = [(c16, self._values(regs[1:FIFO_WIDTH]))]
+            convs = [(c16, self._values(regs[1:FIFO_WIDTH]), False)]
         else:
             convs = self._take_fifo(regs, c16)
         self._c16 = c16
@@ -330,7 +330,7 @@ class AnalogIO(IODevice):
         return True
 
     def _take_fifo(self, regs, newest: int) -> list:
-        """The conversions [(c16, values)] after the last one taken up to `newest`, from the FIFO entries (newest
+        """The conversions [(c16, values, lost)] after the last one taken up to `newest`, from the FIFO entries (newest
         first): those in this reply, then after a stall the ones further back, in blocks; one not in the FIFO any more
         is interpolated (counted in lost_conversions)."""
         want = min((newest - self._c16) & 0xFFFF, MAX_BEHIND)    # new conversions
@@ -357,7 +357,7 @@ class AnalogIO(IODevice):
                 b = values[k] if k is not None else a
                 f = 1.0 / (k - j + 1) if k is not None else 0.0
                 values[j] = a if a is None else [x + f * (y - x) for x, y in zip(a, b)]
-        return [(c, v) for (c, _), v in zip(convs, values)]
+        return [(c, v, raw is None) for (c, raw), v in zip(convs, values)]
 
     @staticmethod
     def _entries(regs, base: int, entries: int, newest: int) -> dict:
@@ -378,18 +378,21 @@ class AnalogIO(IODevice):
         return conversion.apply(self.chs, [raw_to_volts(x) for x in raw])
 
     def _publish_all(self, t1: int, convs: list) -> None:
-        """Conversions [(c16, values)] that came in at t1 into the block, in order."""
+        """Conversions [(c16, values, lost)] that came in at t1 into the block, in order."""
         self._ts[:] = t1
-        for c16, values in convs:
-            self._publish(c16, values)
+        for c16, values, lost in convs:
+            self._publish(c16, values, lost)
 
-    def _publish(self, c16: int, values) -> None:
-        """One conversion into the block (the channels' values), its counter unwrapped from 16 bits."""
+    def _publish(self, c16: int, values, lost: bool = False) -> None:
+        """One conversion into the block (the channels' values), its counter unwrapped from 16 bits; one lost from
+        the FIFO (values: its estimate) marked as such first (the floor feedforward restarts on it)."""
         if values is None:                              # (nothing known before it: lost at the very start)
             return
         self.count = c16 if self.count < 0 else self.count + ((c16 - self._c16_pub) & 0xFFFF)
         self._c16_pub = c16
         self.counted(1)
+        if lost:
+            ex.mark_lost(self.io, float(self.count))
         ex.put_conversion(self.io, float(self.count), self._ts, np.asarray(values, dtype=np.float64))
 
     def check(self, now_ns: int) -> str | None:

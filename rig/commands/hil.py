@@ -193,6 +193,9 @@ def run(args) -> int:
     print(f"rig hil: accelerometer conversions interpolated (left the module's FIFO unfetched): "
           f"{res['lost_conversions']}; SYNCs sent with the period before's commands (the loop late): "
           f"{res['late_commands']}", file=sys.stderr)
+    if res["lost_conversions"]:
+        print("rig hil: warning: with conversions lost, isolation was suspended and the floor feedforward held off "
+              "from then on (the events above): the figures after it are not the design's", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
     else:

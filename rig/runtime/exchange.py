@@ -49,8 +49,9 @@ HEADER = ("n", "nf", "accel", "a_cap", "a_width", "stroke", "s_cap", "s_width", 
 (H_N, H_NF, H_ACCEL, H_ACAP, H_AWIDTH, H_STROKE, H_SCAP, H_SWIDTH, H_CMD, H_DEV, H_NDEV, H_DWIDTH, H_AGES,
  H_AGESCAP, H_STATS, H_STATSCAP, H_SAFE, H_FUTEX, H_SIZE) = range(len(HEADER))
 # accel: NEWEST (counter of the newest published conversion, -1: none yet), COUNTED (1: every conversion reaches
-# the controllers, in order; 0: the latest value only, a new one each period), then the slots
-A_NEWEST, A_COUNTED, A_SLOTS = 0, 1, 2
+# the controllers, in order; 0: the latest value only, a new one each period), LOST (counter of the newest
+# conversion the module lost and published as an estimate, -1: none), then the slots
+A_NEWEST, A_COUNTED, A_LOST, A_SLOTS = 0, 1, 2, 3
 SLOT_COUNTER = 0      # a slot: counter (sequence number), its time stamp(s): one per mount (accel), one (stroke)
 # stroke: NEWEST (sequence number of the newest sample, -1: none yet), STALE (the transducer's own staleness
 # limit, ns: it is held between its frames), then the slots
@@ -125,6 +126,7 @@ class Block:
         if layout is not None:
             io = self.io
             io[int(io[H_ACCEL]) + A_NEWEST] = -1.0
+            io[int(io[H_ACCEL]) + A_LOST] = -1.0
             io[int(io[H_STROKE]) + S_NEWEST] = -1.0
         self._addr = ctypes.addressof(ctypes.c_char.from_buffer(buf)) if isinstance(buf, mmap.mmap) else None
         _warm()
@@ -280,6 +282,14 @@ def put_conversion(io, counter, ts, values):
     io[s + SLOT_COUNTER] = counter
     fence()
     io[a + A_NEWEST] = counter
+    fence()
+
+
+@numba.njit(cache=True)
+def mark_lost(io, counter):
+    """The conversion `counter`, about to be published, is an estimate of one the module lost (before its slot
+    and NEWEST: a reader that sees it published sees the mark)."""
+    io[int(io[H_ACCEL]) + A_LOST] = counter
     fence()
 
 

@@ -13,7 +13,9 @@ acceleration a velocity error), and a sample-driven port's older conversions are
 With floor accelerometers ([sensors] floor_accel) the kernel takes a fourth per-mount input, floor_accel, checks
 it (check_floor) and runs each mount's floor feedforward (controllers/feedforward.py feedforward_step) beside
 its controller, whatever the controller's kind: the feedforward's command is added to the controller's before
-the limits. Its filters always run; switching it (set_feedforward) fades its output in or out.
+the limits. Its filters always run; switching it (set_feedforward) fades its output in or out. A period whose
+conversions include one the module lost (the exchange block's accel LOST mark) first suspends each mount's
+isolation and restarts its feedforward (_after_loss).
 
 The block (`mem`), its parts named by the header below: the inputs of the period, the older conversions, the
 previous measurement, the safety limits and states, the mount table (kind, coefficients, state per mount), the
@@ -26,7 +28,6 @@ unboxing is most of the cost of a period this size.
 from __future__ import annotations
 
 import functools
-import hashlib
 import struct
 from pathlib import Path
 
@@ -36,9 +37,10 @@ from numba.core import types
 from numba.extending import intrinsic
 
 from controllers import isolation, modes, playback, tracking
-from controllers.feedforward import STATE_EXTRA as FF_STATE_EXTRA, feedforward_step
-from controllers.isolation import isolation_step
-from controllers.modes import modes_step
+from controllers.compiled_cache import drop_stale
+from controllers.feedforward import STATE_EXTRA as FF_STATE_EXTRA, feedforward_restart, feedforward_step
+from controllers.isolation import isolation_step, isolation_suspend
+from controllers.modes import modes_step, modes_suspend
 from controllers.playback import playback_step
 from controllers.timebase import same_period
 from controllers.tracking import track_step
@@ -55,26 +57,12 @@ from rig.runtime.safety import (CHECK_STATE, LIMITER_FLAGS, LIMITS, CommandLimit
                         limit_commands)
 
 def _drop_stale_cache() -> None:
-    """numba's cache knows a compiled function by its own file only, and the period compiles in the exchange
-    block's and the safety rules' constants (rig/runtime/exchange.py, safety.py): when those files change, this
-    module's cached code is dropped, so it is compiled again with the new constants."""
+    """The period compiles in the exchange block's and the safety rules' constants (rig/runtime/exchange.py,
+    safety.py) and the control laws with their state and coefficient layouts (controllers/): when any of those
+    files changes, this module's cached code is dropped (controllers/compiled_cache.py)."""
     here = Path(__file__).resolve()
-    deps = [here, here.with_name("exchange.py"), here.with_name("safety.py")]
-    stamp = hashlib.sha1(b"".join(p.read_bytes() for p in deps)).hexdigest()
-    cache = Path(numba.config.CACHE_DIR) if numba.config.CACHE_DIR else here.parent / "__pycache__"
-    mark = cache / f"{here.stem}.deps"
-    try:
-        if mark.read_text() == stamp:
-            return
-    except OSError:
-        pass
-    for f in cache.glob(f"{here.stem}.*.nb[ic]"):
-        f.unlink(missing_ok=True)
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        mark.write_text(stamp)
-    except OSError:             # a read-only install: its cache came with it
-        pass
+    laws = sorted((here.parents[2] / "controllers").glob("*.py"))
+    drop_stale(here, [here, here.with_name("exchange.py"), here.with_name("safety.py"), *laws])
 
 
 _drop_stale_cache()
@@ -89,21 +77,21 @@ MODE_FAULT, MODE_INACTIVE, MODE_ACTIVE = 0, 1, 2    # FAULT records only; INACTI
 # the inputs, then MOUNT_INPUTS; state .. skipped: the row's flag columns (the lifecycle state, isolation on, the
 # scheduler's overrun and skipped counts at the period's start)
 INPUTS = ("t_ns", "t_s", "wake_us", "comp_us", "mode", "miss", "n_older", "step", "state", "isolation",
-          "overruns", "skipped")
+          "overruns", "skipped", "lost")
 MOUNT_INPUTS = ("accel", "stroke", "sample_t", "floor_accel", "stroke_t")   # n each; floor_accel: floor sensors
 (_IN_T_NS, _IN_T_S, _IN_WAKE, _IN_COMP, _IN_MODE, _IN_MISS, _IN_OLDER, _IN_STEP, _IN_STATE, _IN_ISO, _IN_OVER,
- _IN_SKIP) = range(len(INPUTS))
+ _IN_SKIP, _IN_LOST) = range(len(INPUTS))
 _FAULT_STATE = 3.0          # rig.runtime.lifecycle.State.FAULT (the row's fault column)
 MOUNT_TABLE = ("kind", "coef", "n_coef", "state", "n_state")
 HEADER = ("n", "inputs", "older", "prev", "limits", "check", "last_cmd", "flags", "mounts", "states",
           "n_states", "row", "n_row", "max_held", "r_time", "r_accel", "r_stroke", "r_cmd", "r_raw", "r_state",
           "r_limited", "r_wake", "r_comp", "n_pub", "pub", "r_pub", "osc", "n_floor", "ff", "r_floor", "r_ff",
-          "r_ff_on", "r_flags", "dt_ns", "a_last", "t_prev", "held_up", "x_age", "size", "io_at", "ring_at",
-          "ring_rows", "hdr_at")
+          "r_ff_on", "r_flags", "dt_ns", "a_last", "t_prev", "held_up", "x_age", "lost_t", "size", "io_at",
+          "ring_at", "ring_rows", "hdr_at")
 (_H_N, _H_IN, _H_OLDER, _H_PREV, _H_LIM, _H_CHK, _H_LAST, _H_FLAGS, _H_MOUNTS, _H_ST, _H_NST, _H_ROW, _H_NROW,
  _H_MAXHELD, _H_RT, _H_RA, _H_RX, _H_RC, _H_RR, _H_RS, _H_RL, _H_RW, _H_RP, _H_NPUB, _H_PUB, _H_RPUB, _H_OSC,
- _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS, _H_DTNS, _H_ALAST, _H_TPREV, _H_HELD, _H_XAGE, _H_SIZE, _H_IOAT,
- _H_RINGAT, _H_RINGROWS, _H_HDRAT) = range(len(HEADER))
+ _H_NFL, _H_FF, _H_RG, _H_RF, _H_RO, _H_RFLAGS, _H_DTNS, _H_ALAST, _H_TPREV, _H_HELD, _H_XAGE, _H_LOSTT, _H_SIZE,
+ _H_IOAT, _H_RINGAT, _H_RINGROWS, _H_HDRAT) = range(len(HEADER))
 # The period's input rules over the exchange block (codes beside the safety rules' of rig/runtime/safety.py)
 CHECK_STROKE_STALE = 1000   # the transducer's newest sample older than its own limit (it is held between frames)
 DEVICE_FAULT = 1100         # + device: a device reported a fault (its line: the block's text part)
@@ -164,6 +152,27 @@ def _ff_mount(mem, m, g):
 
 
 @numba.njit(cache=True)
+def _after_loss(mem, n, nf):
+    """Conversions were lost (the module's estimate stands in for them): each mount's isolation suspended (its
+    saturation recovery resumes it) and its floor feedforward from rest (controllers/feedforward.py): both
+    integrate the acceleration, and the estimate's error would be a velocity to them."""
+    for m in range(n):
+        b = int(mem[_H_MOUNTS]) + m * 5
+        kind = int(mem[b])
+        co, so = int(mem[b + 1]), int(mem[b + 3])
+        cf = mem[co:co + int(mem[b + 2])]
+        st = mem[so:so + int(mem[b + 4])]
+        if kind == _ISO:
+            isolation_suspend(st, cf)
+        elif kind == _MODES:
+            modes_suspend(st, cf)
+        if nf:
+            f = int(mem[_H_FF]) + 1 + m * 4
+            co, ns, so = int(mem[f]), int(mem[f + 1]), int(mem[f + 2])
+            feedforward_restart(mem[co:co + 5 * ns], mem[so:so + 2 * ns + FF_STATE_EXTRA])
+
+
+@numba.njit(cache=True)
 def _catch_up(mem, n, acc, xs, fl, nf, miss, n_older):
     """The periods the controllers did not see: `miss` skipped ones replayed (at most max_held, the latest),
     inputs interpolated from the previous period's measurement to this one's; or a sample-driven port's
@@ -208,6 +217,9 @@ def _control(mem, i, n, mode, acc, xs, fl, nf, row, flags):
     if code != 0:
         return code
     if mem[i + _IN_STEP] > 0.5:
+        if mem[i + _IN_LOST] > 0.5:              # lost conversions among these
+            _after_loss(mem, n, nf)
+            mem[_H_LOSTT] = mem[i + _IN_T_NS]
         _catch_up(mem, n, acc, xs, fl, nf, int(mem[i + _IN_MISS]), int(mem[i + _IN_OLDER]))
         if nf:
             rf = int(mem[_H_RF])
@@ -309,6 +321,7 @@ def _take_conversions(mem, io, t_ns, i, n, nf):
     if newest < 0:
         return NO_SAMPLE
     m0 = i + len(INPUTS)
+    mem[i + _IN_LOST] = 0.0
     s = a + ex.A_SLOTS + (int(newest) % cap) * w
     mem[m0 + 2 * n:m0 + 3 * n] = io[s + 1:s + 1 + n]
     mem[m0:m0 + n] = io[s + 1 + n:s + 1 + 2 * n]
@@ -328,6 +341,9 @@ def _take_conversions(mem, io, t_ns, i, n, nf):
         return 0
     k = 1 if last < 0 else int(newest - last)
     older = k - 1 if k > 0 else 0
+    lost = io[a + ex.A_LOST]
+    if last >= 0 and last < lost <= newest:     # one of these is an estimate of a conversion the module lost
+        mem[i + _IN_LOST] = 1.0
     mem[i + _IN_MISS] = 0.0
     mem[i + _IN_STEP] = 1.0 if k > 0 else 0.0
     mem[i + _IN_OLDER] = older
@@ -580,7 +596,7 @@ class PeriodKernel:
                 off["pub"], lay[next(iter(self.published))] if self.published else lay.ncols, off["osc"],
                 nf, off["ff"],
                 *((lay["floor_accel_mps2"], lay["ff_cmd_V"], lay["feedforward_on"]) if nf
-                  else (lay.ncols,) * 3), lay["lifecycle_state"], round(self.dt * 1e9), -1.0, -1.0, 0.0, 0.0,
+                  else (lay.ncols,) * 3), lay["lifecycle_state"], round(self.dt * 1e9), -1.0, -1.0, 0.0, 0.0, -1.0,
                 off["size"], 0.0, 0.0, 0.0, 0.0)
 
     def _place_controllers(self, off: dict, coefs: list, nst: list) -> None:
@@ -700,6 +716,14 @@ class PeriodKernel:
 
     def feedforward_enabled(self) -> bool:
         return bool(self.ffs) and self.ffs[0].enabled(self.ff_states[0])
+
+    def last_loss_ns(self) -> int:
+        """The period that last took conversions the module had lost (-1: none)."""
+        return int(self.mem[_H_LOSTT])
+
+    def feedforward_restarting_s(self) -> float:
+        """The time the feedforward's restart still holds its output off (0: none; the mounts restart together)."""
+        return self.ffs[0].restarting_s(self.ff_states[0]) if self.ffs else 0.0
 
     def set_enabled(self, on: bool) -> None:
         """Isolation on/off, each controller's own bumpless way."""

@@ -94,6 +94,8 @@ class Loop:
         # 0.1 s: rare code is slow code (tens of us from cold caches), kept out of the period's time
         self._watch_late = 0 if not self.clock.is_real else -self._susp_every
         self._susp = [False] * self.n
+        self._ff_held = 0.0                 # the feedforward's restart: the hold it had at the last watch, s
+        self._lost_seen = -1                # the last period that took lost conversions, as last logged
         self._port_idle = getattr(port, "idle", None)      # the port's slack housekeeping (optional), bound once
         # the do-no-harm supervisor (rig/runtime/supervisor.py), at the 10 Hz watch
         self.supervisor = (HarmSupervisor(cfg.supervisor, self.n, self.exchange.nf, self.rate_hz, self.names)
@@ -265,14 +267,34 @@ class Loop:
         self.tap.event(self._t_s(self.gate.t_ns), text)
 
     def _watch_suspension(self) -> None:
-        """Log (once per change) the controllers' saturation recovery suspending or resuming isolation."""
+        """Log (once per change) isolation suspended or resumed (the controllers' saturation recovery, or
+        conversions lost), and the floor feedforward held off after lost conversions or let back."""
+        lost = self.kernel.last_loss_ns()
+        if lost != self._lost_seen:             # a period took conversions the module had lost
+            self._lost_seen = lost
+            text = ("accelerometer conversions lost past the module's FIFO (a hold-up), estimated across the gap: "
+                    "isolating mounts suspended until their estimate settles"
+                    + (f", floor feedforward held off {self.kernel.feedforward_restarting_s():.1f} s and "
+                       f"restarted" if self.kernel.nf else "")
+                    + " (the estimate's error would be a velocity to their double integrations)")
+            log.warning(text)
+            self._event(text)
+        why = "conversions lost" if lost >= 0 and self.gate.t_ns - lost < 2e8 else (
+            "output held at the valve clamp: saturation recovery")
         for i, s in enumerate(self.kernel.suspended()):
             if s != self._susp[i]:
                 self._susp[i] = s
-                text = (f"{self.names[i]}: isolation suspended (output held at the valve clamp: saturation "
-                        f"recovery, centring alone)" if s else f"{self.names[i]}: isolation resumed")
+                text = (f"{self.names[i]}: isolation suspended ({why}, centring alone)" if s
+                        else f"{self.names[i]}: isolation resumed")
                 (log.warning if s else log.info)(text)
                 self._event(text)
+        held, was = self.kernel.feedforward_restarting_s(), self._ff_held
+        self._ff_held = held
+        if was > 0 and held == 0:
+            text = "floor feedforward restarted: its output back" + (
+                "" if self.kernel.feedforward_enabled() else " (switched off meanwhile: stays off)")
+            log.info(text)
+            self._event(text)
 
     def isolating(self) -> bool | None:
         """Isolation acting on the valves: ACTIVE with isolation on (operating modes: a mount isolating; None

@@ -91,7 +91,8 @@ def isolation_step(c, state: list, meas, dt: float):
             m = state[o + _A]
             m += c.resume_a * (v - m)
             state[o + _A] = m
-            k = state[o + _K] + 1.0 if -c.resume_m < m < c.resume_m else 0.0
+            k = state[o + _K]
+            k = k + 1.0 if k < 0.0 or -c.resume_m < m < c.resume_m else 0.0     # (< 0: held after a loss)
             if k >= c.resume_n:
                 state[o + _B] = b + c.kp * v                   # the PI restarts from zero, no jump
                 state[o + _I] = 0.0
@@ -105,12 +106,17 @@ def feedforward_step(f, state: list, g: float) -> float:
     """FeedforwardFilter f, one period, the plain way: the sections but the last on the floor acceleration g; the
     last, the DC block, as out = y - z with z the command's level: set to y at switch-on, then the mean of y since
     switch-on until that window reaches 1 / (1 - pole) periods; times the output gain, which moves towards the
-    switch request with factor f.fade (state a list, updated in place; the block keeps -z, as the cascade would)."""
+    switch request with factor f.fade (state a list, updated in place; the block keeps -z, as the cascade would).
+    A restart (feedforward_restart_plain) holds the request off for its periods and adds the output it held,
+    fading at the same pace."""
     n = len(f.sections)
     o = 2 * n
     y = _sos_step(f.sections[:-1], state, 0, g)
     i = 2 * (n - 1)
-    on = state[o + 1] > 0.5
+    waiting = state[o + 3] > 0.0
+    if waiting:
+        state[o + 3] -= 1.0
+    on = state[o + 1] > 0.5 and not waiting
     if on and state[o + 2] == 0.0:
         state[i] = -y
     state[o + 2] = state[o + 2] + 1.0 if on else 0.0
@@ -120,9 +126,23 @@ def feedforward_step(f, state: list, g: float) -> float:
     if state[o + 2] > 0.0:
         weight = max(weight, 1.0 / state[o + 2])
     state[i] = -(z + weight * out)
-    gain = state[o + 1] + (state[o] - state[o + 1]) * f.fade
+    request = 1.0 if on else 0.0
+    gain = request + (state[o] - request) * f.fade
     state[o] = gain
-    return gain * out
+    held = state[o + 4]
+    state[o + 4] = held * f.fade
+    state[o + 5] = gain * out + held
+    return state[o + 5]
+
+
+def feedforward_restart_plain(f, state: list) -> None:
+    """The feedforward's restart, the plain way: sections from rest, the last output held (to fade out), the
+    gain from 0, the DC block to start again, the request held off restart_s."""
+    o = 2 * len(f.sections)
+    state[:o] = [0.0] * o
+    state[o + 4] = state[o + 5]
+    state[o] = state[o + 2] = 0.0
+    state[o + 3] = round(f.restart_s / f.dt)
 
 
 def track_step(c, state: list, x: float, cf=None) -> float:

@@ -355,7 +355,7 @@ def _conversions(block, since: int) -> list:
 def test_driver_hands_over_every_conversion_in_order(modbus_alone):
     """Late polls lose nothing: the conversions made between two polls come back exactly, oldest first (the
     driver reads further back into the FIFO after a stall); more than the FIFO holds are interpolated, so
-    their count (the integration's time base) stays exact."""
+    their count (the integration's time base) stays exact, and marked as lost (the feedforward restarts)."""
     arr, _c, port = modbus_alone
     dev, block = _analog(port)
     try:
@@ -376,12 +376,15 @@ def test_driver_hands_over_every_conversion_in_order(modbus_alone):
         got = _conversions(block, first + 5)
         assert [v[0] for _, v in got] == pytest.approx([0.01 * k for k in range(7, 57)], abs=1e-4)
         assert block.device_row(1)[ex.D_MISSED] == 0
+        lost = block.part("accel") + ex.A_LOST
+        assert block.io[lost] == -1.0                               # none lost yet
         publish(range(57, 127))                                     # seventy: six fall out of the FIFO
         assert dev.poll()
         got = _conversions(block, first + 55)
         assert len(got) == 70
         assert [v[0] for _, v in got] == pytest.approx([0.01 * k for k in range(57, 127)], abs=1e-4)
         assert block.device_row(1)[ex.D_MISSED] == 6
+        assert block.io[lost] == first + 61                         # the newest estimated one (the kernel's cue)
     finally:
         dev.close()
 
