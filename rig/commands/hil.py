@@ -24,13 +24,15 @@ hold their last command meanwhile, so a loaded machine shows here first (the fee
 CPU, above the loop's priority, at a tenth of its rate, nothing in its period but a timed fixed piece of
 arithmetic: rig/runtime/empty_loop.py) was held more than a period: the host took a CPU from the run; "host_slowed"
 the share in 50 ms stretches in which every CPU ran slowed (the empty loops' fixed compiled work took 1.25 times
-its median or longer: the host slowed the CPUs without taking them). The closing warning says from the two whether
-the late periods were the host's or the drivers' chain's.
+its median or longer: the host slowed the CPUs without taking them); "host_noisy" the share of the empty loops'
+wake-ups whose fixed work took 1.25 times its fastest or longer (the host taking the CPUs often for short
+pieces; about 3 % on a quiet host). The closing warning says from the first two whether the late periods were the
+host's or the drivers' chain's, and gives the third.
 --json prints only {"transports", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
-"feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late", "host_slowed", "recording",
-"pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first period, which
-stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps before the loop's
-last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C,
+"feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late", "host_slowed", "host_noisy",
+"recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first
+period, which stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps
+before the loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C,
 SIGTERM) it says so, gives no isolation figure and exits 130 (SIGTERM: 143).
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
@@ -61,7 +63,7 @@ from rig.backends import default_config
 from rig.commands.run import layout_config
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_FAULT, EXIT_HARM, EXIT_STOPPED_BY, EXIT_SUSPECT, RecordingError, RigError
-from rig.runtime.empty_loop import PROBE_PRIORITY, EmptyLoop, late_share, slowed_share
+from rig.runtime.empty_loop import PROBE_PRIORITY, QUIET_NOISY, EmptyLoop, late_share, noisy_share, slowed_share
 from rig.runtime.gate import ISOLATION_MODES
 from rig.runtime.recorder import read_recording
 
@@ -70,7 +72,7 @@ log = logging.getLogger("rig.hil")
 HIL_DEFAULT_CONFIG = default_config("hil")
 JSON_KEYS = ("transports", "harm", "supervisor", "faults", "overruns", "iterations", "samples_recorded", "isolation_reduction_db",
              "feedforward_reduction_db", "lockstep_reduction_db", "transmissibility_db", "late_periods",
-             "empty_loop_late", "host_slowed", "recording", "pre_steps", "end_steps")
+             "empty_loop_late", "host_slowed", "host_noisy", "recording", "pre_steps", "end_steps")
 BESIDE_DIVIDER = 10         # the empty loops beside the run wake at a tenth of its rate: at its own, the two cost
 #                             the run a fifth of a CPU and tripled its late periods on the 2-core machine
 TRACE_MARGIN_S = 120.0      # the emulated plant's trace: the run and its set-up (the plant steps from its start)
@@ -226,7 +228,8 @@ def _print_modes(res: dict, out: dict) -> None:
     print(mode_row("table/floor", [db(out["transmissibility_db"].get(m), ".2f") for m in modes]))
     for label, late in (("late periods", out["late_periods"]),
                         ("an empty loop beside, late", out.get("empty_loop_late")),
-                        ("the CPUs slowed beside", out.get("host_slowed"))):
+                        ("the CPUs slowed beside", out.get("host_slowed")),
+                        ("wake-ups slowed beside", out.get("host_noisy"))):
         if late:
             print(mode_row(label, ["n/a" if late.get(m) is None else f"{100 * late[m]:.1f} %" for m in modes]))
 
@@ -248,7 +251,8 @@ def _exit_code(res) -> int:
     if late:
         host = {m: v + ((res.get("host_slowed") or {}).get(m) or 0.0)
                 for m, v in (res.get("empty_loop_late") or {}).items() if m in late and v is not None}
-        _say_late(late, host, res.get("load"))
+        noisy = {m: v for m, v in (res.get("host_noisy") or {}).items() if m in late and v is not None}
+        _say_late(late, host, res.get("load"), noisy)
     short = res.get("unmetered") or []
     if short:
         _say_unmetered(short, res["seconds_to_meter"])
@@ -260,22 +264,26 @@ def _exit_code(res) -> int:
     return EXIT_HARM if worse else EXIT_SUSPECT if late or short else 0
 
 
-def _say_late(late: dict, beside: dict, load: float | None = None) -> None:
+def _say_late(late: dict, beside: dict, load: float | None = None, noisy: dict | None = None) -> None:
     """The one warning line for modes with more than LATE_WARN of their periods late, and whose they were: the
     host's when the empty loops beside the run were held or their CPUs ran slowed (`beside`: the two shares added)
     at least half as often in each such mode (or were not measured), else the drivers' chain's (held by the
-    machine's other load or by its own work)."""
+    machine's other load or by its own work). Either way it gives the share of the empty loops' wake-ups whose
+    work ran slowed (`noisy`), which a reader can hold against a quiet host's; it decides nothing (with 3-12 % of
+    the periods late it was 4-30 %, and no bound separated the runs: drivers/README.md)."""
     def shares(d):
         return ", ".join(f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in d.items())
+    work = (f"; the empty loops' fixed work slowed in {shares(noisy)} of their wake-ups (a quiet host: about "
+            f"{100 * QUIET_NOISY:g} %)") if noisy else ""
     if beside and any(2 * beside.get(m, 1.0) < v for m, v in late.items()):
         held = f"; load average {load:.1f}" if load is not None else ""
         print(f"rig hil: warning: the drivers' chain fell behind ({shares(late)} of the periods late, more than "
               f"{100 * LATE_WARN:g} %) while the empty loops beside the run kept better time and speed "
-              f"({shares(beside)}): the SYNC, the plant, the module and the loop were held by the machine's other "
-              f"load or their own work{held}; isolation through the drivers falls with that (drivers/README.md, the "
-              "rates)", file=sys.stderr)
+              f"({shares(beside)}{work}): the SYNC, the plant, the module and the loop were held by the machine's "
+              f"other load or their own work{held}; isolation through the drivers falls with that (drivers/README.md, "
+              "the rates)", file=sys.stderr)
         return
-    host = f"; the empty loops beside the run held or slowed: {shares(beside)}" if beside else ""
+    host = (f"; the empty loops beside the run held or slowed: {shares(beside)}" if beside else "") + work
     print(f"rig hil: warning: the host did not keep time ({shares(late)} of the periods late, more than "
           f"{100 * LATE_WARN:g} %{host}): isolation through the drivers falls with that, so these figures are below "
           "what this rig does on a host that keeps time (docs/OPERATING.md, real-time set-up)", file=sys.stderr)
@@ -338,8 +346,9 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
-    host_late, host_slowed = (empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle, share)
-                              if beside else {} for share in (late_share, slowed_share))
+    host_late, host_slowed, host_noisy = (
+        empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle, share) if beside else {}
+        for share in (late_share, slowed_share, noisy_share))
     table, floor, codes = rig.trace()
     short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
@@ -353,7 +362,7 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
            "samples_recorded": rec.rows_written if rec is not None else 0,
            "isolation_reduction_db": red["feedback"], "feedforward_reduction_db": red[ISOLATION_MODES[2]],
            "transmissibility_db": {m: None if math.isnan(v) else round(v, 2) for m, v in tr.items()},
-           "late_periods": late, "empty_loop_late": host_late, "host_slowed": host_slowed,
+           "late_periods": late, "empty_loop_late": host_late, "host_slowed": host_slowed, "host_noisy": host_noisy,
            "load": round(os.getloadavg()[0], 2),
            "recording": str(record), "fault_reason": loop.lc.fault_reason, "table_rms_m": band_rms,
            "round_trip_us": rtt, "skipped": loop.skipped, "timing_us": loop.timing_us(),

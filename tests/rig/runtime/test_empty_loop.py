@@ -135,6 +135,29 @@ def test_a_stretch_is_the_hosts_slowing_only_where_every_cpu_ran_slowed():
     assert slowed_share([], w0, w1, grid) is None and slowed_share([a, b], w1, w1, grid) is None
 
 
+def test_a_noisy_host_is_the_share_of_wake_ups_slowed_against_the_fastest():
+    """A host that takes a CPU for a hundred microseconds or two at a time, in one wake-up of ten, moves no
+    stretch's median and holds no wake-up a period: noisy_share counts the wake-ups whose fixed work took SLOWED
+    times its fastest (the run's 10th percentile), over every loop. Written into real loops' record, as above."""
+    import numpy as np
+
+    from rig.runtime.empty_loop import PROBE_PRIORITY, QUIET_NOISY, noisy_share, slowed_share
+    cpus = sorted(os.sched_getaffinity(0))
+    with EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[0], speed=True) as a, \
+            EmptyLoop(200.0, 2.0, PROBE_PRIORITY, cpus[-1], speed=True) as b:
+        time.sleep(2.2)
+    w0, w1, grid = a._first.value, a._first.value + 1_500_000_000, 500_000
+    for el in (a, b):
+        work = np.frombuffer(el._work, dtype=np.int64)[:el._count.value]
+        work[:] = 30_000                                     # 30 us throughout ...
+        assert noisy_share([el], w0, w1, grid) == 0.0
+        work[::5] = 180_000                                  # ... but every fifth wake-up 150 us longer
+    share = noisy_share([a, b], w0, w1, grid)
+    assert 0.18 <= share <= 0.22 and share > QUIET_NOISY
+    assert slowed_share([a, b], w0, w1, grid) == 0.0        # what the stretches' medians do not see
+    assert noisy_share([], w0, w1, grid) is None and noisy_share([a, b], w1 + 10**9, w1 + 10**9, grid) is None
+
+
 def test_a_loop_without_the_timed_work_knows_no_slowed_stretch():
     """`rig bench stalls` runs its empty loops up to 20 kHz with nothing in their period: the fixed work is rig hil's
     (speed=True), and a loop without it says nothing of its CPU's speed rather than 'slowed throughout'."""
