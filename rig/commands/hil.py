@@ -32,8 +32,8 @@ host's or the drivers' chain's, and gives the third.
 "feedforward_reduction_db", "transmissibility_db", "late_periods", "empty_loop_late", "host_slowed", "host_noisy",
 "recording", "pre_steps", "end_steps"} on stdout (pre_steps: the emulated plant's steps before the loop's first
 period, which stretch of the seeded floor the run met, its lockstep twin takes them first; end_steps: its steps
-before the loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault; stopped early (Ctrl-C,
-SIGTERM) it says so, gives no isolation figure and exits 130 (SIGTERM: 143).
+before the loop's last period, where the metered trace ends); progress goes to stderr. Exit 1 after a fault;
+stopped early (Ctrl-C, SIGTERM) it says so, gives no isolation figure and exits 130 (SIGTERM: 143).
 Fault rehearsal: --inject KIND:MOUNT:SIGNAL@T drives the emulated devices' knobs (rig/runtime/inject.py), e.g.
   rig hil --seconds 4 --inject silence:*:accel@2
 
