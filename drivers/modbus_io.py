@@ -385,7 +385,8 @@ class AnalogIO(IODevice):
 
     def _publish(self, c16: int, values, lost: bool = False) -> None:
         """One conversion into the block (the channels' values), its counter unwrapped from 16 bits; one lost from
-        the FIFO (values: its estimate) marked as such first (the floor feedforward restarts on it)."""
+        the FIFO (values: its estimate) marked as such first (the kernel then suspends isolation and restarts the
+        floor feedforward: rig/runtime/kernel.py _after_loss)."""
         if values is None:                              # (nothing known before it: lost at the very start)
             return
         self.count = c16 if self.count < 0 else self.count + ((c16 - self._c16_pub) & 0xFFFF)

@@ -346,9 +346,8 @@ def run_hil(cfg, seconds: float, *, record: str | None = None, realtime: bool = 
             counts = port.counts()
     rec = session.recorder
     late = late_periods(record, modes, seconds, settle, rate)
-    host_late, host_slowed, host_noisy = (
-        empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle, share) if beside else {}
-        for share in (late_share, slowed_share, noisy_share))
+    host_late, host_slowed, host_noisy = (empty_loop_late(beside, loop.t0_ns, loop.period_ns, modes, seconds, settle,
+                                                          share) for share in (late_share, slowed_share, noisy_share))
     table, floor, codes = rig.trace()
     short = unmetered(seconds, modes, settle)          # too short a window: no figure (said by _exit_code)
     band_rms = phase_rms(table, codes, rate, {m: rig.phase_code(m) for m in modes if m in rig.meter}, end=end_steps)
@@ -384,9 +383,10 @@ def empty_loop_late(beside, t0_ns: int | None, period_ns: int, modes, seconds: f
                     share=late_share) -> dict:
     """Per mode, over the same metered window as late_periods: the share of its periods in a stretch where an
     empty loop beside the run (one per CPU above the loop's priority: rig/runtime/empty_loop.py) was held more than a
-    period, i.e. the host took a CPU from the run; with share=slowed_share, where every CPU ran slowed."""
+    period, i.e. the host took a CPU from the run; with share=slowed_share, where every CPU ran slowed; with
+    noisy_share, the share of their wake-ups whose fixed work ran slowed. {} without empty loops."""
     from rig.commands.hil_lockstep import windows
-    if t0_ns is None:
+    if t0_ns is None or not beside:
         return {}
     out = {}
     for mode, (t0, t1) in zip(modes, windows(seconds, modes, settle_s)):
