@@ -179,10 +179,6 @@ class FeedforwardFilter:
         s[self._o + _SETTLE] = round(self.restart_s / self.dt)
         return s
 
-    def restart(self, state: np.ndarray) -> np.ndarray:
-        feedforward_restart(self.coef, state)
-        return state
-
     def restarting_s(self, state: np.ndarray) -> float:
         """The time a restart still holds the output off (0: none pending)."""
         return float(state[self._o + _WAIT]) * self.dt

@@ -107,8 +107,8 @@ def feedforward_step(f, state: list, g: float) -> float:
     last, the DC block, as out = y - z with z the command's level: set to y at switch-on, then the mean of y since
     switch-on until that window reaches 1 / (1 - pole) periods; times the output gain, which moves towards the
     switch request with factor f.fade (state a list, updated in place; the block keeps -z, as the cascade would).
-    A restart (feedforward_restart_plain) holds the request off for its periods and adds the output it held,
-    fading at the same pace."""
+    A restart (controllers/feedforward.py feedforward_restart) holds the request off for its periods and adds the
+    output it held, fading at the same pace."""
     n = len(f.sections)
     o = 2 * n
     y = _sos_step(f.sections[:-1], state, 0, g)
@@ -133,16 +133,6 @@ def feedforward_step(f, state: list, g: float) -> float:
     state[o + 4] = held * f.fade
     state[o + 5] = gain * out + held
     return state[o + 5]
-
-
-def feedforward_restart_plain(f, state: list) -> None:
-    """The feedforward's restart, the plain way: sections from rest, the last output held (to fade out), the
-    gain from 0, the DC block to start again, the request held off restart_s."""
-    o = 2 * len(f.sections)
-    state[:o] = [0.0] * o
-    state[o + 4] = state[o + 5]
-    state[o] = state[o + 2] = 0.0
-    state[o + 3] = round(f.restart_s / f.dt)
 
 
 def track_step(c, state: list, x: float, cf=None) -> float:

@@ -96,3 +96,45 @@ def test_isolation_is_suspended_at_once_and_bumplessly():
     jump = np.max(np.abs(raw[AT + HOLD] - raw[AT - 1]))
     assert jump < 4 * np.max(np.abs(np.diff(raw0[AT - int(1 / DT):AT], axis=0)))   # held, not a step
     assert np.max(np.abs(raw[AT + HOLD:])) < 10.0                        # never at the clamp
+
+
+def test_the_running_loop_says_it_and_isolates_again_after_the_hold(caplog):
+    """The loop over the simulated rig (sample-driven, every conversion counted), one conversion marked lost at
+    0.8 s as the module would: one warning line at once, each mount suspended for that reason, no fault, and
+    isolation back by itself once the hold (five time constants of the 0.1 Hz blend, 8 s) is over."""
+    import logging
+
+    from rig.runtime.clock import SimClock
+    from rig.runtime.loop import Loop
+    from sim_backend.backend import make_sim_port
+    rate = 5000.0
+    cfg = config_from_dict({})
+    clk = SimClock()
+    port = make_sim_port(cfg, 1 / rate, clock=clk, sample_driven=True)
+    ctrls = make_isolation_controllers(cfg, 1 / rate)
+    loop = Loop(cfg, port, ctrls, clock=clk, rate_hz=rate, stop_on_fault=False)
+    loop.configure()
+    loop.activate()
+    io = port.exchange.io
+    a = port.exchange.part("accel")
+    periods = [0]
+    suspended = []
+
+    def mark():                                  # before the port's update, which publishes the next conversion
+        periods[0] += 1
+        if periods[0] == int(0.8 * rate):
+            ex.mark_lost(io, io[a + ex.A_NEWEST] + 1)
+        if periods[0] % 500 == 0:
+            suspended.append((periods[0] / rate, all(c.suspended(s) for c, s in zip(ctrls, loop.states))))
+    loop.slow_down(mark)
+    with caplog.at_level(logging.INFO, logger="rig.loop"):
+        loop.run(seconds=11.0)
+    assert loop.lc.fault_reason is None
+    said = [r.message for r in caplog.records]
+    lost = [m for m in said if "conversions lost past the module's FIFO" in m]
+    assert len(lost) == 1 and "isolating mounts suspended until their estimate settles" in lost[0]
+    assert sum("isolation suspended (conversions lost, centring alone)" in m for m in said) == 4
+    assert sum("isolation resumed" in m for m in said) == 4
+    held = [s for t, s in suspended if 0.9 <= t <= 8.7]
+    assert held and all(held)                                  # held off throughout the hold
+    assert not suspended[-1][1]                                # and isolating again
