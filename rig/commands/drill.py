@@ -127,8 +127,15 @@ def drill_case(case: Case, backend: str, *, config: str | None = None, realtime:
         return out
     session = None
     try:
-        # isolation on (hil: off, its controllers need a warm-up of 2 / blend_hz first; on for the limit cycle)
-        session = Session(cfg, backend, clock=MonotonicClock(), isolation=backend == "sim" or case.tweak == "kp10",
+        # isolation on (hil: off, its controllers need a warm-up of 2 / blend_hz first). The unstable gain in
+        # hil is switched on after that warm-up, as an operator would: switched on cold, its first burst could
+        # leave the estimate a velocity error that holds the output at one clamp (the saturation recovery's
+        # case, not a limit cycle)
+        switch_on = case.tweak == "kp10" and backend == "hil"
+        if switch_on:
+            at += 2.0 / cfg.controller.blend_hz
+        session = Session(cfg, backend, clock=MonotonicClock(), isolation=backend == "sim",
+                          script=[(at, "on")] if switch_on else None,
                           record=rec, record_attrs={"command": "rig drill", "case": case.name},
                           realtime=realtime and cfg.loop.realtime)
         with session:
