@@ -104,13 +104,22 @@ def _config(backend: str, given: str | None, tweak: str):
     return cfg
 
 
+def _switch_on_at(case: Case, backend: str, cfg) -> float | None:
+    """When the case switches isolation on (loop time), or None. The unstable gain in hil is switched on after
+    the warm-up of 2 / blend_hz, as an operator would: switched on cold, its first burst could leave the
+    estimate a velocity error that holds the output at one clamp (the saturation recovery's case, not a limit
+    cycle)."""
+    return T_HIL + 2.0 / cfg.controller.blend_hz if case.tweak == "kp10" and backend == "hil" else None
+
+
 def drill_case(case: Case, backend: str, *, config: str | None = None, realtime: bool = True,
                folder: Path) -> dict:
     """One case on a fresh session; the figures of what happened."""
     from controllers.isolation import make_isolation_controllers
     from rig.runtime.session import Session, check_stable
     cfg = _config(backend, config, case.tweak)
-    at = T_SIM if backend == "sim" else T_HIL
+    on_at = _switch_on_at(case, backend, cfg)
+    at = on_at if on_at is not None else T_SIM if backend == "sim" else T_HIL
     spec = f"{case.spec}@{at:g}" if case.spec else ""
     injections = [inject.parse(spec)] if spec else []
     rec = folder / f"{backend}-{len(list(folder.iterdir()))}.h5"
@@ -127,15 +136,9 @@ def drill_case(case: Case, backend: str, *, config: str | None = None, realtime:
         return out
     session = None
     try:
-        # isolation on (hil: off, its controllers need a warm-up of 2 / blend_hz first). The unstable gain in
-        # hil is switched on after that warm-up, as an operator would: switched on cold, its first burst could
-        # leave the estimate a velocity error that holds the output at one clamp (the saturation recovery's
-        # case, not a limit cycle)
-        switch_on = case.tweak == "kp10" and backend == "hil"
-        if switch_on:
-            at += 2.0 / cfg.controller.blend_hz
+        # isolation on in sim; in hil off (its controllers need a warm-up first), or switched on by the case
         session = Session(cfg, backend, clock=MonotonicClock(), isolation=backend == "sim",
-                          script=[(at, "on")] if switch_on else None,
+                          script=None if on_at is None else [(on_at, "on")],
                           record=rec, record_attrs={"command": "rig drill", "case": case.name},
                           realtime=realtime and cfg.loop.realtime)
         with session:
