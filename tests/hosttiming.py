@@ -37,12 +37,20 @@ def ran_to_the_end(out) -> bool:
         s in out.stderr for s in ("the host did not keep time", "the drivers' chain fell behind")))
 
 
+def _command(out) -> str:
+    """The rig command a subprocess ran (its words after `rig.cli`), so a CI log's skip names its test's run."""
+    if isinstance(out.args, str):
+        return out.args
+    words = [str(a) for a in out.args]
+    return "rig " + " ".join(words[words.index("rig.cli") + 1:] if "rig.cli" in words else words[1:])
+
+
 def skip_unless_on_time(out) -> None:
     """Skip (quoting the host's figures) when a `rig hil`/`rig run` subprocess was stopped by the host's timing,
     or when its JSON says more than LATE_BOUND of a mode's periods were late."""
     line = host_line(out.stderr or "")
     if out.returncode != 0 and line:
-        pytest.skip(f"host timing, not judged: {line[:400]}")
+        pytest.skip(f"host timing, not judged: {_command(out)}: {line[:400]}")
     try:
         late = json.loads(out.stdout).get("late_periods") or {}
     except (ValueError, AttributeError):
