@@ -57,7 +57,7 @@ def skip_unless_on_time(out) -> None:
         return
     worst = max((v for v in late.values() if v is not None), default=0.0)
     if worst > LATE_BOUND:
-        pytest.skip(f"host timing, not judged: {100 * worst:.0f} % of a mode's periods late (bound "
+        pytest.skip(f"host timing, not judged: {_command(out)}: {100 * worst:.0f} % of a mode's periods late (bound "
                     f"{100 * LATE_BOUND:.0f} %)")
 
 

@@ -269,8 +269,8 @@ def _say_late(late: dict, beside: dict, load: float | None = None, noisy: dict |
     host's when the empty loops beside the run were held or their CPUs ran slowed (`beside`: the two shares added)
     at least half as often in each such mode (or were not measured), else the drivers' chain's (held by the
     machine's other load or by its own work). Either way it gives the share of the empty loops' wake-ups whose
-    work ran slowed (`noisy`), which a reader can hold against a quiet host's; it decides nothing (with 3-12 % of
-    the periods late it was 4-30 %, and no bound separated the runs: drivers/README.md)."""
+    work ran slowed (`noisy`), which a reader can hold against a quiet host's; it decides nothing (no bound
+    separated the runs: drivers/README.md, a noisy host)."""
     def shares(d):
         return ", ".join(f"{m.replace('_', ' + ')} {100 * v:.1f} %" for m, v in d.items())
     work = (f"; the empty loops' fixed work slowed in {shares(noisy)} of their wake-ups (a quiet host: about "

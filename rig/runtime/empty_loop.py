@@ -14,9 +14,8 @@ speed: a full load of the run's own on the other CPU moved it by at most 6 % her
 took SLOWED times its median over the run is the host's (slowed_share). A host can also take a CPU for a
 hundred microseconds or two at a time, often but not for long: a stretch's median does not move then, and no
 wake-up is a period late, but many wake-ups' fixed work takes SLOWED times its fastest or longer (the 10th
-percentile over the run). The share of such wake-ups (noisy_share) was 1-3 % on a quiet host, with or without the
-run's own full load on the other CPU, and 17-23 % with nothing running on a noisy one (2026-12-01). It is a
-sample (a 200 Hz probe of 20-30 us): beside 2 kHz runs 3-12 % late it read 4-30 %, and it decides nothing."""
+percentile over the run): their share is noisy_share. It is a thin sample of a CPU (a short piece of work at a tenth
+of the loop's rate), so it is given beside a run's figures and decides nothing (drivers/README.md, a noisy host)."""
 from __future__ import annotations
 
 import multiprocessing as mp
@@ -35,7 +34,7 @@ PROBE_PRIORITY = 99
 FIXED_WORK = 12000               # iterations of a dependent multiply-add: the core's speed, not the memory's
 SLOWED = 1.25                    # a CPU slowed: its fixed work took this much longer than its median ...
 SLOWED_WINDOW_NS = 50_000_000    # ... over 50 ms of wake-ups (their median: an interrupt in one does not count)
-QUIET_NOISY = 0.03                # noisy_share on a quiet host (with the run's own load: 1-3 %)
+QUIET_NOISY = 0.03                # noisy_share on a quiet host, the run's own load beside (drivers/README.md)
 _compiled = None
 
 
@@ -141,7 +140,6 @@ class EmptyLoop:
         w = np.flatnonzero(med >= factor * np.median(work))
         t = self._first.value + self.period_ns * per * w.astype(np.int64)
         return np.stack([t, t + self.period_ns * per], axis=1)
-
 
     def noisy_counts(self, t0_ns: int, t1_ns: int, factor: float = SLOWED) -> tuple[int, int]:
         """(slowed, all) of the wake-ups in [t0_ns, t1_ns) whose fixed work took factor times its fastest over the
