@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rig.errors import RigError
+from rig.textfile import read_text
 
 KINDS = ("hold", "setpoint", "step", "sine", "chirp", "csv")
 _LENGTH = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6, "nm": 1e-9}
@@ -157,12 +158,7 @@ def load_profile(path, dt: float, *, max_s: float = math.inf) -> np.ndarray:
     """A position profile from a CSV file with columns time_s, position_m (header required, order free),
     resampled at dt by linear interpolation from its first time on. RigError naming the file and line."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise RigError(f"{p}: profile file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise RigError(f"{p}: cannot read the profile ({e.__class__.__name__})") from None
+    text = read_text(p, "profile file", encoding="utf-8-sig")
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise RigError(f"{p}: empty profile (expected a header time_s,position_m and rows)")

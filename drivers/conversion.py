@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rig.errors import ConfigError
+from rig.textfile import read_text
 
 
 @dataclass(frozen=True)
@@ -43,9 +44,10 @@ def apply(chs, raw) -> list[float]:
 
 def read_calibration(path: str | Path) -> dict:
     """commissioning.toml as written by `rig commission` (one line naming the file when it cannot be read)."""
+    text = read_text(path, "calibration file", ConfigError)
     try:
-        cal = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError) as e:
+        cal = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"calibration {path}: cannot be read ({e})") from None
     return cal
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.errors import ConfigError
+from rig.textfile import read_text
 
 MOUNTS = ("front_left", "front_right", "rear_left", "rear_right")
 MAX_MOUNTS = 8                 # the period kernel's limit (rig/runtime/kernel.py)
@@ -632,12 +633,7 @@ def load_config(path: str | Path | None) -> Config:
     if path is None:
         return Config()
     p = Path(path)
-    try:
-        text = p.read_bytes().decode("utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: config file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{p}: cannot read config file ({e.__class__.__name__}: {e})") from None
+    text = read_text(p, "config file", ConfigError)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

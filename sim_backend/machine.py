@@ -17,6 +17,7 @@ import numpy as np
 
 from rig.config import MOUNTS, Config, modal_model_path
 from rig.errors import ConfigError
+from rig.textfile import read_text
 
 DEFAULT_MODEL = Path(__file__).parent / "data" / "machine_table2.toml"
 POINTS = ("table", "tool")
@@ -106,10 +107,8 @@ def load_modal_model(path: str | Path | None = None, *, mass_kg: float | None = 
     """Read a modal-model TOML file (docs/MODEL.md); errors name the file and the key."""
     p = Path(path) if path else DEFAULT_MODEL
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: modal model file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        data = tomllib.loads(read_text(p, "modal model file", ConfigError))
+    except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: invalid modal model TOML: {e}") from None
     where = str(p)
     unit = data.get("mode_shape_unit", "1/sqrt(kg)")

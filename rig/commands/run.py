@@ -69,6 +69,7 @@ from rig.backends import BACKENDS, default_config
 from rig.runtime.clock import MonotonicClock, SimClock
 from rig.config import hil_run_config, load_config
 from rig.errors import EXIT_HARM, RecordingError, RigError
+from rig.textfile import read_text
 
 if TYPE_CHECKING:
     from rig.runtime.session import Session
@@ -191,17 +192,15 @@ def check_start_stroke(args, cfg) -> None:
         return
     from controllers.reference import check_stroke, parse_reference
     where = f"--reference {args.reference}" if args.reference is not None else f"--position {args.position}"
-    check_stroke(parse_reference(text, 1.0 / cfg.loop.rate_hz, where=where), cfg.safety.stroke_limit_m, name=where)
+    ref = parse_reference(text, 1.0 / cfg.loop.rate_hz, max_s=cfg.controller.track_profile_s, where=where)
+    check_stroke(ref, cfg.safety.stroke_limit_m, name=where)
 
 
 def read_script(path, seconds: float | None = None) -> list[tuple[float, str]]:
     """`<loop time s> <control word>` per line; RigError naming the file and line (a time at or after the run's
     `seconds` too: its word would never act)."""
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except OSError as e:
-        raise RigError(f"--script {p}: cannot read ({e.strerror or e})") from None
+    lines = read_text(p, "--script file").splitlines()
     out = []
     for i, ln in enumerate(lines, 1):
         ln = ln.split("#", 1)[0].strip()
@@ -367,7 +366,11 @@ class _RunPlan:
     def finish(self, loop, reason: str) -> int:
         """The stop line, the stand's tracking figures or the machine's VC summary; the exit code."""
         args, record = self.args, self.record
+        from rig.runtime.lifecycle import State
         recorded = f", recorded to {args.record}" if args.record else ""
+        if loop.lc.state is State.FAULT:     # what the fault left the valves at, from the last command written
+            recorded = (", valves at null" if all(v == 0.0 for v in loop.cmd) else
+                        ", VALVE COMMANDS NOT AT NULL: make the rig safe by hand") + recorded
         if not loop.clock.is_real:           # no deadlines to meet: nothing to time
             log.info("stopped (%s) after %d periods in simulated time (loop timing is not measured in simulated "
                      "time: run on the real clock for it)%s", reason, loop.iterations, recorded)
@@ -391,7 +394,6 @@ class _RunPlan:
             finally:
                 if self.tmp:
                     os.unlink(self.tmp)
-        from rig.runtime.lifecycle import State
         if loop.lc.state is State.FAULT:
             return 1                          # the reason was logged once, when it happened
         if loop.harm:                         # logged when it happened; said again beside the stop line

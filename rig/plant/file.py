@@ -27,6 +27,7 @@ from pathlib import Path
 
 from rig.config import check_actuator_value, load_config
 from rig.errors import ConfigError
+from rig.textfile import read_text
 from rig.plant.model import FAMILIES, INPUT_UNITS, Param, Plant, eha_plant
 from rig.recordings.recording import Recording, check_plausible
 from rig.recordings.signalmap import SignalMap, load_recording_for
@@ -164,10 +165,7 @@ class PlantFile:
 def read_plant_file(path: str | Path) -> PlantFile:
     """The plant file's tables (unreadable, not TOML, an unknown table: one ConfigError line)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read the plant file ({e.strerror or e})") from None
+    text = read_text(path, "plant file", ConfigError)
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

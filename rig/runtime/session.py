@@ -39,6 +39,7 @@ from rig.runtime.rt import enter_realtime, leave_realtime
 from rig.runtime.signals import interrupt, take_held
 from rig.runtime.supervisor import warm as warm_supervisor
 from rig.runtime.tap import Columns
+from rig.textfile import read_text
 
 log = logging.getLogger("rig.session")
 
@@ -104,15 +105,13 @@ class Session:
             if not os.path.isdir(folder):
                 raise ConfigError(f"control file {control_file}: folder {folder} does not exist (the file is "
                                   f"polled there for control words)")
-            if os.path.isdir(control_file):
-                raise ConfigError(f"control file {control_file}: is a folder, expected a file name (polled for "
+            if os.path.exists(control_file) and not os.path.isfile(control_file):
+                kind = "a folder" if os.path.isdir(control_file) else "a pipe or device"
+                raise ConfigError(f"control file {control_file}: is {kind}, expected a file name (polled for "
                                   f"control words)")
         self._held_signals: list[int] = []     # SIGUSR1/2 before the loop existed: applied at its first period
         self._mode = self.parse(mode, "mode") if isinstance(mode, str) else mode
         self._script = [(float(t), w) for t, w in (script or ())]
-        for t, w in self._script:
-            if w.strip().lower() not in _WORDS:
-                self.parse(w, f"script at {t:g} s")     # a word that cannot be read fails here, not mid-run
         self.port = self.loop = self.recorder = None
         self.idle_recorder = None       # what the loop records into between recordings (a console's live ring)
         self._stack: contextlib.ExitStack | None = None
@@ -126,6 +125,8 @@ class Session:
                 self._install_signals(stack)
             stack.enter_context(RigLock(devices(self.cfg, self.backend)))
             ctrls = self._make_controllers()
+            for t, w in self._script:              # a word this layout cannot take fails here, not mid-run
+                self._check_word(w, any(hasattr(c, "switch") for c in ctrls), f"script at {t:g} s")
             ffs = self._feedforward(ctrls)
             # the period's compiled entry before the port: a port may start devices (the HIL's emulated rig runs
             # from here on), and a cold numba cache compiles for tens of seconds while they wait unserved
@@ -286,7 +287,9 @@ class Session:
             if rt is not None:
                 leave_realtime(rt)
                 self.rt_summary = rt.summary()
-        if not self.activated and self.loop.lc.fault_reason is None:
+        if self.loop.iterations == 0 and reason in ("SIGINT", "SIGTERM"):
+            interrupt(signal.Signals[reason])       # before the first period: an interrupt of the set-up
+        if not self.activated and reason in ("time", "iterations") and self.loop.lc.fault_reason is None:
             warnings.warn(NeverActivated(
                 "Session.run: the rig stayed INACTIVE for the whole run (valves at null, nothing controlled): "
                 "pass activate_after_s= (e.g. 0.05 in simulated time) or call request_active(True)"), stacklevel=2)
@@ -356,27 +359,38 @@ class Session:
         w = word.strip()
         low = w.lower()
         try:
+            req = self._check_word(w, bool(self.operated), source)
             if low == "stop":
                 self.safe_stop(f"{source}: stop")
-            elif not self.operated and low in ("on", "isolation on", "off", "isolation off"):
+            elif isinstance(req, ModeRequest):
+                self.request_mode(req)
+            elif low in ("on", "isolation on", "off", "isolation off"):
                 self.request_isolation(low.endswith("on"))
-            elif not self.operated and low in ISOLATION_MODES[1:]:
+            else:
                 try:
                     self.request_isolation_mode(low)
                 except ValueError as e:          # feedback_feedforward without the floor feedforward
                     raise RigError(str(e)) from None
-            elif not self.operated:
-                raise RigError(f"unknown control word {w!r} (expected on, off, feedback, feedback_feedforward "
-                               f"or stop)")
-            else:
-                self.request_mode(self.parse(w, source))
             return True
         except RigError as e:
-            text = f"{source}: refused: {e}"
+            text = f"{source}: refused: {str(e).removeprefix(source + ': ')}"
             log.warning("%s", text)
             if self.loop is not None:
                 self.loop.tap.event(self.loop._t_s(self.loop.t_ns), text)
             return False
+
+    def _check_word(self, word: str, operated: bool, where: str) -> ModeRequest | None:
+        """A control word's meaning on this layout: `stop` and the machine's isolation words (None), or the
+        operating modes' request; RigError naming `where` for a word the layout does not take."""
+        low = word.strip().lower()
+        if low == "stop":
+            return None
+        if operated:
+            return self.parse(word, where)
+        if low not in _MACHINE_WORDS:
+            raise RigError(f"{where}: unknown control word {word.strip()!r} (expected on, off, feedback, "
+                           f"feedback_feedforward or stop)")
+        return None
 
     def safe_stop(self, reason: str = "stop requested") -> None:
         self.loop.stop(reason)
@@ -489,7 +503,7 @@ class _StatusLine(_Helper):
             sys.stderr.flush()
 
 
-_WORDS = ("stop", "on", "off", "isolation on", "isolation off") + ISOLATION_MODES[1:]
+_MACHINE_WORDS = ("on", "off", "isolation on", "isolation off") + ISOLATION_MODES[1:]
 
 
 class _ControlFile(_Helper):
@@ -499,28 +513,33 @@ class _ControlFile(_Helper):
     def __init__(self, path: str, session: Session) -> None:
         super().__init__("rig-control")
         self.path, self.session = path, session
-        self._last = None
-        try:                                 # a word left from before the start does not count
-            st = os.stat(path)
-            self._last = (st.st_mtime_ns, st.st_size)
-            with open(path) as f:
-                word = f.read().strip()
+        self._last = self._stamp()
+        if self._last is not None:           # a word left from before the start does not count
+            word = self._word()
             if word:
                 log.info("%s says %r from before the start: ignored (only changes count)", path, word)
+
+    def _stamp(self) -> tuple[int, int] | None:
+        try:
+            st = os.stat(self.path)
         except OSError:
-            pass
+            return None
+        return st.st_mtime_ns, st.st_size
+
+    def _word(self) -> str:
+        """The file's word; "" after a warning when it cannot be read as text (the poll goes on)."""
+        try:
+            return read_text(self.path, "control file").strip()
+        except RigError as e:
+            log.warning("%s (ignored; the file is still polled)", e)
+            return ""
 
     def run(self) -> None:
         while not self._halt.wait(0.1):
-            try:
-                st = os.stat(self.path)
-                key = (st.st_mtime_ns, st.st_size)
-                if key == self._last:
-                    continue
-                self._last = key
-                with open(self.path) as f:
-                    word = f.read().strip()
-            except OSError:
+            key = self._stamp()
+            if key is None or key == self._last:
                 continue
+            self._last = key
+            word = self._word()
             if word:
                 self.session.control(word, f"control file {self.path}")

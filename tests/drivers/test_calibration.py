@@ -27,3 +27,16 @@ def test_a_calibration_naming_no_mount_is_one_line():
     with pytest.raises(ConfigError, match=r"calibration \[accel.ch9\]: expected a mount"):
         conversion.calibrated(conversion.channels(range(4), [1.0] * 4), {"accel": {"ch9": {"mount": "x"}}},
                               "accel", MOUNTS, "mps2")
+
+
+@pytest.mark.parametrize("content, needle", [(None, "calibration file not found"),
+                                             (b"[accel]\n# \xe9\n", "is not UTF-8 text"),
+                                             (b"[accel\n", "cannot be read")])
+def test_a_calibration_file_that_cannot_be_read_is_one_line(tmp_path, content, needle):
+    """Was: a byte that is not UTF-8 (a comment typed in Latin-1) ended in a UnicodeDecodeError traceback."""
+    path = tmp_path / "commissioning.toml"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(ConfigError, match=needle) as e:
+        conversion.read_calibration(path)
+    assert "commissioning.toml" in str(e.value) and "\n" not in str(e.value)

@@ -270,6 +270,14 @@ def test_an_injection_the_run_never_reached_is_not_said_to_be_injected(caplog):
     assert "not injected nan:front_right:accel@0.2: the run stopped first (fault)" in err
 
 
+def test_a_fault_says_where_it_left_the_valves(caplog):
+    """Was: `stopped (fault)` and the FAULT line, never a word on the valves (rig drill said `valves null`)."""
+    caplog.set_level(logging.INFO, logger="rig")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--inject", "nan:front_left:accel@0.1"]) == 1
+    stop = [r.getMessage() for r in caplog.records if r.getMessage().startswith("stopped (fault)")]
+    assert len(stop) == 1 and stop[0].endswith("valves at null"), stop
+
+
 @pytest.mark.parametrize("when", ["nan", "inf", "-1"])
 def test_a_script_time_that_never_comes_is_refused(tmp_path, capsys, when):
     """Was: `nan off` (and `inf off`) in a --script ran the whole run with the word never acted on, exit 0."""
@@ -283,6 +291,36 @@ def test_a_control_file_that_is_a_folder_is_refused(tmp_path, capsys):
     """Was: `--control /tmp` ran the whole run polling a folder: `stop` written anywhere never reached it."""
     assert main(["run", "--sim-time", "--seconds", "0.2", "--control", str(tmp_path)]) == 2
     _one_line_error(capsys, f"control file {tmp_path}", "is a folder")
+
+
+def test_a_script_that_is_not_text_is_one_line(tmp_path, capsys):
+    """Was: a UnicodeDecodeError traceback."""
+    script = tmp_path / "s.txt"
+    script.write_bytes(b"\xff\xfe\x00\x01")
+    assert main(["run", "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
+    _one_line_error(capsys, str(script), "is not UTF-8 text")
+
+
+@pytest.mark.parametrize("layout, word", [
+    ([], "track sine:amp=10um,freq=5"), ([], "setpoint 5um"), ([], "hold"),
+    (["--layout", "prototype"], "isolation on"), (["--layout", "prototype"], "feedback")])
+def test_a_script_word_the_layout_does_not_take_is_refused_at_the_start(tmp_path, capsys, layout, word):
+    """Was: the script's words were checked against both layouts' words: a stand's word on the machine (or the
+    machine's on a stand) started the run, was refused when its time came, and the run ended 0."""
+    script = tmp_path / "s.txt"
+    script.write_text(f"0.1 {word}\n")
+    assert main(["run", *layout, "--sim-time", "--seconds", "0.3", "--script", str(script)]) == 2
+    _one_line_error(capsys, "script at 0.1 s", repr(word))
+
+
+def test_a_profile_longer_than_the_limit_is_refused_before_it_is_resampled(tmp_path, capsys):
+    """Was: a csv: profile spanning 1e300 s was resampled whole before its length was checked (a traceback from
+    numpy; 1e12 s: a 35 PiB allocation; 20000 s: 1.6 GB before the one line)."""
+    prof = tmp_path / "p.csv"
+    prof.write_text("time_s,position_m\n-1,0\n1e300,1e-6\n")
+    assert main(["run", "--layout", "prototype", "--sim-time", "--seconds", "0.3", "--mode", "track",
+                 "--reference", f"csv:{prof}"]) == 2
+    _one_line_error(capsys, str(prof), "longer than controller.track_profile_s = 60 s")
 
 
 def test_hil_bench_of_fewer_than_ten_periods_is_refused(capsys):

@@ -120,6 +120,31 @@ def test_a_control_file_left_saying_stop_or_off_does_not_count(tmp_path):
     assert on[0] == 1.0 and on[-1] == 0.0 and np.count_nonzero(np.diff(on)) == 1
 
 
+def test_a_control_file_that_is_not_text_is_ignored_with_a_warning_and_still_polled(tmp_path):
+    """Was: a byte that is not UTF-8 in the control file killed its polling thread (a traceback on stderr); the
+    run went on to its end and a later `stop` was never read."""
+    ctl = tmp_path / "ctl"
+    run = Command("run", "--config", relaxed(tmp_path), "--seconds", "30", "--no-realtime", "--control", str(ctl))
+    assert run.wait_for("activate -> ACTIVE"), run.text
+    ctl.write_bytes(b"\xff\n")
+    assert run.wait_for("is not UTF-8 text", timeout=30), run.text
+    ctl.write_text("stop\n")
+    assert run.finish() == 0, run.text
+    assert "Traceback" not in run.text and f"stopped (control file {ctl}: stop)" in run.text
+
+
+@pytest.mark.parametrize("option", ["--config", "--control", "--script", "--reference"])
+def test_a_named_file_that_is_a_pipe_is_refused_not_waited_on(tmp_path, option):
+    """Was: a FIFO given as --config, --control, --script or a csv: reference hung `rig run` on its open (no
+    writer ever comes), and Ctrl-C did not end it."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    value = f"csv:{fifo}" if option == "--reference" else str(fifo)
+    extra = ["--layout", "prototype", "--mode", "track"] if option == "--reference" else []
+    line = one_error_line(rig("run", "--sim-time", "--seconds", "1", *extra, option, value, timeout=60))
+    assert str(fifo) in line and "a pipe or device" in line
+
+
 def test_a_control_file_in_a_missing_folder_is_refused(tmp_path):
     line = one_error_line(rig("run", "--seconds", "1", "--quiet", "--control", str(tmp_path / "nope" / "ctl")))
     assert f"folder {tmp_path / 'nope'} does not exist" in line

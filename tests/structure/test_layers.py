@@ -1,7 +1,7 @@
 """The packages import downwards only (docs/ARCHITECTURE.md), checked by parsing every module's imports (ast).
 
 Layers, lowest first; a module may import its own layer and those below, never one above:
-  0 base          rig.errors, rig.config, rig.port, rig.runtime.clock, rig.runtime.rt (+ idle_poll, libc), rig.runtime.lifecycle
+  0 base          rig.errors, rig.textfile, rig.config, rig.port, rig.runtime.clock, rig.runtime.rt (+ idle_poll, libc), rig.runtime.lifecycle
   1 models, maps  sim_backend physics (linear, actuator, machine, rig_plant, bench, data), drivers.protocol
   2 controllers   controllers.*  (laws, builders, design tools; may use the physics models)
   3 runtime       rig.runtime (kernel, safety, loop and its parts, recorder), recordings and their analysis;
@@ -30,7 +30,7 @@ PACKAGES = ("rig", "controllers", "drivers", "sim_backend")
 LAYER_PREFIXES = [                      # most specific first
     ("rig.commands", 5), ("rig.cli", 5), ("rig.console", 5), ("rig.api", 5),
     ("rig.backends", 4), ("rig.runtime.session", 4), ("rig.chirp", 4), ("rig.compare", 4),
-    ("rig.errors", 0), ("rig.config", 0), ("rig.port", 0),
+    ("rig.errors", 0), ("rig.textfile", 0), ("rig.config", 0), ("rig.port", 0),
     ("rig.runtime.clock", 0), ("rig.runtime.rt", 0), ("rig.runtime.idle_poll", 0), ("rig.runtime.libc", 0),
     ("rig.runtime.lifecycle", 0),
     ("drivers.protocol", 1), ("sim_backend.backend", 3), ("sim_backend.emulators", 3), ("sim_backend", 1),

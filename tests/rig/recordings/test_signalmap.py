@@ -263,8 +263,12 @@ def test_each_error_is_one_line(tmp_path, capsys, command, signals, writer, plan
 
 def test_plant_file_problems_name_the_plant_file(tmp_path):
     missing = tmp_path / "nope.toml"
-    with pytest.raises(ConfigError, match="nope.toml: cannot read the plant file"):
+    with pytest.raises(ConfigError, match="nope.toml: plant file not found"):
         read_plant_file(missing)
+    latin = tmp_path / "latin.toml"                  # was: a UnicodeDecodeError traceback
+    latin.write_bytes(b"# d\xe9j\xe0\n[plant]\n")
+    with pytest.raises(ConfigError, match="latin.toml: the plant file is not UTF-8 text"):
+        read_plant_file(latin)
     bad = tmp_path / "bad.toml"
     bad.write_text("[signals\n")
     with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):

@@ -14,6 +14,7 @@ from rig.errors import ConfigError
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import read_recording
 from rig.runtime.session import Session
+from rig.runtime.signals import Terminated
 
 
 def test_session_builds_runs_records_and_tears_down(tmp_path):
@@ -31,6 +32,19 @@ def test_session_builds_runs_records_and_tears_down(tmp_path):
     with h5py.File(path) as f:                                          # state columns named by the controllers
         labels = [str(x) for x in f["controller_state"].attrs["labels"]]
     assert labels[0] == "front_left.h_acc0_z1" and "rear_right.suspended" in labels
+
+
+@pytest.mark.parametrize("signame, raised", [("SIGTERM", Terminated), ("SIGINT", KeyboardInterrupt)])
+def test_a_stop_signal_before_the_first_period_is_an_interrupt_and_records_nothing(tmp_path, signame, raised):
+    """Was: a SIGTERM after the loop was built and before its first period ended `rig run` with exit 0, a raw
+    NeverActivated warning and `recorded to FILE`: no file was written (with --overwrite the old one stayed,
+    and its VC summary was printed as this run's)."""
+    path = tmp_path / "run.h5"
+    with Session(Config(), "sim", clock=SimClock(), record=path) as s:
+        s.loop.stop(signame)                     # what the session's handler does when the signal comes
+        with pytest.raises(raised):
+            s.run(seconds=0.1, activate_after_s=0.01)
+    assert s.loop.iterations == 0 and not path.exists()
 
 
 def test_a_controller_the_kernel_cannot_run_is_refused_and_nothing_is_left_open():
