@@ -109,6 +109,8 @@ def parse_reference(text: str, dt: float, *, max_s: float = math.inf, where: str
         if key not in _KEYS[kind]:
             raise RigError(f"{where}: {text!r}: unknown key {key!r} for {kind} (expected "
                            f"{', '.join(_KEYS[kind])})")
+        if key in vals:
+            raise RigError(f"{where}: {text!r}: {key} given twice (expected each key once)")
         vals[key] = _value(key, val, kind, where)
     missing = [k for k in _REQUIRED.get(kind, ()) if k not in vals]
     if missing:

@@ -173,13 +173,11 @@ def _chirped_mount(cfg, backend: str, mount: str) -> tuple[int, tuple[str, ...] 
     """The chirped mount's index and the run's mount names: sim, the one actuator on its stand; otherwise
     --mount among the layout's mounts (the default, front_left, is the first mount of a one-mount layout)."""
     mounts = layout_mounts(cfg)
-    if backend == "sim":
-        return 0, ("stand",)
     if len(mounts) == 1 and mount == "front_left":          # the default names the machine's first mount
         mount = mounts[0]
-    if mount not in mounts:
+    if mount not in mounts:                                  # a wrong name is refused on sim too: never ignored
         raise RigError(f"--mount: expected one of {', '.join(mounts)}, got {mount!r}")
-    return mounts.index(mount), mounts
+    return (0, ("stand",)) if backend == "sim" else (mounts.index(mount), mounts)
 
 
 def _run_with_progress(session, total_s: float, settle_s: float, progress, on_session) -> str:

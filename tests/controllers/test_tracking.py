@@ -150,7 +150,8 @@ def test_hold_range_is_the_leakage_static_range():
     ("wobble:amp=1um", "unknown kind 'wobble'"), ("sine:amp=1um", "missing freq"),
     ("sine:amp=1um,freq=-2", "must be > 0"), ("sine:amp=lots,freq=2", "is not a number"),
     ("sine:amp=1um,freq=2,phase=3", "unknown key 'phase'"), ("chirp:amp=1um,f0=10,f1=5,duration=2", "f0 < f1"),
-    ("csv:", "expected csv:FILE"), ("csv:/nonexistent/p.csv", "profile file not found")])
+    ("csv:", "expected csv:FILE"), ("csv:/nonexistent/p.csv", "profile file not found"),
+    ("sine:amp=10um,freq=5,freq=6", "freq given twice")])
 def test_reference_text_errors_name_what_is_wrong(text, match):
     with pytest.raises(RigError, match=match):
         parse_reference(text, DT)
