@@ -209,7 +209,7 @@ def discrete_ss(p: ActuatorParams, fs_hz: float) -> tuple[np.ndarray, np.ndarray
     return Phi, Gam, C
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)     # nogil: a signal reaches the main thread meanwhile
 def _dlsim(Phi, Gam, C, u, y):
     # y_k is sampled before u_k acts (DAC/ADC pair at the same instant), x_0 = 0
     n = Phi.shape[0]

@@ -52,6 +52,21 @@ def _longest(mask: np.ndarray) -> tuple[int, int]:
     return int(starts[k]), int(stops[k])
 
 
+def _numbers(path, r: dict, key: str) -> np.ndarray | None:
+    """Dataset `key` as finite floats (None when absent); RecordingError naming the dataset and row else."""
+    if key not in r:
+        return None
+    try:
+        v = np.asarray(r[key], dtype=float)
+    except (TypeError, ValueError):
+        raise RecordingError(f"{path}: dataset {key}: expected numbers, got {np.asarray(r[key]).dtype}") from None
+    bad = ~np.isfinite(v)
+    if bad.any():
+        row = int(np.argmax(bad.reshape(len(v), -1).any(axis=1)))
+        raise RecordingError(f"{path}: dataset {key}: not a finite number at row {row}: cut the recording before it")
+    return v
+
+
 def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     """The report of one recording as JSON-ready values (RecordingError for a file that is not a loop
     recording, one line naming the file and what is missing)."""
@@ -63,12 +78,16 @@ def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:
     for key in ("time_s", "accel_mps2", "lifecycle_state", "isolation_on"):
         if key not in r:
             raise RecordingError(f"{path}: no {key} dataset (expected a recording of rig run or rig hil)")
-    fs = float(r["attrs"].get("rate_hz", 0.0))
-    if not fs > 0:
-        raise RecordingError(f"{path}: attribute rate_hz missing or not positive")
-    acc = np.asarray(r["accel_mps2"], dtype=float)
+    try:
+        fs = float(r["attrs"].get("rate_hz", 0.0))
+    except (TypeError, ValueError):
+        fs = math.nan
+    if not (math.isfinite(fs) and fs > 0):
+        raise RecordingError(f"{path}: attribute rate_hz missing or not a positive number (the loop rate, Hz)")
+    acc, floor = _numbers(path, r, "accel_mps2"), _numbers(path, r, "floor_accel_mps2")
+    for key in ("lifecycle_state", "isolation_on", "feedforward_on"):      # the mode flags: numbers too
+        _numbers(path, r, key)
     acc = acc[:, None] if acc.ndim == 1 else acc
-    floor = np.asarray(r["floor_accel_mps2"], dtype=float) if "floor_accel_mps2" in r else None
     code = _mode_codes(r)
     skip = int(round(settle_s * fs))
     names = _labels(path, acc.shape[1]) or [f"mount{i}" for i in range(acc.shape[1])]

@@ -131,7 +131,7 @@ def _deriv(y, i_cmd, f_dist, xg, vg, prm, out):
         out[6] = 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)     # nogil: a signal reaches the main thread meanwhile
 def _simulate(cmd_V, fs, n_sub, delay_s, K_v, sat, prm, dist_f, dist_F, dist_ph, pos_out, acc_out, spool_out):
     """The whole record: sample the outputs at t_k, then integrate [t_k, t_k+1) with `_advance_stand`
     (the command array itself serves as the command history)."""
@@ -218,7 +218,7 @@ def _rk4_still(y, t, h, k, cmd_V, fs, delay_s, K_v, sat, prm, v_near, watch, wor
     return True, k1[4]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _simulate_near_rest(cmd_V, fs, n_free, n_fine, v_near, delay_s, K_v, sat, prm, pos_out, acc_out, spool_out):
     """_simulate (still floor, no disturbance force) at n_free inner steps a sample; an inner step in which the
     piston's velocity comes below v_near, or the delayed command switches, is taken again as n_fine shorter ones."""

@@ -63,7 +63,7 @@ class Sensor:
     seed: int = 0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)     # nogil: a signal reaches the main thread meanwhile
 def _integrate(N, fs, n_sub, drive_in, closed, kp, kv, ki, u_max, ref, prm, Ad, Gd, Cx, Cv, dist, sens_noise, step,
                offset, x_out, u_out):
     g, Fc, F0, tau, sat, dead = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]

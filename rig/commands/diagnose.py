@@ -17,6 +17,7 @@ from rig import cliargs
 from rig.batch import command as batch
 from rig.batch.run import Job, file_identity
 from rig.errors import RigError
+from rig.runtime.signals import off_the_main_thread
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -73,8 +74,8 @@ def run(args) -> int:
     args.recording = args.recording[0]
     if is_machine_run(args.recording, args.plant):
         from rig.commands import diagnose_rig
-        return diagnose_rig.run(args)
-    return _one(args)
+        return off_the_main_thread("diagnose", diagnose_rig.run, args)
+    return off_the_main_thread("diagnose", _one, args)
 
 
 def _one(args) -> int:

@@ -16,6 +16,7 @@ from rig import cliargs
 from rig.batch import command as batch
 from rig.batch.run import Job, file_identity
 from rig.errors import EXIT_SUSPECT, RigError
+from rig.runtime.signals import off_the_main_thread
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -222,7 +223,7 @@ def run(args) -> int:
         work = partial(identify_one, args.plant, args.config, args.starts, args.seed, not args.no_refine)
         return batch.run_job(Job("identify", options, work), args)
     args.recording = args.recording[0]
-    return run_single(args)
+    return off_the_main_thread("identify", run_single, args)
 
 
 def run_single(args) -> int:

@@ -26,7 +26,8 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
     unit = sensor.unit
     mm = L.mismatch
     stand = uncertainty.standings(pb, augmented, T.refit, sel.chosen, sel.round1)
-    bias = reduction.bias(pb, augmented) if sel.chosen else {}         # the reduced model's own, taken off
+    too_long = reduction.unaffordable(pb, augmented) if sel.chosen else ""
+    bias = reduction.bias(pb, augmented) if sel.chosen and not too_long else {}   # the reduced model's own, taken off
     shown = replace(augmented, fx=reduction.corrected(pb, augmented, bias))
     effects = tuple(sorted((NamedEffect(name, public_params(pb, name, shown), float(sel.stats[name]["lr_holdout"]),
                                         sel.stats[name],
@@ -42,7 +43,7 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
     if v.status == "not_described" and effects:
         not_claimed, effects = effects, ()
     key, dist = T.screened.distortion
-    mismatch = Mismatch(notes=P.notes + tuple(clip_notes), not_claimed=not_claimed,
+    mismatch = Mismatch(notes=P.notes + tuple(clip_notes) + ((too_long,) if too_long else ()), not_claimed=not_claimed,
                         harmonics=dist if key == "harmonics" else None,
                         multisine_lines=dist if key == "multisine_lines" else None, **mm)
     frf_out = {k: (v_.tolist() if not np.iscomplexobj(v_) else {"re": v_.real.tolist(), "im": v_.imag.tolist()})

@@ -128,7 +128,7 @@ def _offset(cmd: np.ndarray, lag: int, fs: float) -> int:
     overlap), where a sweep restarts (its instantaneous frequency falls back); 0 when neither shows (a periodic
     command at one level)."""
     n = len(cmd)
-    w = int(max(0.5 * fs, lag / 50))
+    w = max(1, int(max(0.5 * fs, lag / 50)))         # a slow recording: at least a sample
     starts = np.arange(0, max(0, n - lag - w), w)
     if len(starts) >= 3:
         a = np.array([np.dot(cmd[i:i + w], cmd[i:i + w]) for i in starts])

@@ -509,8 +509,16 @@ def read_recording(path: str | Path) -> dict:
                 out["units"][name] = _plain(obj.attrs.get("unit", ""))
         # a crash between two datasets' appends leaves them one block apart: keep the common rows
         names = [n for n in out if n not in ("attrs", "units")]
+        single = [k for k in names if np.ndim(out[k]) == 0]
+        if single:
+            raise RecordingError(f"{p}: dataset {single[0]}: a single value, expected one value per row")
         if names:
             n = min(len(out[k]) for k in names)
+            if any(len(out[k]) != n for k in names) and out["attrs"].get("complete") is True:
+                ref = "time_s" if "time_s" in names else max(names, key=lambda k: len(out[k]))
+                k = next(k for k in names if len(out[k]) != len(out[ref]))
+                raise RecordingError(f"{p}: dataset {k} has {len(out[k])} rows, {ref} {len(out[ref])}, in a recording "
+                                     f"its writer closed: changed since it was written")
             if any(len(out[k]) != n for k in names):
                 out["attrs"]["truncated_to_rows"] = n
                 for k in names:

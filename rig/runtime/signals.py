@@ -55,3 +55,36 @@ def take_held() -> int:
     """The SIGUSR1 toggles held so far (and forget them)."""
     n, _held[0] = _held[0], 0
     return n
+
+
+
+def off_the_main_thread(command: str, work, *args):
+    """work(*args) in a worker thread while the main thread waits for it. A signal's handler runs only in the
+    main thread, between bytecodes, and a compiled (numba) call holds that thread until it returns: minutes on
+    a long recording. So Ctrl-C or SIGTERM ends `rig COMMAND` at once: one line, exit 130 or 143, the work
+    abandoned (it only reads its inputs; an --out folder being written is left as far as it got)."""
+    import sys
+    import threading
+    done: dict = {}
+
+    def target():
+        try:
+            done["value"] = work(*args)
+        except BaseException as e:           # noqa: BLE001 - raised again in the main thread
+            done["error"] = e
+
+    th = threading.Thread(target=target, name="rig-work", daemon=True)
+    th.start()
+    try:
+        while th.is_alive():
+            th.join(0.1)
+    except (KeyboardInterrupt, Terminated) as e:
+        from rig.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
+        term = isinstance(e, Terminated)
+        print(f"rig {command}: interrupted" + (" (SIGTERM)" if term else ""), file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_TERMINATED if term else EXIT_INTERRUPTED)    # the simulators' pool threads are not waited for
+    if "error" in done:
+        raise done["error"]
+    return done["value"]

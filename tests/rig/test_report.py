@@ -180,3 +180,59 @@ def test_a_run_its_writer_did_not_close_is_reported_and_exported_with_a_warning(
             f"rig {command}: warning: {cut}: the run ended before the recording was closed (attribute complete = "
             f"false; the recording process ended without closing (crash or kill)): it may be cut short; it holds "
             f"{rows} rows (t = 0 to {(rows - 1) / 5000:.6g} s), used as they are"]
+
+
+def _edited(src, dst, edit):
+    import shutil
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        edit(f)
+    return dst
+
+
+def _replace(name, value):
+    def edit(f):
+        new = value(f) if callable(value) else value
+        del f[name]
+        f[name] = new
+    return edit
+
+
+def _set(name, row, col, value):
+    def edit(f):
+        a = f[name][()]
+        a[row, col] = value
+        f[name][...] = a
+    return edit
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (_set("accel_mps2", 4000, 1, float("nan")), "dataset accel_mps2: not a finite number at row 4000"),
+    (_set("floor_accel_mps2", 10, 0, float("inf")), "dataset floor_accel_mps2: not a finite number at row 10"),
+    (lambda f: f.attrs.__setitem__("rate_hz", float("inf")), "attribute rate_hz missing or not a positive number"),
+    (_replace("isolation_on", lambda f: [b"on"] * f["time_s"].shape[0]), "dataset isolation_on: expected numbers"),
+])
+def test_a_damaged_run_recording_is_one_line_not_a_traceback(three_modes, tmp_path, capsys, edit, needle):
+    """Were tracebacks of `rig report` (ValueError, OverflowError, a numpy ufunc error) on recordings changed by
+    hand; `rig diagnose` named the same problems in one line."""
+    from rig.cli import main
+    bad = _edited(three_modes, tmp_path / "bad.h5", edit)
+    assert main(["report", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and str(bad) in err[0], err
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (_replace("valve_cmd_V", 1.0), "dataset valve_cmd_V: a single value, expected one value per row"),
+    (_replace("accel_mps2", lambda f: f["accel_mps2"][:2000]), "dataset accel_mps2 has 2000 rows, time_s 52500"),
+])
+def test_export_of_a_recording_changed_since_it_was_written_is_one_line(three_modes, tmp_path, capsys, edit,
+                                                                         needle):
+    """Were: a TypeError traceback (a dataset of one value), and an export of every column cut to the shortest one's
+    rows without a word (a dataset shortened in a file its writer had closed)."""
+    from rig.cli import main
+    bad = _edited(three_modes, tmp_path / "bad.h5", edit)
+    assert main(["export", str(bad), "--to", "csv", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
