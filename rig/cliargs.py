@@ -149,10 +149,16 @@ class _Output(argparse.Action):
         namespace._outputs = outs + [(option_string or self.option_strings[0], p, self.kind)]
 
 
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")       # a --plot FILE's formats
+
+
 def output_arg(p: argparse.ArgumentParser, *flags: str, kind: str = "file", suffix: str = "",
                suffixes=(), **kw) -> None:
     """An option naming a file (kind "file") or folder ("folder") the command writes, and --overwrite once.
-    suffix: added to a file name without one (matplotlib would add it silently); suffixes: the ones allowed."""
+    suffix: added to a file name without one (matplotlib would add it silently); suffixes: the ones allowed
+    (a --plot: PLOT_SUFFIXES, checked before any work rather than by matplotlib after it)."""
+    if "--plot" in flags and not suffixes:
+        suffixes = PLOT_SUFFIXES
     p.add_argument(*flags, action=_Output, kind=kind, suffix=suffix, suffixes=suffixes, **kw)
     if not any("--overwrite" in a.option_strings for a in p._actions):
         p.add_argument("--overwrite", action="store_true",

@@ -23,7 +23,7 @@ ROWS = [  # key, label, unit, paper's figure
 
 def add_arguments(p):
     p.add_argument("--json", action="store_true", help="print only the figures as JSON on stdout")
-    cliargs.output_arg(p, "--plot", metavar="FILE", suffix=".png", suffixes=(".png", ".pdf", ".svg"),
+    cliargs.output_arg(p, "--plot", metavar="FILE", suffix=".png",
                        help="write a Bode plot of G_EHA (Eq. 10): PNG (.png added to a name without a suffix), "
                             "or PDF/SVG by the suffix")
 

@@ -143,6 +143,20 @@ def read_run(path) -> RunRecording:
     return _assemble(cols, fs, where, attrs)
 
 
+def _check_time(t: np.ndarray, fs: float, where: str) -> None:
+    """time_s increases, by the period of the rate_hz attribute (its median step within 1 %)."""
+    dt = np.diff(t)
+    if len(dt) == 0:
+        return
+    if not (dt > 0).all():
+        k = int(np.argmax(~(dt > 0))) + 1
+        raise RecordingError(f"{where}: dataset time_s: not increasing at row {k} ({t[k - 1]:.6g} then {t[k]:.6g} s)")
+    step = float(np.median(dt))
+    if abs(step * fs - 1.0) > 0.01:
+        raise RecordingError(f"{where}: attribute rate_hz = {fs:g} Hz, but time_s steps by {step:.6g} s "
+                             f"({1.0 / step:.6g} Hz): one of them was changed")
+
+
 def _assemble(cols: dict, fs: float, where: str, attrs: dict) -> RunRecording:
     n = min(len(v) for v in cols.values())
     cols = {k: v[:n] for k, v in cols.items()}            # a run cut short: the rows every channel has
@@ -165,6 +179,7 @@ def _assemble(cols: dict, fs: float, where: str, attrs: dict) -> RunRecording:
             bad = int(np.argmax(~np.all(np.isfinite(out[k]), axis=1)))
             raise RecordingError(f"{where}: dataset {k}: not a finite number at row {bad} (t = {out['time_s'][bad]:.6g} "
                                  f"s): cut the recording before it")
+    _check_time(out["time_s"], fs, where)
     m = len(out["time_s"])
     if m / fs < MIN_SECONDS:
         raise RecordingError(f"{where}: {m / fs:.2f} s of rows; the diagnosis of a run needs at least "

@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
+import threading
+
+from rig.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
 
 _held = [0]                  # SIGUSR1 (isolation toggles) received while held
 _owner = [0]                 # the process that installed the handlers (a forked child keeps the default action)
@@ -63,8 +67,6 @@ def off_the_main_thread(command: str, work, *args):
     main thread, between bytecodes, and a compiled (numba) call holds that thread until it returns: minutes on
     a long recording. So Ctrl-C or SIGTERM ends `rig COMMAND` at once: one line, exit 130 or 143, the work
     abandoned (it only reads its inputs; an --out folder being written is left as far as it got)."""
-    import sys
-    import threading
     done: dict = {}
 
     def target():
@@ -79,7 +81,6 @@ def off_the_main_thread(command: str, work, *args):
         while th.is_alive():
             th.join(0.1)
     except (KeyboardInterrupt, Terminated) as e:
-        from rig.errors import EXIT_INTERRUPTED, EXIT_TERMINATED
         term = isinstance(e, Terminated)
         print(f"rig {command}: interrupted" + (" (SIGTERM)" if term else ""), file=sys.stderr)
         sys.stdout.flush()
