@@ -24,6 +24,7 @@ import numpy as np
 from controllers.vibration_criteria import band_velocity_rms, plot_vc, vc_class
 from rig.errors import RecordingError
 from rig.recordings.files import check_file, open_hdf5
+from rig.recordings.runfile import unit_factor
 from rig.runtime.lifecycle import State
 from rig.runtime.recorder import read_recording
 
@@ -64,7 +65,7 @@ def _numbers(path, r: dict, key: str) -> np.ndarray | None:
     if bad.any():
         row = int(np.argmax(bad.reshape(len(v), -1).any(axis=1)))
         raise RecordingError(f"{path}: dataset {key}: not a finite number at row {row}: cut the recording before it")
-    return v
+    return v * unit_factor(r["units"].get(key), key, str(path))       # an accelerometer written in g, say
 
 
 def vc_of_recording(path, *, settle_s: float = 1.0) -> dict:

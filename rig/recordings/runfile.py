@@ -81,8 +81,12 @@ def is_run_recording(path) -> bool:
 
 
 def _unit_factor(ds, name: str, where: str) -> float:
-    unit = ds.attrs.get("unit", None)
-    if unit is None:
+    return unit_factor(ds.attrs.get("unit", None), name, where)
+
+
+def unit_factor(unit, name: str, where: str) -> float:
+    """The factor from dataset `name`'s unit attribute to SI (none or "": SI); RecordingError for one not in UNITS."""
+    if unit is None or unit == "" or unit == b"":
         return 1.0
     unit = unit.decode() if isinstance(unit, bytes) else str(unit)
     table = UNITS.get(name, {})

@@ -236,3 +236,17 @@ def test_export_of_a_recording_changed_since_it_was_written_is_one_line(three_mo
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_an_accelerometer_recorded_in_g_is_rated_as_in_m_per_s2(three_modes, tmp_path, capsys):
+    """Was: the unit attribute ignored: the same motion written in g rated three VC classes better, and an
+    unknown unit accepted."""
+    def in_g(unit):
+        def edit(f):
+            f["accel_mps2"][...] = f["accel_mps2"][()] / 9.80665
+            f["accel_mps2"].attrs["unit"] = unit
+        return edit
+    same = report.vc_of_recording(three_modes)["vc_class"]
+    assert report.vc_of_recording(_edited(three_modes, tmp_path / "g.h5", in_g("g")))["vc_class"] == same
+    with pytest.raises(RecordingError, match="dataset accel_mps2: unit 'furlong/fortnight\\^2'"):
+        report.vc_of_recording(_edited(three_modes, tmp_path / "f.h5", in_g("furlong/fortnight^2")))
