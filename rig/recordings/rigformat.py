@@ -33,6 +33,7 @@ import numpy as np
 from rig.errors import RecordingError
 from rig.recordings.files import csv_text, file_format, open_hdf5, read_bytes, read_mat, read_table, vector
 from rig.recordings.recording import COLUMNS, Recording, validated
+from rig.recordings.runfile import unit_factor
 
 
 def load_recording(path, *, group: str | None = None, mount: int | str = 0) -> Recording:
@@ -97,7 +98,7 @@ def _read_h5(path: Path, source: str, *, group: str | None = None, mount: int | 
                 if not 0 <= idx < a.shape[1]:
                     raise RecordingError(f"{source}: mount {mount} not in {c} ({a.shape[1]} columns)")
                 a = a[:, idx]
-            cols[c] = a
+            cols[c] = a * unit_factor(g[names[c]].attrs.get("unit"), names[c], source) if a.dtype.kind in "fiu" else a
         if not bool(f.attrs.get("complete", True)):
             # rig.runtime.recorder marks a run cut short (crash, kill): keep the rows every channel has
             n = min(a.shape[0] for a in cols.values())

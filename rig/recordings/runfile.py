@@ -28,6 +28,7 @@ UNITS = {"time_s": {"s": 1.0},
          "accel_mps2": {"m/s^2": 1.0, "m/s2": 1.0, "g": 9.80665, "mm/s^2": 1e-3},
          "floor_accel_mps2": {"m/s^2": 1.0, "m/s2": 1.0, "g": 9.80665, "mm/s^2": 1e-3},
          "stroke_m": {"m": 1.0, "mm": 1e-3, "um": 1e-6},
+         "position_m": {"m": 1.0, "mm": 1e-3, "um": 1e-6},            # a chirp's transducer (rig chirp)
          "valve_cmd_V": {"V": 1.0, "mV": 1e-3}}
 MIN_SECONDS = 5.0            # shorter: too little of the floor's 1 Hz band for any claim
 STATE_ACTIVE, STATE_INACTIVE = 2.0, 1.0       # lifecycle_state codes (0 UNCONFIGURED, 1 INACTIVE, 2 ACTIVE, 3 FAULT)

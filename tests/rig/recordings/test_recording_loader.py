@@ -73,6 +73,23 @@ def test_reads_what_rig_recorder_writes(tmp_path):
     assert rec.position_m[7] == pytest.approx(1e-6 * math.sin(1 - 0.3))
 
 
+def test_a_unit_attribute_is_read_not_ignored(tmp_path):
+    """Was: a chirp whose position_m says unit = "mm" (or "furlong") identified as if in metres."""
+    import h5py
+    from rig.runtime.recorder import Channel, Recorder
+    path = tmp_path / "chirp.h5"
+    r = Recorder(path, [Channel("time_s", "s"), Channel("valve_cmd_V", "V"), Channel("position_m", "mm"),
+                        Channel("accel_mps2", "m/s^2")], rate_hz=2000.0).start()
+    for k in range(400):
+        r.push(k / 2000.0, math.sin(k / 7), 1e-3 * math.sin(k / 7 - 0.3), 0.01 * k)
+    r.close()
+    assert load_recording(path).position_m[7] == pytest.approx(1e-6 * math.sin(1 - 0.3))
+    with h5py.File(path, "r+") as f:
+        f["position_m"].attrs["unit"] = "furlong"
+    with pytest.raises(RecordingError, match="dataset position_m: unit 'furlong' \\(expected one of m, mm, um\\)"):
+        load_recording(path)
+
+
 def test_per_mount_hdf5_picks_the_mount_by_label(tmp_path):
     import h5py
     path = tmp_path / "rig.h5"
