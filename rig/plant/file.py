@@ -144,6 +144,9 @@ def parse_plant(table: dict, source: str, p0: ActuatorParams | None = None) -> P
     nn, nd = len(rest["num"]), len(rest["den"])
     if params["den0"].value == 0 or (params["den0"].free and params["den0"].lo <= 0 <= params["den0"].hi):
         raise ConfigError(f"{where} den[0]: the leading coefficient must be nonzero (and its bounds exclude 0)")
+    if all(params[f"num{i}"].value == 0 and not params[f"num{i}"].free for i in range(nn)):
+        raise ConfigError(f"{where} num: every coefficient is 0 and fixed: a plant whose output never moves "
+                          "(give the gain, or bounds to fit it)")
     if nn >= nd:
         raise ConfigError(f"{where} num: {nn} coefficients for a denominator of {nd}: the model must be strictly "
                           "proper (the position cannot follow the command within the same sample)")

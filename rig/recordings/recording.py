@@ -84,6 +84,8 @@ def mend_gaps(cols: dict[str, np.ndarray], source: str, time_label: str = "time_
     Every column of `cols` (same length as time_s) is mended alike; the samples recorded stay as they are.
     Returns (cols, one line saying what was done, "" if nothing was). A time base that is irregular in any
     other way is left for validated to name."""
+    if any(np.asarray(v).dtype.kind not in "iufb" for v in cols.values()):
+        return cols, ""                        # complex, text: validated names the column
     try:
         t = np.asarray(cols["time_s"], dtype=float)
         arrays = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
