@@ -26,8 +26,7 @@ def conclude(L: Located, t_start: float, clock) -> Diagnosis:
     unit = sensor.unit
     mm = L.mismatch
     stand = uncertainty.standings(pb, augmented, T.refit, sel.chosen, sel.round1)
-    too_long = reduction.unaffordable(pb, augmented) if sel.chosen else ""
-    bias = reduction.bias(pb, augmented) if sel.chosen and not too_long else {}   # the reduced model's own, taken off
+    bias, too_long = reduction.bias(pb, augmented) if sel.chosen else ({}, "")   # the reduced model's own, taken off
     shown = replace(augmented, fx=reduction.corrected(pb, augmented, bias))
     effects = tuple(sorted((NamedEffect(name, public_params(pb, name, shown), float(sel.stats[name]["lr_holdout"]),
                                         sel.stats[name],

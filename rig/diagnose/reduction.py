@@ -31,31 +31,24 @@ def applies(pb: Problem, f: ModelFit) -> bool:
     return all("stand" in catalogue.get(n).terms for n in catalogue.simulated(f.fx))
 
 
-def unaffordable(pb: Problem, f: ModelFit) -> str:
-    """A note when the bias applies but its full physics would take over MAX_INNER_STEPS inner steps ("" else):
-    the estimates are then shown as the reduced model fitted them."""
+def bias(pb: Problem, f: ModelFit) -> tuple[dict[str, dict[str, float]], str]:
+    """({effect: {key: bias}}, note): the reduced model's estimate less the full physics' value (empty where it
+    does not apply). The twin has no noise and no sensor terms: the fit's sensor terms are projected out as in
+    every fit. Where the full physics would take over MAX_INNER_STEPS inner steps, no bias and a note saying so:
+    the estimates are then the reduced model's own."""
     if not applies(pb, f):
-        return ""
-    steps = len(pb.cmd) * math.ceil(1.0 / (pb.fs * inner_step_s(pb.plant.params(f.lin),
-                                                                catalogue.stand_effects(catalogue.simulated(f.fx)))))
-    if steps <= MAX_INNER_STEPS:
-        return ""
-    return (f"the reduced model's bias was not checked against the full physics: at the fitted parameters that "
-            f"simulation takes {steps:.2g} inner steps (over {MAX_INNER_STEPS:.0e}); the estimates are the reduced "
-            f"model's own")
-
-
-def bias(pb: Problem, f: ModelFit) -> dict[str, dict[str, float]]:
-    """{effect: {key: bias}}: the reduced model's estimate less the full physics' value (empty where it does not
-    apply). The twin has no noise and no sensor terms: the fit's sensor terms are projected out as in every fit."""
-    if not applies(pb, f):
-        return {}
+        return {}, ""
     fx = catalogue.simulated(f.fx)
-    truth = simulate_stand(pb.plant.params(f.lin), pb.cmd, pb.fs, catalogue.stand_effects(fx),
-                           fine_near_rest=True)["position_m"]     # friction's short step only near rest: 1.5x faster
-    twin = pb.with_(y=truth)
+    p, stand = pb.plant.params(f.lin), catalogue.stand_effects(fx)
+    steps = len(pb.cmd) * math.ceil(1.0 / (pb.fs * inner_step_s(p, stand)))
+    if steps > MAX_INNER_STEPS:
+        return {}, (f"the reduced model's bias was not checked against the full physics: at the fitted parameters "
+                    f"that simulation takes {steps:.2g} inner steps (over {MAX_INNER_STEPS:.0e}); the estimates are "
+                    f"the reduced model's own")
+    truth = simulate_stand(p, pb.cmd, pb.fs, stand, fine_near_rest=True)["position_m"]   # friction's short step
+    twin = pb.with_(y=truth)                                                              # only near rest: 1.5x faster
     g = twin.fit(f.lin, f.fx, max_iter=MAX_ITER, rtol=GAIN / max(int(pb.mfit.sum()), 1))
-    return {n: {k: float(g.fx[n][k] - v) for k, v in f.fx[n].items() if np.isfinite(v)} for n in fx}
+    return {n: {k: float(g.fx[n][k] - v) for k, v in f.fx[n].items() if np.isfinite(v)} for n in fx}, ""
 
 
 def corrected(pb: Problem, f: ModelFit, b: dict) -> dict:
