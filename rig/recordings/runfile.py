@@ -18,7 +18,7 @@ import numpy as np
 from rig.config import MOUNTS
 from rig.errors import RecordingError
 from rig.recordings.files import check_file, open_hdf5
-from rig.recordings.recording import mend_gaps
+from rig.recordings.recording import PLAUSIBLE_ABS, mend_gaps
 
 REQUIRED = ("time_s", "accel_mps2", "stroke_m", "valve_cmd_V")
 OPTIONAL = ("floor_accel_mps2", "lifecycle_state", "isolation_on", "feedforward_on")
@@ -179,11 +179,16 @@ def _assemble(cols: dict, fs: float, where: str, attrs: dict) -> RunRecording:
             out[k] = np.column_stack([flat[f"{k}#{j}"] for j in range(v.shape[1])])
         else:
             out[k] = np.asarray(flat[f"{k}#0"])
-    for k in ("accel_mps2", "stroke_m", "valve_cmd_V", "floor_accel_mps2"):
+    for k, like in (("accel_mps2", "accel_mps2"), ("stroke_m", "position_m"), ("valve_cmd_V", "valve_cmd_V"),
+                    ("floor_accel_mps2", "accel_mps2")):
         if k in out and not np.all(np.isfinite(out[k])):
             bad = int(np.argmax(~np.all(np.isfinite(out[k]), axis=1)))
             raise RecordingError(f"{where}: dataset {k}: not a finite number at row {bad} (t = {out['time_s'][bad]:.6g} "
                                  f"s): cut the recording before it")
+        if k in out and (np.abs(out[k]) > PLAUSIBLE_ABS[like]).any():          # the one-channel readers' limits
+            bad = int(np.argmax((np.abs(out[k]) > PLAUSIBLE_ABS[like]).any(axis=1)))
+            raise RecordingError(f"{where}: dataset {k}: {np.abs(out[k][bad]).max():.6g} at row {bad}: not a "
+                                 f"plausible value (expected below {PLAUSIBLE_ABS[like]:g}); check its unit")
     _check_time(out["time_s"], fs, where)
     m = len(out["time_s"])
     if m / fs < MIN_SECONDS:
