@@ -1,4 +1,5 @@
-"""The small text files an operator names: a config, a --script, a reference profile, the control file.
+"""The small text files an operator names: a config, a plant file, a calibration, a modal model, a --script, a
+reference profile, the control file.
 
 One rule for all of them: a regular file of UTF-8 text, else one line naming the file. A pipe or a device is
 refused before it is opened: opening a FIFO for reading waits for a writer, and no signal ends that wait.

@@ -27,10 +27,10 @@ from pathlib import Path
 
 from rig.config import check_actuator_value, load_config
 from rig.errors import ConfigError
-from rig.textfile import read_text
 from rig.plant.model import FAMILIES, INPUT_UNITS, Param, Plant, eha_plant
 from rig.recordings.recording import Recording, check_plausible
 from rig.recordings.signalmap import SignalMap, load_recording_for
+from rig.textfile import read_text
 from sim_backend.linear import ActuatorParams
 
 AXIS_KEYS = {"mass_kg": True, "damping_n_s_per_m": True, "stiffness_n_per_m": False, "gain_n_per_unit": False}

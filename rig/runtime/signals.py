@@ -61,7 +61,6 @@ def take_held() -> int:
     return n
 
 
-
 def off_the_main_thread(command: str, work, *args):
     """work(*args) in a worker thread while the main thread waits for it. A signal's handler runs only in the
     main thread, between bytecodes, and a compiled (numba) call holds that thread until it returns: minutes on

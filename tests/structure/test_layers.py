@@ -1,7 +1,8 @@
 """The packages import downwards only (docs/ARCHITECTURE.md), checked by parsing every module's imports (ast).
 
 Layers, lowest first; a module may import its own layer and those below, never one above:
-  0 base          rig.errors, rig.textfile, rig.config, rig.port, rig.runtime.clock, rig.runtime.rt (+ idle_poll, libc), rig.runtime.lifecycle
+  0 base          rig.errors, rig.textfile, rig.config, rig.port, rig.runtime.clock, rig.runtime.rt (+ idle_poll,
+                  libc), rig.runtime.lifecycle
   1 models, maps  sim_backend physics (linear, actuator, machine, rig_plant, bench, data), drivers.protocol
   2 controllers   controllers.*  (laws, builders, design tools; may use the physics models)
   3 runtime       rig.runtime (kernel, safety, loop and its parts, recorder), recordings and their analysis;

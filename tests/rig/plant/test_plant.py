@@ -41,7 +41,7 @@ def test_no_plant_table_is_the_eha_default(tmp_path):
     ({**AXIS, "input_unit": "N", "gain_n_per_unit": 2.0}, "the gain is 1"),
     ({**AXIS, "spring": 3.0}, "spring: not a parameter"),
     ({"family": "transfer_function", "num": [1.0, 2.0], "den": [1.0, 3.0]}, "strictly proper"),
-    ({"family": "transfer_function", "num": [0.0], "den": [1.0, 3.0]}, "every coefficient is 0 and fixed"),   # was fitted
+    ({"family": "transfer_function", "num": [0.0], "den": [1.0, 3.0]}, "every coefficient is 0 and fixed"),
     ({"family": "transfer_function", "num": [1.0], "den": [0.0, 1.0, 3.0]}, "den[0]"),
     ({"family": "eha", "K_Q": {"value": 1e-6, "min": 1e-7, "max": 1e-5}}, "K_Q"),
     # found by the abuse trial: K_L = 1e300 passed and the diagnosis ended in a ValueError traceback; an eha

@@ -55,7 +55,8 @@ def test_rows_missing_are_mended_as_every_reader_does(tmp_path, rows):
     (lambda f: f["accel_mps2"].attrs.__setitem__("labels", ["rear_left", "front_right", "front_left", "rear_right"]),
      "accel_mps2: columns labelled"),
     (lambda f: f.attrs.__setitem__("rate_hz", 1000.0), "rate_hz = 1000 Hz, but time_s steps by"),   # were believed
-    (lambda f: f["time_s"].__setitem__(slice(3000, None), f["time_s"][3000:] - 0.5), "time_s: not increasing at row 3000"),
+    (lambda f: f["time_s"].__setitem__(slice(3000, None), f["time_s"][3000:] - 0.5),
+     "time_s: not increasing at row 3000"),
     (lambda f: f["time_s"].__setitem__(3000, f["time_s"][2990]), "time_s: not increasing at row 3000"),
     (lambda f: f["stroke_m"].__setitem__((100, 0), 1e300), "dataset stroke_m: 1e\\+300 at row 100: not a plausible"),
 ])
