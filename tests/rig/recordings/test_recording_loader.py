@@ -60,15 +60,19 @@ def test_round_trip_each_format(tmp_path, name):
     assert back.source == str(path)
 
 
-def test_reads_what_rig_recorder_writes(tmp_path):
+def _recorded_chirp(path, position_unit: str = "m", per_metre: float = 1.0):
+    """400 rows at 2 kHz as rig.runtime.recorder writes them, the position in `position_unit`."""
     from rig.runtime.recorder import Channel, Recorder
-    path = tmp_path / "chirp.h5"
-    r = Recorder(path, [Channel("time_s", "s"), Channel("valve_cmd_V", "V"), Channel("position_m", "m"),
+    r = Recorder(path, [Channel("time_s", "s"), Channel("valve_cmd_V", "V"), Channel("position_m", position_unit),
                         Channel("accel_mps2", "m/s^2")], rate_hz=2000.0).start()
     for k in range(400):
-        r.push(k / 2000.0, math.sin(k / 7), 1e-6 * math.sin(k / 7 - 0.3), 0.01 * k)
+        r.push(k / 2000.0, math.sin(k / 7), per_metre * 1e-6 * math.sin(k / 7 - 0.3), 0.01 * k)
     r.close()
-    rec = load_recording(path)
+    return path
+
+
+def test_reads_what_rig_recorder_writes(tmp_path):
+    rec = load_recording(_recorded_chirp(tmp_path / "chirp.h5"))
     assert rec.n == 400 and rec.fs_hz == pytest.approx(2000.0)
     assert rec.position_m[7] == pytest.approx(1e-6 * math.sin(1 - 0.3))
 
@@ -76,13 +80,7 @@ def test_reads_what_rig_recorder_writes(tmp_path):
 def test_a_unit_attribute_is_read_not_ignored(tmp_path):
     """Was: a chirp whose position_m says unit = "mm" (or "furlong") identified as if in metres."""
     import h5py
-    from rig.runtime.recorder import Channel, Recorder
-    path = tmp_path / "chirp.h5"
-    r = Recorder(path, [Channel("time_s", "s"), Channel("valve_cmd_V", "V"), Channel("position_m", "mm"),
-                        Channel("accel_mps2", "m/s^2")], rate_hz=2000.0).start()
-    for k in range(400):
-        r.push(k / 2000.0, math.sin(k / 7), 1e-3 * math.sin(k / 7 - 0.3), 0.01 * k)
-    r.close()
+    path = _recorded_chirp(tmp_path / "chirp.h5", "mm", 1e3)
     assert load_recording(path).position_m[7] == pytest.approx(1e-6 * math.sin(1 - 0.3))
     with h5py.File(path, "r+") as f:
         f["position_m"].attrs["unit"] = "furlong"
