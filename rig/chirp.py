@@ -77,19 +77,36 @@ def chirp_port_options(cfg, backend: str, dt: float, *, seed: int | None = None,
     return {}
 
 
+OPTIONS = {"amplitude": "--amplitude", "f0/f1": "--f0/--f1", "duration": "--duration", "f1": "--f1"}  # rig chirp's
+
+
+def chirp_rate(cfg, backend: str, rate_hz: float | None = None) -> float:
+    """The chirp's sample rate: as given, else the HIL rate on the emulated rig, the loop's elsewhere."""
+    return float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+
+
+def check_chirp(cfg, backend: str, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float,
+                names: dict = OPTIONS) -> None:
+    """A sine sweep's request checked as run_chirp checks it, before anything stops or starts (the console's
+    page asks with its own field names)."""
+    _check_signal(cfg, chirp_rate(cfg, backend), amplitude_V, f0_hz, f1_hz, duration_s,
+                  2 * math.pi * f1_hz * amplitude_V, names)
+
+
 def _check_signal(cfg, rate: float, amplitude_V: float, f0_hz: float, f1_hz: float, duration_s: float,
-                  slew_V_per_s: float) -> None:
+                  slew_V_per_s: float, names: dict = OPTIONS) -> None:
     """The signal within the safety limits and below Nyquist (one line naming the option otherwise)."""
     if not 0 < amplitude_V <= cfg.safety.valve_limit_V:            # (so NaN is refused too)
-        raise RigError(f"--amplitude: expected 0 < V <= safety.valve_limit_V = {cfg.safety.valve_limit_V:g}, "
-                       f"got {amplitude_V:g}")
+        raise RigError(f"{names['amplitude']}: expected 0 < V <= safety.valve_limit_V = "
+                       f"{cfg.safety.valve_limit_V:g}, got {amplitude_V:g}")
     if not 0 <= f0_hz < f1_hz < rate / 2:
-        raise RigError(f"--f0/--f1: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, {f1_hz:g}")
-    if not duration_s > 0:
-        raise RigError(f"--duration: expected > 0 s, got {duration_s:g}")
+        raise RigError(f"{names['f0/f1']}: expected 0 <= f0 < f1 < rate/2 = {rate / 2:g} Hz, got {f0_hz:g}, "
+                       f"{f1_hz:g}")
+    if not 0 < duration_s <= cliargs.MAX_CHIRP_S:
+        raise RigError(f"{names['duration']}: expected 0 < s <= {cliargs.MAX_CHIRP_S:g}, got {duration_s:g}")
     if slew_V_per_s > cfg.safety.slew_V_per_s:
-        raise RigError(f"--amplitude/--f1: the chirp slews {slew_V_per_s:.0f} V/s, above safety.slew_V_per_s = "
-                       f"{cfg.safety.slew_V_per_s:g}")
+        raise RigError(f"{names['amplitude']}/{names['f1']}: the chirp slews {slew_V_per_s:.0f} V/s, above "
+                       f"safety.slew_V_per_s = {cfg.safety.slew_V_per_s:g}")
 
 
 def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: float = 0.1, f1_hz: float = 100.0,
@@ -102,7 +119,7 @@ def run_chirp(cfg, *, backend: str = "sim", amplitude_V: float = 2.0, f0_hz: flo
     (both from rig.excitation, played back sample by sample).
     progress: optional callable(t_s, total_s) polled from a helper thread; on_session: optional
     callable(session) once the session is built (a console stops it safely from another thread)."""
-    rate = float(rate_hz or (cfg.hil.rate_hz if backend == "hil" else cfg.loop.rate_hz))
+    rate = chirp_rate(cfg, backend, rate_hz)
     cliargs.check_rate(cfg, rate, sections=("stand",))
     if backend == "hil":
         # driver threads deliver samples asynchronously: HIL runs use their own stale limit, watchdog and rate

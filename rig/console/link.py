@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rig.chirp import check_chirp
 from rig.identify import UNITS
 from rig.config import MOUNTS
 from rig.console.live import LiveRing
@@ -60,6 +61,7 @@ LINK_PRIORITY = 40
 # the web server's niceness in a real-time run: ahead of ordinary processes, so that the page keeps its update
 # rate and a click its quick answer on a busy machine (its work is a few ms per update, at 20 updates a second)
 SERVER_NICE = -10
+PAGE_NAMES = {"amplitude": "amplitude_V", "f0/f1": "f0_hz/f1_hz", "duration": "duration_s", "f1": "f1_hz"}
 READY_TIMEOUT_S = 120.0        # the web server's start-up (its imports) on a very busy machine
 
 
@@ -610,6 +612,10 @@ class Console:
             return False, f"in FAULT ({s.loop.lc.fault_reason}): reset the fault first"
         if self.backend != "sim" and mount not in MOUNTS:
             return False, f"mount: expected one of {', '.join(MOUNTS)}, got {mount!r}"
+        try:                                     # refused before the run is stopped: a typo keeps isolation on
+            check_chirp(self.cfg, self.backend, amplitude_V, f0_hz, f1_hz, duration_s, PAGE_NAMES)
+        except RigError as e:
+            return False, f"chirp: {e}"
         self.job = self.shown_job = Job(amplitude_V, f0_hz, f1_hz, duration_s, mount,
                                         resume_active=s.loop.state is State.ACTIVE, text="stopping the run")
         s.safe_stop("console: chirp identification")

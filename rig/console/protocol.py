@@ -42,7 +42,7 @@ def check_command(msg) -> tuple[str, dict] | str:
     if not isinstance(msg, dict):
         return "a command is a JSON object {\"cmd\": name, \"args\": {...}}"
     name = msg.get("cmd")
-    if name not in COMMANDS:
+    if not isinstance(name, str) or name not in COMMANDS:
         return f"unknown command {name!r} (expected one of {', '.join(COMMANDS)})"
     spec, _ = COMMANDS[name]
     args = msg.get("args") or {}

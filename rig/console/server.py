@@ -46,6 +46,7 @@ TICK_S = 0.05                  # the page's update period (20 Hz)
 COOKIE = "rig_console_token"
 COMMAND_TIMEOUT_S = 30.0       # a recording start waits for its writer process
 EXTRA_TICKS_S = (0.005, 0.025)  # extra updates after a command (a recording's rows arrive every 20 ms)
+MAX_BODY = 64 * 1024           # a command's JSON: the longest well-formed one (a 4096-character path) is ~4.2 kB
 log = logging.getLogger("rig.console.server")
 
 
@@ -236,6 +237,17 @@ def _pct(a) -> dict:
     return {"p50": round(float(p50), 2), "p99": round(float(p99), 2), "max": round(float(max(a)), 2)}
 
 
+def _json(data: str | bytes | None):
+    """A command message from the page's text; None for what is not JSON (or too long, or nested past
+    Python's recursion limit): check_command then says what a command is."""
+    if data is None or len(data) > MAX_BODY:
+        return None
+    try:
+        return json.loads(data)
+    except (ValueError, RecursionError):
+        return None
+
+
 def _finite(o):
     """JSON has no NaN or infinity (a sensor reading NaN is a fault the page must show): null in their place."""
     if isinstance(o, float):
@@ -307,11 +319,12 @@ class _Site:
     async def api_command(self, request: Request) -> Response:
         if not self.allowed(request):
             return self.forbidden()
-        try:
-            msg = await request.json()
-        except ValueError:
-            msg = None
-        reply = await self.state.command(msg, f"http {request.client.host}:{request.client.port}")
+        body = b""
+        async for chunk in request.stream():     # read no further than a command can be long
+            body += chunk
+            if len(body) > MAX_BODY:
+                return JSONResponse({"ok": False, "text": f"a command is at most {MAX_BODY} bytes"}, status_code=413)
+        reply = await self.state.command(_json(body), f"http {request.client.host}:{request.client.port}")
         code = 200 if reply["ok"] else (403 if self.state.read_only else 409)
         return JSONResponse(reply, status_code=code)
 
@@ -329,10 +342,9 @@ class _Site:
         pump = asyncio.create_task(client.pump())
         try:
             while True:
-                text = await ws.receive_text()
                 try:
-                    msg = json.loads(text)
-                except ValueError:
+                    msg = _json(await ws.receive_text())
+                except KeyError:                 # a binary frame: not a command
                     msg = None
                 reply = await state.command(msg, who)
                 reply.update(type="reply", id=msg.get("id") if isinstance(msg, dict) else None)
