@@ -98,6 +98,7 @@ def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
     with _one_thread_each():
         pool = ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=get_context("spawn"),
                                    initializer=_start_worker, initargs=(os.getpid(), _log_format()))
+        whole = False
         try:
             futs = {pool.submit(fn, *args): i for i, (fn, args) in enumerate(tasks)}
             for fut in as_completed(futs):
@@ -105,7 +106,11 @@ def _local(tasks: list[Task], workers: int) -> Iterator[tuple[int, object]]:
                     yield futs[fut], fut.result()
                 except Exception as e:              # noqa: BLE001 -- a task's exception, or its process died
                     yield futs[fut], e
+            whole = True
         finally:
+            if not whole:       # Ctrl-C, SIGTERM, or the caller stopped reading: no recording goes on (nor one
+                for proc in list(pool._processes.values()):   # already queued starts) that nobody will collect
+                    proc.terminate()
             pool.shutdown(wait=True, cancel_futures=True)
 
 

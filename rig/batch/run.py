@@ -16,6 +16,7 @@ The rules:
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import json
@@ -32,6 +33,7 @@ from typing import Callable
 from rig.batch import inputs, pool, summary
 from rig.errors import RigError
 from rig.runtime.libc import LIBC
+from rig.runtime.signals import Terminated
 
 MANIFEST = "batch.json"
 MARKER = "batch_row.json"         # written last: the recording is done
@@ -221,7 +223,7 @@ def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, 
         if client is not None:
             _check_shared(client, out_root, paths)
         _run_all(todo, job, paths, names, out_root, run_id, workers, client, record)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated):      # the rows done so far: a current summary
         summary.write(out_root, job.command, [r for r in rows if r is not None])
         raise
     finally:
@@ -235,7 +237,8 @@ def run_batch(job: Job, paths: list[Path], out_root: Path, *, workers: int = 1, 
 
 def _run_all(todo, job: Job, paths, names, out_root: Path, run_id: str, workers: int, client, record) -> None:
     """The recordings not done yet, longest first (the last to finish are short ones: the workers end together),
-    again on a fresh pool for those a dead worker process took down with it."""
+    again on a fresh pool for those a dead worker process took down with it. The pool is closed before an
+    interrupt goes on up: its workers are stopped then, not when the interpreter exits."""
     todo = sorted(todo, key=lambda ik: -ik[1]["size"])
     for _attempt in range(len(todo) + 1):
         if not todo:
@@ -243,14 +246,15 @@ def _run_all(todo, job: Job, paths, names, out_root: Path, run_id: str, workers:
         tasks = [(run_one, (job.work, str(paths[i]), str(out_root / names[i]), names[i], key, run_id))
                  for i, key in todo]
         broken = []
-        for k, outcome in pool.run_tasks(tasks, workers=workers, client=client):
-            i, key = todo[k]
-            if isinstance(outcome, BrokenProcessPool):
-                broken.append((i, key))
-            elif isinstance(outcome, BaseException):
-                record(i, _failed_row(names[i], str(paths[i]), _died(outcome), run_id))
-            else:
-                record(i, outcome)
+        with contextlib.closing(pool.run_tasks(tasks, workers=workers, client=client)) as outcomes:
+            for k, outcome in outcomes:
+                i, key = todo[k]
+                if isinstance(outcome, BrokenProcessPool):
+                    broken.append((i, key))
+                elif isinstance(outcome, BaseException):
+                    record(i, _failed_row(names[i], str(paths[i]), _died(outcome), run_id))
+                else:
+                    record(i, outcome)
         todo = _after_break(broken, out_root, names, paths, run_id, record)
 
 

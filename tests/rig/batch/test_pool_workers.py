@@ -30,6 +30,11 @@ BATCH = textwrap.dedent("""
 """)
 
 
+BATCH_HELD = BATCH.replace('if __name__ == "__main__":', 'if __name__ == "__main__":\n'
+                                                             '    from rig.runtime.signals import hold_early\n'
+                                                             '    hold_early()')
+
+
 def _alive(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -38,10 +43,13 @@ def _alive(pid: int) -> bool:
         return False
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
-def test_the_workers_end_with_the_batch(tmp_path, sig):
+@pytest.mark.parametrize("sig, held", [(signal.SIGTERM, False), (signal.SIGKILL, False), (signal.SIGTERM, True),
+                                       (signal.SIGINT, True)])
+def test_the_workers_end_with_the_batch(tmp_path, sig, held):
+    """held: the signal turned into an exception, as `rig diagnose` does (rig/runtime/signals.py hold_early): was,
+    the batch then waited for its workers' recordings to end (and started one already queued), 2 minutes here."""
     script = tmp_path / "batch.py"
-    script.write_text(BATCH)
+    script.write_text(BATCH_HELD if held else BATCH)
     pids_dir = tmp_path / "pids"
     pids_dir.mkdir()
     env = {**os.environ, "PYTHONPATH": str(REPO)}
