@@ -49,7 +49,9 @@ def CentringP(kp_V_per_m: float = 2e4, dt: float = 2e-4) -> TrackingPID:
     return TrackingPID(PIDParams(kp_V_per_m, 0.0, 0.0, 1000.0, math.inf, math.inf), dt)
 
 
-def _default_sigint() -> None:
+def default_sigint() -> None:
+    """SIGINT at its default in a child (preexec_fn), as a command typed at a terminal has it: a job a shell starts
+    in the background (a CI runner's, say) inherits SIGINT ignored, and Python then keeps it ignored."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
@@ -62,7 +64,7 @@ class Command:
         (a Ctrl-C there reaches the whole group: os.killpg(proc.pid, SIGINT))."""
         self.proc = subprocess.Popen([sys.executable, "-m", "rig.cli", *args], stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True, env=env, start_new_session=own_group,
-                                     preexec_fn=_default_sigint if own_group else None)
+                                     preexec_fn=default_sigint if own_group else None)
         self.lines: list[str] = []
         self._closed = False
         self._seen = threading.Condition()

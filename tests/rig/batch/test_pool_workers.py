@@ -12,6 +12,7 @@ import time
 import pytest
 
 from tests.paths import REPO
+from tests.rig.support import default_sigint
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 
@@ -53,7 +54,8 @@ def test_the_workers_end_with_the_batch(tmp_path, sig, held):
     pids_dir = tmp_path / "pids"
     pids_dir.mkdir()
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, str(script), str(pids_dir)], cwd=tmp_path, env=env)
+    proc = subprocess.Popen([sys.executable, str(script), str(pids_dir)], cwd=tmp_path, env=env,
+                            preexec_fn=default_sigint)
     try:
         t0 = time.monotonic()
         while len(list(pids_dir.iterdir())) < 2 and time.monotonic() - t0 < 120:

@@ -11,6 +11,7 @@ import time
 import pytest
 
 from tests.paths import REPO
+from tests.rig.support import default_sigint
 
 SPIN = """
 import sys
@@ -36,7 +37,7 @@ else:
 
 def _signal_a_busy_process(where: str, sig: int) -> tuple[int | None, float, str]:
     p = subprocess.Popen([sys.executable, "-c", SPIN, where], cwd=REPO, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint)
     try:
         assert p.stdout.readline().strip() == "busy"
         time.sleep(0.3)
