@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rig.runtime.recorder import read_recording
+from tests.rig.support import default_sigint
 
 pytest.importorskip("controllers.isolation")
 pytest.importorskip("sim_backend.rig_plant")
@@ -125,12 +126,6 @@ def test_recording_survives_kill_9_of_the_whole_process_group(tmp_path):
 SAID = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "interrupted (SIGTERM)")}
 
 
-def _as_at_a_terminal() -> None:
-    """SIGINT at its default in the child, as a command typed at a terminal has it: a job a shell starts in the
-    background (a CI runner's, say) inherits SIGINT ignored, and Python then keeps it ignored."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _handles_sigterm(pid: int, timeout: float = 60.0) -> None:
     """Wait until the process has a handler for SIGTERM (its SigCgt mask): rig.cli's main has begun, and the
     command's imports follow (a second or two before any session)."""
@@ -150,7 +145,7 @@ def test_a_signal_during_the_imports_says_one_line(tmp_path, sig):
     said `rig run: interrupted`. Now both say one line of the same form, each with its own exit status."""
     proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--sim-time", "--seconds", "5",
                              "--record", str(tmp_path / "never.h5")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=tmp_path, preexec_fn=_as_at_a_terminal)
+                            text=True, cwd=tmp_path, preexec_fn=default_sigint)
     _handles_sigterm(proc.pid)
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=60)
@@ -169,7 +164,7 @@ def test_a_signal_during_the_closing_figures_says_one_line_and_keeps_the_recordi
     proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "run", "--layout", "prototype", "--sim-time",
                              "--seconds", "1", "--record", str(rec), "--plot", str(tmp_path / "run.png")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                            preexec_fn=_as_at_a_terminal)
+                            preexec_fn=default_sigint)
     lines = []
     for ln in proc.stderr:
         lines.append(ln)
